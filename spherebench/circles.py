@@ -1,0 +1,139 @@
+"""Spheres seen as 2D circles: the ground-truth rule and the two projection rules of a detection.
+
+Every 2D circle here is (cx, cy, r) in pixels, with the pixel-centre convention of
+``spherebench.camera`` (u = column, v = row).
+
+- ``mask_circle``: CircleNet's rule for turning a mask into a circle, the smallest enclosing
+  circle of the mask's pixel centres (OpenCV). Along a long boundary some pixel centre lies
+  almost on the true outline, so this circle is within a few tenths of a pixel of the true
+  silhouette's (measured in tests/test_circles.py); growing it by half a pixel overshoots.
+- ``sphere_circle_paper``: the paper's rule (Table 3): project the centre, and a point R to
+  its left at the same depth; the pixel distance is the radius.
+- ``sphere_circle_exact``: the sphere's true silhouette (an ellipse in a pinhole image, wider
+  off-axis) rasterised and reduced to a circle by ``mask_circle``, as the ground truth is.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from spherebench.camera import Intrinsics, pixel_rays, project
+
+def mask_circle(mask: np.ndarray) -> tuple[float, float, float] | None:
+    """Smallest enclosing circle (cx, cy, r) px of a boolean mask (H, W); None if empty."""
+    m = np.asarray(mask).astype(np.uint8)
+    if not m.any():
+        return None
+    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    pts = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float32)
+    (cx, cy), r = cv2.minEnclosingCircle(pts)
+    return float(cx), float(cy), float(r)
+
+
+def sphere_circle_paper(intr: Intrinsics, center_m, radius_m: float) -> tuple[float, float, float] | None:
+    """The paper's rule: centre projected, radius = pixel distance to the point R to its left."""
+    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    if c[2] <= 0:
+        return None
+    uv = project(intr, np.stack([c, c - np.array([radius_m, 0.0, 0.0])]))
+    (cx, cy), (lx, ly) = uv
+    return float(cx), float(cy), float(math.hypot(cx - lx, cy - ly))
+
+
+def sphere_silhouette_mask(intr: Intrinsics, center_m, radius_m: float) -> np.ndarray:
+    """Pixels (H, W) bool whose centre ray meets the sphere: its full, unoccluded silhouette.
+
+    A ray meets the sphere iff its angle to the centre's direction is at most asin(R / |c|).
+    Exact under the intrinsics' distortion model too, since rays come from ``pixel_rays``.
+    """
+    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    mask = np.zeros(intr.shape, dtype=bool)
+    dist = float(np.linalg.norm(c))
+    if dist <= radius_m:  # camera inside the ball: every forward ray meets it
+        mask[:] = True
+        return mask
+    box = _silhouette_box(intr, c, radius_m)
+    if box is None:
+        return mask
+    u0, v0, u1, v1 = box
+    v, u = np.mgrid[v0:v1 + 1, u0:u1 + 1]
+    rays = pixel_rays(intr, u.astype(np.float64), v.astype(np.float64))
+    cos_ray = (rays @ c) / (np.linalg.norm(rays, axis=-1) * dist)
+    mask[v0:v1 + 1, u0:u1 + 1] = cos_ray >= math.sqrt(1.0 - (radius_m / dist) ** 2)
+    return mask
+
+
+def _silhouette_box(intr: Intrinsics, c: np.ndarray, radius_m: float):
+    """Integer pixel box (u0, v0, u1, v1) holding the silhouette, clipped to the image; None if outside."""
+    if c[2] <= radius_m:  # the silhouette reaches the image border or beyond: scan the whole image
+        return 0, 0, intr.width - 1, intr.height - 1
+    # extreme points of the sphere seen from the camera, sampled round the limb, projected
+    dist = np.linalg.norm(c)
+    axis = c / dist
+    a = np.cross(axis, [0.0, 1.0, 0.0] if abs(axis[1]) < 0.9 else [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(axis, a)
+    sin_t = radius_m / dist
+    cos_t = math.sqrt(1.0 - sin_t * sin_t)
+    phi = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    # limb circle: points on the sphere where rays are tangent
+    limb = (c[None, :] - radius_m * sin_t * axis[None, :]
+            + radius_m * cos_t * (np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * b))
+    if np.any(limb[:, 2] <= 1e-6):
+        return 0, 0, intr.width - 1, intr.height - 1
+    uv = project(intr, limb)
+    pad = 2 + 0.05 * (uv.max(0) - uv.min(0)).max()  # the polygon of 64 limb points under-reaches slightly
+    u0 = max(0, int(math.floor(uv[:, 0].min() - pad)))
+    v0 = max(0, int(math.floor(uv[:, 1].min() - pad)))
+    u1 = min(intr.width - 1, int(math.ceil(uv[:, 0].max() + pad)))
+    v1 = min(intr.height - 1, int(math.ceil(uv[:, 1].max() + pad)))
+    if u0 > u1 or v0 > v1:
+        return None
+    return u0, v0, u1, v1
+
+
+def sphere_circle_exact(intr: Intrinsics, center_m, radius_m: float) -> tuple[float, float, float] | None:
+    """The silhouette's smallest enclosing circle (the ground truth's rule), clipped to the image."""
+    return mask_circle(sphere_silhouette_mask(intr, center_m, radius_m))
+
+
+def sphere_circle_amodal(intr: Intrinsics, center_m, radius_m: float) -> tuple[float, float, float] | None:
+    """Smallest enclosing circle of the whole silhouette ellipse, not clipped to the image.
+
+    For an undistorted pinhole with fx = fy the silhouette is an ellipse whose major axis is
+    radial: its ends lie at angles theta -/+ alpha from the optical axis (theta: the centre's
+    angle off axis, alpha = asin(R / |c|)); the enclosing circle is centred on the ellipse with
+    the semi-major axis as radius. With distortion or fx != fy, the silhouette is rasterised on
+    an enlarged canvas instead. None when the ball is not wholly in front of the camera.
+    """
+    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    dist = float(np.linalg.norm(c))
+    if dist <= radius_m:
+        return None
+    alpha = math.asin(radius_m / dist)
+    theta = math.acos(max(-1.0, min(1.0, c[2] / dist)))
+    if theta + alpha >= math.pi / 2 - 1e-6:
+        return None
+    if intr.has_distortion or abs(intr.fx - intr.fy) > 1e-9 * intr.fx:
+        pad_w, pad_h = intr.width, intr.height
+        big = Intrinsics(width=3 * intr.width, height=3 * intr.height, ppx=intr.ppx + pad_w, ppy=intr.ppy + pad_h,
+                         fx=intr.fx, fy=intr.fy, model=intr.model, coeffs=intr.coeffs, depth_scale=intr.depth_scale)
+        circ = mask_circle(sphere_silhouette_mask(big, c, radius_m))
+        return None if circ is None else (circ[0] - pad_w, circ[1] - pad_h, circ[2])
+    near, far = math.tan(theta - alpha), math.tan(theta + alpha)
+    rho = math.hypot(c[0], c[1])
+    dirx, diry = (c[0] / rho, c[1] / rho) if rho > 0 else (1.0, 0.0)
+    mid = 0.5 * (near + far)
+    return (intr.ppx + intr.fx * mid * dirx, intr.ppy + intr.fy * mid * diry, 0.5 * intr.fx * (far - near))
+
+
+def circle_from_points(points_px: np.ndarray) -> tuple[float, float, float] | None:
+    """Smallest enclosing circle of 2D points (N, 2) px, e.g. a polygon annotation."""
+    pts = np.asarray(points_px, dtype=np.float32).reshape(-1, 2)
+    if len(pts) == 0:
+        return None
+    (cx, cy), r = cv2.minEnclosingCircle(pts)
+    return float(cx), float(cy), float(r)
