@@ -1,0 +1,40 @@
+# SphereBench: `make eval` builds everything it needs, from a fresh clone. `make test` runs the tests.
+SHELL := /bin/bash
+PY := .venv/bin/python
+SB := .venv/bin/spherebench
+DATA := data
+SEED := 0
+WORKERS ?= 2
+
+.PHONY: eval test venv data data-hard data-train realdata bench train eval-real clean distclean
+
+# ---- environment: the virtual environment, created when missing
+venv: .venv/.installed
+.venv/.installed: pyproject.toml
+	@bash scripts/system_deps.sh
+	@test -x $(PY) || python3 -m venv .venv
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test]"
+	@touch $@
+
+# ---- data: simulated presets, built once and cached (delete data/ to rebuild)
+data: $(DATA)/default/coco_gt.json $(DATA)/paper/coco_gt.json
+data-hard: $(DATA)/hard/coco_gt.json
+data-train: $(DATA)/train/coco_gt.json
+
+$(DATA)/%/coco_gt.json: | venv
+	$(SB) generate --preset $* --out $(DATA)/$* --seed $(SEED) --workers $(WORKERS)
+
+# ---- the benchmark
+eval: venv data data-hard
+	@echo "data ready: $(DATA)/default, $(DATA)/paper, $(DATA)/hard"
+
+test: venv
+	$(PY) -m pytest -q
+
+clean:
+	rm -rf .pytest_cache build *.egg-info
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+
+distclean: clean
+	rm -rf .venv $(DATA)

@@ -1,0 +1,721 @@
+"""Every file format of SphereBench, in one module (as the BOP toolkit's inout.py).
+
+Dataset layout (simulated and recorded alike)::
+
+    DIR/dataset.json              name, preset, ball radius (m), category, seed, versions
+    DIR/coco_gt.json              COCO ground truth with CircleNet's circle fields
+    DIR/scenes/<scene_id>/
+        depth.png                 uint16, counts of depth_scale (0 = no depth)
+        intrinsics.json           pyrealsense2's rs.intrinsics fields + depth_scale
+        cloud.ply                 binary PLY: float32 x, y, z (m) [+ int32 row, col]
+        image.png                 the depth colourised (datasets.reproject): 2D methods' input
+        gt.json                   balls (3D centre, radius, circles, visibility), family, seed
+        mask_<k>.png              visible mask of ball k (255 = ball)
+        silhouette_<k>.png        full silhouette of ball k (simulated scenes)
+
+Writes are atomic: a file is written to a temporary name and renamed; a scene folder and a whole
+dataset are built under a temporary name and renamed when complete, so an interrupted or failed
+run leaves nothing half-written behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+from plyfile import PlyData, PlyElement
+
+from spherebench.camera import Intrinsics
+from spherebench.cloud import Cloud
+from spherebench.datasets.reproject import colorize_depth
+from spherebench.datasets.scene import Ball, Scene
+from spherebench.errors import SphereBenchError
+
+CATEGORY_ID = 1
+DEFAULT_CATEGORY = "basketball"
+
+
+# --------------------------------------------------------------------------- atomic writes
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".tmp-{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def write_json(path: str | Path, obj, indent: int | None = 1) -> None:
+    """JSON, atomically; floats as Python writes them (shortest repr: byte-stable)."""
+    atomic_write_bytes(path, (json.dumps(obj, indent=indent, sort_keys=False) + "\n").encode())
+
+
+def read_json(path: str | Path):
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise SphereBenchError(f"{path}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SphereBenchError(f"{path}: not valid JSON ({exc}); is the file truncated?") from None
+
+
+@contextlib.contextmanager
+def atomic_directory(final: str | Path):
+    """Yield a temporary sibling folder; on success it replaces ``final``, on error it is removed."""
+    final = Path(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{final.name}.", dir=final.parent))
+    try:
+        yield tmp
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+# --------------------------------------------------------------------------- images
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """uint8/uint16 image (grey or BGR) -> PNG, atomically."""
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image))
+    if not ok:
+        raise SphereBenchError(f"{path}: OpenCV could not encode this image as PNG")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise SphereBenchError(f"{path}: file not found")
+    data = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(data, flags) if data.size else None
+    if img is None:
+        raise SphereBenchError(f"{path}: not a readable image (corrupt or truncated?)")
+    return img
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """A reprojected image (H, W, 3) uint8 BGR; a scene folder gives its image.png."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "image.png"
+    img = _imread(path, cv2.IMREAD_COLOR)
+    return img
+
+
+def write_depth_png(path: str | Path, depth: np.ndarray) -> None:
+    """(H, W) uint16 depth counts -> 16-bit PNG."""
+    d = np.asarray(depth)
+    if d.dtype != np.uint16 or d.ndim != 2:
+        raise SphereBenchError(f"{path}: depth must be a 2D uint16 array, got {d.dtype} {d.shape}")
+    write_png(path, d)
+
+
+def read_depth_png(path: str | Path) -> np.ndarray:
+    """16-bit single-channel PNG -> (H, W) uint16 depth counts."""
+    path = Path(path)
+    d = _imread(path, cv2.IMREAD_UNCHANGED)
+    if d.ndim != 2 or d.dtype != np.uint16:
+        raise SphereBenchError(f"{path}: a depth PNG must be 16-bit single-channel, this one is "
+                               f"{d.dtype} with shape {d.shape} (a colourised image is not depth)")
+    return d
+
+
+def write_mask_png(path: str | Path, mask: np.ndarray) -> None:
+    write_png(path, np.asarray(mask, dtype=bool).astype(np.uint8) * 255)
+
+
+def read_mask_png(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """A mask PNG (any depth; non-zero = inside) -> (H, W) bool, checked against ``shape``."""
+    path = Path(path)
+    m = _imread(path, cv2.IMREAD_UNCHANGED)
+    if m.ndim == 3:
+        m = m[..., :3].max(axis=2) if m.shape[2] >= 3 else m[..., 0]
+    if shape is not None and m.shape[:2] != tuple(shape):
+        raise SphereBenchError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but the depth image is "
+                               f"{shape[1]}x{shape[0]}: masks must be drawn on the scene's own image")
+    return m > 0
+
+
+# --------------------------------------------------------------------------- intrinsics
+
+def write_intrinsics(path: str | Path, intr: Intrinsics) -> None:
+    write_json(path, intr.to_dict())
+
+
+def read_intrinsics(path: str | Path) -> Intrinsics:
+    """intrinsics.json (pyrealsense2 field names; a scene folder gives its own)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "intrinsics.json"
+    d = read_json(path)
+    if not isinstance(d, dict):
+        raise SphereBenchError(f"{path}: intrinsics must be a JSON object with width, height, ppx, ppy, fx, fy")
+    try:
+        return Intrinsics.from_dict(d)
+    except SphereBenchError as exc:
+        raise SphereBenchError(f"{path}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- point clouds
+
+def write_cloud_ply(path: str | Path, cloud: Cloud) -> None:
+    """Binary PLY: float32 x, y, z (m) and, for organised clouds, int32 row, col per point."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if cloud.rows is not None:
+        fields += [("row", "<i4"), ("col", "<i4")]
+    v = np.empty(len(cloud), dtype=fields)
+    v["x"], v["y"], v["z"] = cloud.points[:, 0], cloud.points[:, 1], cloud.points[:, 2]
+    if cloud.rows is not None:
+        v["row"], v["col"] = cloud.rows, cloud.cols
+    _write_ply_vertices(path, v)
+
+
+def write_ply(path: str | Path, points_m: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Binary PLY of points (N, 3) m with optional colours (N, 3) uint8 RGB, for MeshLab."""
+    p = np.asarray(points_m, dtype=np.float32).reshape(-1, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    v = np.empty(len(p), dtype=fields)
+    v["x"], v["y"], v["z"] = p[:, 0], p[:, 1], p[:, 2]
+    if colors is not None:
+        c = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+        v["red"], v["green"], v["blue"] = c[:, 0], c[:, 1], c[:, 2]
+    _write_ply_vertices(path, v)
+
+
+def _write_ply_vertices(path: str | Path, vertices: np.ndarray) -> None:
+    import io as _io
+    buf = _io.BytesIO()
+    PlyData([PlyElement.describe(vertices, "vertex")], byte_order="<").write(buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def read_ply(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
+    """PLY (ASCII or binary) -> Cloud; organised when the vertices carry row and col."""
+    path = Path(path)
+    if not path.is_file():
+        raise SphereBenchError(f"{path}: file not found")
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"].data
+        pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    except (KeyError, ValueError) as exc:
+        raise SphereBenchError(f"{path}: not a PLY point cloud with x, y, z vertices ({exc})") from None
+    except Exception as exc:  # plyfile raises several types on truncated data
+        raise SphereBenchError(f"{path}: unreadable PLY, corrupt or truncated ({type(exc).__name__}: {exc})") from None
+    names = v.dtype.names
+    if "row" in names and "col" in names:
+        return Cloud(pts, v["row"], v["col"], intrinsics)
+    return Cloud(pts, intrinsics=intrinsics)
+
+
+def read_xyz(path: str | Path) -> Cloud:
+    """Plain-text point list, one 'x y z [...]' per line (metres), unorganised."""
+    path = Path(path)
+    if not path.is_file():
+        raise SphereBenchError(f"{path}: file not found")
+    try:
+        data = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", usecols=(0, 1, 2))
+    except (ValueError, IndexError) as exc:
+        raise SphereBenchError(f"{path}: not an XYZ text file with three numbers per line ({exc})") from None
+    return Cloud(data.astype(np.float32))
+
+
+CLOUD_READERS = {".ply": read_ply, ".xyz": read_xyz, ".txt": read_xyz}
+
+
+def load_cloud(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
+    """A cloud from a PLY/PCD/XYZ file or a scene folder (which supplies its own intrinsics)."""
+    path = Path(path)
+    if path.is_dir():
+        if not (path / "cloud.ply").is_file():
+            raise SphereBenchError(f"{path}: a folder must be a scene folder with cloud.ply in it")
+        intr = intrinsics
+        if intr is None and (path / "intrinsics.json").is_file():
+            intr = read_intrinsics(path / "intrinsics.json")
+        return read_ply(path / "cloud.ply", intr)
+    reader = CLOUD_READERS.get(path.suffix.lower())
+    if reader is None:
+        raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' "
+                               f"(use {', '.join(sorted(CLOUD_READERS))} or a scene folder)")
+    cloud = reader(path) if reader is not read_ply else read_ply(path, intrinsics)
+    if intrinsics is not None and cloud.intrinsics is None:
+        cloud.intrinsics = intrinsics
+    return cloud
+
+
+# --------------------------------------------------------------------------- scenes
+
+def _circle(c) -> list[float] | None:
+    return None if c is None else [float(x) for x in c]
+
+
+def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, write_cloud: bool = True) -> Path:
+    """Write one scene folder atomically under ``scenes_dir``; returns its path.
+
+    write_cloud=False leaves cloud.ply out (it is depth.png deprojected; the training split of
+    learned 2D baselines has no use for it and it is most of a scene's size)."""
+    final = Path(scenes_dir) / scene.scene_id
+    with atomic_directory(final) as tmp:
+        balls = []
+        for k, ball in enumerate(scene.balls):
+            entry = {
+                "center_m": None if ball.center_m is None else [float(x) for x in ball.center_m],
+                "radius_m": float(ball.radius_m),
+                "visible_fraction": None if ball.visible_fraction is None else float(ball.visible_fraction),
+                "circle": _circle(ball.circle_px),
+                "amodal_circle": _circle(ball.amodal_circle_px),
+                "mask": None,
+                "silhouette": None,
+            }
+            if ball.mask is not None:
+                entry["mask"] = f"mask_{k}.png"
+                write_mask_png(tmp / entry["mask"], ball.mask)
+            if ball.silhouette is not None:
+                entry["silhouette"] = f"silhouette_{k}.png"
+                write_mask_png(tmp / entry["silhouette"], ball.silhouette)
+            balls.append(entry)
+        gt = {"scene_id": scene.scene_id, "family": scene.family, "seed": scene.seed,
+              "annotated": bool(scene.annotated), "ball_radius_m": float(ball_radius_m),
+              "has_image": scene.depth is not None, "balls": balls, "meta": scene.meta}
+        if scene.depth is not None:
+            write_depth_png(tmp / "depth.png", scene.depth)
+            write_png(tmp / "image.png", colorize_depth(scene.depth_m()))
+        if scene.intrinsics is not None:
+            write_intrinsics(tmp / "intrinsics.json", scene.intrinsics)
+        if write_cloud or scene.depth is None:
+            write_cloud_ply(tmp / "cloud.ply", scene.to_cloud())
+        write_json(tmp / "gt.json", gt)
+    return final
+
+
+def read_scene(scene_dir: str | Path, load_masks: bool = True) -> Scene:
+    """A scene folder -> Scene (depth, intrinsics, balls with masks)."""
+    scene_dir = Path(scene_dir)
+    gt = read_json(scene_dir / "gt.json")
+    intr = read_intrinsics(scene_dir / "intrinsics.json") if (scene_dir / "intrinsics.json").is_file() else None
+    depth = read_depth_png(scene_dir / "depth.png") if (scene_dir / "depth.png").is_file() else None
+    if depth is not None and intr is not None and depth.shape != intr.shape:
+        raise SphereBenchError(f"{scene_dir}: depth.png is {depth.shape[1]}x{depth.shape[0]} but intrinsics.json "
+                               f"says {intr.width}x{intr.height}")
+    cloud = None if depth is not None else read_ply(scene_dir / "cloud.ply", intr)
+    balls = []
+    for b in gt.get("balls", []):
+        mask = sil = None
+        if load_masks and b.get("mask"):
+            mask = read_mask_png(scene_dir / b["mask"], depth.shape if depth is not None else None)
+        if load_masks and b.get("silhouette"):
+            sil = read_mask_png(scene_dir / b["silhouette"], depth.shape if depth is not None else None)
+        balls.append(Ball(radius_m=b["radius_m"], mask=mask, silhouette=sil,
+                          center_m=None if b.get("center_m") is None else tuple(b["center_m"]),
+                          circle_px=None if b.get("circle") is None else tuple(b["circle"]),
+                          amodal_circle_px=None if b.get("amodal_circle") is None else tuple(b["amodal_circle"]),
+                          visible_fraction=b.get("visible_fraction")))
+    return Scene(scene_id=gt["scene_id"], family=gt["family"], intrinsics=intr, depth=depth, balls=balls,
+                 seed=gt.get("seed"), annotated=gt.get("annotated", True), cloud=cloud, meta=gt.get("meta", {}))
+
+
+# --------------------------------------------------------------------------- datasets
+
+def list_scenes(dataset_dir: str | Path) -> list[Path]:
+    """Scene folders of a dataset, sorted by scene id."""
+    scenes = Path(dataset_dir) / "scenes"
+    if not scenes.is_dir():
+        raise SphereBenchError(f"{dataset_dir}: not a dataset (no scenes/ folder); build one with "
+                               "'spherebench generate' or 'spherebench prepare'")
+    return sorted(p for p in scenes.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+
+def read_dataset_meta(dataset_dir: str | Path) -> dict:
+    return read_json(Path(dataset_dir) / "dataset.json")
+
+
+def build_coco_gt(dataset_dir: str | Path, category: str = DEFAULT_CATEGORY, name: str | None = None) -> dict:
+    """COCO ground truth with CircleNet's circle fields, from the scenes' gt.json files.
+
+    Image ids are 1-based in scene-id order. Unannotated scenes and scenes without an image are
+    left out (they cannot be scored in 2D). Each annotation: circle_center [x, y] and
+    circle_radius (px) of the visible mask's smallest enclosing circle, area = pi r^2, bbox of
+    the circle, the amodal circle under amodal_circle_center / amodal_circle_radius, and the 3D
+    centre (center_m) when known.
+    """
+    images, annotations = [], []
+    for scene_dir in list_scenes(dataset_dir):
+        gt = read_json(scene_dir / "gt.json")
+        if not gt.get("annotated", True) or not gt.get("has_image", True):
+            continue
+        intr = read_intrinsics(scene_dir / "intrinsics.json")
+        image_id = len(images) + 1
+        images.append({"id": image_id, "file_name": f"scenes/{scene_dir.name}/image.png", "width": intr.width,
+                       "height": intr.height, "scene_id": gt["scene_id"], "family": gt["family"]})
+        for ball in gt["balls"]:
+            if ball.get("circle") is None:
+                continue  # wholly hidden: nothing to see in 2D
+            cx, cy, r = ball["circle"]
+            ann = {"id": len(annotations) + 1, "image_id": image_id, "category_id": CATEGORY_ID,
+                   "circle_center": [cx, cy], "circle_radius": r, "area": math.pi * r * r,
+                   "bbox": [cx - r, cy - r, 2 * r, 2 * r], "iscrowd": 0}
+            if ball.get("amodal_circle") is not None:
+                ax, ay, ar = ball["amodal_circle"]
+                ann["amodal_circle_center"], ann["amodal_circle_radius"] = [ax, ay], ar
+            if ball.get("center_m") is not None:
+                ann["center_m"] = ball["center_m"]
+            if ball.get("visible_fraction") is not None:
+                ann["visible_fraction"] = ball["visible_fraction"]
+            annotations.append(ann)
+    return {"info": {"description": f"SphereBench dataset {name or Path(dataset_dir).name}"},
+            "images": images, "annotations": annotations,
+            "categories": [{"id": CATEGORY_ID, "name": category, "supercategory": "ball"}]}
+
+
+def finish_dataset(dataset_dir: str | Path, meta: dict) -> None:
+    """Write coco_gt.json and dataset.json once every scene is in place."""
+    coco = build_coco_gt(dataset_dir, meta.get("category", DEFAULT_CATEGORY), meta.get("name"))
+    write_json(Path(dataset_dir) / "coco_gt.json", coco, indent=None)
+    write_json(Path(dataset_dir) / "dataset.json", meta)
+
+
+def read_coco_gt(dataset_dir: str | Path) -> dict:
+    path = Path(dataset_dir) / "coco_gt.json"
+    if not path.is_file():
+        raise SphereBenchError(f"{dataset_dir}: no coco_gt.json: the dataset is incomplete; rebuild it")
+    return read_json(path)
+
+
+# --------------------------------------------------------------------------- recorded-data readers
+# (added for `spherebench prepare`: raw frames, lenient camera JSON, PCD, LabelMe, RealSense bags)
+
+RAW_DTYPES = {"uint16": "u2", "float32": "f4"}
+RAW_BYTE_ORDERS = {"little": "<", "big": ">"}
+
+
+def read_raw_depth(path: str | Path, width: int, height: int, dtype: str = "uint16",
+                   byte_order: str = "little") -> np.ndarray:
+    """A headerless row-major depth frame -> (height, width) array of ``dtype`` (native byte order).
+
+    The file must hold exactly width * height values; anything else means a truncated file or a
+    wrong size/dtype, reported as such.
+    """
+    path = Path(path)
+    if dtype not in RAW_DTYPES or byte_order not in RAW_BYTE_ORDERS:
+        raise SphereBenchError(f"raw depth dtype must be one of {', '.join(RAW_DTYPES)} and byte order one of "
+                               f"{', '.join(RAW_BYTE_ORDERS)}, got {dtype} {byte_order}")
+    if not path.is_file():
+        raise SphereBenchError(f"{path}: file not found")
+    dt = np.dtype(RAW_BYTE_ORDERS[byte_order] + RAW_DTYPES[dtype])
+    expected = int(width) * int(height) * dt.itemsize
+    size = path.stat().st_size
+    if size != expected:
+        raise SphereBenchError(f"{path}: {size} bytes, but a {width}x{height} {dtype} frame is {expected} bytes: "
+                               "the file is truncated, or --raw-size/--raw-dtype are wrong")
+    data = np.fromfile(path, dtype=dt).reshape(int(height), int(width))
+    return data.astype(dt.newbyteorder("="))
+
+
+def _distortion_name(model) -> str:
+    """'Brown Conrady', 'distortion.brown_conrady', 'RS2_DISTORTION_BROWN_CONRADY' -> 'brown_conrady'."""
+    name = str(model).strip().lower().replace(" ", "_").replace("-", "_")
+    return name.removeprefix("rs2_distortion_").removeprefix("distortion.") or "none"
+
+
+def read_camera_json(path: str | Path) -> Intrinsics:
+    """Intrinsics from a JSON object in pyrealsense2's field names (width, height, ppx, ppy, fx, fy,
+    model, coeffs; depth_scale optional) or a scene's intrinsics.json.
+
+    More lenient than ``read_intrinsics``: the distortion model may be spelled as pyrealsense2
+    prints it ('Brown Conrady', 'distortion.brown_conrady'), and the object may be wrapped as
+    {"intrinsics": {...}} or {"depth": {...}}.
+    """
+    path = Path(path)
+    d = read_json(path)
+    if isinstance(d, dict) and "fx" not in d:
+        for key in ("intrinsics", "depth"):
+            if isinstance(d.get(key), dict):
+                d = d[key]
+                break
+    if not isinstance(d, dict):
+        raise SphereBenchError(f"{path}: intrinsics must be a JSON object with width, height, ppx, ppy, fx, fy")
+    d = dict(d)
+    if "model" in d:
+        d["model"] = _distortion_name(d["model"])
+    try:
+        return Intrinsics.from_dict(d)
+    except SphereBenchError as exc:
+        raise SphereBenchError(f"{path}: {exc}") from None
+
+
+# PCD (the Point Cloud Library's format, v0.7): ascii, binary and binary_compressed (LZF) data.
+
+_PCD_TYPES = {"F": "f", "U": "u", "I": "i"}
+
+
+def _lzf_decompress(data: bytes, size: int, path: Path) -> bytes:
+    """liblzf's format: control byte < 32 = literal run of ctrl + 1 bytes; otherwise a back
+    reference of length (ctrl >> 5) + 2 (7 = extended by the next byte) at distance
+    ((ctrl & 31) << 8) + next byte + 1."""
+    out = bytearray()
+    ip, n = 0, len(data)
+    bad = SphereBenchError(f"{path}: corrupt binary_compressed PCD data (LZF stream is damaged or truncated)")
+    while ip < n:
+        ctrl = data[ip]
+        ip += 1
+        if ctrl < 32:
+            if ip + ctrl + 1 > n:
+                raise bad
+            out += data[ip:ip + ctrl + 1]
+            ip += ctrl + 1
+            continue
+        length = ctrl >> 5
+        if length == 7:
+            if ip >= n:
+                raise bad
+            length += data[ip]
+            ip += 1
+        if ip >= n:
+            raise bad
+        dist = ((ctrl & 31) << 8) + data[ip] + 1
+        ip += 1
+        length += 2
+        start = len(out) - dist
+        if start < 0:
+            raise bad
+        if dist >= length:
+            out += out[start:start + length]
+        else:  # overlapping copy: the last `dist` bytes repeat
+            pattern = bytes(out[start:])
+            out += (pattern * (length // dist + 1))[:length]
+    if len(out) != size:
+        raise bad
+    return bytes(out)
+
+
+def _read_pcd(path: Path) -> tuple[Cloud, int, int]:
+    """(cloud, width, height) of a PCD file; NaN points are dropped, an organised one keeps pixels."""
+    if not path.is_file():
+        raise SphereBenchError(f"{path}: file not found")
+    raw = path.read_bytes()
+    header: dict[str, list[str]] = {}
+    pos = 0
+    while "DATA" not in header:
+        end = raw.find(b"\n", pos)
+        if end < 0:
+            raise SphereBenchError(f"{path}: not a PCD file (no DATA line in the header; truncated?)")
+        line = raw[pos:end].decode("ascii", errors="replace").strip()
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        header[key.upper()] = values
+        if len(header) == 1 and key.upper() not in ("VERSION", "FIELDS"):
+            raise SphereBenchError(f"{path}: not a PCD file (it starts with '{line[:40]}')")
+    try:
+        names = header["FIELDS"]
+        sizes = [int(s) for s in header["SIZE"]]
+        types = header["TYPE"]
+        counts = [int(c) for c in header.get("COUNT", ["1"] * len(names))]
+        width, height = int(header["WIDTH"][0]), int(header["HEIGHT"][0])
+        n_points = int(header.get("POINTS", [width * height])[0])
+        mode = header["DATA"][0].lower()
+    except (KeyError, IndexError, ValueError) as exc:
+        raise SphereBenchError(f"{path}: PCD header is incomplete or malformed ({exc})") from None
+    if not (len(names) == len(sizes) == len(types) == len(counts)) or not {"x", "y", "z"} <= set(names):
+        raise SphereBenchError(f"{path}: PCD header must list x, y, z with one SIZE, TYPE and COUNT per field")
+    if n_points != width * height:
+        raise SphereBenchError(f"{path}: PCD says POINTS {n_points} but WIDTH x HEIGHT = {width}x{height}")
+    fields, seen = [], {}
+    for name, size, typ, count in zip(names, sizes, types, counts):
+        if typ.upper() not in _PCD_TYPES or size not in (1, 2, 4, 8):
+            raise SphereBenchError(f"{path}: PCD field '{name}' has unsupported TYPE {typ} / SIZE {size}")
+        key = name if name not in seen else f"{name}__{seen[name]}"  # PCL pads with repeated '_' fields
+        seen[name] = seen.get(name, 0) + 1
+        fields.append((key, f"<{_PCD_TYPES[typ.upper()]}{size}", (count,) if count > 1 else ()))
+    record = np.dtype([(k, t, s) if s else (k, t) for k, t, s in fields])
+    body = raw[pos:]
+    if mode == "ascii":
+        try:
+            table = np.loadtxt(body.decode("ascii").splitlines(), dtype=np.float64, ndmin=2)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise SphereBenchError(f"{path}: unreadable ASCII PCD data ({exc})") from None
+        if table.shape != (n_points, sum(counts)) and not (n_points == 0 and table.size == 0):
+            raise SphereBenchError(f"{path}: ASCII PCD data has {table.shape[0]} rows of {table.shape[1] if table.ndim == 2 else 0} "
+                                   f"values, the header promises {n_points} of {sum(counts)}: truncated?")
+        offsets = np.cumsum([0] + counts)
+        xyz = np.stack([table[:, offsets[names.index(c)]] if n_points else np.zeros(0) for c in "xyz"], axis=1)
+    elif mode == "binary":
+        if len(body) < n_points * record.itemsize:
+            raise SphereBenchError(f"{path}: binary PCD data is {len(body)} bytes, the header promises "
+                                   f"{n_points * record.itemsize}: the file is truncated")
+        data = np.frombuffer(body, dtype=record, count=n_points)
+        xyz = np.stack([data[c].astype(np.float64) for c in "xyz"], axis=1)
+    elif mode == "binary_compressed":
+        if len(body) < 8:
+            raise SphereBenchError(f"{path}: binary_compressed PCD has no data: the file is truncated")
+        csize, usize = (int(v) for v in np.frombuffer(body[:8], dtype="<u4"))
+        if usize != n_points * record.itemsize or len(body) < 8 + csize:
+            raise SphereBenchError(f"{path}: binary_compressed PCD sizes do not match the header: the file is "
+                                   "truncated or corrupt")
+        plain = _lzf_decompress(body[8:8 + csize], usize, path)
+        # the uncompressed data is stored field by field (all x, then all y, ...)
+        columns, offset = {}, 0
+        for key, typ, shape in fields:
+            dt = np.dtype((typ, shape)) if shape else np.dtype(typ)
+            columns[key] = np.frombuffer(plain, dtype=dt, count=n_points, offset=offset)
+            offset += dt.itemsize * n_points
+        xyz = np.stack([columns[c].astype(np.float64) for c in "xyz"], axis=1)
+    else:
+        raise SphereBenchError(f"{path}: unknown PCD DATA type '{mode}' (ascii, binary or binary_compressed)")
+    valid = np.all(np.isfinite(xyz), axis=1)
+    idx = np.nonzero(valid)[0]
+    pts = xyz[valid].astype(np.float32)
+    if height > 1:
+        return Cloud(pts, (idx // width).astype(np.int32), (idx % width).astype(np.int32)), width, height
+    return Cloud(pts), width, height
+
+
+def read_pcd(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
+    """PCD (ascii, binary, binary_compressed) -> Cloud in the file's units (metres by convention).
+
+    WIDTH x HEIGHT with HEIGHT > 1 is an organised cloud: point i is pixel (i // WIDTH, i % WIDTH)
+    and NaN points are the invalid pixels (dropped, the others keep their row/col). Given
+    intrinsics, an organised cloud's size must match them.
+    """
+    path = Path(path)
+    cloud, width, height = _read_pcd(path)
+    if intrinsics is not None:
+        if cloud.rows is not None and (width, height) != (intrinsics.width, intrinsics.height):
+            raise SphereBenchError(f"{path}: organised PCD is {width}x{height} but the intrinsics are "
+                                   f"{intrinsics.width}x{intrinsics.height}: give the intrinsics of this camera")
+        cloud.intrinsics = intrinsics
+    return cloud
+
+
+CLOUD_READERS[".pcd"] = read_pcd
+
+
+def read_labelme(path: str | Path) -> dict:
+    """A LabelMe annotation file -> its JSON object, checked for the keys SphereBench uses
+    (imagePath, imageWidth, imageHeight, shapes with label, shape_type, points)."""
+    path = Path(path)
+    d = read_json(path)
+    if not isinstance(d, dict) or not isinstance(d.get("shapes"), list):
+        raise SphereBenchError(f"{path}: not a LabelMe file (no 'shapes' list)")
+    for key in ("imageWidth", "imageHeight"):
+        if not isinstance(d.get(key), int):
+            raise SphereBenchError(f"{path}: LabelMe file lacks an integer '{key}'")
+    for i, shape in enumerate(d["shapes"]):
+        pts = shape.get("points") if isinstance(shape, dict) else None
+        try:
+            ok = np.asarray(pts, dtype=np.float64).ndim == 2 and np.asarray(pts).shape[1] == 2
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise SphereBenchError(f"{path}: LabelMe shape {i} has no list of [x, y] points")
+    return d
+
+
+def _import_pyrealsense2():
+    try:
+        import pyrealsense2 as rs
+    except ImportError as exc:
+        raise SphereBenchError(f"reading RealSense recordings needs pyrealsense2, which cannot be imported ({exc}); "
+                               "install it (pip install pyrealsense2) and libusb-1.0 (apt-get install libusb-1.0-0)") from None
+    return rs
+
+
+def _f32(value: float) -> float:
+    """A float32 from librealsense as the shortest decimal that is the same float32 (0.0001, not
+    9.999999747378752e-05), so that intrinsics.json reads as the device reported it."""
+    return float(str(np.float32(value)))
+
+
+def _rs_intrinsics(rs_intr, depth_scale: float) -> Intrinsics:
+    return Intrinsics(width=rs_intr.width, height=rs_intr.height, ppx=_f32(rs_intr.ppx), ppy=_f32(rs_intr.ppy),
+                      fx=_f32(rs_intr.fx), fy=_f32(rs_intr.fy), model=_distortion_name(rs_intr.model),
+                      coeffs=tuple(_f32(c) for c in rs_intr.coeffs), depth_scale=_f32(depth_scale))
+
+
+def read_bag_depth(path: str | Path, stop_after: int | None = None, stall_timeout_s: float = 10.0):
+    """Depth frames of a RealSense recording (.bag, ROS1; .db3, ROS2), by pyrealsense2 playback.
+
+    Yields (index, frame_number, timestamp_ms, depth (H, W) uint16, Intrinsics) in recording
+    order, index counting depth frames from 0; the intrinsics are the depth stream's with the
+    depth sensor's depth scale. Playback is not real time, so no frame is dropped. stop_after:
+    stop once this many frames have been yielded.
+    """
+    rs = _import_pyrealsense2()
+    path = Path(path)
+    if not path.is_file():
+        raise SphereBenchError(f"{path}: file not found")
+    try:
+        device = rs.context().load_device(str(path))
+        sensors = device.query_sensors()
+        streams = [p for s in sensors for p in s.get_stream_profiles()]
+    except RuntimeError as exc:
+        raise SphereBenchError(f"{path}: not a readable RealSense recording ({exc})") from None
+    depth_sensors = [s for s in sensors if s.is_depth_sensor()]
+    if not depth_sensors or not any(p.stream_type() == rs.stream.depth for p in streams):
+        found = ", ".join(sorted({str(p.stream_type()).removeprefix("stream.") for p in streams})) or "none"
+        raise SphereBenchError(f"{path}: the recording has no depth stream (streams: {found}); record with depth enabled")
+    depth_scale = float(depth_sensors[0].as_depth_sensor().get_depth_scale())
+    del device, sensors, streams, depth_sensors
+    pipe, cfg = rs.pipeline(), rs.config()
+    try:
+        cfg.enable_device_from_file(str(path), repeat_playback=False)
+        cfg.enable_stream(rs.stream.depth)
+        profile = pipe.start(cfg)
+    except RuntimeError as exc:
+        raise SphereBenchError(f"{path}: pyrealsense2 cannot play the depth stream back ({exc})") from None
+    try:
+        playback = profile.get_device().as_playback()
+        playback.set_real_time(False)
+        index, waited_ms, step_ms, last = 0, 0, 100, None
+        while stop_after is None or index < stop_after:
+            ok, frames = pipe.try_wait_for_frames(step_ms)
+            if not ok:
+                if playback.current_status() == rs.playback_status.stopped:
+                    ok, frames = pipe.try_wait_for_frames(step_ms)  # drain a frame queued just before the end
+                    if not ok:
+                        break
+                else:
+                    waited_ms += step_ms
+                    if waited_ms > stall_timeout_s * 1000:
+                        raise SphereBenchError(f"{path}: playback stalled for {stall_timeout_s:g} s; the file may be damaged")
+                    continue
+            waited_ms = 0
+            depth = frames.get_depth_frame()
+            if not depth:
+                continue
+            key = (depth.get_frame_number(), depth.get_timestamp())
+            if key == last:  # the syncer may hand the same frame out twice
+                continue
+            last = key
+            vp = depth.get_profile().as_video_stream_profile()
+            if vp.format() != rs.format.z16:
+                raise SphereBenchError(f"{path}: depth stream is {vp.format()}, only z16 depth is supported")
+            image = np.asanyarray(depth.get_data()).astype(np.uint16, copy=True)
+            yield index, int(depth.get_frame_number()), float(depth.get_timestamp()), image, \
+                _rs_intrinsics(vp.get_intrinsics(), depth_scale)
+            index += 1
+    except RuntimeError as exc:
+        raise SphereBenchError(f"{path}: playback failed ({exc}); the file may be truncated or corrupt") from None
+    finally:
+        pipe.stop()

@@ -1,0 +1,177 @@
+"""Analytic primitives ray-cast from a camera at the origin: planes, boxes, cylinders, spheres.
+
+Rays are (M, 3) with z = 1 (``spherebench.camera.pixel_rays``), so the ray parameter t of a hit
+is its depth z along the optical axis, in metres; ``intersect`` returns t, or inf where the ray
+misses. Everything is in the camera frame: x right, y down, z forward, metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spherebench.camera import Intrinsics, project
+
+_MISS = np.inf
+
+
+def _nearest(*ts: np.ndarray) -> np.ndarray:
+    """Elementwise smallest positive t of several candidates (inf if none)."""
+    best = np.full(ts[0].shape, _MISS)
+    for t in ts:
+        ok = (t > 1e-9) & (t < best)
+        best[ok] = t[ok]
+    return best
+
+
+@dataclass
+class Plane:
+    """Infinite plane through ``point_m`` with normal ``normal`` (walls, floors)."""
+
+    point_m: np.ndarray
+    normal: np.ndarray
+
+    def intersect(self, rays: np.ndarray) -> np.ndarray:
+        n = np.asarray(self.normal, np.float64)
+        denom = rays @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(np.abs(denom) > 1e-12, (np.asarray(self.point_m) @ n) / denom, _MISS)
+        return np.where(t > 0, t, _MISS)
+
+    def corners(self) -> None:
+        return None  # unbounded: every ray may hit it
+
+
+@dataclass
+class Sphere:
+    center_m: np.ndarray
+    radius_m: float
+
+    def intersect(self, rays: np.ndarray) -> np.ndarray:
+        c = np.asarray(self.center_m, np.float64)
+        a = np.einsum("ij,ij->i", rays, rays)
+        b = rays @ c
+        disc = b * b - a * (c @ c - self.radius_m ** 2)
+        hit = disc >= 0
+        root = np.sqrt(np.where(hit, disc, 0.0))
+        t_near = (b - root) / a
+        t_far = (b + root) / a
+        return np.where(hit, _nearest(t_near, t_far), _MISS)
+
+    def corners(self) -> np.ndarray:
+        return _box_corners(np.asarray(self.center_m, np.float64), np.eye(3), np.full(3, self.radius_m))
+
+
+@dataclass
+class Box:
+    """Oriented box: centre, rotation (columns = the box's axes in the camera frame), half sizes."""
+
+    center_m: np.ndarray
+    half_size_m: np.ndarray
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def intersect(self, rays: np.ndarray) -> np.ndarray:
+        rot = np.asarray(self.rotation, np.float64)
+        origin = -rot.T @ np.asarray(self.center_m, np.float64)  # camera origin in box frame
+        d = rays @ rot  # ray directions in box frame, (M, 3)
+        h = np.asarray(self.half_size_m, np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-h - origin) / d
+            t2 = (h - origin) / d
+        t1 = np.where(np.isnan(t1), -_MISS, t1)
+        t2 = np.where(np.isnan(t2), _MISS, t2)
+        t_enter = np.minimum(t1, t2).max(axis=1)
+        t_exit = np.maximum(t1, t2).min(axis=1)
+        hit = t_exit >= np.maximum(t_enter, 0.0)
+        return np.where(hit, _nearest(t_enter, t_exit), _MISS)
+
+    def corners(self) -> np.ndarray:
+        return _box_corners(np.asarray(self.center_m, np.float64), np.asarray(self.rotation, np.float64),
+                            np.asarray(self.half_size_m, np.float64))
+
+
+@dataclass
+class Cylinder:
+    """Finite capped cylinder: base centre, unit axis, radius, height (legs, poles, bins)."""
+
+    base_m: np.ndarray
+    axis: np.ndarray
+    radius_m: float
+    height_m: float
+
+    def intersect(self, rays: np.ndarray) -> np.ndarray:
+        a = np.asarray(self.axis, np.float64)
+        a = a / np.linalg.norm(a)
+        w = -np.asarray(self.base_m, np.float64)  # origin relative to the base
+        ra = rays @ a
+        r_perp = rays - ra[:, None] * a
+        w_perp = w - (w @ a) * a
+        qa = np.einsum("ij,ij->i", r_perp, r_perp)
+        qb = r_perp @ w_perp
+        qc = w_perp @ w_perp - self.radius_m ** 2
+        disc = qb * qb - qa * qc
+        ok = (disc >= 0) & (qa > 1e-15)
+        root = np.sqrt(np.where(ok, disc, 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sides = []
+            for sign in (-1.0, 1.0):
+                t = np.where(ok, (-qb + sign * root) / qa, _MISS)
+                s = (w @ a) + t * ra  # axial coordinate of the hit
+                sides.append(np.where((s >= 0) & (s <= self.height_m), t, _MISS))
+            caps = []
+            for s_cap in (0.0, self.height_m):
+                t = np.where(np.abs(ra) > 1e-15, (s_cap - w @ a) / ra, _MISS)
+                p = t[:, None] * rays + w[None, :] - s_cap * a[None, :]  # hit relative to the cap centre
+                caps.append(np.where(np.einsum("ij,ij->i", p, p) <= self.radius_m ** 2, t, _MISS))
+        return _nearest(*sides, *caps)
+
+    def corners(self) -> np.ndarray:
+        a = np.asarray(self.axis, np.float64) / np.linalg.norm(self.axis)
+        b = np.asarray(self.base_m, np.float64)
+        centre = b + 0.5 * self.height_m * a
+        half = np.array([self.radius_m, self.radius_m, 0.5 * self.height_m])
+        u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        return _box_corners(centre, np.stack([u, np.cross(a, u), a], axis=1), half)
+
+
+def _box_corners(center: np.ndarray, rot: np.ndarray, half: np.ndarray) -> np.ndarray:
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+    return center[None, :] + (signs * half[None, :]) @ rot.T
+
+
+def pixel_box(intr: Intrinsics, corners: np.ndarray | None, pad_px: int = 2):
+    """Image box (v0, v1, u0, u1) (end-exclusive) that a primitive with these bounding-box
+    corners can cover; the whole image when unbounded or reaching behind the camera."""
+    if corners is None or np.any(corners[:, 2] <= 0.05):
+        return 0, intr.height, 0, intr.width
+    uv = project(intr, corners)
+    u0 = int(np.clip(np.floor(uv[:, 0].min()) - pad_px, 0, intr.width))
+    u1 = int(np.clip(np.ceil(uv[:, 0].max()) + pad_px + 1, 0, intr.width))
+    v0 = int(np.clip(np.floor(uv[:, 1].min()) - pad_px, 0, intr.height))
+    v1 = int(np.clip(np.ceil(uv[:, 1].max()) + pad_px + 1, 0, intr.height))
+    return v0, v1, u0, u1
+
+
+def raycast(objects: list, rays: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Depth of the first surface and which object it belongs to.
+
+    objects: primitives with ``intersect`` and ``corners``. rays: (H, W, 3) from image_rays.
+    Returns z (H, W) float64 metres (inf = nothing hit) and label (H, W) int32: index into
+    ``objects`` + 1, 0 where nothing is hit. Each primitive is tested only on the pixels of
+    its projected bounding box.
+    """
+    z = np.full(intr.shape, _MISS)
+    label = np.zeros(intr.shape, np.int32)
+    for k, obj in enumerate(objects):
+        v0, v1, u0, u1 = pixel_box(intr, obj.corners())
+        if v0 >= v1 or u0 >= u1:
+            continue
+        sub = rays[v0:v1, u0:u1].reshape(-1, 3)
+        t = obj.intersect(sub).reshape(v1 - v0, u1 - u0)
+        zs, ls = z[v0:v1, u0:u1], label[v0:v1, u0:u1]
+        closer = t < zs
+        zs[closer] = t[closer]
+        ls[closer] = k + 1
+    return z, label

@@ -1,0 +1,347 @@
+"""The D435 scene simulator: presets of scenes with exact ground truth, built from a seed.
+
+A scene is a layout (``layouts``) ray-cast through the camera (``primitives``), passed through
+the sensor model (``sensor``), with the ground truth of every ball of the dataset's radius:
+its 3D centre, its visible mask (the ball is the first surface hit and the depth is valid), its
+full silhouette, and their circles (``spherebench.circles``).
+
+Each scene has its own seed, drawn from (preset, --seed, index) by numpy's SeedSequence, so a
+scene does not depend on the others (workers can build them in any order) and the presets'
+seed streams are disjoint: the train split never repeats an evaluation scene.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from spherebench import __version__
+from spherebench.camera import Intrinsics, image_rays
+from spherebench.circles import sphere_circle_amodal, sphere_silhouette_mask
+from spherebench.datasets import io
+from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_view, ball_partly_out, bookcase,
+                                          chair, floor_box, room, table, tripod)
+from spherebench.datasets.primitives import Box, Cylinder, Sphere, raycast
+from spherebench.datasets.scene import Ball, Scene
+from spherebench.datasets.sensor import D435Sensor, apply_sensor
+from spherebench.errors import SphereBenchError
+
+BASKETBALL_RADIUS_M = 0.12
+RESOLUTIONS = {"424x240": (424, 240), "848x480": (848, 480), "1280x720": (1280, 720)}
+HARD_FAMILIES = ("distractor", "negative", "cylinder", "occluded", "out_of_frame", "far", "two")
+
+
+@dataclass(frozen=True)
+class Preset:
+    """What a preset builds: its default size, its families (with shares) and resolutions."""
+
+    name: str
+    code: int                                   # enters every scene seed: disjoint streams per preset
+    n_default: int
+    families: tuple[tuple[str, float], ...]
+    resolutions: tuple[tuple[str, float], ...] = (("424x240", 1.0),)
+
+
+PRESETS = {
+    # the paper's protocol: 200 scenes, half clean, half cluttered, at 424x240
+    "default": Preset("default", 1, 200, (("clean", 0.5), ("cluttered", 0.5))),
+    # the paper's three named experiments as fixed scenes
+    "paper": Preset("paper", 2, 3, (("E1", 1 / 3), ("E2", 1 / 3), ("E3", 1 / 3))),
+    # what the paper did not test: distractors, occlusion, range, negatives; mixed resolutions
+    "hard": Preset("hard", 3, 140, tuple((f, 1 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
+                   (("424x240", 0.5), ("848x480", 0.3), ("1280x720", 0.2))),
+    # training split for learned baselines: the evaluation presets' distributions, other seeds
+    "train": Preset("train", 4, 2000, (("clean", 0.3), ("cluttered", 0.35))
+                    + tuple((f, 0.35 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
+                    (("424x240", 0.7), ("848x480", 0.15), ("1280x720", 0.15))),
+}
+
+
+def scene_seed(preset: Preset, seed: int, index: int) -> int:
+    """The seed of one scene, from (preset, run seed, index)."""
+    return int(np.random.SeedSequence([preset.code, int(seed), int(index)]).generate_state(1, np.uint64)[0])
+
+
+def _assign(shares: tuple[tuple[str, float], ...], n: int) -> list[str]:
+    """Deterministic split of n items by shares, in blocks (largest remainder)."""
+    raw = [s * n for _, s in shares]
+    counts = [int(math.floor(x)) for x in raw]
+    for k in sorted(range(len(raw)), key=lambda k: counts[k] - raw[k])[: n - sum(counts)]:
+        counts[k] += 1
+    return [name for (name, _), c in zip(shares, counts) for _ in range(c)]
+
+
+# --------------------------------------------------------------------------- scene families
+
+def _ball_support(rng, layout: Layout, centre: np.ndarray, radius: float, how: str) -> None:
+    if how == "tripod":
+        tripod(rng, layout, centre, radius)
+    elif how == "table":
+        table(rng, layout, centre[0] + rng.uniform(-0.1, 0.1), centre[2] + rng.uniform(-0.1, 0.1),
+              layout.floor_y_m - (centre[1] + radius))
+
+
+def _place_floor_for(rng, centre: np.ndarray, radius: float, how: str) -> float:
+    """Floor height (camera height, m) that suits how the ball is held."""
+    bottom = centre[1] + radius
+    if how == "floor":
+        return bottom
+    if how == "table":
+        return bottom + rng.uniform(0.45, 0.9)
+    return max(bottom + rng.uniform(0.3, 1.0), 0.6)  # tripod or held in the air
+
+
+def family_clean(rng, intr: Intrinsics, radius: float) -> Layout:
+    """Flat wall behind, floor, one unoccluded ball 0.25-3 m away (to its nearest surface)."""
+    centre = ball_in_view(rng, intr, radius, (0.25, 3.0))
+    how = "floor" if rng.random() < 0.25 else "air"
+    layout = Layout(floor_y_m=_place_floor_for(rng, centre, radius, how))
+    room(rng, layout, wall_z_m=centre[2] + radius + rng.uniform(0.15, 2.0))
+    layout.add(Sphere(centre, radius), "target")
+    return layout
+
+
+def _clutter_room(rng, intr: Intrinsics, layout: Layout, keep_clear: list[np.ndarray], wall_z: float) -> None:
+    """Bookcase against the wall, boxes and furniture on the floor, away from ``keep_clear``."""
+    room(rng, layout, wall_z)
+    bookcase(rng, layout, rng.uniform(-0.8, 0.8) * wall_z * 0.5, wall_z - 0.01)
+    for _ in range(int(rng.integers(2, 6))):
+        z = rng.uniform(0.8, wall_z - 0.3)
+        x = rng.uniform(-0.9, 0.9) * z * intr.width / (2 * intr.fx)
+        if all(math.hypot(x - c[0], z - c[2]) > 0.55 for c in keep_clear):
+            (chair if rng.random() < 0.3 else floor_box)(rng, layout, x, z)
+
+
+def family_cluttered(rng, intr: Intrinsics, radius: float) -> Layout:
+    """A bookcase with objects at several depths, the ball on a tripod or a table, boxes, furniture."""
+    centre = ball_in_view(rng, intr, radius, (0.4, 3.0))
+    how = "tripod" if rng.random() < 0.5 else "table"
+    layout = Layout(floor_y_m=_place_floor_for(rng, centre, radius, how))
+    wall_z = max(centre[2] + radius + rng.uniform(0.5, 2.0), 2.0)
+    _clutter_room(rng, intr, layout, [centre], wall_z)
+    _ball_support(rng, layout, centre, radius, how)
+    layout.add(Sphere(centre, radius), "target")
+    return layout
+
+
+def family_paper(name: str, intr: Intrinsics, radius: float) -> Layout:
+    """The paper's experiments E1-E3 (fixed scenes; their own fixed seeds for the clutter)."""
+    rng = np.random.default_rng({"E1": 101, "E2": 102, "E3": 103}[name])
+    if name == "E1":  # ball 25 cm in front of the camera (to its surface), flat wall behind
+        centre = np.array([0.02, 0.01, 0.25 + radius])
+        layout = Layout(floor_y_m=0.9)
+        room(rng, layout, wall_z_m=0.85)
+    elif name == "E2":  # bookcase ~2 m away, brown ball on a tripod before it
+        centre = np.array([-0.05, 0.05, 1.5])
+        layout = Layout(floor_y_m=1.1)
+        room(rng, layout, 2.2)
+        bookcase(rng, layout, 0.0, 2.19)
+        tripod(rng, layout, centre, radius)
+    else:  # E3: the ball farther away, on a table, several depth levels
+        centre = np.array([0.25, 0.2, 2.4])
+        layout = Layout(floor_y_m=0.2 + radius + 0.75)
+        room(rng, layout, 3.6)
+        bookcase(rng, layout, -0.7, 3.59)
+        table(rng, layout, 0.3, 2.45, 0.75, (1.0, 0.6))
+        floor_box(rng, layout, -0.6, 1.4)
+        chair(rng, layout, 0.9, 1.8)
+        floor_box(rng, layout, 0.5, 3.0)
+    layout.add(Sphere(centre, radius), "target")
+    return layout
+
+
+def _distractor_ball(rng, intr, layout: Layout, dist=(0.5, 2.5)) -> np.ndarray:
+    r = float(rng.choice(DISTRACTOR_RADII_M))
+    c = ball_in_view(rng, intr, r, dist)
+    layout.add(Sphere(c, r), "distractor")
+    return c
+
+
+def family_hard(family: str, rng, intr: Intrinsics, radius: float) -> Layout:
+    """The hard preset's families (HARD_FAMILIES)."""
+    n_targets = {"negative": 0, "two": 2}.get(family, 1)
+    if family == "far":
+        centres = [ball_in_view(rng, intr, radius, (3.0, 5.0))]
+    elif family == "out_of_frame":
+        centres = [ball_partly_out(rng, intr, radius, (0.5, 2.5))]
+    else:
+        centres = [ball_in_view(rng, intr, radius, (0.4, 2.5)) for _ in range(n_targets)]
+    how = "tripod" if rng.random() < 0.5 else "air"
+    bottom = max([c[1] + radius for c in centres], default=0.0)
+    layout = Layout(floor_y_m=max(bottom + rng.uniform(0.3, 1.0), 0.8))
+    far_z = max([c[2] for c in centres], default=2.0)
+    wall_z = far_z + radius + rng.uniform(0.4, 2.0)
+    _clutter_room(rng, intr, layout, centres, max(wall_z, 2.0))
+    for c in centres:
+        _ball_support(rng, layout, c, radius, how)
+        layout.add(Sphere(c, radius), "target")
+    if family in ("distractor", "negative"):
+        for _ in range(int(rng.integers(1, 3))):
+            _distractor_ball(rng, intr, layout)
+    if family in ("cylinder", "negative"):
+        for _ in range(int(rng.integers(1, 3))):  # bins and poles of the ball's radius, standing on the floor
+            z = rng.uniform(0.8, 3.0)
+            x = rng.uniform(-0.8, 0.8) * z * intr.width / (2 * intr.fx)
+            layout.add(Cylinder(np.array([x, layout.floor_y_m, z]), np.array([0.0, -1.0, 0.0]), radius,
+                                rng.uniform(0.3, 1.5)), "cylinder")
+    return layout
+
+
+def _occlude(rng, intr: Intrinsics, layout: Layout, centre: np.ndarray, radius: float) -> None:
+    """A box between the camera and the ball, slid sideways to cover part of it."""
+    z = rng.uniform(0.35, 0.8) * (centre[2] - radius)
+    half = np.array([rng.uniform(0.1, 0.3), rng.uniform(0.2, 0.5), 0.05]) * max(z, 0.3)
+    side = rng.choice([-1.0, 1.0])
+    scale = z / centre[2]
+    # shift so that the box edge crosses the ball's image at a random fraction of its width
+    cover = rng.uniform(0.3, 0.7)
+    edge_x = (centre[0] + side * radius * (1 - 2 * cover)) * scale
+    layout.add(Box(np.array([edge_x + side * half[0], centre[1] * scale, z]), half), "clutter")
+
+
+# --------------------------------------------------------------------------- rendering
+
+def _full_silhouette_px(intr: Intrinsics, centre: np.ndarray, radius: float, in_frame: np.ndarray) -> int:
+    """Pixels of the whole silhouette, counting the part outside the frame (bigger canvas)."""
+    circ = sphere_circle_amodal(intr, centre, radius)
+    if circ is not None and circ[0] - circ[2] > 1 and circ[0] + circ[2] < intr.width - 2 \
+            and circ[1] - circ[2] > 1 and circ[1] + circ[2] < intr.height - 2:
+        return int(in_frame.sum())
+    big = Intrinsics(width=3 * intr.width, height=3 * intr.height, ppx=intr.ppx + intr.width,
+                     ppy=intr.ppy + intr.height, fx=intr.fx, fy=intr.fy, model=intr.model, coeffs=intr.coeffs)
+    return int(sphere_silhouette_mask(big, centre, radius).sum())
+
+
+def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor, rng: np.random.Generator,
+           rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Ball]]:
+    """Ray-cast a layout and apply the sensor: depth (H, W) uint16, true z (H, W) m, target balls."""
+    if rays is None:
+        rays = image_rays(intr)
+    z_true, label = raycast([it.shape for it in layout.items], rays, intr)
+    depth = apply_sensor(z_true, intr, sensor, rng)
+    balls = []
+    for k, item in enumerate(layout.items):
+        if item.kind != "target":
+            continue
+        c, r = np.asarray(item.shape.center_m, float), float(item.shape.radius_m)
+        silhouette = sphere_silhouette_mask(intr, c, r)
+        mask = (label == k + 1) & (depth > 0)
+        full = _full_silhouette_px(intr, c, r, silhouette)
+        balls.append(Ball(radius_m=r, mask=mask, silhouette=silhouette, center_m=tuple(float(x) for x in c),
+                          amodal_circle_px=sphere_circle_amodal(intr, c, r),
+                          visible_fraction=float(mask.sum()) / full if full else 0.0))
+    return depth, z_true, balls
+
+
+def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolution: str,
+                   radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor()) -> Scene:
+    """One scene of a preset, fully determined by its arguments."""
+    preset = PRESETS[preset_name]
+    s = scene_seed(preset, seed, index)
+    rng = np.random.default_rng(s)
+    w, h = RESOLUTIONS[resolution]
+    intr = Intrinsics.d435(w, h)
+    intr = Intrinsics(**{**intr.to_dict(), "depth_scale": sensor.depth_scale_m})
+    rays = image_rays(intr)
+    for _attempt in range(40):
+        if preset_name == "paper":
+            layout = family_paper(family, intr, radius_m)
+        elif family == "clean":
+            layout = family_clean(rng, intr, radius_m)
+        elif family == "cluttered":
+            layout = family_cluttered(rng, intr, radius_m)
+        else:
+            layout = family_hard(family, rng, intr, radius_m)
+            if family == "occluded":
+                _occlude(rng, intr, layout, np.asarray(layout.targets[0].center_m), radius_m)
+        depth, _z, balls = render(layout, intr, sensor, rng, rays)
+        vis = [b.visible_fraction for b in balls]
+        if family == "occluded":
+            ok = 0.4 <= vis[0] <= 0.7  # 30-60 % hidden
+        elif family == "out_of_frame":
+            ok = 0.3 <= vis[0] <= 0.85
+        else:  # the ball is in full view (a tripod cup or table may hide its lowest rim)
+            ok = all(v >= 0.85 for v in vis)
+        if ok or preset_name == "paper":
+            break
+    else:
+        raise RuntimeError(f"{preset_name} scene {index} ({family}): no layout met the visibility rule")
+    distractors = [{"kind": it.kind, "center_m": [float(x) for x in it.shape.center_m],
+                    "radius_m": float(it.shape.radius_m)} for it in layout.items if it.kind == "distractor"]
+    cylinders = [{"base_m": [float(x) for x in it.shape.base_m], "radius_m": float(it.shape.radius_m),
+                  "height_m": float(it.shape.height_m)} for it in layout.items if it.kind == "cylinder"]
+    scene_id = family if preset_name == "paper" else f"{family}_{index:04d}"
+    return Scene(scene_id=scene_id, family=family, intrinsics=intr, depth=depth, balls=balls, seed=s,
+                 meta={"preset": preset_name, "index": index, "resolution": resolution,
+                       "distractors": distractors, "cylinders": cylinders})
+
+
+# --------------------------------------------------------------------------- datasets
+
+def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[int, str, str]]:
+    """(index, family, resolution) of every scene of a preset run."""
+    if preset_name not in PRESETS:
+        raise SphereBenchError(f"unknown preset '{preset_name}': use one of {', '.join(PRESETS)}")
+    preset = PRESETS[preset_name]
+    n = preset.n_default if n is None else int(n)
+    if n <= 0 or n > 1_000_000:
+        raise SphereBenchError(f"--n {n}: the number of scenes must be between 1 and 1,000,000")
+    if preset_name == "paper" and n != 3:
+        raise SphereBenchError("the paper preset is its three fixed scenes E1-E3: leave --n out")
+    families = _assign(preset.families, n)
+    res_rng = np.random.default_rng([preset.code, int(seed), 7])
+    names, shares = zip(*preset.resolutions)
+    resolutions = res_rng.choice(names, size=n, p=np.asarray(shares) / sum(shares))
+    return [(i, f, str(r)) for i, (f, r) in enumerate(zip(families, resolutions))]
+
+
+def _build_one(args) -> str:
+    preset_name, index, family, seed, resolution, radius_m, sensor, scenes_dir, clouds = args
+    scene = simulate_scene(preset_name, index, family, seed, resolution, radius_m, sensor)
+    io.write_scene(scenes_dir, scene, radius_m, write_cloud=clouds)
+    return scene.scene_id
+
+
+def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None, seed: int = 0,
+                     radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
+                     workers: int = 1, progress: bool = True, clouds: bool | None = None) -> Path:
+    """Build a preset into ``out_dir`` (replaced atomically when complete); returns the path.
+
+    clouds: write each scene's cloud.ply (default: yes, except for the train preset, whose
+    2D consumers read image.png only: 2,000 clouds would take several GB)."""
+    if clouds is None:
+        clouds = preset_name != "train"
+    if not (0.01 <= radius_m <= 2.0):
+        raise SphereBenchError(f"--radius {radius_m} m is not a ball radius (0.01-2 m); the basketball is 0.12")
+    jobs = plan(preset_name, n, seed)
+    out_dir = Path(out_dir)
+    with io.atomic_directory(out_dir) as tmp:
+        scenes_dir = tmp / "scenes"
+        scenes_dir.mkdir()
+        tasks = [(preset_name, i, f, seed, r, radius_m, sensor, scenes_dir, clouds) for i, f, r in jobs]
+        bar = tqdm(total=len(tasks), desc=f"generate {preset_name}", unit="scene", disable=not progress)
+        if workers > 1:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                for _ in pool.map(_build_one, tasks, chunksize=4):
+                    bar.update()
+        else:
+            for t in tasks:
+                _build_one(t)
+                bar.update()
+        bar.close()
+        meta = {"name": out_dir.name, "preset": preset_name, "n": len(jobs), "seed": int(seed),
+                "ball_radius_m": radius_m, "category": "basketball", "source": "simulated", "clouds": clouds,
+                "sensor": asdict(sensor), "spherebench_version": __version__,
+                "numpy_version": np.__version__}
+        io.finish_dataset(tmp, meta)
+    return out_dir
+
+
+def default_workers() -> int:
+    return max(1, min(4, os.cpu_count() or 1))

@@ -1,0 +1,19 @@
+"""Shared fixtures: small generated datasets, built once per test session."""
+
+from __future__ import annotations
+
+import pytest
+
+from spherebench.datasets import simulate
+
+
+@pytest.fixture(scope="session")
+def paper_dataset(tmp_path_factory):
+    """The paper preset (3 scenes, 424x240)."""
+    return simulate.generate_dataset("paper", tmp_path_factory.mktemp("data") / "paper", progress=False)
+
+
+@pytest.fixture(scope="session")
+def small_default(tmp_path_factory):
+    """Six scenes of the default preset (3 clean, 3 cluttered)."""
+    return simulate.generate_dataset("default", tmp_path_factory.mktemp("data") / "default6", n=6, progress=False)
