@@ -6,6 +6,8 @@ DATA := data
 SEED := 0
 WORKERS ?= 2
 
+REALDATA ?= ../shared/realdata
+
 .PHONY: eval test venv data data-hard data-train realdata bench train eval-real clean distclean
 
 # ---- environment: the virtual environment, created when missing
@@ -24,6 +26,13 @@ data-train: $(DATA)/train/coco_gt.json
 
 $(DATA)/%/coco_gt.json: | venv
 	$(SB) generate --preset $* --out $(DATA)/$* --seed $(SEED) --workers $(WORKERS)
+
+# ---- recorded data: the real sensor sets of ../shared/realdata, in the scene format
+realdata: $(DATA)/real/kinect-pochang/dataset.json $(DATA)/real/lidar-spherecalib/dataset.json
+$(DATA)/real/kinect-pochang/dataset.json: | venv
+	$(SB) prepare --preset-source kinect-pochang $(REALDATA)/pochang_rgbd_sphere --out $(DATA)/real/kinect-pochang
+$(DATA)/real/lidar-spherecalib/dataset.json: | venv
+	$(SB) prepare --preset-source lidar-spherecalib $(REALDATA)/spherecalib_lidar --out $(DATA)/real/lidar-spherecalib
 
 # ---- the benchmark
 eval: venv data data-hard

@@ -658,9 +658,15 @@ def read_bag_depth(path: str | Path, stop_after: int | None = None, stall_timeou
 
     Yields (index, frame_number, timestamp_ms, depth (H, W) uint16, Intrinsics) in recording
     order, index counting depth frames from 0; the intrinsics are the depth stream's with the
-    depth sensor's depth scale. Playback is not real time, so no frame is dropped. stop_after:
-    stop once this many frames have been yielded.
+    depth sensor's depth scale. stop_after: stop once this many frames have been yielded.
+
+    The depth sensor is started directly (not through rs.pipeline, which drops frames when the
+    consumer is slower than the file) with non-real-time playback and a small blocking queue:
+    the playback thread waits for each frame to be taken, so none is lost and memory stays bounded.
     """
+    import queue
+    import threading
+
     rs = _import_pyrealsense2()
     path = Path(path)
     if not path.is_file():
@@ -671,51 +677,59 @@ def read_bag_depth(path: str | Path, stop_after: int | None = None, stall_timeou
         streams = [p for s in sensors for p in s.get_stream_profiles()]
     except RuntimeError as exc:
         raise SphereBenchError(f"{path}: not a readable RealSense recording ({exc})") from None
-    depth_sensors = [s for s in sensors if s.is_depth_sensor()]
-    if not depth_sensors or not any(p.stream_type() == rs.stream.depth for p in streams):
+    depth_profiles = [(s, p) for s in sensors if s.is_depth_sensor() for p in s.get_stream_profiles()
+                      if p.stream_type() == rs.stream.depth]
+    if not depth_profiles:
         found = ", ".join(sorted({str(p.stream_type()).removeprefix("stream.") for p in streams})) or "none"
         raise SphereBenchError(f"{path}: the recording has no depth stream (streams: {found}); record with depth enabled")
-    depth_scale = float(depth_sensors[0].as_depth_sensor().get_depth_scale())
-    del device, sensors, streams, depth_sensors
-    pipe, cfg = rs.pipeline(), rs.config()
+    sensor, profile = depth_profiles[0]
+    if profile.format() != rs.format.z16:
+        raise SphereBenchError(f"{path}: the depth stream is {profile.format()}, only z16 depth is supported")
+    depth_scale = float(sensor.as_depth_sensor().get_depth_scale())
+    playback = device.as_playback()
+    playback.set_real_time(False)
+    frames: queue.Queue = queue.Queue(maxsize=4)
+    stopping = threading.Event()
+
+    def on_frame(frame) -> None:
+        # copy out and release the frame at once: librealsense's frame pool is small
+        vp = frame.get_profile().as_video_stream_profile()
+        item = (int(frame.get_frame_number()), float(frame.get_timestamp()),
+                np.array(np.asanyarray(frame.get_data()), dtype=np.uint16, copy=True), vp.get_intrinsics())
+        while not stopping.is_set():
+            try:
+                frames.put(item, timeout=0.05)
+                return
+            except queue.Full:
+                continue
+
     try:
-        cfg.enable_device_from_file(str(path), repeat_playback=False)
-        cfg.enable_stream(rs.stream.depth)
-        profile = pipe.start(cfg)
+        sensor.open(profile)
+        sensor.start(on_frame)
     except RuntimeError as exc:
         raise SphereBenchError(f"{path}: pyrealsense2 cannot play the depth stream back ({exc})") from None
     try:
-        playback = profile.get_device().as_playback()
-        playback.set_real_time(False)
-        index, waited_ms, step_ms, last = 0, 0, 100, None
+        index, idle_s, step_s, last = 0, 0.0, 0.05, None
         while stop_after is None or index < stop_after:
-            ok, frames = pipe.try_wait_for_frames(step_ms)
-            if not ok:
-                if playback.current_status() == rs.playback_status.stopped:
-                    ok, frames = pipe.try_wait_for_frames(step_ms)  # drain a frame queued just before the end
-                    if not ok:
-                        break
-                else:
-                    waited_ms += step_ms
-                    if waited_ms > stall_timeout_s * 1000:
-                        raise SphereBenchError(f"{path}: playback stalled for {stall_timeout_s:g} s; the file may be damaged")
-                    continue
-            waited_ms = 0
-            depth = frames.get_depth_frame()
-            if not depth:
+            try:
+                number, stamp, image, rs_intr = frames.get(timeout=step_s)
+            except queue.Empty:
+                idle_s += step_s
+                if playback.current_status() == rs.playback_status.stopped and frames.empty() and idle_s > 0.2:
+                    break
+                if idle_s > stall_timeout_s:
+                    raise SphereBenchError(f"{path}: playback stalled for {stall_timeout_s:g} s; the file may be damaged")
                 continue
-            key = (depth.get_frame_number(), depth.get_timestamp())
-            if key == last:  # the syncer may hand the same frame out twice
+            idle_s = 0.0
+            if (number, stamp) == last:
                 continue
-            last = key
-            vp = depth.get_profile().as_video_stream_profile()
-            if vp.format() != rs.format.z16:
-                raise SphereBenchError(f"{path}: depth stream is {vp.format()}, only z16 depth is supported")
-            image = np.asanyarray(depth.get_data()).astype(np.uint16, copy=True)
-            yield index, int(depth.get_frame_number()), float(depth.get_timestamp()), image, \
-                _rs_intrinsics(vp.get_intrinsics(), depth_scale)
+            last = (number, stamp)
+            yield index, number, stamp, image, _rs_intrinsics(rs_intr, depth_scale)
             index += 1
-    except RuntimeError as exc:
-        raise SphereBenchError(f"{path}: playback failed ({exc}); the file may be truncated or corrupt") from None
     finally:
-        pipe.stop()
+        stopping.set()
+        try:
+            sensor.stop()
+            sensor.close()
+        except RuntimeError:
+            pass  # already stopped at the end of the file

@@ -1,0 +1,700 @@
+"""Recorded depth data -> a SphereBench dataset in the scene format of ``spherebench.datasets.io``.
+
+Inputs (each becomes a stream of ``Frame``s, then one scene per frame):
+
+- RealSense recordings (.bag, ROS1; .db3, ROS2) by pyrealsense2 playback: the depth stream,
+  its intrinsics and the depth sensor's depth scale. Frames can be picked by index range,
+  every n-th, or by time from the first depth frame.
+- 16-bit depth PNGs with an intrinsics JSON.
+- headerless raw depth frames (uint16 or float32, either byte order) with intrinsics.
+- point clouds (PLY, PCD, XYZ). An organised cloud (PLY with row/col, PCD with HEIGHT > 1)
+  with intrinsics gives its depth image directly; an unorganised one with intrinsics is
+  projected into one (nearest surface per pixel); without intrinsics it stays an image-less
+  scene (cloud.ply only: nothing that needs pixels).
+
+Depth units: depth.png keeps integer inputs' own counts (intrinsics.json's depth_scale says
+metres per count); float inputs (clouds, float32 raw) are stored in FLOAT_DEPTH_SCALE_M counts.
+Depth whose median is plainly not an indoor depth camera's (outside UNIT_CHECK_RANGE_M) is
+refused with the depth scale that would fix it.
+
+Ground truth comes from mask PNGs or LabelMe files (``spherebench.datasets.annotate``); a
+scene without annotation is kept and marked unannotated. To annotate a prepared dataset: open
+``DIR/scenes/<id>/image.png`` in LabelMe (it saves ``image.json`` beside it), then run the same
+``prepare`` command again with ``--labelme DIR``: the files are read before DIR is replaced and
+each scene keeps its LabelMe file as ``image.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from spherebench import __version__
+from spherebench.camera import Intrinsics, project
+from spherebench.cloud import Cloud
+from spherebench.datasets import io
+from spherebench.datasets.annotate import AnnotationIndex
+from spherebench.datasets.scene import Scene
+from spherebench.errors import SphereBenchError
+
+DEFAULT_BALL_RADIUS_M = 0.12
+#: metres per depth.png count for inputs whose depth is not integer counts (clouds, float32 raw).
+FLOAT_DEPTH_SCALE_M = 0.001
+#: A median valid depth (m) outside this range is taken for a wrong unit (indoor depth camera).
+UNIT_CHECK_RANGE_M = (0.05, 20.0)
+#: An organised cloud whose points land farther than this (px, median) from their own pixel
+#: under the given intrinsics was taken with another camera model.
+MAX_REPROJECTION_PX = 1.0
+
+BAG_SUFFIXES = (".bag", ".db3")
+PNG_SUFFIXES = (".png",)
+CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt")
+RAW_SUFFIXES = (".raw", ".dat", ".bin", ".depth")
+
+
+# --------------------------------------------------------------------------- options
+
+@dataclass(frozen=True)
+class FrameSelection:
+    """Which frames of a sequence to keep. Applied in this order: time range (recordings
+    only; ms from the first depth frame, inclusive), index range [first, stop) over the
+    sequence's frames (0-based), then every n-th frame of what is left."""
+
+    every: int = 1
+    first: int = 0
+    stop: int | None = None
+    time_range_ms: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.every < 1:
+            raise SphereBenchError(f"--every must be >= 1, got {self.every}")
+        if self.first < 0 or (self.stop is not None and self.stop <= self.first):
+            raise SphereBenchError(f"--frames {self.first}:{self.stop} selects nothing; give A:B with 0 <= A < B")
+        if self.time_range_ms is not None and not self.time_range_ms[0] <= self.time_range_ms[1]:
+            raise SphereBenchError(f"--time-range {self.time_range_ms[0]:g}:{self.time_range_ms[1]:g} is empty")
+
+    @classmethod
+    def parse(cls, every: int = 1, frames: str | None = None, time_range: str | None = None) -> "FrameSelection":
+        """From the command line's 'A:B' strings (either end may be left out)."""
+        first, stop = 0, None
+        if frames:
+            a, b = _split_range(frames, "--frames", int)
+            first, stop = (a or 0), b
+        t = None
+        if time_range:
+            t0, t1 = _split_range(time_range, "--time-range", float)
+            t = (t0 if t0 is not None else 0.0, t1 if t1 is not None else math.inf)
+        return cls(every=every, first=first, stop=stop, time_range_ms=t)
+
+    def pick(self, n: int) -> list[int]:
+        """Indices kept out of a sequence of n frames without timestamps."""
+        return list(range(self.first, n if self.stop is None else min(n, self.stop)))[::self.every]
+
+
+def _split_range(text: str, option: str, kind):
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise SphereBenchError(f"{option} must be A:B, got '{text}'")
+    try:
+        return tuple(kind(p) if p.strip() else None for p in parts)
+    except ValueError:
+        raise SphereBenchError(f"{option} must be A:B with numbers, got '{text}'") from None
+
+
+@dataclass(frozen=True)
+class RawFormat:
+    """Headerless depth frames: size in pixels (None: the intrinsics'), value type, byte order."""
+
+    width: int | None = None
+    height: int | None = None
+    dtype: str = "uint16"
+    byte_order: str = "little"
+
+    @classmethod
+    def parse(cls, size: str | None, dtype: str = "uint16", byte_order: str = "little") -> "RawFormat":
+        if not size:
+            return cls(None, None, dtype, byte_order)
+        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", size)
+        if not m or int(m.group(1)) == 0 or int(m.group(2)) == 0:
+            raise SphereBenchError(f"--raw-size must be WIDTHxHEIGHT in pixels, e.g. 640x480, got '{size}'")
+        return cls(int(m.group(1)), int(m.group(2)), dtype, byte_order)
+
+
+@dataclass(frozen=True)
+class PrepareOptions:
+    """What every input shares. ball_radius_m: the dataset's ball (m). depth_scale: metres per
+    unit of the input's depth values (overrides the file's or sensor's; clouds: per coordinate
+    unit, default 1). unit_check: refuse depth whose median is outside UNIT_CHECK_RANGE_M."""
+
+    ball_radius_m: float = DEFAULT_BALL_RADIUS_M
+    category: str = io.DEFAULT_CATEGORY
+    name: str | None = None
+    depth_scale: float | None = None
+    unit_check: bool = True
+    selection: FrameSelection = field(default_factory=FrameSelection)
+    masks_dir: Path | None = None
+    labelme_dir: Path | None = None
+    label: str | None = None
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.ball_radius_m) and self.ball_radius_m > 0):
+            raise SphereBenchError(f"--radius must be a positive number of metres, got {self.ball_radius_m}")
+        if self.depth_scale is not None and not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
+            raise SphereBenchError(f"--depth-scale must be > 0 metres per unit, got {self.depth_scale}")
+
+
+@dataclass
+class Frame:
+    """One scene-to-be. depth: (H, W) uint16 counts of intrinsics.depth_scale, or None for an
+    image-less frame, which has cloud (metres) instead. image_names: file names an annotator
+    may have drawn on (LabelMe's imagePath is checked against them). unit_sample_m: the valid
+    depths (m) as read, before storage, for the unit check (default: from depth)."""
+
+    scene_id: str
+    source: str
+    intrinsics: Intrinsics | None
+    depth: np.ndarray | None = None
+    cloud: Cloud | None = None
+    meta: dict = field(default_factory=dict)
+    image_names: tuple[str, ...] = ("image.png",)
+    unit_sample_m: np.ndarray | None = None
+
+
+@dataclass
+class Plan:
+    """Frames to prepare (an iterator: recordings are read as they are written), their count
+    when known, what they came from (for dataset.json), and notes to print and keep."""
+
+    frames: Iterable[Frame]
+    total: int | None
+    source: dict
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class PrepareReport:
+    out_dir: Path
+    scenes: int
+    annotated: int
+    balls: int
+    image_less: int
+    valid_points: list[int]
+    seconds: float
+    notes: list[str]
+
+    def summary(self) -> str:
+        pts = np.asarray(self.valid_points or [0])
+        return (f"{self.scenes} scenes ({self.annotated} annotated, {self.balls} balls, {self.image_less} image-less) "
+                f"-> {self.out_dir}; valid points per scene: min {pts.min()}, median {int(np.median(pts))}, "
+                f"max {pts.max()}; {self.seconds:.1f} s")
+
+
+# --------------------------------------------------------------------------- helpers
+
+_SAFE_ID = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def scene_id_from(name: str) -> str:
+    """A file stem as a scene id: letters, digits, '.', '_' and '-' only."""
+    sid = _SAFE_ID.sub("_", name).strip("._")
+    if not sid:
+        raise SphereBenchError(f"cannot make a scene id from '{name}'")
+    return sid
+
+
+def natural_key(path: Path):
+    """Sort key that orders frame_2 before frame_10."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+
+def _with_depth_scale(intr: Intrinsics, scale: float) -> Intrinsics:
+    return dataclasses.replace(intr, depth_scale=float(scale))
+
+
+def check_units(depth_m_valid: np.ndarray, where: str, scale: float, what: str = "depth") -> None:
+    """Refuse a frame whose median valid depth (m) is plainly a wrong unit; suggest the scale."""
+    if depth_m_valid.size == 0:
+        return
+    med = float(np.median(depth_m_valid))
+    lo, hi = UNIT_CHECK_RANGE_M
+    if lo <= med <= hi:
+        return
+    suggest = scale * 10.0 ** round(math.log10(2.0 / med))
+    raise SphereBenchError(f"{where}: median valid {what} is {med:.4g} m at {scale:g} m per unit, plainly the wrong "
+                           f"unit for a depth camera (expected {lo:g}-{hi:g} m); try --depth-scale {suggest:.3g} "
+                           "(or --skip-unit-check for a genuinely far scene)")
+
+
+def float_depth_to_counts(depth_m: np.ndarray, scale: float = FLOAT_DEPTH_SCALE_M) -> tuple[np.ndarray, int]:
+    """(H, W) metres (NaN, inf, <= 0 invalid) -> (uint16 counts, number of pixels beyond range)."""
+    z = np.asarray(depth_m, dtype=np.float64)
+    valid = np.isfinite(z) & (z > 0)
+    counts = np.zeros(z.shape, dtype=np.float64)
+    counts[valid] = np.round(z[valid] / scale)
+    too_far = int(np.count_nonzero(counts > 65535))
+    counts[counts > 65535] = 0
+    return counts.astype(np.uint16), too_far
+
+
+def cloud_to_depth(cloud: Cloud, intr: Intrinsics, where: str) -> tuple[np.ndarray, dict]:
+    """A cloud (metres) -> (H, W) depth counts of intr.depth_scale, with how many points were lost.
+
+    Organised clouds put each point's z at its own pixel, after checking that the intrinsics
+    project it there; unorganised ones are projected, keeping the nearest point per pixel.
+    """
+    pts = cloud.points.astype(np.float64)
+    h, w = intr.shape
+    info: dict = {}
+    if cloud.rows is not None:
+        if len(pts) and (cloud.rows.min() < 0 or cloud.cols.min() < 0 or cloud.rows.max() >= h
+                         or cloud.cols.max() >= w):
+            raise SphereBenchError(f"{where}: the cloud's pixels reach row {cloud.rows.max()}, col {cloud.cols.max()}, "
+                                   f"outside the {w}x{h} image of the intrinsics: give this camera's intrinsics")
+        front = pts[:, 2] > 0
+        uv = project(intr, pts[front])
+        off = np.hypot(uv[:, 0] - cloud.cols[front], uv[:, 1] - cloud.rows[front])
+        if off.size and float(np.median(off)) > MAX_REPROJECTION_PX:
+            raise SphereBenchError(f"{where}: the organised cloud's points land a median {np.median(off):.1f} px from "
+                                   "their own pixels under the given intrinsics: they are not this camera's intrinsics")
+        z = np.full((h, w), np.nan)
+        z[cloud.rows[front], cloud.cols[front]] = pts[front, 2]
+        info["points_behind_camera"] = int(np.count_nonzero(~front))
+    else:
+        front = pts[:, 2] > 0
+        uv = project(intr, pts[front])
+        col, row = np.round(uv[:, 0]), np.round(uv[:, 1])
+        inside = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        pix = row[inside].astype(np.int64) * w + col[inside].astype(np.int64)
+        zs = pts[front][inside, 2]
+        order = np.lexsort((zs, pix))  # per pixel, nearest first
+        pix, zs = pix[order], zs[order]
+        first = np.ones(len(pix), dtype=bool)
+        first[1:] = pix[1:] != pix[:-1]
+        z = np.full(h * w, np.nan)
+        z[pix[first]] = zs[first]
+        z = z.reshape(h, w)
+        info["points_outside_image"] = int(len(pts) - np.count_nonzero(inside))
+        info["points_hidden"] = int(np.count_nonzero(~first))
+    counts, too_far = float_depth_to_counts(z, intr.depth_scale)
+    info["points_beyond_depth_range"] = too_far
+    return counts, info
+
+
+# --------------------------------------------------------------------------- frame sources
+
+def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None = None) -> Iterator[Frame]:
+    """Depth frames of a RealSense recording, picked by ``selection``."""
+    stem = scene_id_from(path.stem)
+    t_first = None
+    kept = 0
+    for index, number, stamp, depth, intr in io.read_bag_depth(path, stop_after=selection.stop):
+        t_first = stamp if t_first is None else t_first
+        rel = stamp - t_first
+        if selection.time_range_ms is not None:
+            t0, t1 = selection.time_range_ms
+            if rel > t1:
+                break
+            if rel < t0:
+                continue
+        if index < selection.first:
+            continue
+        kept += 1
+        if (kept - 1) % selection.every:
+            continue
+        if depth_scale is not None:
+            intr = _with_depth_scale(intr, depth_scale)
+        yield Frame(scene_id=f"{stem}_{index:06d}", source=f"{path} frame {index}", intrinsics=intr, depth=depth,
+                    meta={"source": path.name, "frame_index": index, "frame_number": number,
+                          "timestamp_ms": stamp, "time_from_first_frame_ms": round(rel, 6)})
+
+
+def depth_png_frames(paths: list[Path], intr: Intrinsics | None, selection: FrameSelection,
+                     depth_scale: float | None = None) -> Plan:
+    """16-bit depth PNGs of one camera (``intr``; depth_scale overrides its depth unit)."""
+    if intr is None:
+        raise SphereBenchError(f"{paths[0].parent}: depth PNGs need intrinsics: give --intrinsics FILE "
+                               "(pyrealsense2 fields) or --fx --fy --ppx --ppy")
+    if depth_scale is not None:
+        intr = _with_depth_scale(intr, depth_scale)
+    picked = [paths[i] for i in selection.pick(len(paths))]
+
+    def frames():
+        for p in picked:
+            depth = io.read_depth_png(p)
+            if depth.shape != intr.shape:
+                raise SphereBenchError(f"{p}: depth image is {depth.shape[1]}x{depth.shape[0]} but the intrinsics "
+                                       f"are {intr.width}x{intr.height}: give the intrinsics of this stream")
+            yield Frame(scene_id_from(p.stem), p.name, intr, depth=depth, meta={"source": p.name},
+                        image_names=("image.png", p.name))
+    return Plan(frames(), len(picked), {"kind": "depth-png", "files": [p.name for p in picked]})
+
+
+def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selection: FrameSelection,
+               depth_scale: float | None = None) -> Plan:
+    """Headerless frames; uint16 keep their counts, float32 are stored as FLOAT_DEPTH_SCALE_M counts."""
+    if intr is None:
+        raise SphereBenchError(f"{paths[0]}: raw frames need intrinsics: give --intrinsics FILE or --fx --fy --ppx --ppy")
+    if raw.width is not None and (raw.width, raw.height) != (intr.width, intr.height):
+        raise SphereBenchError(f"--raw-size {raw.width}x{raw.height} disagrees with the intrinsics' "
+                               f"{intr.width}x{intr.height}: give the intrinsics of this stream")
+    if raw.dtype == "uint16":
+        out_intr = _with_depth_scale(intr, depth_scale) if depth_scale is not None else intr
+        in_scale = out_intr.depth_scale
+    else:  # float32 values are metres unless told otherwise
+        in_scale = depth_scale if depth_scale is not None else 1.0
+        out_intr = _with_depth_scale(intr, FLOAT_DEPTH_SCALE_M)
+    picked = [paths[i] for i in selection.pick(len(paths))]
+
+    def frames():
+        for p in picked:
+            values = io.read_raw_depth(p, intr.width, intr.height, raw.dtype, raw.byte_order)
+            meta = {"source": p.name}
+            sample = None
+            if raw.dtype == "uint16":
+                depth = values
+            else:
+                metres = values.astype(np.float64) * in_scale
+                depth, too_far = float_depth_to_counts(metres, FLOAT_DEPTH_SCALE_M)
+                meta["pixels_beyond_depth_range"] = too_far
+                sample = metres[np.isfinite(metres) & (metres > 0)]
+            yield Frame(scene_id_from(p.stem), p.name, out_intr, depth=depth, meta=meta,
+                        image_names=("image.png", p.name), unit_sample_m=sample)
+    return Plan(frames(), len(picked), {"kind": f"raw-{raw.dtype}-{raw.byte_order}-endian",
+                                        "files": [p.name for p in picked], "input_depth_scale": in_scale})
+
+
+def read_cloud_file(path: Path, intr: Intrinsics | None) -> Cloud:
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        return io.read_ply(path)
+    if suffix == ".pcd":
+        return io.read_pcd(path, intr)
+    if suffix in (".xyz", ".txt"):
+        return io.read_xyz(path)
+    raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' (.ply, .pcd, .xyz)")
+
+
+def cloud_frames(paths: list[Path], intr: Intrinsics | None, selection: FrameSelection,
+                 depth_scale: float | None = None, scene_ids: list[str] | None = None,
+                 metas: list[dict] | None = None) -> Plan:
+    """Point-cloud files (coordinates times depth_scale = metres; default 1). With intrinsics a
+    cloud becomes an organised depth frame in FLOAT_DEPTH_SCALE_M counts; without, an image-less scene."""
+    scale = 1.0 if depth_scale is None else depth_scale
+    out_intr = None if intr is None else _with_depth_scale(intr, FLOAT_DEPTH_SCALE_M)
+    keep = selection.pick(len(paths))
+    notes = []
+    if intr is None:
+        notes.append("clouds without intrinsics are kept as image-less scenes (cloud.ply only): no depth.png, "
+                     "image.png, masks or 2D circles; give --intrinsics to project them into depth images")
+
+    def frames():
+        for i in keep:
+            p = paths[i]
+            cloud = read_cloud_file(p, intr)
+            if len(cloud) == 0:
+                raise SphereBenchError(f"{p}: the cloud has no valid point")
+            pts = cloud.points.astype(np.float64) * scale
+            cloud = Cloud(pts.astype(np.float32), cloud.rows, cloud.cols, None)
+            sid = scene_ids[i] if scene_ids else scene_id_from(p.stem)
+            meta = {"source": p.name, **(metas[i] if metas else {})}
+            meta["organised_file"] = cloud.rows is not None
+            if out_intr is None:
+                yield Frame(sid, p.name, None, cloud=cloud, meta=meta, image_names=())
+                continue
+            depth, info = cloud_to_depth(cloud, out_intr, str(p))
+            meta.update(info)
+            yield Frame(sid, p.name, out_intr, depth=depth, meta=meta, image_names=("image.png",),
+                        unit_sample_m=np.linalg.norm(cloud.points.astype(np.float64), axis=1))
+    return Plan(frames(), len(keep), {"kind": "point-cloud", "files": [paths[i].name for i in keep],
+                                      "coordinate_scale_m": scale}, notes)
+
+
+def files_of(path: Path) -> tuple[str, list[Path]]:
+    """An input path -> (kind, files): kind is bag, png, cloud or raw."""
+    kinds = {"bag": BAG_SUFFIXES, "png": PNG_SUFFIXES, "cloud": CLOUD_SUFFIXES, "raw": RAW_SUFFIXES}
+    if path.is_file():
+        for kind, suffixes in kinds.items():
+            if path.suffix.lower() in suffixes:
+                return kind, [path]
+        return "raw", [path]  # a headerless frame may have any name
+    if not path.is_dir():
+        raise SphereBenchError(f"{path}: no such file or folder")
+    found = {kind: sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() in sfx), key=natural_key)
+             for kind, sfx in kinds.items()}
+    found = {k: v for k, v in found.items() if v}
+    if not found:
+        raise SphereBenchError(f"{path}: no depth data in this folder (.bag, .db3, .png, .ply, .pcd, .xyz, .raw, .dat)")
+    if len(found) > 1:
+        raise SphereBenchError(f"{path}: the folder mixes {' and '.join(found)} files; give one kind per input")
+    return next(iter(found.items()))
+
+
+def camera_from_options(intrinsics_file: Path | None = None, fx: float | None = None, fy: float | None = None,
+                        ppx: float | None = None, ppy: float | None = None, width: int | None = None,
+                        height: int | None = None, model: str = "none",
+                        coeffs: tuple[float, ...] | None = None) -> Intrinsics | None:
+    """Intrinsics from a JSON file or from the four numbers (and the image size); None if neither."""
+    numbers = {"--fx": fx, "--fy": fy, "--ppx": ppx, "--ppy": ppy}
+    given = [k for k, v in numbers.items() if v is not None]
+    if intrinsics_file is not None:
+        if given:
+            raise SphereBenchError(f"give intrinsics as --intrinsics FILE or as {', '.join(numbers)}, not both")
+        intr = io.read_camera_json(intrinsics_file)
+        if width is not None and (width, height) != (intr.width, intr.height):
+            raise SphereBenchError(f"{intrinsics_file}: intrinsics are {intr.width}x{intr.height} but the frames "
+                                   f"are {width}x{height}: give the intrinsics of this stream")
+        return intr
+    if not given:
+        return None
+    missing = [k for k, v in numbers.items() if v is None]
+    if missing:
+        raise SphereBenchError(f"intrinsics options are incomplete: also give {', '.join(missing)}")
+    if width is None or height is None:
+        raise SphereBenchError("intrinsics given as numbers also need the image size (--raw-size WxH or --size WxH)")
+    return Intrinsics(width=width, height=height, ppx=ppx, ppy=ppy, fx=fx, fy=fy, model=model,
+                      coeffs=tuple(coeffs) if coeffs else (0.0,) * 5)
+
+
+def plan_inputs(inputs: list[Path], options: PrepareOptions, intr: Intrinsics | None = None,
+                raw: RawFormat = RawFormat()) -> Plan:
+    """Frames of the given files and folders, one kind per input, in the order given."""
+    if not inputs:
+        raise SphereBenchError("no input given: name .bag/.db3 recordings, depth PNGs, clouds or raw frames (or folders)")
+    sel = options.selection
+    plans = []
+    for path in inputs:
+        kind, files = files_of(Path(path))
+        if sel.time_range_ms is not None and kind != "bag":
+            raise SphereBenchError(f"{path}: --time-range needs timestamps, which only recordings (.bag, .db3) have; "
+                                   "use --frames A:B")
+        if kind == "bag":
+            if intr is not None:
+                raise SphereBenchError(f"{path}: a recording carries its own intrinsics; drop --intrinsics/--fx...")
+            for f in files:
+                plans.append(Plan(bag_frames(f, sel, options.depth_scale), None,
+                                  {"kind": "realsense-recording", "files": [f.name]}))
+        elif kind == "png":
+            plans.append(depth_png_frames(files, intr, sel, options.depth_scale))
+        elif kind == "raw":
+            plans.append(raw_frames(files, raw, intr, sel, options.depth_scale))
+        else:
+            plans.append(cloud_frames(files, intr, sel, options.depth_scale))
+    if len(plans) == 1:
+        return plans[0]
+    totals = [p.total for p in plans]
+
+    def chain():
+        for p in plans:
+            yield from p.frames
+    return Plan(chain(), None if None in totals else sum(totals), {"kind": "several", "inputs": [p.source for p in plans]},
+                [n for p in plans for n in p.notes])
+
+
+# --------------------------------------------------------------------------- recipes for the real data
+
+#: Kinect-type camera 1 of PoChang007/RGBD_CameraNetwork_Calibration (SOURCE.md: calibrationHandler.cpp).
+POCHANG_INTRINSICS = Intrinsics(width=640, height=480, ppx=316.625776542517880, ppy=256.231848585108540,
+                                fx=524.639247602080790, fy=523.503043480237810, model="none", depth_scale=0.001)
+POCHANG_RADIUS_M = 0.203
+SPHERECALIB_RADIUS_M = 0.3
+
+
+def _pochang_reference(root: Path) -> tuple[dict[int, list[float]], dict[int, float]]:
+    """The authors' per-frame RANSAC fit of camera 1: centre (m) and radius (m) by frame index."""
+    centres, radii = {}, {}
+    path_file, radius_file = root / "tracking" / "path_01.txt", root / "tracking" / "radius_01.txt"
+    if path_file.is_file():
+        for line in path_file.read_text().splitlines():
+            parts = line.split()
+            if len(parts) == 4:
+                idx, xyz = int(parts[0]), [float(v) / 1000.0 for v in parts[1:]]
+                if not (xyz[0] == 0 and xyz[1] == 0 and xyz[2] == -1.0):  # "0 0 -1000": not detected
+                    centres[idx] = xyz
+    if radius_file.is_file():
+        for idx, line in enumerate(radius_file.read_text().splitlines()):
+            try:
+                radii[idx] = float(line) / 1000.0
+            except ValueError:
+                pass  # '-------': not detected
+    return centres, radii
+
+
+def plan_kinect_pochang(root: Path, selection: FrameSelection) -> Plan:
+    """Camera 1 of the Kinect-type RGB-D set: raw uint16 LE 640x480 depth in mm, 0.203 m ball.
+
+    No annotation: scenes are unannotated; the authors' tracking centre of the frame, when they
+    detected the ball, is kept in meta as reference_center_m (their fit, not ground truth).
+    """
+    folder = root / "sensors" / "Kinect_1"
+    files = sorted(folder.glob("kinect_1_dep_*.dat"), key=natural_key) if folder.is_dir() else []
+    if not files:
+        raise SphereBenchError(f"{root}: not the pochang_rgbd_sphere folder (no sensors/Kinect_1/kinect_1_dep_*.dat)")
+    centres, radii = _pochang_reference(root)
+    plan = raw_frames(files, RawFormat(640, 480, "uint16", "little"), POCHANG_INTRINSICS, selection)
+    note = ("the dataset authors' RANSAC fit of the ball (tracking/path_01.txt, radius_01.txt): "
+            "a reference, NOT ground truth")
+
+    def frames():
+        for frame in plan.frames:
+            idx = int(frame.scene_id.rsplit("_", 1)[1])
+            frame.meta["frame_index"] = idx
+            if idx in centres:
+                frame.meta["reference_center_m"] = centres[idx]
+                if idx in radii:
+                    frame.meta["reference_fit_radius_m"] = radii[idx]
+                frame.meta["reference_note"] = note
+            frame.meta["source"] = f"sensors/Kinect_1/{frame.source}"
+            yield frame
+    source = {"kind": "kinect-pochang", "repository": "PoChang007/RGBD_CameraNetwork_Calibration",
+              "commit": "28693df8a03b89f89d632cd85a131b565a707177", "licence": "MIT",
+              "camera": "Kinect_1 (Kinect-type structured light, depth registered to colour)",
+              "files": plan.source["files"], "radius_source": "authors' stated 203 mm"}
+    notes = ["kinect-pochang: no annotation exists, so every scene is unannotated (kept, not scored); "
+             "reference_center_m in gt.json meta is the authors' own fit, not ground truth"]
+    return Plan(frames(), plan.total, source, notes)
+
+
+def plan_lidar_spherecalib(root: Path, selection: FrameSelection) -> Plan:
+    """The SphereCalib LiDAR scans (.xyz, metres, unorganised, no camera): image-less scenes."""
+    files = sorted(root.glob("examples/example*/data3D/*.xyz"), key=lambda p: (p.parts[-3], natural_key(p)))
+    if not files:
+        raise SphereBenchError(f"{root}: not the spherecalib_lidar folder (no examples/example*/data3D/*.xyz)")
+    ids = [scene_id_from(f"{p.parts[-3]}_{p.stem}") for p in files]
+    metas = [{"source": "/".join(p.parts[-4:]), "lidar": p.stem.split("_")[0], "scan": p.stem.split("_")[-1]}
+             for p in files]
+    plan = cloud_frames(files, None, selection, None, ids, metas)
+    source = {"kind": "lidar-spherecalib", "repository": "tothtekla/SphereCalib",
+              "commit": "1c660fb0da46357c89c5feb50a483dc363e088a9", "licence": "MIT",
+              "sensor": "16-beam spinning LiDAR (model not stated)",
+              "files": [metas[i]["source"] for i in selection.pick(len(files))],
+              "radius_source": "authors: 'around 0.3 meter'"}
+    notes = ["lidar-spherecalib: unorganised LiDAR scans with no camera model: kept as image-less scenes "
+             "(cloud.ply only); depth.png, image.png, masks, 2D circles and COCO images are skipped",
+             "lidar-spherecalib: no centre ground truth: scenes are unannotated; SOURCE.md warns that the best "
+             "sphere in example2 L1 scans may be another object (example3 is the cleaner set)"]
+    return Plan(plan.frames, plan.total, source, notes)
+
+
+#: --preset-source NAME -> (planner, folder under shared/realdata, ball radius m, category)
+PRESET_SOURCES = {
+    "kinect-pochang": (plan_kinect_pochang, "pochang_rgbd_sphere", POCHANG_RADIUS_M, "ball"),
+    "lidar-spherecalib": (plan_lidar_spherecalib, "spherecalib_lidar", SPHERECALIB_RADIUS_M, "calibration-sphere"),
+}
+
+
+def default_realdata_dir() -> Path:
+    """../shared/realdata beside the repository (where CI checks it out)."""
+    return Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+
+
+# --------------------------------------------------------------------------- the preparation
+
+def _input_scale(frame: Frame, options: PrepareOptions) -> float:
+    """Metres per unit of the frame's input values, for the unit check's suggestion."""
+    if options.depth_scale is not None:
+        return options.depth_scale
+    if frame.unit_sample_m is not None or frame.depth is None:
+        return 1.0  # float inputs: clouds and float32 raw are metres unless told otherwise
+    return frame.intrinsics.depth_scale
+
+
+def _progress(frames: Iterable[Frame], total: int | None):
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return frames
+    return tqdm(frames, total=total, desc="prepare", unit="frame", leave=False, disable=None)
+
+
+def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: str = "recorded",
+            log=print) -> PrepareReport:
+    """Write the plan's frames as a dataset at out_dir, atomically (nothing is left on error)."""
+    t_start = time.perf_counter()
+    out_dir = Path(out_dir)
+    annotations = AnnotationIndex(options.masks_dir, options.labelme_dir, options.label)
+    notes = list(plan.notes)
+    seen: set[str] = set()
+    counts = {"annotated": 0, "balls": 0, "image_less": 0}
+    valid_points, empty = [], []
+    with io.atomic_directory(out_dir) as tmp:
+        for frame in _progress(plan.frames, plan.total):
+            if frame.scene_id in seen:
+                raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "
+                                       "give inputs whose file names differ")
+            seen.add(frame.scene_id)
+            balls = None
+            if frame.depth is not None:
+                valid = frame.depth > 0
+                n_valid = int(np.count_nonzero(valid))
+                if options.unit_check:
+                    sample = frame.unit_sample_m
+                    if sample is None:
+                        sample = frame.depth[valid].astype(np.float64) * frame.intrinsics.depth_scale
+                    check_units(sample, frame.source, _input_scale(frame, options))
+                balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m,
+                                              frame.image_names)
+            else:
+                n_valid = len(frame.cloud)
+                counts["image_less"] += 1
+                if options.unit_check:
+                    check_units(np.linalg.norm(frame.cloud.points.astype(np.float64), axis=1), frame.source,
+                                _input_scale(frame, options), what="range")
+            if n_valid == 0:
+                empty.append(frame.scene_id)
+            valid_points.append(n_valid)
+            frame.meta["valid_points"] = n_valid
+            scene = Scene(scene_id=frame.scene_id, family="recorded", intrinsics=frame.intrinsics, depth=frame.depth,
+                          balls=balls or [], seed=None, annotated=balls is not None, cloud=frame.cloud,
+                          meta=frame.meta)
+            scene_dir = io.write_scene(tmp / "scenes", scene, options.ball_radius_m)
+            labelme = annotations.labelme_file(frame.scene_id) if balls is not None else None
+            if labelme is not None:
+                # keep the annotation beside the image, where LabelMe looks when image.png is reopened
+                doc = io.read_labelme(labelme)
+                doc["imagePath"] = "image.png"
+                io.write_json(scene_dir / "image.json", doc, indent=2)
+            if balls is not None:
+                counts["annotated"] += 1
+                counts["balls"] += len(balls)
+        if not seen:
+            raise SphereBenchError("no frame was selected: check --frames, --every and --time-range against the input")
+        if empty:
+            notes.append(f"{len(empty)} scene(s) have no valid depth at all (e.g. {empty[0]}): kept, but nothing can be found there")
+        if counts["image_less"] and not annotations.empty:
+            notes.append("annotations apply to scenes with an image only; image-less scenes stay unannotated")
+        unused = annotations.unused()
+        if unused:
+            notes.append(f"{len(unused)} annotation file(s) matched no selected scene, e.g. {unused[0].name}")
+        meta = {"name": options.name or out_dir.name, "preset": preset, "ball_radius_m": float(options.ball_radius_m),
+                "category": options.category, "seed": None, "source": plan.source,
+                "scenes": len(seen), "annotated_scenes": counts["annotated"], "image_less_scenes": counts["image_less"],
+                "notes": notes, "versions": {"spherebench": __version__, "format": 1}}
+        io.finish_dataset(tmp, meta)
+    for n in notes:
+        log(f"note: {n}")
+    return PrepareReport(out_dir, len(seen), counts["annotated"], counts["balls"], counts["image_less"],
+                         valid_points, time.perf_counter() - t_start, notes)
+
+
+def prepare_preset_source(name: str, out_dir: str | Path, root: str | Path | None = None,
+                          options: PrepareOptions | None = None, log=print) -> PrepareReport:
+    """One command per real data set: ``name`` is a key of PRESET_SOURCES; root defaults to
+    ../shared/realdata/<folder> beside the repository. options: frame selection, annotation
+    folders, and a radius overriding the set's own (defaults: the set's radius and category)."""
+    if name not in PRESET_SOURCES:
+        raise SphereBenchError(f"unknown --preset-source '{name}' (one of {', '.join(PRESET_SOURCES)})")
+    planner, folder, radius, category = PRESET_SOURCES[name]
+    root = Path(root) if root is not None else default_realdata_dir() / folder
+    if not root.is_dir():
+        raise SphereBenchError(f"{root}: folder not found; give the path of the {folder} data")
+    options = options or PrepareOptions(ball_radius_m=radius, category=category)
+    plan = planner(root, options.selection)
+    return prepare(plan, out_dir, dataclasses.replace(options, name=options.name or name), preset=name, log=log)
+

@@ -1,0 +1,51 @@
+"""``spherebench show DIR/scenes/<id>``: a scene's ground truth, to look at.
+
+Writes a PNG of the reprojected image (image.png) with the ground-truth circles (visible-mask
+circle solid green, amodal circle dashed white, a source's reference centre, not ground truth,
+as a yellow cross) and a binary PLY of the scene's points with the ball's in red and the rest
+grey, for MeshLab. An image-less scene gets the PLY only. Thin driver: the drawing is in
+``spherebench.datasets.annotate``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from spherebench.datasets import io
+from spherebench.datasets.annotate import ball_point_colors, draw_ground_truth
+from spherebench.errors import SphereBenchError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", type=Path, help="a scene folder, DIR/scenes/<scene_id>")
+    p.add_argument("--out-png", type=Path, help="image with circles (default ./<scene_id>_gt.png)")
+    p.add_argument("--out-ply", type=Path, help="coloured cloud (default ./<scene_id>_gt.ply)")
+    p.add_argument("--tolerance", type=float, default=0.02,
+                   help="image-less scenes: metres beyond the radius round a centre that count as the ball")
+
+
+def run(args: argparse.Namespace) -> int:
+    scene_dir = args.scene
+    if not (scene_dir / "gt.json").is_file():
+        raise SphereBenchError(f"{scene_dir}: not a scene folder (no gt.json); give DIR/scenes/<scene_id>")
+    scene = io.read_scene(scene_dir)
+    radius = io.read_json(scene_dir / "gt.json").get("ball_radius_m")
+    status = "annotated" if scene.annotated else "unannotated (no ground truth)"
+    print(f"scene {scene.scene_id}: {status}, {len(scene.balls)} ball(s)")
+    if scene.depth is not None:
+        out_png = args.out_png or Path(f"{scene.scene_id}_gt.png")
+        io.write_png(out_png, draw_ground_truth(io.read_image(scene_dir), scene))
+        for k, b in enumerate(scene.balls):
+            if b.circle_px is not None:
+                print(f"  ball {k}: circle ({b.circle_px[0]:.1f}, {b.circle_px[1]:.1f}) r {b.circle_px[2]:.1f} px")
+        print(f"wrote {out_png}")
+    else:
+        if args.out_png:
+            raise SphereBenchError(f"{scene_dir}: an image-less scene (a cloud without a camera) has no image; drop --out-png")
+        print("image-less scene: no image to draw on, writing the PLY only")
+    points, colors, how = ball_point_colors(scene, radius, args.tolerance)
+    out_ply = args.out_ply or Path(f"{scene.scene_id}_gt.ply")
+    io.write_ply(out_ply, points, colors)
+    print(f"wrote {out_ply} ({len(points)} points; {how})")
+    return 0
