@@ -1,0 +1,153 @@
+"""``detect``: spheres of known radius in a point cloud. Arrays in, results out; no files.
+
+Input handling (one rule each, documented here):
+- Points with a NaN or infinite coordinate are dropped; the returned indices still refer to
+  ``cloud.points``. A cloud with fewer than 3 finite points is refused.
+- A cloud whose median |z| exceeds ``config.mm_check_median_m`` (50 m) is refused as millimetres.
+- A cloud larger than ``config.max_points`` is searched on a random subsample of that size
+  (deterministic from the seed) as an unorganised cloud; the final inliers come from all points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from spherebench.circles import sphere_circle_exact, sphere_circle_paper
+from spherebench.cloud import Cloud
+from spherebench.errors import SphereBenchError
+from spherebench.method import _kernels as K
+from spherebench.method.config import IMPROVED, DetectorConfig
+from spherebench.method.improved import run_improved
+from spherebench.method.paper import PaperTrace, run_paper
+
+Circle = tuple[float, float, float]
+
+
+@dataclass
+class Sphere:
+    """One detected ball.
+
+    center_m (3,): centre, metres, camera frame. radius_m: the known radius R used.
+    free_radius_m: the radius of a free (centre + radius) fit to the inliers, with its standard
+        error free_radius_se_m (the size check). inlier_indices (K,): indices into cloud.points.
+    score: confidence in [0, 1], comparable across frames (ranks detections for mAP).
+    rmse_m: RMS of ||p - c|| - R over the inliers (the RMSE of Table 2, as this project defines it).
+    circle_paper, circle_exact: (cx, cy, r) pixels by the paper's rule and by the exact silhouette
+        (``spherebench.circles``); None without intrinsics.
+    evidence: the verification counts (silhouette pixels, coverage...) of the improved pipeline.
+    trace: the paper pipeline's intermediate values (``PaperTrace``), else None.
+    """
+
+    center_m: np.ndarray
+    radius_m: float
+    free_radius_m: float
+    inlier_indices: np.ndarray
+    score: float
+    rmse_m: float
+    free_radius_se_m: float = float("nan")
+    circle_paper: Circle | None = None
+    circle_exact: Circle | None = None
+    evidence: dict = field(default_factory=dict, repr=False)
+    trace: PaperTrace | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        """The JSON record of the command line (circle: the exact rule)."""
+        return {"center": [round(float(v), 6) for v in self.center_m], "radius": float(self.radius_m),
+                "free_radius": None if not np.isfinite(self.free_radius_m) else round(float(self.free_radius_m), 6),
+                "score": round(float(self.score), 6), "inliers": int(len(self.inlier_indices)),
+                "circle": None if self.circle_exact is None else [round(float(v), 3) for v in self.circle_exact],
+                "circle_paper": None if self.circle_paper is None else [round(float(v), 3) for v in self.circle_paper]}
+
+
+def prepare(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> tuple[Cloud, np.ndarray, bool]:
+    """Validate the cloud and choose the points to search.
+
+    Returns (searched cloud, their indices (M,) in cloud.points, whether it is a subsample).
+    """
+    if not isinstance(cloud, Cloud):
+        raise SphereBenchError(f"detect() needs a spherebench.cloud.Cloud, got {type(cloud).__name__}")
+    n = len(cloud.points)
+    if n == 0:
+        raise SphereBenchError("the point cloud is empty: nothing to detect (check the file or the depth range)")
+    ok, n_ok = K.finite_rows(cloud.points)
+    n_ok = int(n_ok)
+    if n_ok < 3:
+        raise SphereBenchError(f"the cloud has {n_ok} finite points (of {n}): at least 3 are needed")
+    index = np.flatnonzero(ok) if n_ok < n else np.arange(n)
+    if config.mm_check:
+        probe = cloud.points[index[:: max(1, len(index) // 4096)], 2]
+        med = float(np.median(np.abs(probe)))
+        if med > config.mm_check_median_m:
+            raise SphereBenchError(f"median |z| is {med:.4g}: the cloud looks like millimetres; divide by 1000 "
+                                   "or pass --scale 0.001")
+    if len(index) > config.max_points:
+        index = np.sort(rng.choice(index, size=config.max_points, replace=False))
+        return Cloud(cloud.points[index]), index, True
+    if len(index) == n:
+        return cloud, index, False
+    return cloud.subset(index), index, False
+
+
+def _circles(cloud: Cloud, c: np.ndarray, R: float) -> tuple[Circle | None, Circle | None]:
+    if cloud.intrinsics is None or not c[2] > 0:
+        return None, None
+    return sphere_circle_paper(cloud.intrinsics, c, R), sphere_circle_exact(cloud.intrinsics, c, R)
+
+
+def _all_inliers(cloud: Cloud, c: np.ndarray, R: float, band: float) -> np.ndarray:
+    """Shell indices over the whole original cloud (used after a subsampled search)."""
+    pts = cloud.points
+    out = []
+    for start in range(0, len(pts), 1_000_000):  # chunks bound the temporary memory
+        chunk = pts[start:start + 1_000_000]
+        buf = np.empty(len(chunk), np.int64)
+        m = K.shell_indices(np.ascontiguousarray(chunk), c[0], c[1], c[2], R, band, buf)
+        out.append(buf[:m] + start)
+    return np.concatenate(out) if out else np.empty(0, np.int64)
+
+
+def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0) -> list[Sphere]:
+    """Find balls of radius ``config.radius_m`` in ``cloud``; best first (at most ``config.max_spheres``).
+
+    cloud: points (N, 3) metres in the camera frame (camera at the origin, z forward), organised
+        (pixel rows/cols + intrinsics: image-window sampling and silhouette checks) or not.
+    seed: the random seed (same seed, same output); None for a fresh one.
+    Raises SphereBenchError on bad input (see the module docstring).
+    """
+    if not isinstance(config, DetectorConfig):
+        raise SphereBenchError("config must be a DetectorConfig (use spherebench.method.config_for)")
+    rng = np.random.default_rng(seed)
+    work, index, subsampled = prepare(cloud, config, rng)
+    pts = work.points
+    R = config.radius_m
+    if config.pipeline == "paper":
+        got = run_paper(pts, config, rng)
+        if got is None:
+            return []
+        centre, inl, trace = got
+        trace.ransac_indices = index[trace.ransac_indices]
+        trace.kept_indices = index[trace.kept_indices]
+        inl_orig = index[inl]
+        res = np.linalg.norm(cloud.points[inl_orig].astype(np.float64) - centre, axis=1) - R
+        rmse = float(np.sqrt(np.mean(res * res))) if len(res) else float("nan")
+        # the paper has no confidence: a saturating function of the support stands in for it
+        score = len(inl_orig) / (len(inl_orig) + 100.0)
+        cp, ce = _circles(cloud, centre, R)
+        return [Sphere(center_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
+                       rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
+    index_image = None
+    if work.organised:
+        intr = work.intrinsics
+        index_image = K.build_index_image(work.rows, work.cols, int(intr.height), int(intr.width))
+    kernel_seed = int(rng.integers(0, 2 ** 63))
+    found, _its = run_improved(pts, work if work.organised else None, index_image, config, kernel_seed)
+    spheres = []
+    for v in found:
+        inl = _all_inliers(cloud, v.center_m, R, v.eps_m) if subsampled else index[v.inliers]
+        cp, ce = _circles(cloud, v.center_m, R)
+        spheres.append(Sphere(center_m=v.center_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
+                              score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
+                              circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))
+    return spheres

@@ -1,0 +1,234 @@
+"""The 3D detector: minimal solvers, fits, compiled-vs-reference agreement, detection, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from spherebench.camera import Intrinsics, image_rays
+from spherebench.circles import sphere_circle_paper
+from spherebench.cloud import Cloud, cloud_from_depth
+from spherebench.errors import SphereBenchError
+from spherebench.method import PAPER, config_for, detect
+from spherebench.method import _kernels as K
+from spherebench.method import sphere_model as sm
+
+R = 0.12
+
+
+def cap_points(c, r, n, rng, visible=True):
+    """n points on the sphere (c, r); only the camera-facing side when visible."""
+    d = rng.normal(size=(max(4 * n, 64), 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    p = np.asarray(c) + r * d
+    if visible:
+        p = p[np.einsum("ij,ij->i", p - c, p) < 0]
+    return p[:n]
+
+
+def scene(ball_c=(0.1, -0.05, 1.0), ball_r=R, wall_z=1.8, noise=0.002, seed=0, width=160, height=120, box=False):
+    """A small organised frame: a wall, a ball (or none), optionally a box corner; Gaussian depth noise."""
+    intr = Intrinsics.d435(width, height)
+    rays = image_rays(intr)
+    z = np.full((height, width), wall_z)
+    if ball_c is not None:
+        c = np.asarray(ball_c)
+        u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        tc = u @ c
+        m2 = c @ c - tc ** 2
+        hit = m2 < ball_r ** 2
+        t = tc - np.sqrt(np.maximum(ball_r ** 2 - m2, 0))
+        z = np.where(hit, np.minimum(z, t * u[..., 2]), z)
+    if box:  # a concave corner (floor, side wall, back wall): a sphere fits tangent to its three faces
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_floor = np.where(rays[..., 1] > 0, 0.25 / rays[..., 1], np.inf)
+            t_side = np.where(rays[..., 0] < 0, -0.3 / rays[..., 0], np.inf)
+        z = np.minimum(z, np.minimum(t_floor, t_side))
+    rng = np.random.default_rng(seed)
+    z = z + rng.normal(size=z.shape) * noise
+    return cloud_from_depth(z.astype(np.float32), intr)
+
+
+# ---------------------------------------------------------------------------------------- model
+
+def test_known_radius_solver_both_centres_exact():
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        c = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), rng.uniform(0.5, 3)])
+        p = cap_points(c, R, 3, rng)
+        near, far, ok = sm.solve_known_radius(p[0], p[1], p[2], R, both=True)
+        assert ok[0]
+        for cc in (near[0], far[0]):
+            assert np.allclose(np.linalg.norm(p - cc, axis=1), R, atol=1e-9)
+        assert min(np.linalg.norm(near[0] - c), np.linalg.norm(far[0] - c)) < 1e-9
+        assert np.linalg.norm(far[0]) >= np.linalg.norm(near[0]) - 1e-12
+        # the compiled solver gives the same pair
+        out = np.empty((2, 3))
+        assert K.known_radius_centres(p, 0, 1, 2, R, out) == 2
+        assert np.allclose(out[0], far[0], atol=1e-12) and np.allclose(out[1], near[0], atol=1e-12)
+
+
+def test_known_radius_solver_degenerate_cases():
+    p1, p2 = np.array([0.0, 0, 1]), np.array([0.05, 0, 1])
+    c, ok = sm.solve_known_radius(p1, p2, np.array([0.1, 0, 1]), R)  # collinear
+    assert not ok[0] and np.isnan(c).all()
+    c, ok = sm.solve_known_radius(p1, p1, np.array([0.0, 0.1, 1]), R)  # repeated point
+    assert not ok[0]
+    c, ok = sm.solve_known_radius(p1, np.array([0.3, 0, 1]), np.array([0, 0.3, 1]), R)  # rho > R
+    assert not ok[0]
+    out = np.empty((2, 3))
+    pts = np.array([p1, p2, [0.1, 0, 1]])
+    assert K.known_radius_centres(pts, 0, 1, 2, R, out) == 0
+
+
+def test_eq12_is_rank_deficient_and_lstsq_is_min_norm():
+    rng = np.random.default_rng(2)
+    c = np.array([0.2, 0.1, 1.5])
+    p = cap_points(c, R, 3, rng)
+    A, b = sm.eq12_system(p[0], p[1], p[2])
+    assert np.linalg.matrix_rank(A[0]) == 2
+    ref = np.linalg.lstsq(A[0], b[0], rcond=None)[0]
+    got, r, ok = sm.solve_eq12_lstsq(p[0], p[1], p[2])
+    assert ok[0] and np.allclose(got[0], ref, atol=1e-9)
+    assert abs(r[0] - np.linalg.norm(p[0] - got[0])) < 1e-12
+
+
+def test_refinement_exact_on_noiseless_cap():
+    rng = np.random.default_rng(3)
+    c = np.array([-0.3, 0.2, 1.2])
+    p = cap_points(c, R, 400, rng)
+    got = sm.refine_fixed_radius(p, c + [0.01, -0.01, 0.02], R)
+    assert np.linalg.norm(got - c) < 1e-8
+    idx = np.arange(len(p))
+    assert np.linalg.norm(K.refine_fixed_radius(p, idx, *(c + 0.01), R, 20) - c) < 1e-8
+    # the barycentre of a cap is pulled toward the camera
+    assert np.linalg.norm(p.mean(axis=0) - c) > 0.03
+    # the ray fit (noise along rays) is exact on noiseless data too, fixed and free radius
+    cc, r, _, rms = K.fit_ray(p, idx, *(c + 0.005), R, False, 60, 0.03)
+    assert np.linalg.norm(cc - c) < 1e-7 and rms < 1e-7
+    cc, r, se, _ = K.fit_ray(p, idx, *(c + 0.005), R + 0.005, True, 60, 0.03)
+    assert np.linalg.norm(cc - c) < 1e-6 and abs(r - R) < 1e-6
+
+
+def test_free_radius_fit_compiled_matches_reference():
+    rng = np.random.default_rng(4)
+    c = np.array([0.1, 0.0, 0.9])
+    p = cap_points(c, 0.11, 500, rng) + rng.normal(size=(500, 3)) * 0.001
+    ref_c, ref_r, ref_se, ref_rms = sm.fit_free_radius(p, c + 0.003, R)
+    got_c, got_r, got_se, got_rms = K.fit_free_radius(p, np.arange(len(p)), *(c + 0.003), R, 10)
+    assert np.allclose(got_c, ref_c, atol=1e-9) and abs(got_r - ref_r) < 1e-9
+    assert abs(got_se - ref_se) < 1e-9 and abs(got_rms - ref_rms) < 1e-9
+    assert abs(ref_r - 0.11) < 0.002  # the size check can tell 0.11 from 0.12 here
+
+
+def test_window_stats_classifies_pixels():
+    cloud = scene(noise=0.0)
+    intr = cloud.intrinsics
+    img = K.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
+    out = np.zeros(K.N_STATS)
+    c = np.array([0.1, -0.05, 1.0])
+    K.window_stats(cloud.points, img, *c, R, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+    assert out[K.ST_INLIER] > 100 and out[K.ST_BEHIND] <= 0.02 * out[K.ST_VALID_DISC]
+    # a sphere 3 cm smaller at the same place: its disc sees the ball in front of it (occluded)
+    K.window_stats(cloud.points, img, *(c + [0, 0, 0.05]), R, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+    assert out[K.ST_FRONT] > out[K.ST_INLIER]
+
+
+# ------------------------------------------------------------------------------------ detection
+
+@pytest.mark.parametrize("method", ["improved", "paper"])
+def test_detects_ball_before_wall(method):
+    # the paper samples three points from the whole frame: it needs a ball that fills much of it
+    c = np.array([0.1, -0.05, 1.0]) if method == "improved" else np.array([0.0, 0.02, 0.5])
+    cloud = scene(ball_c=c, wall_z=1.2)
+    cfg = config_for(method, iterations=20000)
+    spheres = detect(cloud, cfg, seed=0)
+    assert spheres, method
+    if method == "improved":
+        assert np.linalg.norm(spheres[0].center_m - c) < 0.003
+    else:  # the RANSAC centre is near; the paper's barycentre is pulled toward the camera
+        assert np.linalg.norm(spheres[0].trace.ransac_center_m - c) < 0.015
+        assert spheres[0].center_m[2] < c[2] - 0.03
+    assert spheres[0].circle_paper is not None and spheres[0].circle_exact is not None
+    assert np.all(np.isfinite(cloud.points[spheres[0].inlier_indices]))
+
+
+def test_paper_trace_has_table2_values():
+    cloud = scene(ball_c=(0.0, 0.0, 0.8))
+    s = detect(cloud, config_for("paper", iterations=20000), seed=1)[0]
+    t = s.trace
+    assert t is not None and len(t.kept_indices) <= len(t.ransac_indices)
+    assert np.allclose(t.barycentre_m, cloud.points[t.kept_indices].mean(axis=0), atol=1e-5)
+    assert len(t.zscores) == len(t.ransac_indices)
+    assert np.all(np.abs(t.zscores[np.isin(t.ransac_indices, t.kept_indices)]) <= 1.5)
+
+
+def test_rejects_soccer_ball_and_empty_wall():
+    assert detect(scene(ball_c=(0.0, 0.0, 0.9), ball_r=0.11), seed=0) == []
+    assert detect(scene(ball_c=None), seed=0) == []
+
+
+def test_box_corner_is_not_a_ball():
+    spheres = detect(scene(ball_c=(0.25, 0.0, 1.2), box=True), seed=0)
+    assert len(spheres) == 1 and np.linalg.norm(spheres[0].center_m - [0.25, 0.0, 1.2]) < 0.005
+
+
+def test_same_seed_same_output():
+    cloud = scene(noise=0.004)
+    a = detect(cloud, seed=7)
+    b = detect(cloud, seed=7)
+    assert len(a) == len(b) and all(np.array_equal(x.center_m, y.center_m) and x.score == y.score for x, y in zip(a, b))
+    pa, pb = detect(cloud, PAPER, seed=3), detect(cloud, PAPER, seed=3)
+    assert np.array_equal(pa[0].center_m, pb[0].center_m) if pa else not pb
+
+
+def test_unorganised_cloud():
+    cloud = scene(ball_c=(0.05, 0.0, 1.1))
+    spheres = detect(Cloud(cloud.points), seed=0)
+    assert spheres and np.linalg.norm(spheres[0].center_m - [0.05, 0.0, 1.1]) < 0.005
+    assert spheres[0].circle_paper is None
+
+
+def test_paper_projection_rule_by_hand():
+    intr = Intrinsics(width=640, height=480, ppx=320, ppy=240, fx=600, fy=600)
+    cx, cy, r = sphere_circle_paper(intr, [0.2, 0.1, 2.0], 0.12)
+    assert (cx, cy) == pytest.approx((320 + 600 * 0.1, 240 + 600 * 0.05))
+    assert r == pytest.approx(600 * 0.12 / 2.0)
+
+
+# ------------------------------------------------------------------------------------ bad input
+
+def test_bad_input_errors():
+    with pytest.raises(SphereBenchError, match="empty"):
+        detect(Cloud(np.zeros((0, 3))))
+    with pytest.raises(SphereBenchError, match="at least 3"):
+        detect(Cloud(np.array([[0, 0, 1.0], [np.nan, 0, 1], [0, np.inf, 1]])))
+    with pytest.raises(SphereBenchError, match="millimetres"):
+        detect(Cloud(scene().points * 1000))
+    for kw in ({"radius_m": 0.0}, {"radius_m": -1.0}, {"eps_m": 0.2}, {"iterations": 0}, {"iterations": 2.5},
+               {"zscore_variable": "colour"}):
+        with pytest.raises(SphereBenchError):
+            config_for("improved", **kw)
+    with pytest.raises(SphereBenchError, match="unknown"):
+        config_for("hough")
+
+
+def test_nan_points_dropped_indices_refer_to_input():
+    cloud = scene()
+    pts = cloud.points.copy()
+    pts[::7] = np.nan
+    spheres = detect(Cloud(pts, cloud.rows, cloud.cols, cloud.intrinsics), seed=0)
+    assert spheres
+    assert np.all(np.isfinite(pts[spheres[0].inlier_indices]))
+
+
+def test_large_cloud_is_subsampled():
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-2, 2, 30000), rng.uniform(-1, 1, 30000), np.full(30000, 3.0)])
+    ball = cap_points(np.array([0.0, 0.0, 2.0]), R, 3000, rng)
+    cloud = Cloud(np.vstack([pts, ball]))
+    spheres = detect(cloud, config_for("improved", max_points=10000), seed=0)
+    assert spheres and np.linalg.norm(spheres[0].center_m - [0, 0, 2.0]) < 0.005
+    assert len(spheres[0].inlier_indices) > 2000  # inliers from the whole cloud, not the subsample
