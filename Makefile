@@ -35,8 +35,18 @@ $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 	$(SB) prepare --preset-source lidar-spherecalib $(REALDATA)/spherecalib_lidar --out $(DATA)/real/lidar-spherecalib
 
 # ---- the benchmark
+# every method on data/default and data/hard, Table 2 on data/paper -> results/ (resumable;
+# FORCE=1 recomputes every prediction set)
 eval: venv data data-hard
-	@echo "data ready: $(DATA)/default, $(DATA)/paper, $(DATA)/hard"
+	$(PY) scripts/run_eval.py --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
+
+# the recorded data sets (data/real/*) -> results/real/
+eval-real: venv realdata
+	$(SB) evaluate $$(for d in $(DATA)/real/*/; do printf -- '--data %s ' "$${d%/}"; done) \
+		--out results/real --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
+
+bench: venv data data-hard
+	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench
 
 test: venv
 	$(PY) -m pytest -q

@@ -202,12 +202,157 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, fx, fy, ppx, ppy,
         out[k] *= s2
 
 
+# ----------------------------------------------------------------------------------------------
+# Organised clouds: the search. Scalar parameters travel in one float64 array (``prm``, indexed by
+# the P_* names below): one argument instead of twenty keeps numba's call overhead small.
+
+P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_SAMPLE_R, P_SIGMA_T, P_H_MAX, \
+    P_RETRIES, P_PRETEST_N, P_PRETEST_FRAC, P_SCORE_MAX, P_ITERS, P_DEDUP = range(18)
+N_PRM = 18
+
+
 @njit(cache=True)
-def _draw_pixel(index_image, u0, v0, r_in, r_out, state):
-    """A point index at a pixel drawn uniformly in the annulus r_in..r_out px around (u0, v0); -1 if none."""
+def noise_eps(cz, eps, noise_a, noise_k, cap):
+    """Shell half-width at depth cz: max(eps, k sigma_z), sigma_z = noise_a cz^2 (metres), at most cap."""
+    e = max(eps, noise_k * noise_a * cz * cz)
+    return min(e, cap) if cap > eps else eps
+
+
+@njit(cache=True)
+def prepare_organised(points, rows, cols, img, mm_limit):
+    """One pass over an organised cloud: fills the index image img (H, W) int32; returns
+    (finite count, count of |z| > mm_limit).
+
+    Points with a non-finite coordinate or z <= 0 get no pixel (-1), so the search never meets them.
+    """
+    height, width = img.shape
+    img[:] = -1
+    n_ok = 0
+    n_big = 0
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            continue
+        n_ok += 1
+        if abs(z) > mm_limit:
+            n_big += 1
+        r, c = rows[i], cols[i]
+        if z > 0.0 and 0 <= r < height and 0 <= c < width:
+            img[r, c] = i
+    return n_ok, n_big
+
+
+#: Channels of the summed-area table: depth, valid count, squared depth (interleaved, so that one
+#: corner of a patch is one cache line: the search is bound by memory latency).
+T_Z, T_N, T_Z2 = range(3)
+
+
+@njit(cache=True)
+def depth_integrals(points, index_image, tab):
+    """Fill tab (H + 1, W + 1, 3) float64 with the summed-area tables of z, count and z^2."""
     h, w = index_image.shape
-    rad = math.sqrt(r_in * r_in + (r_out * r_out - r_in * r_in) * next_u01(state))
-    ang = 2.0 * math.pi * next_u01(state)
+    tab[0, :, :] = 0.0
+    for r in range(h):
+        a = 0.0
+        b = 0.0
+        k = 0.0
+        tab[r + 1, 0, :] = 0.0
+        for c in range(w):
+            i = index_image[r, c]
+            if i >= 0:
+                z = float(points[i, 2])
+                a += z
+                b += z * z
+                k += 1.0
+            tab[r + 1, c + 1, T_Z] = tab[r, c + 1, T_Z] + a
+            tab[r + 1, c + 1, T_N] = tab[r, c + 1, T_N] + k
+            tab[r + 1, c + 1, T_Z2] = tab[r, c + 1, T_Z2] + b
+
+
+@njit(cache=True)
+def patch_half(z, noise_a, sigma_t, h_max):
+    """Half-side (px) of the square patch whose mean depth has noise about sigma_t at depth z (0: none)."""
+    if sigma_t <= 0.0 or noise_a <= 0.0:
+        return 0
+    sz = noise_a * z * z
+    if sz <= sigma_t:
+        return 0
+    return min(h_max, int(math.ceil(0.5 * (sz / sigma_t - 1.0))))
+
+
+@njit(cache=True)
+def _box(tab, r0, r1, c0, c1, ch):
+    return tab[r1, c1, ch] - tab[r0, c1, ch] - tab[r1, c0, ch] + tab[r0, c0, ch]
+
+
+@njit(cache=True)
+def denoised_point(points, tab, i, r, c, prm, out, k):
+    """out[k] = point i moved along its ray to the mean depth of its pixel's patch; False to reject.
+
+    The patch (``patch_half``) averages the independent per-pixel depth noise of a stereo camera;
+    it is refused when under half of it is valid or its depth spread exceeds 2 sigma_z + R / 4 (it
+    straddles an edge). Only the sample points of the search use it; scoring and fits use raw points.
+    """
+    z = float(points[i, 2])
+    h = patch_half(z, prm[P_NOISE_A], prm[P_SIGMA_T], int(prm[P_H_MAX]))
+    if h == 0:
+        out[k, 0], out[k, 1], out[k, 2] = points[i, 0], points[i, 1], z
+        return True
+    hh = tab.shape[0] - 1
+    ww = tab.shape[1] - 1
+    r0, r1 = max(r - h, 0), min(r + h + 1, hh)
+    c0, c1 = max(c - h, 0), min(c + h + 1, ww)
+    n = _box(tab, r0, r1, c0, c1, T_N)
+    if n < 0.5 * (r1 - r0) * (c1 - c0):
+        return False
+    m = _box(tab, r0, r1, c0, c1, T_Z) / n
+    var = _box(tab, r0, r1, c0, c1, T_Z2) / n - m * m
+    lim = 2.0 * prm[P_NOISE_A] * z * z + 0.25 * prm[P_R]
+    if var > lim * lim:
+        return False
+    f = m / z
+    out[k, 0], out[k, 1], out[k, 2] = points[i, 0] * f, points[i, 1] * f, m
+    return True
+
+
+@njit(cache=True)
+def centres_xyz(p, radius, out):
+    """Both centres of radius R through the three rows of p (3, 3); out (2, 3) gets (far, near).
+
+    Returns 0 (collinear, or circumradius > R) or 2; ``known_radius_centres`` on coordinates.
+    """
+    x1, y1, z1 = p[0, 0], p[0, 1], p[0, 2]
+    ax, ay, az = p[1, 0] - x1, p[1, 1] - y1, p[1, 2] - z1
+    bx, by, bz = p[2, 0] - x1, p[2, 1] - y1, p[2, 2] - z1
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    nn = nx * nx + ny * ny + nz * nz
+    aa = ax * ax + ay * ay + az * az
+    bb = bx * bx + by * by + bz * bz
+    if not (nn > 1e-12 * aa * bb) or nn <= 0.0:
+        return 0
+    wx, wy, wz = aa * bx - bb * ax, aa * by - bb * ay, aa * bz - bb * az
+    ox = (wy * nz - wz * ny) / (2.0 * nn)
+    oy = (wz * nx - wx * nz) / (2.0 * nn)
+    oz = (wx * ny - wy * nx) / (2.0 * nn)
+    rho2 = ox * ox + oy * oy + oz * oz
+    if rho2 > radius * radius:
+        return 0
+    hgt = math.sqrt(radius * radius - rho2)
+    inv = 1.0 / math.sqrt(nn)
+    ux, uy, uz = nx * inv, ny * inv, nz * inv
+    qx, qy, qz = x1 + ox, y1 + oy, z1 + oz
+    s = 1.0 if qx * ux + qy * uy + qz * uz >= 0.0 else -1.0
+    out[0, 0], out[0, 1], out[0, 2] = qx + s * hgt * ux, qy + s * hgt * uy, qz + s * hgt * uz
+    out[1, 0], out[1, 1], out[1, 2] = qx - s * hgt * ux, qy - s * hgt * uy, qz - s * hgt * uz
+    return 2
+
+
+@njit(cache=True)
+def pixel_at(index_image, u0, v0, r_in, r_out, ang, u_rad):
+    """The point index at the pixel at angle ang, radius sqrt(r_in^2 + (r_out^2 - r_in^2) u_rad)
+    (uniform in the annulus) from (u0, v0); -1 when outside the image or without depth."""
+    h, w = index_image.shape
+    rad = math.sqrt(r_in * r_in + (r_out * r_out - r_in * r_in) * u_rad)
     c = int(math.floor(u0 + rad * math.cos(ang) + 0.5))
     r = int(math.floor(v0 + rad * math.sin(ang) + 0.5))
     if r < 0 or r >= h or c < 0 or c >= w:
@@ -216,39 +361,118 @@ def _draw_pixel(index_image, u0, v0, r_in, r_out, state):
 
 
 @njit(cache=True)
-def pretest(points, index_image, cx, cy, cz, radius, eps, fx, fy, ppx, ppy, n_draws, min_fraction, state):
-    """Cheap test before scoring: n pixels drawn in 0.8 of the candidate's disc must hold at least
-    ``min_fraction`` ray inliers, and of n/2 pixels drawn just outside the outline (1.1-1.3 of its
-    radius) at most half may continue the surface at the ball's depth (a wall, a plane)."""
+def pretest(points, index_image, cx, cy, cz, e, prm, state):
+    """Cheap test before scoring, stopping at the first decisive pixel.
+
+    Pixels drawn in 0.8 of the candidate's disc must be ray inliers (|dt| <= e) in at least
+    ``pretest_frac`` of the drawn ones (it fails as soon as that is out of reach); then of half as
+    many pixels just outside the outline (1.1-1.3 of its radius) at most half may continue the
+    surface at the ball's depth (a wall or a plane through the ball).
+    """
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    n_draws = int(prm[P_PRETEST_N])
+    max_fail = int((1.0 - prm[P_PRETEST_FRAC]) * n_draws)
     dist = math.sqrt(cx * cx + cy * cy + cz * cz)
     rpx = disc_radius_px(cz, dist, radius, fx)
     u0 = fx * cx / cz + ppx
     v0 = fy * cy / cz + ppy
     valid = 0
-    inl = 0
+    fails = 0
     for _ in range(n_draws):
-        i = _draw_pixel(index_image, u0, v0, 0.0, 0.8 * rpx, state)
+        ang = 2.0 * math.pi * next_u01(state)
+        i = pixel_at(index_image, u0, v0, 0.0, 0.8 * rpx, ang, next_u01(state))
         if i < 0:
             continue
         valid += 1
-        dt, hit = ray_residual(points[i, 0], points[i, 1], points[i, 2], cx, cy, cz, radius)
-        if hit and abs(dt) <= eps:
-            inl += 1
-    if valid < 3 or inl < min_fraction * valid:
+        dt, hit = ray_residual(float(points[i, 0]), float(points[i, 1]), float(points[i, 2]), cx, cy, cz, radius)
+        if not (hit and abs(dt) <= e):
+            fails += 1
+            if fails > max_fail:
+                return False
+    if valid < 3 or valid - fails < prm[P_PRETEST_FRAC] * valid:
         return False
     valid = 0
     cont = 0
-    for _ in range(max(2, n_draws // 2)):
-        i = _draw_pixel(index_image, u0, v0, 1.1 * rpx, RING_FACTOR * rpx, state)
+    n_ring = max(2, n_draws // 2)
+    for _ in range(n_ring):
+        ang = 2.0 * math.pi * next_u01(state)
+        i = pixel_at(index_image, u0, v0, 1.1 * rpx, RING_FACTOR * rpx, ang, next_u01(state))
         if i < 0:
             continue
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
         pn = math.sqrt(px * px + py * py + pz * pz)
         tc = (px * cx + py * cy + pz * cz) / pn
         valid += 1
-        if abs(pn - tc) <= eps:
+        if abs(pn - tc) <= e:
             cont += 1
+            if cont > n_ring // 2:
+                return False
     return not (valid >= 2 and cont > 0.5 * valid)
+
+
+@njit(cache=True)
+def patch_mean(tab, u, v, half):
+    """(mean depth, valid count) of the square patch of half-side ``half`` px around pixel (u, v)."""
+    hh = tab.shape[0] - 1
+    ww = tab.shape[1] - 1
+    c = int(math.floor(u + 0.5))
+    r = int(math.floor(v + 0.5))
+    r0, r1 = max(r - half, 0), min(r + half + 1, hh)
+    c0, c1 = max(c - half, 0), min(c + half + 1, ww)
+    if r0 >= r1 or c0 >= c1:
+        return math.nan, 0.0
+    n = _box(tab, r0, r1, c0, c1, T_N)
+    if n <= 0.0:
+        return math.nan, 0.0
+    return _box(tab, r0, r1, c0, c1, T_Z) / n, n
+
+
+@njit(cache=True)
+def patch_pretest(tab, cx, cy, cz, e, prm):
+    """A noise-proof test of a candidate on patch means (a few summed-area lookups).
+
+    The patch around the projected centre (half-side a third of the disc radius) must not lie
+    behind the sphere's front by more than e + 3 sigma_z / sqrt(n) (a surface seen through the
+    ball; in front is allowed: an occluder). Of four patches just outside the outline (1.4 disc
+    radii up, down, left, right), at most two may be *continued*, i.e. at a depth between the
+    front of the sphere and its centre: a wall or a plane the sphere is tangent to or cut by. Unlike
+    single pixels, these means stay decisive at 3 m and 424x240, where one pixel's noise is 7 cm.
+    """
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
+    rpx = disc_radius_px(cz, dist, radius, fx)
+    u0 = fx * cx / cz + ppx
+    v0 = fy * cy / cz + ppy
+    z_front = (dist - radius) * cz / dist
+    sz = prm[P_NOISE_A] * z_front * z_front
+    half = max(1, int(rpx / 3.0))
+    m, n = patch_mean(tab, u0, v0, half)
+    if n >= 3.0 and m > z_front + e + 3.0 * sz / math.sqrt(n):
+        return False
+    half = max(1, int(rpx / 4.0))
+    cont = 0
+    for k in range(4):
+        du = 1.4 * rpx if k == 0 else (-1.4 * rpx if k == 1 else 0.0)
+        dv = 1.4 * rpx if k == 2 else (-1.4 * rpx if k == 3 else 0.0)
+        m, n = patch_mean(tab, u0 + du, v0 + dv, half)
+        if n < 0.3 * (2 * half + 1) ** 2:
+            continue
+        tol = e + 3.0 * sz / math.sqrt(n)
+        if z_front - tol <= m <= cz:
+            cont += 1
+            if cont > 2:
+                return False
+    return True
+
+
+@njit(cache=True)
+def search_quality(stats, e):
+    """Search score of window statistics: MSAC over inliers minus the pixels seen through the sphere
+    or hugging it just in front (a bigger object), times (1 - share of the outline ring where the
+    surface continues at the sphere's depth)^2 (a wall, or a big object at 3 m where eps is wide:
+    a difference would favour big surfaces, which have more inliers)."""
+    ring = 1.0 - stats[ST_RING_CONT] / max(stats[ST_RING], 1.0)
+    return (stats[ST_INLIER] - stats[ST_SSE] / (e * e) - stats[ST_BEHIND] - stats[ST_FRONT_NEAR]) * ring * ring
 
 
 @njit(cache=True)
@@ -261,7 +485,6 @@ def _keep_candidate(cands, quals, n_kept, cx, cy, cz, q, merge):
         if dx * dx + dy * dy + dz * dz <= merge * merge:
             if q <= quals[j]:
                 return n_kept
-            # remove j, then insert below
             for m in range(j, n_kept - 1):
                 cands[m, 0], cands[m, 1], cands[m, 2] = cands[m + 1, 0], cands[m + 1, 1], cands[m + 1, 2]
                 quals[m] = quals[m + 1]
@@ -298,126 +521,186 @@ def required_iterations(support, n_points, window_px, confidence):
 
 
 @njit(cache=True)
-def search_organised(points, rows, cols, index_image, fx, fy, ppx, ppy, radius, eps, noise_k, subpixel, baseline,
-                     eps_cap, win_m, local, max_iter, min_iter, confidence, retries, pretest_n, pretest_frac,
-                     score_max, seed, cands, quals, counters):
+def search_organised(points, rows, cols, index_image, tab, prm, seed, cands, quals, counters):
     """Local-sampling RANSAC on an organised cloud; fills cands (K, 3), quals (K,) best first.
 
-    Per iteration: a random point; two more from the pixel window that spans ``win_m`` at its depth,
-    kept only if within ``win_m`` in 3D (``local``; else two more from the whole cloud); both
-    known-radius centres on whose camera side the three points lie; a pretest of a few pixels of
-    the candidate's disc; then the windowed statistics, with quality = sum over inliers of (1 - (res/eps)^2) - behind (MSAC minus seen-through pixels).
-    The iteration bound uses the larger of the analytic estimate of the good-sample rate
-    (``required_iterations``) and, once 5 samples have fallen wholly on the best candidate's
-    inliers, the measured rate (both restart when the best candidate changes).
+    Each of the ``prm[P_ITERS]`` iterations (the bound is computed by the caller, see
+    ``improved.iteration_bound``): a random valid point p1; two more pixels in the annulus 0.3-1 of
+    the disc of radius ``sample_r`` (metres) at p1's depth, the 3rd at 90-270 degrees from the 2nd
+    (well-shaped triangles), each kept only within 2R of p1 in 3D (else redrawn, up to ``retries``
+    times); the three moved to their patch-mean depth (``denoised_point``); both known-radius
+    centres on whose camera side the three lie; the early-exit ``pretest``; a centre within
+    ``dedup`` of a kept one is skipped (verification refines it anyway); the rest are scored on
+    their pixel window (``window_stats``, strided to about ``score_max`` pixels, ``search_quality``).
     counters (4,) int64 gets: samples drawn, centres solved, centres past the pretest, scored > 0.
-    Returns (iterations run, number of candidates kept).
+    Returns the number of candidates kept.
     """
     n = points.shape[0]
     h, w = index_image.shape
     counters[:] = 0
-    drawn = 0.0
-    hits = 0.0
-    best_eps = eps
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    retries = int(prm[P_RETRIES])
+    iters = int(prm[P_ITERS])
+    dedup2 = prm[P_DEDUP] * prm[P_DEDUP]
     state = np.empty(1, np.uint64)
     state[0] = np.uint64(seed)
+    pts = np.empty((3, 3), np.float64)
+    picks = np.empty(3, np.int64)
+    pix = np.empty((3, 2), np.int64)
     two = np.empty((2, 3), np.float64)
     stats = np.empty(N_STATS, np.float64)
     n_kept = 0
-    needed = float(max_iter)
-    it = 0
-    picks = np.empty(3, np.int64)
-    while it < max_iter:
-        if it >= min_iter and it >= needed:
-            break
-        it += 1
+    for _ in range(iters):
         i1 = min(int(next_u01(state) * n), n - 1)
-        z1 = points[i1, 2]
-        if z1 <= 0.0:
+        r1, c1 = rows[i1], cols[i1]
+        if index_image[r1, c1] != i1:  # no pixel: invalid point
             continue
-        half = max(2, int(fx * win_m / z1))
-        picks[0] = i1
+        z1 = float(points[i1, 2])
+        if z1 <= radius:
+            continue
+        rpx = fx * prm[P_SAMPLE_R] / z1
+        # raw points for the 3D reach test (widened by the noise), patch means only for a full sample
+        reach = 2.0 * radius + 3.0 * prm[P_NOISE_A] * z1 * z1
+        reach2 = reach * reach
+        ang2 = 0.0
         got = 1
         for slot in range(2):
             for _ in range(retries):
-                if local:
-                    dr = int(next_u01(state) * (2 * half + 1)) - half
-                    dc = int(next_u01(state) * (2 * half + 1)) - half
-                    r, c = rows[i1] + dr, cols[i1] + dc
-                    if r < 0 or r >= h or c < 0 or c >= w:
-                        continue
-                    j = index_image[r, c]
+                if slot == 0:
+                    ang = 2.0 * math.pi * next_u01(state)
                 else:
-                    j = min(int(next_u01(state) * n), n - 1)
-                if j < 0 or j == i1 or (slot == 1 and j == picks[1]):
+                    ang = ang2 + 0.5 * math.pi + math.pi * next_u01(state)
+                rad = rpx * math.sqrt(0.09 + 0.91 * next_u01(state))
+                c = int(math.floor(c1 + rad * math.cos(ang) + 0.5))
+                r = int(math.floor(r1 + rad * math.sin(ang) + 0.5))
+                if r < 0 or r >= h or c < 0 or c >= w:
                     continue
-                dx, dy, dz = points[j, 0] - points[i1, 0], points[j, 1] - points[i1, 1], points[j, 2] - points[i1, 2]
-                if local and dx * dx + dy * dy + dz * dz > win_m * win_m:
+                j = index_image[r, c]
+                if j < 0:
+                    continue
+                dx = float(points[j, 0]) - float(points[i1, 0])
+                dy = float(points[j, 1]) - float(points[i1, 1])
+                dz = float(points[j, 2]) - z1
+                if dx * dx + dy * dy + dz * dz > reach2:
                     continue
                 picks[got] = j
+                pix[got, 0], pix[got, 1] = r, c
+                ang2 = ang
                 got += 1
                 break
         if got < 3:
             continue
+        pix[0, 0], pix[0, 1] = r1, c1
+        picks[0] = i1
+        ok = True
+        for k in range(3):
+            if not denoised_point(points, tab, picks[k], pix[k, 0], pix[k, 1], prm, pts, k):
+                ok = False
+                break
+        if not ok:
+            continue
         counters[0] += 1
-        if n_kept > 0:
-            # empirical rate of all-inlier samples of the best candidate (the bound's p, measured)
-            drawn += 1.0
-            allin = True
-            for k in range(3):
-                j = picks[k]
-                dt, hit = ray_residual(points[j, 0], points[j, 1], points[j, 2], cands[0, 0], cands[0, 1],
-                                       cands[0, 2], radius)
-                if not (hit and abs(dt) <= best_eps):
-                    allin = False
-                    break
-            if allin:
-                hits += 1.0
-            if hits >= 5.0:
-                needed = min(needed, it - drawn + math.log(1.0 - confidence) / math.log(1.0 - min(hits / drawn, 0.999)))
-        if known_radius_centres(points, picks[0], picks[1], picks[2], radius, two) == 0:
+        if centres_xyz(pts, radius, two) == 0:
             continue
         counters[1] += 1
         for s in range(2):
             cx, cy, cz = two[s, 0], two[s, 1], two[s, 2]
             if cz <= radius:
                 continue
-            if not (faces_camera(points, picks[0], cx, cy, cz) and faces_camera(points, picks[1], cx, cy, cz)
-                    and faces_camera(points, picks[2], cx, cy, cz)):
+            facing = True
+            for k in range(3):
+                if (pts[k, 0] - cx) * pts[k, 0] + (pts[k, 1] - cy) * pts[k, 1] + (pts[k, 2] - cz) * pts[k, 2] >= 0.0:
+                    facing = False
+            if not facing:
                 continue
-            e = shell_eps(cz, eps, fx, noise_k, subpixel, baseline, eps_cap)
-            if not pretest(points, index_image, cx, cy, cz, radius, e, fx, fy, ppx, ppy, pretest_n, pretest_frac,
-                           state):
+            e = noise_eps(cz, prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
+            if not patch_pretest(tab, cx, cy, cz, e, prm):
+                continue
+            if not pretest(points, index_image, cx, cy, cz, e, prm, state):
                 continue
             counters[2] += 1
-            # a centre close to a kept one is the same ball: verification refines it anyway
             dup = False
             for j in range(n_kept):
                 ddx, ddy, ddz = cands[j, 0] - cx, cands[j, 1] - cy, cands[j, 2] - cz
-                if ddx * ddx + ddy * ddy + ddz * ddz <= (0.25 * radius) ** 2:
+                if ddx * ddx + ddy * ddy + ddz * ddz <= dedup2:
                     dup = True
                     break
             if dup:
                 continue
             dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-            rpx = disc_radius_px(cz, dist, radius, fx)
-            box = 2.0 * (RING_FACTOR * 1.05 * rpx + 2.0) + 1.0  # window_stats' window side, px
-            stride = max(1, int(math.ceil(box / math.sqrt(score_max))))
+            box = 2.0 * (RING_FACTOR * 1.05 * disc_radius_px(cz, dist, radius, fx) + 2.0) + 1.0  # window side, px
+            stride = max(1, int(math.ceil(box / math.sqrt(prm[P_SCORE_MAX]))))
             window_stats(points, index_image, cx, cy, cz, radius, e, fx, fy, ppx, ppy, stride, stats)
-            inliers = stats[ST_INLIER]
-            q = inliers - stats[ST_SSE] / (e * e) - stats[ST_BEHIND] - stats[ST_RING_CONT]
+            q = search_quality(stats, e)
             if q <= 0.0:
                 continue
             counters[3] += 1
             n_kept = _keep_candidate(cands, quals, n_kept, cx, cy, cz, q, 0.5 * radius)
-            if n_kept > 0 and quals[0] == q:
-                best_eps = e
-                drawn = 0.0
-                hits = 0.0
-                half_c = max(2.0, fx * win_m / cz)
-                window = (2.0 * half_c + 1.0) ** 2 if local else float(n)
-                needed = required_iterations(inliers, float(n), window, confidence)
-    return it, n_kept
+    return n_kept
+
+
+# ----------------------------------------------------------------------------------------------
+# Organised clouds: verification of one candidate, in one call.
+
+V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE = range(11)
+N_VOUT = 11
+
+
+@njit(cache=True)
+def _strided(idx, n, max_points):
+    """idx[:n] thinned by a stride to at most about max_points entries (a view)."""
+    step = max(1, (n + max_points - 1) // max_points)
+    return idx[0:n:step]
+
+
+@njit(cache=True)
+def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, idx, out, stats):
+    """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
+
+    Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
+    current depth (``gather_window``), then 2 Gauss-Newton steps on the ray residuals with R fixed
+    (``fit_ray``; on at most ``max_fit_points`` inliers, evenly strided), until the centre moves
+    less than 10 um. Then the final inliers (idx[:out[V_N]]), 2 more steps and a free-radius ray
+    fit (the size check) on up to 4 ``max_fit_points`` of them,
+    the RMS of ||p - c|| - R over the inliers, and the silhouette statistics (``window_stats``).
+    out[V_N] = 0 when fewer than 3 inliers remain.
+    """
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    c = c0.copy()
+    out[:] = math.nan
+    out[V_N] = 0.0
+    for _ in range(refine_iterations):
+        e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
+        n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, idx)
+        if n < 3:
+            return
+        cn = fit_ray(points, _strided(idx, n, max_fit_points), c[0], c[1], c[2], radius, False, 2, s_min)[0]
+        moved = math.sqrt((cn[0] - c[0]) ** 2 + (cn[1] - c[1]) ** 2 + (cn[2] - c[2]) ** 2)
+        c[:] = cn
+        if moved < 1e-5:
+            break
+    if not c[2] > radius:
+        return
+    e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
+    n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, idx)
+    if n < 3:
+        return
+    # the final estimates on up to 4x as many inliers: the centre (R fixed), then the free radius
+    sub = _strided(idx, n, 4 * max_fit_points)
+    c = fit_ray(points, sub, c[0], c[1], c[2], radius, False, 2, s_min)[0]
+    fc, fr, fse, _ = fit_ray(points, sub, c[0], c[1], c[2], radius, True, 5, s_min)
+    sse = 0.0
+    for k in range(n):
+        i = idx[k]
+        d = math.sqrt((points[i, 0] - c[0]) ** 2 + (points[i, 1] - c[1]) ** 2 + (points[i, 2] - c[2]) ** 2) - radius
+        sse += d * d
+    dist = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
+    box = 2.0 * (RING_FACTOR * 1.05 * disc_radius_px(c[2], dist, radius, fx) + 2.0) + 1.0
+    stride = max(1, int(math.ceil(box / math.sqrt(4.0 * max_fit_points))))
+    window_stats(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, stats)
+    out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n
+    out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
+    out[V_RMSE] = math.sqrt(sse / n)
 
 
 @njit(cache=True)

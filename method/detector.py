@@ -19,7 +19,7 @@ from spherebench.cloud import Cloud
 from spherebench.errors import SphereBenchError
 from spherebench.method import _kernels as K
 from spherebench.method.config import IMPROVED, DetectorConfig
-from spherebench.method.improved import run_improved
+from spherebench.method.improved import Frame, run_improved, workspace
 from spherebench.method.paper import PaperTrace, run_paper
 
 Circle = tuple[float, float, float]
@@ -61,33 +61,53 @@ class Sphere:
                 "circle_paper": None if self.circle_paper is None else [round(float(v), 3) for v in self.circle_paper]}
 
 
+def _check_cloud(cloud: Cloud) -> None:
+    if not isinstance(cloud, Cloud):
+        raise SphereBenchError(f"detect() needs a spherebench.cloud.Cloud, got {type(cloud).__name__}")
+    if len(cloud.points) == 0:
+        raise SphereBenchError("the point cloud is empty: nothing to detect (check the file or the depth range)")
+
+
+def _check_counts(n: int, n_ok: int, n_big: int, config: DetectorConfig) -> None:
+    if n_ok < 3:
+        raise SphereBenchError(f"the cloud has {n_ok} finite points (of {n}): at least 3 are needed")
+    # the median |z| exceeds the limit iff more than half of the points are beyond it
+    if config.mm_check and n_big > n_ok // 2:
+        raise SphereBenchError(f"median |z| exceeds {config.mm_check_median_m:g}: the cloud looks like millimetres; "
+                               "divide the coordinates by 1000 (metres are expected)")
+
+
 def prepare(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> tuple[Cloud, np.ndarray, bool]:
-    """Validate the cloud and choose the points to search.
+    """Validate an unorganised cloud (or one searched as such) and choose the points to search.
 
     Returns (searched cloud, their indices (M,) in cloud.points, whether it is a subsample).
     """
-    if not isinstance(cloud, Cloud):
-        raise SphereBenchError(f"detect() needs a spherebench.cloud.Cloud, got {type(cloud).__name__}")
+    _check_cloud(cloud)
     n = len(cloud.points)
-    if n == 0:
-        raise SphereBenchError("the point cloud is empty: nothing to detect (check the file or the depth range)")
     ok, n_ok = K.finite_rows(cloud.points)
     n_ok = int(n_ok)
-    if n_ok < 3:
-        raise SphereBenchError(f"the cloud has {n_ok} finite points (of {n}): at least 3 are needed")
-    index = np.flatnonzero(ok) if n_ok < n else np.arange(n)
-    if config.mm_check:
-        probe = cloud.points[index[:: max(1, len(index) // 4096)], 2]
-        med = float(np.median(np.abs(probe)))
-        if med > config.mm_check_median_m:
-            raise SphereBenchError(f"median |z| is {med:.4g}: the cloud looks like millimetres; divide by 1000 "
-                                   "or pass --scale 0.001")
-    if len(index) > config.max_points:
-        index = np.sort(rng.choice(index, size=config.max_points, replace=False))
+    index = np.flatnonzero(ok) if n_ok < n else None
+    n_big = 0
+    if n_ok >= 3 and config.mm_check:
+        probe = cloud.points[(index if index is not None else np.arange(n))[:: max(1, n_ok // 4096)], 2]
+        n_big = int(np.count_nonzero(np.abs(probe) > config.mm_check_median_m)) * n_ok // max(len(probe), 1)
+    _check_counts(n, n_ok, n_big, config)
+    if n_ok > config.max_points:
+        index = np.sort(rng.choice(index if index is not None else n, size=config.max_points, replace=False))
         return Cloud(cloud.points[index]), index, True
-    if len(index) == n:
-        return cloud, index, False
+    if index is None:
+        return cloud, np.arange(n), False
     return cloud.subset(index), index, False
+
+
+def prepare_frame(cloud: Cloud, config: DetectorConfig) -> Frame:
+    """Validate an organised cloud and build what its kernels need (one pass over the points)."""
+    _check_cloud(cloud)
+    intr = cloud.intrinsics
+    img = workspace("index", (int(intr.height), int(intr.width)), np.int32)
+    n_ok, n_big = K.prepare_organised(cloud.points, cloud.rows, cloud.cols, img, float(config.mm_check_median_m))
+    _check_counts(len(cloud.points), int(n_ok), int(n_big), config)
+    return Frame(cloud, img, int(n_ok), config)
 
 
 def _circles(cloud: Cloud, c: np.ndarray, R: float) -> tuple[Circle | None, Circle | None]:
@@ -119,11 +139,10 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
     if not isinstance(config, DetectorConfig):
         raise SphereBenchError("config must be a DetectorConfig (use spherebench.method.config_for)")
     rng = np.random.default_rng(seed)
-    work, index, subsampled = prepare(cloud, config, rng)
-    pts = work.points
     R = config.radius_m
     if config.pipeline == "paper":
-        got = run_paper(pts, config, rng)
+        work, index, _ = prepare(cloud, config, rng)
+        got = run_paper(work.points, config, rng)
         if got is None:
             return []
         centre, inl, trace = got
@@ -137,15 +156,20 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         cp, ce = _circles(cloud, centre, R)
         return [Sphere(center_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
                        rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
-    index_image = None
-    if work.organised:
-        intr = work.intrinsics
-        index_image = K.build_index_image(work.rows, work.cols, int(intr.height), int(intr.width))
-    kernel_seed = int(rng.integers(0, 2 ** 63))
-    found, _its = run_improved(pts, work if work.organised else None, index_image, config, kernel_seed)
+    if cloud.organised and len(cloud.points) <= config.max_points:
+        # organised: NaN points get no pixel, so the searched points are the cloud's own
+        frame = prepare_frame(cloud, config)
+        work, index, subsampled = cloud, None, False
+        found = run_improved(cloud.points, frame, config, int(rng.integers(0, 2 ** 63)))
+    else:
+        work, index, subsampled = prepare(cloud, config, rng)
+        found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)))
     spheres = []
     for v in found:
-        inl = _all_inliers(cloud, v.center_m, R, v.eps_m) if subsampled else index[v.inliers]
+        if subsampled:
+            inl = _all_inliers(cloud, v.center_m, R, v.eps_m)
+        else:
+            inl = v.inliers if index is None else index[v.inliers]
         cp, ce = _circles(cloud, v.center_m, R)
         spheres.append(Sphere(center_m=v.center_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
                               score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,

@@ -1,0 +1,291 @@
+"""`make bench`: the 3D detector's accuracy and speed on simulated datasets, beside pyransac3d.
+
+    python -m spherebench.scripts.bench data/default data/hard --out results/bench
+
+For every dataset and configuration (improved; paper and paper-lstsq on a subset, being slow;
+the pyransac3d peer on a subset): basketballs found (centre within 2 cm), the median centre error
+of the balls within 2 m (the nearest detection's error; a miss counts as infinite), detections on
+scenes without a basketball (the hard preset's negatives), distractor balls rejected (no detection
+within 5 cm of their centre) by distance and size, and the detection time per frame (median, p95)
+per resolution: wall clock and the thread's CPU time (the machine may be shared; CPU time is what
+the detector itself costs). Single thread: NUMBA_NUM_THREADS=1 is set before numba is imported.
+The peer's detection additionally needs its free radius within eps of R; its time and detection
+rate are printed as ratios to improved's on the same scenes.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from spherebench import __version__  # noqa: E402
+from spherebench.datasets import io  # noqa: E402
+from spherebench.errors import SphereBenchError  # noqa: E402
+
+FOUND_M = 0.02          # a ball is found when a detection's centre is within this
+NEAR_M = 2.0            # the median centre error is over balls at most this far
+DISTRACTOR_HIT_M = 0.05  # a detection this close to a distractor's centre accepts it
+CONFIGS = ("improved", "paper", "paper-lstsq", "pyransac3d")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("datasets", nargs="*", default=["data/default", "data/hard"], help="dataset folders")
+    p.add_argument("--out", default=None, help="write OUT.md and OUT.json (atomically)")
+    p.add_argument("--seed", type=int, default=0, help="detector seed")
+    p.add_argument("--paper-subset", type=int, default=-1,
+                   help="scenes per dataset for paper and paper-lstsq (evenly spaced; 0: none, -1: all)")
+    p.add_argument("--peer-subset", type=int, default=12, help="scenes per dataset for pyransac3d (as above)")
+    p.add_argument("--peer-points", type=int, default=10_000, help="pyransac3d's random subsample per cloud")
+    p.add_argument("--peer-iterations", type=int, default=1000, help="pyransac3d's iterations")
+    p.add_argument("--limit", type=int, default=None, help="at most this many scenes per dataset (quick runs)")
+
+
+def _subset(n: int, k: int) -> list[int]:
+    if k < 0 or k >= n:
+        return list(range(n))
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)}) if k > 0 else []
+
+
+def _run_one(name: str, cloud, config, seed: int, peer_args: dict) -> tuple[list[dict], float, float]:
+    """Detections [{center_m, radius_m}] and (wall ms, thread CPU ms) of one configuration on one cloud."""
+    if name == "pyransac3d":
+        from spherebench.baselines import pyransac3d_peer as peer
+        t, tc = time.perf_counter(), time.thread_time()
+        got = peer.detect(cloud, seed=seed, **peer_args)
+        wall, cpu = (time.perf_counter() - t) * 1e3, (time.thread_time() - tc) * 1e3
+        return [{"center_m": np.asarray(d["center_m"]), "radius_m": d["radius_m"]} for d in got], wall, cpu
+    from spherebench.method import detect
+    t, tc = time.perf_counter(), time.thread_time()
+    spheres = detect(cloud, config, seed=seed)
+    wall, cpu = (time.perf_counter() - t) * 1e3, (time.thread_time() - tc) * 1e3
+    return [{"center_m": s.center_m, "radius_m": s.free_radius_m} for s in spheres], wall, cpu
+
+
+def _score_scene(dets: list[dict], gt: dict, name: str, R: float, eps: float) -> dict:
+    """Per-scene counts: each basketball's nearest-detection error, false detections, distractors."""
+    balls = [np.asarray(b["center_m"]) for b in gt["balls"] if b.get("center_m") is not None]
+    if name == "pyransac3d":  # a free fit counts only with the right size
+        dets = [d for d in dets if d["radius_m"] is not None and abs(d["radius_m"] - R) <= eps]
+    errs = [min((float(np.linalg.norm(d["center_m"] - b)) for d in dets), default=math.inf) for b in balls]
+    false = sum(1 for d in dets if all(np.linalg.norm(d["center_m"] - b) > FOUND_M for b in balls))
+    distractors = []
+    for dd in gt.get("meta", {}).get("distractors", []) or []:
+        c = np.asarray(dd["center_m"])
+        hit = any(np.linalg.norm(d["center_m"] - c) <= DISTRACTOR_HIT_M for d in dets)
+        distractors.append({"radius_m": dd["radius_m"], "z_m": float(c[2]), "accepted": hit})
+    return {"errs": errs, "z": [float(b[2]) for b in balls], "false": false, "distractors": distractors}
+
+
+def _summary(rows: list[dict]) -> dict:
+    errs = np.array([e for r in rows for e in r["errs"]], float)
+    zs = np.array([z for r in rows for z in r["z"]], float)
+    near = errs[zs <= NEAR_M]
+    out = {"scenes": len(rows), "balls": int(len(errs)),
+           "found": int(np.sum(errs <= FOUND_M)),
+           "detection_rate": float(np.mean(errs <= FOUND_M)) if len(errs) else None,
+           "median_err_mm_within_2m": float(np.median(near) * 1e3) if len(near) else None,
+           "false_detections": int(sum(r["false"] for r in rows)),
+           "negative_scenes": int(sum(1 for r in rows if r["family"] == "negative")),
+           "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative"))}
+    times = {}
+    for res in sorted({r["resolution"] for r in rows}, key=lambda s: int(s.split("x")[0])):
+        w = np.array([r["wall_ms"] for r in rows if r["resolution"] == res])
+        c = np.array([r["cpu_ms"] for r in rows if r["resolution"] == res])
+        times[res] = {"n": int(len(w)), "wall_median_ms": float(np.median(w)), "wall_p95_ms": float(np.percentile(w, 95)),
+                      "cpu_median_ms": float(np.median(c)), "cpu_p95_ms": float(np.percentile(c, 95))}
+    out["time"] = times
+    fam = {}
+    for f in sorted({r["family"] for r in rows}):
+        e = np.array([x for r in rows if r["family"] == f for x in r["errs"]], float)
+        fam[f] = {"balls": int(len(e)), "found": int(np.sum(e <= FOUND_M)),
+                  "false": int(sum(r["false"] for r in rows if r["family"] == f))}
+    out["families"] = fam
+    dist = [d for r in rows for d in r["distractors"]]
+    bins = {}
+    for d in dist:
+        kind = "soccer 0.11 m" if abs(d["radius_m"] - 0.11) < 1e-6 else "other radii"
+        rng = f"{int(d['z_m'])}-{int(d['z_m']) + 1} m"
+        b = bins.setdefault(kind, {}).setdefault(rng, {"n": 0, "rejected": 0})
+        b["n"] += 1
+        b["rejected"] += int(not d["accepted"])
+    out["distractors"] = {"n": len(dist), "rejected": int(sum(not d["accepted"] for d in dist)), "by_size_range": bins}
+    return out
+
+
+def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subset: int = 12,
+          peer_points: int = 10_000, peer_iterations: int = 1000, limit: int | None = None,
+          progress=print) -> dict:
+    """Run every configuration on every dataset; returns the results (see the module docstring)."""
+    from spherebench.method import config_for
+    result = {"seed": seed, "datasets": {}, "notes": []}
+    peer_args = {"points": peer_points, "iterations": peer_iterations, "thresh_m": 0.01}
+    for ds in datasets:
+        scenes = io.list_scenes(ds)[:limit]
+        meta = io.read_dataset_meta(ds) if (Path(ds) / "dataset.json").is_file() else {}
+        R = float(meta.get("ball_radius_m", 0.12))
+        eps = 0.01
+        runs = {"improved": list(range(len(scenes))), "paper": _subset(len(scenes), paper_subset),
+                "paper-lstsq": _subset(len(scenes), paper_subset), "pyransac3d": _subset(len(scenes), peer_subset)}
+        rows: dict[str, list] = {k: [] for k in CONFIGS}
+        warmed = set()
+        for k, scene in enumerate(scenes):
+            gt = io.read_json(scene / "gt.json")
+            cloud = io.load_cloud(scene)
+            res = f"{cloud.intrinsics.width}x{cloud.intrinsics.height}" if cloud.intrinsics else "unorganised"
+            for name in CONFIGS:
+                if k not in runs[name]:
+                    continue
+                config = None if name == "pyransac3d" else config_for(name, radius_m=R, eps_m=eps)
+                if name not in warmed:  # compile / import outside the timings
+                    _run_one(name, cloud, config, seed, {**peer_args, "iterations": 2})
+                    warmed.add(name)
+                dets, wall, cpu = _run_one(name, cloud, config, seed, peer_args)
+                row = _score_scene(dets, gt, name, R, eps)
+                row.update(scene=scene.name, family=gt.get("family", ""), resolution=res, wall_ms=wall, cpu_ms=cpu)
+                rows[name].append(row)
+            if progress and (k + 1) % 25 == 0:
+                progress(f"  {Path(ds).name}: {k + 1}/{len(scenes)} scenes")
+        summ = {name: _summary(r) for name, r in rows.items() if r}
+        imp = summ["improved"]
+        if "pyransac3d" in summ:
+            sub = [rows["improved"][i] for i in runs["pyransac3d"]]
+            s_imp = _summary(sub)
+            peer = summ["pyransac3d"]
+            t_imp = np.median([r["cpu_ms"] for r in sub])
+            t_peer = np.median([r["cpu_ms"] for r in rows["pyransac3d"]])
+            peer["vs_improved"] = {
+                "scenes": len(sub), "time_ratio": float(t_peer / t_imp) if t_imp > 0 else None,
+                "detection_ratio": (peer["detection_rate"] / s_imp["detection_rate"]) if s_imp["detection_rate"] else None,
+                "improved_detection_rate_same_scenes": s_imp["detection_rate"]}
+        result["datasets"][Path(ds).name] = {"path": str(ds), "scenes": len(scenes), "radius_m": R,
+                                             "subsets": {k: len(v) for k, v in runs.items()}, "summary": summ,
+                                             "rows": rows}
+        del imp
+    sub = lambda k: "all" if k < 0 else f"{k} evenly spaced"  # noqa: E731
+    result["notes"].append(f"paper and paper-lstsq ran on {sub(paper_subset)} scenes per dataset; pyransac3d on "
+                           f"{sub(peer_subset)} scenes per dataset, fitting {peer_points} random points per cloud with "
+                           f"{peer_iterations} iterations and a 0.01 m threshold (its own cost is 2-3 s per 1,000 "
+                           "iterations at 100k points); a pyransac3d detection also needs |r - R| <= 0.01 m")
+    return result
+
+
+def _fmt(x, nd=1, pct=False):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-" if x is None else "inf"
+    return f"{100 * x:.{nd}f} %" if pct else f"{x:.{nd}f}"
+
+
+def markdown(result: dict) -> str:
+    """The benchmark's table (and per-family, distractor tables) as Markdown."""
+    lines = ["| dataset | method | scenes | balls found (<= 2 cm) | median err <= 2 m (mm) | false det. | "
+             "det. on negatives | distractors rejected | time per frame: resolution median / p95 ms (CPU; wall) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for ds, d in result["datasets"].items():
+        for name, s in d["summary"].items():
+            t = "; ".join(f"{res}: {v['cpu_median_ms']:.1f} / {v['cpu_p95_ms']:.1f} "
+                          f"({v['wall_median_ms']:.1f} / {v['wall_p95_ms']:.1f})" for res, v in s["time"].items())
+            neg = f"{s['detections_on_negatives']} in {s['negative_scenes']}" if s["negative_scenes"] else "-"
+            dis = f"{s['distractors']['rejected']}/{s['distractors']['n']}" if s["distractors"]["n"] else "-"
+            lines.append(f"| {ds} | {name} | {s['scenes']} | {s['found']}/{s['balls']} "
+                         f"({_fmt(s['detection_rate'], pct=True)}) | {_fmt(s['median_err_mm_within_2m'], 2)} | "
+                         f"{s['false_detections']} | {neg} | {dis} | {t} |")
+    lines.append("")
+    for ds, d in result["datasets"].items():
+        peer = d["summary"].get("pyransac3d", {}).get("vs_improved")
+        if peer:
+            lines.append(f"- {ds}: pyransac3d vs improved on the same {peer['scenes']} scenes: CPU time x"
+                         f"{_fmt(peer['time_ratio'], 0)}, detection rate x{_fmt(peer['detection_ratio'], 2)} "
+                         f"(improved: {_fmt(peer['improved_detection_rate_same_scenes'], pct=True)})")
+    lines.append("")
+    for ds, d in result["datasets"].items():
+        s = d["summary"]["improved"]
+        if len(s["families"]) > 1:
+            lines.append(f"improved on {ds}, per family: " + "; ".join(
+                f"{f} {v['found']}/{v['balls']} found, {v['false']} false" for f, v in s["families"].items()))
+        for kind, bins in s["distractors"]["by_size_range"].items():
+            lines.append(f"improved on {ds}, distractors {kind} rejected by depth: " + "; ".join(
+                f"{rng} {v['rejected']}/{v['n']}" for rng, v in sorted(bins.items())))
+    lines.append("")
+    lines += [f"- {n}" for n in result["notes"]]
+    m = result.get("machine", {})
+    if m:
+        lines.append(f"- machine: {m.get('cpu')}, {m.get('cores')} cores, load average {m.get('load_start')} at the "
+                     f"start, {m.get('load_end')} at the end; seed {result['seed']}; " +
+                     ", ".join(f"{k} {v}" for k, v in result.get("versions", {}).items()))
+    return "\n".join(lines) + "\n"
+
+
+def _machine() -> dict:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
+            "load_start": [round(x, 2) for x in os.getloadavg()]}
+
+
+def _versions() -> dict:
+    import numba
+    out = {"spherebench": __version__, "python": platform.python_version(), "numpy": np.__version__,
+           "numba": numba.__version__}
+    try:
+        from importlib.metadata import version
+        out["pyransac3d"] = version("pyransac3d")
+    except Exception:  # the peer is optional for the table
+        pass
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    for ds in args.datasets:
+        io.list_scenes(ds)  # a clear error for a missing dataset before any work
+    machine = _machine()
+    result = bench(args.datasets, seed=args.seed, paper_subset=args.paper_subset, peer_subset=args.peer_subset,
+                   peer_points=args.peer_points, peer_iterations=args.peer_iterations, limit=args.limit,
+                   progress=lambda s: print(s, file=sys.stderr, flush=True))
+    machine["load_end"] = [round(x, 2) for x in os.getloadavg()]
+    result["machine"] = machine
+    result["versions"] = _versions()
+    md = markdown(result)
+    print(md)
+    if args.out:
+        out = Path(args.out)
+        io.atomic_write_bytes(out.with_suffix(".md"), md.encode())
+        slim = {k: v for k, v in result.items() if k != "datasets"}
+        slim["datasets"] = {ds: {k: v for k, v in d.items() if k != "rows"} for ds, d in result["datasets"].items()}
+        slim["rows"] = {ds: d["rows"] for ds, d in result["datasets"].items()}
+        io.atomic_write_bytes(out.with_suffix(".json"),
+                              json.dumps(slim, indent=1, default=lambda x: None if x == math.inf else x).encode())
+        print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}", file=sys.stderr)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="spherebench-bench", description=__doc__.splitlines()[0])
+    add_arguments(p)
+    try:
+        return run(p.parse_args(argv))
+    except SphereBenchError as exc:
+        print(f"bench: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
