@@ -1,0 +1,587 @@
+"""Scoring prediction sets and writing the benchmark's results: metrics, tables, README, provenance.
+
+``score_set`` turns one prediction set (``eval.runner``) into the figures of the tables: COCO
+metrics with circle IoU (overall and per scene family), 3D metrics for methods with a 3D centre,
+and the time per frame. ``write_results`` writes, under an output folder:
+
+    metrics.json          {method: {dataset: {...}}}, every figure of the tables
+    tables/*.csv, *.md    Table 3 per dataset (beside the paper's reported numbers), per-family
+                          mAP, 3D metrics, timings, Table 2, detection statistics of unannotated data
+    figures/*.png         (``eval.figures``)
+    README.md             the tables, the figures, and a reading of them
+    provenance.json       commit, package versions, seeds, configurations, machine, date
+
+Every file is written atomically, and the tables and figures as whole folders (built under a
+temporary name, then swapped in), so an interrupted run never leaves a half-written table.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import io as _io
+import math
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from spherebench.datasets import io
+from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
+from spherebench.eval.metrics3d import match_scene, summarize_3d
+from spherebench.eval.runner import PAPER_CIRCLE, SceneInfo, _json_safe, machine_info, read_predictions
+
+#: The paper's Table 3 (Roman-Rivera et al. 2023), on its own 200 hand-masked images.
+PAPER_TABLE3 = [("SphereDetection (ours), as reported by the paper", 0.512, 0.894, 0.529),
+                ("CircleNet-HG, as reported by the paper", 0.491, 0.843, 0.512)]
+
+#: Packages whose versions go into the provenance.
+PACKAGES = ("numpy", "scipy", "opencv-python-headless", "numba", "pycocotools", "onnxruntime", "torch",
+            "pyransac3d", "matplotlib", "tqdm", "plyfile", "open3d")
+
+
+@dataclass
+class ScoredSet:
+    """One prediction set on one dataset, scored.
+
+    metrics: JSON-ready figures (see ``score_set``). pr50, pr75: (101,) interpolated precision at
+    recall 0:0.01:1 (NaN = undefined) at IoU .50 and .75. distance_m, centre_error_m: (G,) per
+    ground-truth ball (NaN error = missed), 3D methods only. ms: (S,) time per frame.
+    scenes: the meta file's per-scene records. results: the COCO results list.
+    """
+
+    output: str
+    method: str
+    kind: str
+    rule: str | None
+    note: str
+    metrics: dict
+    pr50: np.ndarray | None = None
+    pr75: np.ndarray | None = None
+    distance_m: np.ndarray | None = None
+    centre_error_m: np.ndarray | None = None
+    ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    scenes: list = field(default_factory=list)
+    results: list = field(default_factory=list)
+
+
+def _stats_ms(ms: np.ndarray) -> dict:
+    if ms.size == 0:
+        return {"n": 0, "median": None, "p95": None, "mean": None}
+    return {"n": int(ms.size), "median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)),
+            "mean": float(np.mean(ms))}
+
+
+def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo]) -> ScoredSet:
+    """Score one prediction set against a dataset's ground truth (restricted to the scenes it ran on).
+
+    metrics: mAP, mAP50, mAP75, mAR (and COCO's other summary figures) over the annotated images
+    that were run; "families" {family: {mAP, mAP50, mAP75, mAR, n_images, n_gt}}; "3d" (3D
+    methods: ``summarize_3d`` over the scenes with known centres, gate one ball radius; radius
+    error only where the method estimates a radius); "ms" (median, p95, mean) and
+    "ms_by_resolution"; ms_median / ms_p95; n_scenes_run; "unannotated" detection statistics for
+    scenes without ground truth.
+    """
+    results, meta = read_predictions(pred_path)
+    by_id = {s.scene_id: s for s in scenes}
+    records = meta["scenes"]
+    run_images = sorted({r["image_id"] for r in records if r.get("image_id") is not None})
+    ms = np.asarray([r["ms"] for r in records], dtype=np.float64)
+    m: dict = {"n_scenes_run": len(records), "note": meta.get("note", "")}
+    out = ScoredSet(output=meta["output"], method=meta["method"], kind=meta["kind"], rule=meta.get("rule"),
+                    note=meta.get("note", ""), metrics=m, ms=ms, scenes=records, results=results)
+    if run_images and coco_gt.get("annotations") is not None:
+        gt = load_ground_truth(coco_gt)
+        ev = evaluate_circles(gt, results, image_ids=run_images)
+        m.update(scalar_metrics(ev))
+        out.pr50 = np.asarray(ev["pr_precision"][0], dtype=np.float64)
+        out.pr75 = np.asarray(ev["pr_precision"][int(np.argmin(np.abs(ev["iou_thresholds"] - 0.75)))], dtype=np.float64)
+        families: dict[str, list[int]] = {}
+        for img in coco_gt["images"]:
+            if img["id"] in set(run_images):
+                families.setdefault(str(img.get("family", "unknown")), []).append(img["id"])
+        m["families"] = {}
+        for fam in sorted(families):
+            f = scalar_metrics(evaluate_circles(gt, results, image_ids=families[fam]))
+            m["families"][fam] = {k: f.get(k) for k in ("mAP", "mAP50", "mAP75", "mAR", "n_images", "n_gt",
+                                                        "n_detections")}
+    if meta["kind"] == "3d" and _centres_known(scenes):
+        matches = []
+        for r in records:
+            s = by_id.get(r["scene_id"])
+            if s is None or not s.annotated:
+                continue
+            dets = r["detections"]
+            pc = np.asarray([d["center_m"] for d in dets], np.float64).reshape(-1, 3)
+            ps = np.asarray([d["score"] for d in dets], np.float64)
+            pr = np.asarray([np.nan if d.get("radius_m") is None else d["radius_m"] for d in dets], np.float64)
+            matches.append(match_scene(pc, ps, s.gt_centres_m, pred_radii_m=pr, gt_radii_m=s.gt_radii_m))
+        if matches:
+            m["3d"] = _json_safe(summarize_3d(matches))
+            out.distance_m = np.concatenate([mm.gt_distance_m for mm in matches])
+            out.centre_error_m = np.concatenate([mm.centre_error_m for mm in matches])
+    m["ms"] = _stats_ms(ms)
+    m["ms_median"], m["ms_p95"] = m["ms"]["median"], m["ms"]["p95"]
+    res_groups: dict[str, list[float]] = {}
+    for r in records:
+        res_groups.setdefault(r.get("resolution") or "unknown", []).append(r["ms"])
+    m["ms_by_resolution"] = {k: _stats_ms(np.asarray(v)) for k, v in sorted(res_groups.items(), key=_res_order)}
+    unannotated = [r for r in records if not by_id[r["scene_id"]].annotated]
+    if unannotated:
+        m["unannotated"] = detection_stats(unannotated, [by_id[r["scene_id"]].reference_centre_m for r in unannotated])
+    errors = [r for r in records if r.get("error")]
+    if errors:
+        m["scenes_refused"] = len(errors)
+    return out
+
+
+def _centres_known(scenes: Sequence[SceneInfo]) -> bool:
+    """3D metrics need the true centres: every annotated scene's visible balls have one (simulated data)."""
+    annotated = [s for s in scenes if s.annotated]
+    return bool(annotated) and all(len(s.gt_centres_m) == s.n_balls for s in annotated)
+
+
+def _res_order(item) -> tuple:
+    k = item[0]
+    try:
+        w, h = (int(x) for x in k.split("x"))
+        return (0, w * h)
+    except ValueError:
+        return (1, 0)
+
+
+def detection_stats(records: Sequence[dict], references: Sequence | None = None) -> dict:
+    """Statistics of detections on scenes without ground truth: how many scenes have one, the
+    count per scene, the best score, the best detection's radius (m) where the method estimates
+    it, and, where a scene carries a reference centre (another tool's fit, not ground truth), the
+    distance (m) of the best detection from it."""
+    n = len(records)
+    counts = np.asarray([len(r["detections"]) for r in records])
+    best = [max(r["detections"], key=lambda d: d["score"]) if r["detections"] else None for r in records]
+    top = [b["score"] for b in best if b is not None]
+    radii = np.asarray([b["radius_m"] for b in best if b is not None and b.get("radius_m") is not None], np.float64)
+    refs = list(references) if references is not None else [None] * n
+    dist = np.asarray([np.linalg.norm(np.asarray(b["center_m"]) - np.asarray(ref)) for b, ref in zip(best, refs)
+                       if b is not None and ref is not None and b.get("center_m") is not None], np.float64)
+    n_ref = sum(1 for ref in refs if ref is not None)
+    out = {"n_scenes": n, "scenes_with_detection": int(np.count_nonzero(counts)),
+           "fraction_with_detection": float(np.count_nonzero(counts) / n) if n else None,
+           "detections_per_scene": float(counts.mean()) if n else None,
+           "top_score_median": float(np.median(top)) if top else None,
+           "radius_m_median": float(np.median(radii)) if radii.size else None,
+           "radius_m_p05": float(np.percentile(radii, 5)) if radii.size else None,
+           "radius_m_p95": float(np.percentile(radii, 95)) if radii.size else None,
+           "n_radii": int(radii.size), "n_reference": n_ref}
+    if n_ref:
+        out["reference_distance_m_median"] = float(np.median(dist)) if dist.size else None
+        out["within_5cm_of_reference"] = float(np.count_nonzero(dist <= 0.05) / n_ref)
+    return out
+
+
+# --------------------------------------------------------------------------- tables
+
+def _fmt(v, nd: int = 3, scale: float = 1.0) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    if isinstance(v, (int, np.integer)) and scale == 1.0:
+        return str(int(v))
+    return f"{float(v) * scale + 0.0:.{nd}f}".replace("-0." + "0" * nd, "0." + "0" * nd)
+
+
+@dataclass
+class Table:
+    """A table: a name (file stem), a title, column names, rows of cells (str), notes under it."""
+
+    name: str
+    title: str
+    columns: list[str]
+    rows: list[list]
+    notes: list[str] = field(default_factory=list)
+
+    def csv(self) -> str:
+        buf = _io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(self.columns)
+        for r in self.rows:
+            w.writerow(["" if c is None else c for c in r])
+        return buf.getvalue()
+
+    def markdown(self, heading: bool = True) -> str:
+        lines = [f"### {self.title}", ""] if heading else []
+        lines.append("| " + " | ".join(self.columns) + " |")
+        lines.append("|" + "|".join("---" for _ in self.columns) + "|")
+        for r in self.rows:
+            lines.append("| " + " | ".join("" if c is None else str(c) for c in r) + " |")
+        if self.notes:
+            lines.append("")
+            lines += [f"{n}" if n.startswith("- ") else f"- {n}" for n in self.notes]
+        return "\n".join(lines) + "\n"
+
+
+def _rule_label(s: ScoredSet) -> str:
+    if s.kind == "2d":
+        return "2D detector"
+    return "paper's projection" if s.rule == "paper" else "exact silhouette"
+
+
+def table3(label: str, sets: Sequence[ScoredSet], with_paper: bool = True) -> Table:
+    """Table 3: mAP, mAP.50, mAP.75 (and mAR) per prediction set, the paper's reported rows below."""
+    rows = [[s.output, _rule_label(s), _fmt(s.metrics.get("mAP")), _fmt(s.metrics.get("mAP50")),
+             _fmt(s.metrics.get("mAP75")), _fmt(s.metrics.get("mAR")), s.metrics.get("n_images", "–"),
+             s.note or ""] for s in sets if "mAP" in s.metrics]
+    notes = ["COCO protocol with circle IoU (CircleNet's): AP over IoU 0.50:0.05:0.95 (mAP), at 0.50 and 0.75; "
+             "101-point interpolation, maxDets 1000, circle area = pi r^2.",
+             "3D methods give two rows from one detection run: the circle of the exact silhouette (the ground "
+             "truth's rule: smallest enclosing circle) and the paper's projection (centre and a point R to its left)."]
+    if with_paper:
+        for name, a, b, c in PAPER_TABLE3:
+            rows.append([f"*{name}*", "(paper, Table 3)", f"*{a:.3f}*", f"*{b:.3f}*", f"*{c:.3f}*", "", "200 (theirs)",
+                         "not measured here: the paper's own images, which are not public"])
+        notes.append("Rows in italics are the numbers printed in the paper (Table 3), measured on its own 200 "
+                     "hand-masked images; they are shown for reference, not reproduced here.")
+    return Table(name=f"table3_{label}", title=f"Table 3 on `{label}`: circle mAP",
+                 columns=["method", "2D rule", "mAP", "mAP.50", "mAP.75", "mAR", "images", "note"], rows=rows,
+                 notes=notes)
+
+
+def family_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
+    fams = sorted({f for s in sets for f in s.metrics.get("families", {})})
+    if not fams:
+        return None
+    rows = []
+    for s in sets:
+        if "families" not in s.metrics:
+            continue
+        row = [s.output]
+        for f in fams:
+            v = s.metrics["families"].get(f, {})
+            row.append(f"{_fmt(v.get('mAP50'))} / {_fmt(v.get('mAP'))}")
+        rows.append(row)
+    counts = []
+    for f in fams:
+        v = next((s.metrics["families"][f] for s in sets if f in s.metrics.get("families", {})), {})
+        counts.append(f"{f}: {v.get('n_images')} images, {v.get('n_gt')} balls")
+    return Table(name=f"families_{label}", title=f"Per scene family on `{label}`: mAP.50 / mAP",
+                 columns=["method"] + fams, rows=rows,
+                 notes=["Each cell: mAP.50 / mAP (.50:.95). A family without any basketball (negatives) has no AP "
+                        "('–'): its false positives lower the other families' precision only in the overall figure.",
+                        "; ".join(counts) + "."])
+
+
+def _estimates_radius(s: ScoredSet) -> bool:
+    return any(d.get("radius_m") is not None for r in s.scenes for d in r["detections"])
+
+
+def _median_radius(s: ScoredSet) -> float | None:
+    radii = [d["radius_m"] for r in s.scenes for d in r["detections"] if d.get("radius_m") is not None]
+    return float(np.median(radii)) if radii else None
+
+
+def metrics3d_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
+    rows = []
+    for s in sets:
+        d = s.metrics.get("3d")
+        if not d or s.rule == "paper":  # the 3D figures do not depend on the 2D rule
+            continue
+        ce, re_ = d["centre_error_m"], d["radius_error_m"]
+        own = _estimates_radius(s)
+        rows.append([s.method, d["n_gt"], _fmt(d.get("within_1cm")), _fmt(d.get("within_2cm")),
+                     _fmt(d.get("within_5cm")), _fmt(ce.get("median"), 1, 1000), _fmt(ce.get("rmse"), 1, 1000),
+                     _fmt(ce.get("p95"), 1, 1000),
+                     _fmt(re_.get("median"), 1, 1000) if own else "(R fixed)",
+                     _fmt(re_.get("median_abs"), 1, 1000) if own else "–",
+                     _fmt(_median_radius(s), 3) if own else "(R fixed)",
+                     d["false_detections"],
+                     f"{d['negative_detections']} in {d['n_negative_scenes']}" if d["n_negative_scenes"] else "–",
+                     s.note or ""])
+    if not rows:
+        return None
+    return Table(name=f"metrics3d_{label}", title=f"3D metrics on `{label}`",
+                 columns=["method", "balls", "found <= 1 cm", "<= 2 cm", "<= 5 cm", "centre error median (mm)",
+                          "RMSE (mm)", "p95 (mm)", "radius error median (mm)", "radius |error| median (mm)",
+                          "median radius of all detections (m)", "false detections",
+                          "detections on negative scenes", "note"], rows=rows,
+                 notes=["A prediction matches the nearest unmatched true ball within one radius (0.12 m), best "
+                        "score first; centre-error statistics over the matched balls; detection rates over all "
+                        "balls (missed balls count as failures).",
+                        "Radius error: the method's own radius estimate minus R over the matched balls (improved: "
+                        "its free-radius size check; pyransac3d: its fitted radius; '–' when none matched); the "
+                        "paper's pipeline has R fixed. The median radius is over every detection, matched or not."])
+
+
+def timing_table(per_dataset: dict[str, Sequence[ScoredSet]]) -> Table:
+    rows = []
+    for label, sets in per_dataset.items():
+        for s in sets:
+            if s.rule == "paper":  # same detection run as the exact-rule row
+                continue
+            for res, st in s.metrics.get("ms_by_resolution", {}).items():
+                rows.append([s.method, label, res, st["n"], _fmt(st["median"], 1), _fmt(st["p95"], 1)])
+    return Table(name="timings", title="Time per frame (ms, one thread)", columns=[
+        "method", "dataset", "resolution", "frames", "median ms", "p95 ms"], rows=rows,
+        notes=["Measured around the detection call only (no file reading), in worker processes pinned to one "
+               "thread each (numba, BLAS/OpenMP, OpenCV, ONNX Runtime), two workers at a time on the machine "
+               "named in provenance.json; a 3D method's time includes both of its 2D projections."])
+
+
+def table2_table(rows: Sequence[dict]) -> Table:
+    out = []
+    for r in rows:
+        p = r.get("paper") or {}
+        out.append([r["scene"], _fmt(r["z"], 1), r["iterations"], _fmt(r.get("rmse_ransac"), 6),
+                    _fmt(r.get("rmse_ransac_filtered"), 6), _fmt(r.get("rmse_barycentre"), 6),
+                    _fmt(p.get("rmse_ransac"), 6), _fmt(p.get("rmse_ransac_filtered"), 6),
+                    _fmt(p.get("rmse_barycentre"), 6), r.get("n_inliers", "–"), r.get("n_filtered", "–"),
+                    _fmt(r.get("error_ransac_m"), 1, 1000), _fmt(r.get("error_barycentre_m"), 1, 1000),
+                    _fmt(r.get("error_refined_m"), 1, 1000), _fmt(r.get("error_improved_m"), 1, 1000)])
+    return Table(name="table2", title="Table 2 on `paper` (E1, E2, E3): RMSE (m) before and after the z-score filter",
+                 columns=["scene", "z", "iterations", "RMSE RANSAC", "RMSE RANSAC centre, z-filtered points",
+                          "RMSE barycentre", "paper: RMSE RANSAC", "paper: RANSAC centre, filtered",
+                          "paper: barycentre", "inliers", "kept", "centre error RANSAC (mm)",
+                          "centre error barycentre (mm)", "centre error LSQ refinement (mm)",
+                          "centre error improved detector (mm)"], rows=out,
+                 notes=["RMSE(P, c) = sqrt(mean over p in P of (||p - c|| - R)^2), R = 0.12 m: the RMS distance of the "
+                        "points from the sphere of radius R about c (the paper does not define its RMSE). RANSAC: "
+                        "the points assigned to the chosen candidate (R +/- eps) about its centre; then the points "
+                        "kept by the z-score filter (|z| <= threshold on the point-to-centre distance) about the same "
+                        "centre; then about their barycentre.",
+                        "Columns 'paper:' are the values printed in the paper's Table 2 (its own recordings; only "
+                        "E1 at z 3, 2, 1.5 and E2, E3 at z 1.5 are printed).",
+                        "Centre errors use the simulator's true centre: RANSAC centre, barycentre, least squares of "
+                        "(||p - c|| - R) with R fixed over the same kept points, and the whole improved detector. "
+                        "Each scene's thresholds filter one and the same RANSAC draw (same seed). '–': no sphere found."])
+
+
+def detections_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
+    rows = []
+    for s in sets:
+        u = s.metrics.get("unannotated")
+        if not u or s.rule == "paper":
+            continue
+        rows.append([s.method, u["n_scenes"], u["scenes_with_detection"], _fmt(u["detections_per_scene"], 2),
+                     _fmt(u["top_score_median"], 3), _fmt(u["radius_m_median"], 4), _fmt(u["radius_m_p05"], 4),
+                     _fmt(u["radius_m_p95"], 4),
+                     f"{_fmt(u.get('within_5cm_of_reference'), 2)} of {u['n_reference']}" if u["n_reference"] else "–",
+                     _fmt(u.get("reference_distance_m_median"), 3), _fmt(s.metrics["ms"]["median"], 1)])
+    if not rows:
+        return None
+    return Table(name=f"detections_{label}", title=f"Detections on the unannotated scenes of `{label}`",
+                 columns=["method", "scenes", "scenes with a detection", "detections per scene", "median top score",
+                          "median radius (m)", "radius p5 (m)", "radius p95 (m)", "within 5 cm of reference",
+                          "median distance to reference (m)", "median ms"], rows=rows,
+                 notes=["No ground truth: these are counts, not accuracies. Radius: the best detection's own radius "
+                        "estimate, where the method makes one.",
+                        "Reference: a centre shipped with the recording (e.g. the dataset authors' own fit), where "
+                        "there is one; agreement with it is not accuracy."])
+
+
+# --------------------------------------------------------------------------- provenance
+
+def git_state(repo: Path) -> dict:
+    """{commit, dirty} of the repository (None when git is unavailable)."""
+    def run(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=20).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return None
+    commit = run("rev-parse", "HEAD")
+    status = run("status", "--porcelain", "--untracked-files=no")
+    return {"commit": commit or None, "dirty": None if status is None else bool(status)}
+
+
+def package_versions() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+    out = {}
+    for name in PACKAGES:
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def provenance(repo: Path, seeds: dict, configs: dict, extra: dict | None = None) -> dict:
+    import platform
+    from spherebench import __version__
+    return _json_safe({"spherebench": __version__, "git": git_state(repo), "python": platform.python_version(),
+                       "packages": package_versions(), "machine": machine_info(), "seeds": seeds,
+                       "configurations": configs,
+                       "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), **(extra or {})})
+
+
+# --------------------------------------------------------------------------- writing
+
+def write_tables(folder: Path, tables: Sequence[Table]) -> None:
+    """Every table as CSV and Markdown, into ``folder`` replaced as a whole (atomic)."""
+    with io.atomic_directory(folder) as tmp:
+        for t in tables:
+            (tmp / f"{t.name}.csv").write_text(t.csv())
+            (tmp / f"{t.name}.md").write_text(t.markdown())
+
+
+def metrics_json(per_dataset: dict[str, Sequence[ScoredSet]]) -> dict:
+    """{method output: {dataset: metrics}}."""
+    out: dict = {}
+    for label, sets in per_dataset.items():
+        for s in sets:
+            out.setdefault(s.output, {})[label] = s.metrics
+    return _json_safe(out)
+
+
+def _get(sets: Sequence[ScoredSet], output: str) -> ScoredSet | None:
+    return next((s for s in sets if s.output == output), None)
+
+
+def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | None, skipped: dict[str, str]) -> list[str]:
+    """A short reading of the results, computed from them (no number here is typed in by hand)."""
+    out = []
+    for label, sets in per_dataset.items():
+        if label in ("default", "hard"):
+            continue
+        scored = [s for s in sets if s.metrics.get("mAP") is not None]
+        if scored:
+            best = max(scored, key=lambda s: s.metrics["mAP"])
+            out.append(f"On `{label}` the best circle mAP is {best.output}'s, {best.metrics['mAP']:.3f} "
+                       f"(mAP.50 {best.metrics['mAP50']:.3f}).")
+        for s in sets:
+            u = s.metrics.get("unannotated")
+            if u and s.rule != "paper":
+                ref = ""
+                if u.get("n_reference"):
+                    ref = (f"; its best detection lies within 5 cm of the recording's reference centre in "
+                           f"{round(u['within_5cm_of_reference'] * u['n_reference'])} of the {u['n_reference']} "
+                           "scenes that have one")
+                out.append(f"`{label}` has no ground truth: {s.method} reports a ball in {u['scenes_with_detection']} of "
+                           f"{u['n_scenes']} scenes{ref}.")
+    default = per_dataset.get("default")
+    if default:
+        scored = [s for s in default if s.metrics.get("mAP") is not None]
+        if scored:
+            best = max(scored, key=lambda s: s.metrics["mAP"])
+            out.append(f"On `default` (the paper's protocol: 200 scenes, half clean, half cluttered) the best circle "
+                       f"mAP is {best.output}'s, {best.metrics['mAP']:.3f} (mAP.50 {best.metrics['mAP50']:.3f}, "
+                       f"mAP.75 {best.metrics['mAP75']:.3f}).")
+        p = _get(default, "paper" + PAPER_CIRCLE)
+        if p is not None and p.metrics.get("mAP") is not None:
+            out.append(f"The paper's own pipeline with its own projection rule (`paper+paper-circle`) scores "
+                       f"{p.metrics['mAP']:.3f} / {p.metrics['mAP50']:.3f} / {p.metrics['mAP75']:.3f} here, against "
+                       f"{PAPER_TABLE3[0][1]:.3f} / {PAPER_TABLE3[0][2]:.3f} / {PAPER_TABLE3[0][3]:.3f} printed in the "
+                       "paper. The scenes are not the paper's (its 200 hand-masked images are not public), so the two "
+                       "rows share a protocol, not data.")
+        i, ip = _get(default, "improved"), _get(default, "improved" + PAPER_CIRCLE)
+        if i is not None and ip is not None and i.metrics.get("mAP") is not None and ip.metrics.get("mAP") is not None:
+            out.append(f"The 2D rule matters at the strict IoU thresholds: the improved detector's circles score "
+                       f"mAP {i.metrics['mAP']:.3f} with the exact silhouette and {ip.metrics['mAP']:.3f} with the "
+                       "paper's projection (mAP.75 "
+                       f"{i.metrics['mAP75']:.3f} vs {ip.metrics['mAP75']:.3f}); the paper's rule ignores that a "
+                       "sphere's outline is an ellipse off the optical axis and that the ground truth is the visible "
+                       "mask's enclosing circle.")
+        c = _get(default, "circlenet")
+        if c is not None and c.metrics.get("mAP") is not None:
+            out.append(f"CircleNet (trained here on the `train` split only) scores {c.metrics['mAP']:.3f} / "
+                       f"{c.metrics['mAP50']:.3f} / {c.metrics['mAP75']:.3f} (paper's CircleNet-HG: "
+                       f"{PAPER_TABLE3[1][1]:.3f} / {PAPER_TABLE3[1][2]:.3f} / {PAPER_TABLE3[1][3]:.3f}).")
+        if i is not None and i.metrics.get("3d"):
+            d = i.metrics["3d"]
+            out.append(f"In 3D, `improved` finds {100 * d['within_2cm']:.1f} % of the `default` balls within 2 cm "
+                       f"(median centre error {1000 * (d['centre_error_m']['median'] or float('nan')):.1f} mm)"
+                       + (f"; `paper` finds {100 * _get(default, 'paper').metrics['3d']['within_2cm']:.1f} %"
+                          if _get(default, "paper") is not None and _get(default, "paper").metrics.get("3d") else "")
+                       + ".")
+    hard = per_dataset.get("hard")
+    if hard:
+        parts = []
+        for s in hard:
+            d = s.metrics.get("3d")
+            if d and s.rule != "paper" and d.get("n_negative_scenes"):
+                parts.append(f"{s.method} {d['negative_detections']}")
+        if parts:
+            out.append("On `hard`, detections reported on the negative scenes (no basketball; soccer balls, cylinders "
+                       "of the ball's radius, box corners): " + ", ".join(parts) + ".")
+        scored = [s for s in hard if s.metrics.get("mAP") is not None]
+        if scored:
+            best = max(scored, key=lambda s: s.metrics["mAP"])
+            out.append(f"The best `hard` mAP is {best.output}'s, {best.metrics['mAP']:.3f}; see the per-family table "
+                       "for where each method fails.")
+    if t2:
+        e1 = [r for r in t2 if r["scene"] == "E1" and r.get("rmse_barycentre") is not None]
+        if e1:
+            r = min(e1, key=lambda r: r["z"])
+            from spherebench.eval.runner import PAPER_TABLE2
+            paper = PAPER_TABLE2.get(("E1", r["z"]))
+            direction = "larger" if r["rmse_barycentre"] > r["rmse_ransac"] else "smaller"
+            out.append(f"Table 2: on E1 at z {r['z']:g} the barycentre's RMSE is {r['rmse_barycentre']:.4f} m against "
+                       f"{r['rmse_ransac']:.4f} m for the RANSAC centre ({direction}"
+                       + (f"; the paper printed {paper[2]:.4f} against {paper[0]:.4f}" if paper else "") + "). "
+                       f"The true centre error of the barycentre is {1000 * r['error_barycentre_m']:.1f} mm, against "
+                       f"{1000 * r['error_ransac_m']:.1f} mm for the RANSAC centre and "
+                       f"{1000 * r['error_refined_m']:.2f} mm for the least-squares refinement of the same points "
+                       "(R fixed): the barycentre of a visible cap lies inside the ball, toward the camera, so it is "
+                       "not the sphere's centre, and its points do not lie on a sphere of radius R about it.")
+        missing = sorted({r["scene"] for r in t2 if r.get("rmse_ransac") is None})
+        if missing:
+            out.append(f"The paper's configuration found no sphere on {', '.join(missing)} ('–' in Table 2).")
+    for name, why in skipped.items():
+        out.append(f"`{name}` is not in these tables: {why}.")
+    return out
+
+
+def readme(title: str, intro: list[str], per_dataset: dict[str, Sequence[ScoredSet]], tables: Sequence[Table],
+           figures: dict[str, str], t2: Sequence[dict] | None, skipped: dict[str, str]) -> str:
+    """The results README: intro, the reading, every table, the figures embedded."""
+    lines = [f"# {title}", ""] + intro + ["", "## Reading", ""]
+    lines += [f"- {s}" for s in reading(per_dataset, t2, skipped)] + ["", "## Tables", ""]
+    for t in tables:
+        lines += [t.markdown(), f"(`tables/{t.name}.csv`, `tables/{t.name}.md`)", ""]
+    if figures:
+        lines += ["## Figures", ""]
+        for caption, rel in figures.items():
+            lines += [f"**{caption}**", "", f"![{caption}]({rel})", ""]
+    return "\n".join(lines)
+
+
+def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[ScoredSet]]], t2: Sequence[dict] | None,
+                  skipped: dict[str, str], prov: dict, title: str, intro: list[str],
+                  paper_rows_for: Sequence[str] = ("default", "hard"), figures: bool = True) -> dict[str, Path]:
+    """Tables, figures, metrics.json, README.md and provenance.json under ``out`` (all atomic).
+
+    per_dataset: {label: (dataset folder, its coco_gt dict, scored sets)}. Returns the paths written.
+    """
+    from spherebench.eval import figures as figs
+    out = Path(out)
+    sets_by = {k: v[2] for k, v in per_dataset.items()}
+    tables: list[Table] = []
+    for label, (_, _, sets) in per_dataset.items():
+        if any("mAP" in s.metrics for s in sets):
+            tables.append(table3(label, sets, with_paper=label in paper_rows_for))
+        for t in (family_table(label, sets), metrics3d_table(label, sets), detections_table(label, sets)):
+            if t is not None:
+                tables.append(t)
+    tables.append(timing_table(sets_by))
+    if t2:
+        tables.append(table2_table(t2))
+    fig_paths: dict[str, str] = {}
+    if figures:
+        with io.atomic_directory(out / "figures") as tmp:
+            for label, (data_dir, coco, sets) in per_dataset.items():
+                if any(s.pr50 is not None for s in sets):
+                    figs.pr_curves(label, sets, tmp / f"pr_{label}.png")
+                    fig_paths[f"Precision-recall on `{label}`"] = f"figures/pr_{label}.png"
+                if any(s.distance_m is not None for s in sets):
+                    figs.error_vs_distance(label, sets, tmp / f"error_vs_distance_{label}.png")
+                    fig_paths[f"Centre error against distance on `{label}`"] = f"figures/error_vs_distance_{label}.png"
+                if coco.get("images") and any(s.pr50 is not None for s in sets):
+                    figs.examples(label, data_dir, sets, coco, tmp / f"examples_{label}.png")
+                    fig_paths[f"Examples on `{label}`"] = f"figures/examples_{label}.png"
+            figs.latency(sets_by, tmp / "latency.png")
+            fig_paths["Latency per method"] = "figures/latency.png"
+    write_tables(out / "tables", tables)
+    io.write_json(out / "metrics.json", metrics_json(sets_by))
+    if t2:
+        io.write_json(out / "table2.json", _json_safe(list(t2)))
+    io.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped).encode())
+    io.write_json(out / "provenance.json", prov)
+    return {"metrics": out / "metrics.json", "tables": out / "tables", "figures": out / "figures",
+            "readme": out / "README.md", "provenance": out / "provenance.json"}
