@@ -1,0 +1,64 @@
+"""`spherebench detect-2d`: run the CircleNet-style 2D detector on reprojected depth images.
+
+    spherebench detect-2d PATH... [--model FILE] [--json] [--min-score S] [--top-k K]
+
+PATH: an image.png (the depth colourised, as the benchmark gives every 2D method) or a scene
+folder holding one. With --json, one line per input:
+    {"input": PATH, "circles": [{"center": [cx, cy], "radius": r, "score": s}, ...], "ms": T}
+circles in pixels, best first; ms = inference time (padding, ONNX Runtime, decoding), not file reading.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("paths", nargs="+", metavar="PATH", help="image.png files or scene folders")
+    parser.add_argument("--model", default=None, metavar="FILE",
+                        help="ONNX model (default: the shipped baselines/circlenet/model.onnx)")
+    parser.add_argument("--json", action="store_true", help="one JSON line per input")
+    parser.add_argument("--min-score", type=float, default=0.3, metavar="S",
+                        help="drop circles scoring below S (default 0.3, CenterNet's display threshold; "
+                             "use 0 for mAP)")
+    parser.add_argument("--top-k", type=int, default=100, metavar="K", help="at most K circles per image (default 100)")
+    parser.add_argument("--threads", type=int, default=None, metavar="N", help="ONNX Runtime threads (default: all)")
+
+
+def _image_path(path: Path) -> Path:
+    from spherebench.errors import SphereBenchError
+
+    if path.is_dir():
+        if not (path / "image.png").is_file():
+            raise SphereBenchError(f"{path} is a folder without image.png; pass image files or scene folders "
+                                   "(DIR/scenes/<id>)")
+        return path / "image.png"
+    if not path.exists():
+        raise SphereBenchError(f"{path} not found")
+    return path
+
+
+def run(args) -> int:
+    from spherebench.baselines.circlenet.imaging import load_image
+    from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector
+    from spherebench.errors import SphereBenchError
+
+    if args.top_k < 1:
+        raise SphereBenchError("--top-k must be at least 1")
+    images = [_image_path(Path(p)) for p in args.paths]  # all checked before the model loads
+    detector = CircleNetDetector(args.model or DEFAULT_MODEL, threads=args.threads)
+    for given, path in zip(args.paths, images):
+        image = load_image(path, detector.image_size)
+        t0 = time.perf_counter()
+        circles = detector.detect(image, min_score=args.min_score, top_k=args.top_k)
+        ms = 1000 * (time.perf_counter() - t0)
+        if args.json:
+            print(json.dumps({"input": given, "circles": [
+                {"center": [round(float(cx), 2), round(float(cy), 2)], "radius": round(float(r), 2),
+                 "score": round(float(s), 4)} for cx, cy, r, s in circles], "ms": round(ms, 2)}), flush=True)
+        else:
+            found = ", ".join(f"({cx:.1f}, {cy:.1f}) r {r:.1f} score {s:.2f}" for cx, cy, r, s in circles) or "none"
+            print(f"{given}: {len(circles)} circle(s) {found} [{ms:.1f} ms]", flush=True)
+    return 0
