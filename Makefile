@@ -45,6 +45,16 @@ eval-real: venv realdata
 	$(SB) evaluate $$(for d in $(DATA)/real/*/; do printf -- '--data %s ' "$${d%/}"; done) \
 		--out results/real --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
 
+# ---- the learned 2D baseline: train the shipped CircleNet (ResNet-18) on the train preset (CPU,
+# about an hour on 2 cores), then install its ONNX model and card where `make eval` looks
+CIRCLENET_RUN := checkpoints/circlenet
+train: venv data-train
+	$(SB) train --data $(DATA)/train --out $(CIRCLENET_RUN) --backbone resnet18 --epochs 20 --seed $(SEED) \
+		--workers 1 --threads $(TRAIN_THREADS) $(if $(RESUME),--resume)
+	cp $(CIRCLENET_RUN)/model.onnx baselines/circlenet/model.onnx
+	cp $(CIRCLENET_RUN)/model_card.md $(CIRCLENET_RUN)/model_card.json $(CIRCLENET_RUN)/training_curve.png baselines/circlenet/
+TRAIN_THREADS ?= 2
+
 bench: venv data data-hard
 	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench
 

@@ -210,7 +210,7 @@ def pyransac3d_spec(points: int = PYRANSAC3D_POINTS, iterations: int = PYRANSAC3
                       config={"engine": "pyransac3d", "points": int(points), "iterations": int(iterations),
                               "thresh_m": float(thresh_m), "radius_m": float(radius_m),
                               "pyransac3d": _dist_version("pyransac3d")},
-                      modules=_CORE_MODULES + ("pyransac3d",),
+                      modules=_CORE_MODULES + ("spherebench.baselines.pyransac3d_peer",),
                       note=f"pyransac3d Sphere().fit on {points:,} points drawn at random from each cloud, "
                            f"{iterations:,} iterations, threshold {100 * thresh_m:g} cm (at full resolution it "
                            "takes 2-3 s per frame, beyond the budget)")
@@ -334,30 +334,13 @@ class _PyRansac3dEngine:
         return io.load_cloud(scene_dir)
 
     def detect(self, cloud, seed: int) -> list[dict]:
-        import random
-
-        import pyransac3d
-        from spherebench.circles import sphere_circle_exact, sphere_circle_paper
-        rng = np.random.default_rng(seed)
-        pts = cloud.points[np.isfinite(cloud.points).all(axis=1)]
-        if len(pts) > self.config["points"]:
-            pts = pts[np.sort(rng.choice(len(pts), self.config["points"], replace=False))]
-        if len(pts) < 4:
+        from spherebench.baselines import pyransac3d_peer
+        if len(cloud.points) < 4:
             return []
-        random.seed(seed)  # pyransac3d samples with the random module
-        with np.errstate(all="ignore"):
-            centre, radius, inliers = pyransac3d.Sphere().fit(pts.astype(np.float64), thresh=self.config["thresh_m"],
-                                                              maxIteration=self.config["iterations"])
-        centre = np.asarray(centre, np.float64).reshape(-1)
-        if centre.shape != (3,) or not (np.all(np.isfinite(centre)) and np.isfinite(radius) and radius > 0):
-            return []
-        intr = cloud.intrinsics
-        cp = ce = None
-        if intr is not None and centre[2] > 0:
-            cp = sphere_circle_paper(intr, centre, float(radius))
-            ce = sphere_circle_exact(intr, centre, float(radius))
-        return [{"score": len(inliers) / len(pts), "center_m": centre.tolist(), "radius_m": float(radius),
-                 "circle": ce, "circle_paper": cp}]
+        found = pyransac3d_peer.detect(cloud, points=self.config["points"], iterations=self.config["iterations"],
+                                       thresh_m=self.config["thresh_m"], seed=seed)
+        return [{"score": d["score"], "center_m": [float(v) for v in d["center_m"]], "radius_m": float(d["radius_m"]),
+                 "circle": d["circle_exact"], "circle_paper": d["circle_paper"]} for d in found]
 
 
 class _HoughEngine:
