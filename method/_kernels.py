@@ -22,8 +22,13 @@ _MIX2 = np.uint64(0x94D049BB133111EB)
 _INV53 = 1.0 / 9007199254740992.0  # 2^-53
 
 # Categories of a pixel of a candidate's window (window statistics, in this order).
-ST_VALID_DISC, ST_INLIER, ST_FRONT, ST_FRONT_NEAR, ST_BEHIND, ST_INVALID_DISC, ST_SSE, ST_RING, ST_RING_CONT = range(9)
-N_STATS = 9
+ST_VALID_DISC, ST_INLIER, ST_FRONT, ST_FRONT_NEAR, ST_BEHIND, ST_INVALID_DISC, ST_SSE, ST_RING, ST_RING_CONT, \
+    ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM = range(15)
+N_STATS = 15
+
+#: The relief profile: inner zone (rays passing the centre within sqrt(PROFILE_INNER) R) and outer
+#: zone (up to sqrt(PROFILE_OUTER) R, short of the outline, where flying pixels mix in the background).
+PROFILE_INNER, PROFILE_OUTER = 0.3, 0.8
 
 #: The outline ring: rays passing the centre at R to RING_FACTOR * R.
 RING_FACTOR = 1.3
@@ -106,17 +111,6 @@ def faces_camera(points, i, cx, cy, cz):
 
 
 @njit(cache=True)
-def shell_eps(cz, eps, fx, noise_k, subpixel, baseline, cap):
-    """Noise-aware shell half-width at depth cz: max(eps, k sigma_z(cz)), at most cap (metres)."""
-    e = eps
-    if subpixel > 0.0 and noise_k > 0.0:
-        sz = noise_k * cz * cz * subpixel / (fx * baseline)
-        if sz > e:
-            e = sz
-    return min(e, cap) if cap > eps else eps
-
-
-@njit(cache=True)
 def disc_radius_px(cz, dist, radius, fx):
     """Approximate pixel radius of a sphere's image at centre depth cz, distance |c| (pinhole)."""
     return fx * radius / math.sqrt(max(dist * dist - radius * radius, 1e-12)) * dist / cz
@@ -141,7 +135,7 @@ def ray_residual(px, py, pz, cx, cy, cz, radius):
 
 
 @njit(cache=True)
-def window_stats(points, index_image, cx, cy, cz, radius, eps, fx, fy, ppx, ppy, stride, out):
+def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy, ppx, ppy, stride, out):
     """Classify the pixels of a candidate's silhouette; out (N_STATS,) float64 gets the counts.
 
     For a pixel whose ray meets the sphere (the silhouette, undistorted pinhole) with point p and
@@ -149,9 +143,15 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, fx, fy, ppx, ppy,
     dt < 0; FRONT_NEAR if also dt >= -R/2: a surface hugging the sphere, as a cylinder of the same
     radius does) or BEHIND (dt > 0: seen through the ball, evidence against it). Silhouette pixels
     without a point count as INVALID_DISC. Rays passing the centre at R to RING_FACTOR R form the
-    outline RING; RING_CONT counts those whose point is within eps of the depth where the ray
-    passes the centre (a surface continuing beyond the outline: a wall, a plane, a bigger object).
-    ``stride`` visits every stride-th pixel (counts scaled).
+    outline RING; RING_CONT counts those whose point is within ring_band of the depth where the ray
+    passes the centre (a surface continuing beyond the outline: a wall, a plane, a bigger object;
+    a band of one sigma of the depth noise rather than eps: at 3 m eps is +/- R, and a background
+    20 cm behind a ball would count as continuing it).
+    The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
+    the centre within sqrt(PROFILE_INNER) R; OUTH_* and OUTV_*
+    those between that and sqrt(PROFILE_OUTER) R, left or right of the centre (OUTH) or above or
+    below it (OUTV). ``stride`` visits every stride-th pixel (counts
+    scaled by stride^2, except the profile's, which stay the visited ones).
     """
     for k in range(N_STATS):
         out[k] = 0.0
@@ -177,17 +177,35 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, fx, fy, ppx, ppy,
                 if (rx * cx + ry * cy + cz) / (nrm * dist) >= cos_lim:
                     out[ST_INVALID_DISC] += 1.0
                 continue
-            dt, hit = ray_residual(points[i, 0], points[i, 1], points[i, 2], cx, cy, cz, radius)
+            px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
+            pn = math.sqrt(px * px + py * py + pz * pz)
+            dt, hit = ray_residual(px, py, pz, cx, cy, cz, radius)
             if not hit:
-                px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-                pn = math.sqrt(px * px + py * py + pz * pz)
                 tc = (px * cx + py * cy + pz * cz) / pn
                 if tc > 0.0 and dist * dist - tc * tc <= ring2:
                     out[ST_RING] += 1.0
-                    if abs(pn - tc) <= eps:
+                    if abs(pn - tc) <= ring_band:
                         out[ST_RING_CONT] += 1.0
                 continue
             out[ST_VALID_DISC] += 1.0
+            # the relief profile: the inliers' mean ray residual per zone (a flat or a less curved
+            # surface fitted by the sphere sits in front of it in the outer zone; occluders, such as
+            # a tripod's cup, are not inliers and do not bias it)
+            m2 = dist * dist - ((px * cx + py * cy + pz * cz) / pn) ** 2
+            if abs(dt) > eps:
+                pass
+            elif m2 <= PROFILE_INNER * radius * radius:
+                out[ST_IN_N] += 1.0
+                out[ST_IN_SUM] += dt
+            elif m2 <= PROFILE_OUTER * radius * radius:
+                # left and right of the centre, or above and below: a cylinder or an edge is
+                # curved along one image axis only
+                if abs(c - u0) >= abs(r - v0):
+                    out[ST_OUTH_N] += 1.0
+                    out[ST_OUTH_SUM] += dt
+                else:
+                    out[ST_OUTV_N] += 1.0
+                    out[ST_OUTV_SUM] += dt
             if abs(dt) <= eps:
                 out[ST_INLIER] += 1.0
                 out[ST_SSE] += dt * dt
@@ -198,17 +216,37 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, fx, fy, ppx, ppy,
             else:
                 out[ST_BEHIND] += 1.0
     s2 = float(stride * stride)
-    for k in range(N_STATS):
+    for k in range(ST_IN_N):  # the profile keeps the visited counts: its means' errors depend on them
         out[k] *= s2
 
 
 # ----------------------------------------------------------------------------------------------
 # Organised clouds: the search. Scalar parameters travel in one float64 array (``prm``, indexed by
 # the P_* names below): one argument instead of twenty keeps numba's call overhead small.
+#
+# The search works on a grid of cells of BIN x BIN pixels (1 at 424x240, 2 at 848x480, 3 at
+# 1280x720: about 424 cells across whatever the stream), through the summed-area table ``tab``
+# (Hc + 1, Wc + 1, 2) uint32 of the depth z in millimetres and of the valid-pixel count per cell; a box's
+# mean range |p| is its mean depth times the length of the ray (z = 1) through the box's centre.
+# The table is kept modulo 2^32 (one 8-byte load per corner; the 2.4 MB of a float64 table with a
+# squared-depth channel did not stay in cache): a box's sums, far below 2^32, come out exact.
 
-P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_SAMPLE_R, P_SIGMA_T, P_H_MAX, \
-    P_RETRIES, P_PRETEST_N, P_PRETEST_FRAC, P_SCORE_MAX, P_ITERS, P_DEDUP = range(18)
-N_PRM = 18
+P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_ITERS, P_BIN, P_RR_MIN, P_RR_MAX, \
+    P_SLACK = range(14)
+N_PRM = 14
+
+#: The search's box geometry, as fractions of the disc radius r (cells) of the ball at the box's depth:
+#: box half-side, offset of the four side boxes of the stencil, offset and half-side of the 8 ring boxes.
+H_FRAC, D_FRAC, RING_FRAC, RING_H_FRAC = 0.25, 0.5, 1.5, 0.25
+#: A box with fewer valid pixels than this share of its area counts as invalid (a hole, the shadow band).
+MIN_VALID = 0.3
+#: Prefilter: boxes at this many disc radii from the first cell (off the ball wherever it starts).
+PREFILTER_FRAC = 2.0
+#: Descent steps from the first pixel toward the local minimum of the range (the ball's front point).
+DESCENT_STEPS = 3
+#: Pretest: at most this many ring boxes may continue the surface at the ball's depth (a table, a tripod).
+MAX_CONTINUED = 3
+_MASK32 = 0xFFFFFFFF
 
 
 @njit(cache=True)
@@ -218,20 +256,40 @@ def noise_eps(cz, eps, noise_a, noise_k, cap):
     return min(e, cap) if cap > eps else eps
 
 
-@njit(cache=True)
-def prepare_organised(points, rows, cols, img, mm_limit):
-    """One pass over an organised cloud: fills the index image img (H, W) int32; returns
-    (finite count, count of |z| > mm_limit).
+#: The depth histogram (for the scene's far depth) counts every HIST_STRIDE-th point: enough for a
+#: percentile, and consecutive increments of one bin would serialise the pass.
+HIST_STRIDE = 8
 
-    Points with a non-finite coordinate or z <= 0 get no pixel (-1), so the search never meets them.
+
+@njit(cache=True)
+def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit, hist, hist_per_m):
+    """One pass over an organised cloud, then the table's prefix sums.
+
+    Fills img (H, W) int32 (the point index of each pixel, -1 where none), tab (Hc + 1, Wc + 1, 2)
+    uint32 (summed-area table over cells of the depth z in mm and of the valid count, modulo 2^32;
+    pixel (r, c) is in table cell (row_cell[r], col_cell[c]), both (H,), (W,) int32, 1-based) and
+    hist (B,) int64 (counts of z in bins of 1 / hist_per_m metres, the last bin open, over every
+    HIST_STRIDE-th point). Points with a non-finite coordinate or z <= 0 get no pixel, so the search
+    never meets them; two points on one pixel: the last one. Returns (finite count, count of
+    |z| > mm_limit). (Lookup tables: an integer division per point cost more than the rest.)
     """
     height, width = img.shape
+    one_cell = tab.shape[0] == height + 1 and tab.shape[1] == width + 1
     img[:] = -1
+    tab[:] = 0
+    hist[:] = 0
+    nb = hist.shape[0]
     n_ok = 0
     n_big = 0
+    # binned cells: consecutive points of a row-major cloud share a cell; their sums stay in
+    # registers until the cell changes (a read-modify-write per point serialised the pass)
+    cur_r = -1
+    cur_c = -1
+    acc_z = np.uint32(0)
+    acc_n = np.uint32(0)
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        if not math.isfinite(x + y + z):  # NaN or inf anywhere (a huge finite sum too: no such point is sane)
             continue
         n_ok += 1
         if abs(z) > mm_limit:
@@ -239,240 +297,323 @@ def prepare_organised(points, rows, cols, img, mm_limit):
         r, c = rows[i], cols[i]
         if z > 0.0 and 0 <= r < height and 0 <= c < width:
             img[r, c] = i
+            zmm = np.uint32(z * np.float32(1000.0) + np.float32(0.5))
+            if one_cell:  # a store, not a read-modify-write
+                tab[r + 1, c + 1, 0] = zmm
+                tab[r + 1, c + 1, 1] = 1
+            else:
+                rc, cc = row_cell[r], col_cell[c]
+                if rc != cur_r or cc != cur_c:
+                    if cur_r >= 0:
+                        tab[cur_r, cur_c, 0] += acc_z
+                        tab[cur_r, cur_c, 1] += acc_n
+                    cur_r, cur_c = rc, cc
+                    acc_z = np.uint32(0)
+                    acc_n = np.uint32(0)
+                acc_z += zmm
+                acc_n += np.uint32(1)
+    if cur_r >= 0:
+        tab[cur_r, cur_c, 0] += acc_z
+        tab[cur_r, cur_c, 1] += acc_n
+    for i in range(0, points.shape[0], HIST_STRIDE):
+        z = points[i, 2]
+        if z > 0.0 and math.isfinite(z):
+            hist[min(int(z * hist_per_m), nb - 1)] += 1
+    hc, wc = tab.shape[0], tab.shape[1]
+    for r in range(1, hc):
+        a = np.uint32(0)
+        k = np.uint32(0)
+        for c in range(1, wc):
+            a += tab[r, c, 0]
+            k += tab[r, c, 1]
+            tab[r, c, 0] = tab[r - 1, c, 0] + a
+            tab[r, c, 1] = tab[r - 1, c, 1] + k
     return n_ok, n_big
 
 
-#: Channels of the summed-area table: depth, valid count, squared depth (interleaved, so that one
-#: corner of a patch is one cache line: the search is bound by memory latency).
-T_Z, T_N, T_Z2 = range(3)
-
-
 @njit(cache=True)
-def depth_integrals(points, index_image, tab):
-    """Fill tab (H + 1, W + 1, 3) float64 with the summed-area tables of z, count and z^2."""
-    h, w = index_image.shape
-    tab[0, :, :] = 0.0
-    for r in range(h):
-        a = 0.0
-        b = 0.0
-        k = 0.0
-        tab[r + 1, 0, :] = 0.0
-        for c in range(w):
-            i = index_image[r, c]
-            if i >= 0:
-                z = float(points[i, 2])
-                a += z
-                b += z * z
-                k += 1.0
-            tab[r + 1, c + 1, T_Z] = tab[r, c + 1, T_Z] + a
-            tab[r + 1, c + 1, T_N] = tab[r, c + 1, T_N] + k
-            tab[r + 1, c + 1, T_Z2] = tab[r, c + 1, T_Z2] + b
-
-
-@njit(cache=True)
-def patch_half(z, noise_a, sigma_t, h_max):
-    """Half-side (px) of the square patch whose mean depth has noise about sigma_t at depth z (0: none)."""
-    if sigma_t <= 0.0 or noise_a <= 0.0:
-        return 0
-    sz = noise_a * z * z
-    if sz <= sigma_t:
-        return 0
-    return min(h_max, int(math.ceil(0.5 * (sz / sigma_t - 1.0))))
-
-
-@njit(cache=True)
-def _box(tab, r0, r1, c0, c1, ch):
-    return tab[r1, c1, ch] - tab[r0, c1, ch] - tab[r1, c0, ch] + tab[r0, c0, ch]
-
-
-@njit(cache=True)
-def denoised_point(points, tab, i, r, c, prm, out, k):
-    """out[k] = point i moved along its ray to the mean depth of its pixel's patch; False to reject.
-
-    The patch (``patch_half``) averages the independent per-pixel depth noise of a stereo camera;
-    it is refused when under half of it is valid or its depth spread exceeds 2 sigma_z + R / 4 (it
-    straddles an edge). Only the sample points of the search use it; scoring and fits use raw points.
-    """
-    z = float(points[i, 2])
-    h = patch_half(z, prm[P_NOISE_A], prm[P_SIGMA_T], int(prm[P_H_MAX]))
-    if h == 0:
-        out[k, 0], out[k, 1], out[k, 2] = points[i, 0], points[i, 1], z
-        return True
-    hh = tab.shape[0] - 1
-    ww = tab.shape[1] - 1
-    r0, r1 = max(r - h, 0), min(r + h + 1, hh)
-    c0, c1 = max(c - h, 0), min(c + h + 1, ww)
-    n = _box(tab, r0, r1, c0, c1, T_N)
-    if n < 0.5 * (r1 - r0) * (c1 - c0):
-        return False
-    m = _box(tab, r0, r1, c0, c1, T_Z) / n
-    var = _box(tab, r0, r1, c0, c1, T_Z2) / n - m * m
-    lim = 2.0 * prm[P_NOISE_A] * z * z + 0.25 * prm[P_R]
-    if var > lim * lim:
-        return False
-    f = m / z
-    out[k, 0], out[k, 1], out[k, 2] = points[i, 0] * f, points[i, 1] * f, m
-    return True
-
-
-@njit(cache=True)
-def centres_xyz(p, radius, out):
-    """Both centres of radius R through the three rows of p (3, 3); out (2, 3) gets (far, near).
-
-    Returns 0 (collinear, or circumradius > R) or 2; ``known_radius_centres`` on coordinates.
-    """
-    x1, y1, z1 = p[0, 0], p[0, 1], p[0, 2]
-    ax, ay, az = p[1, 0] - x1, p[1, 1] - y1, p[1, 2] - z1
-    bx, by, bz = p[2, 0] - x1, p[2, 1] - y1, p[2, 2] - z1
-    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    nn = nx * nx + ny * ny + nz * nz
-    aa = ax * ax + ay * ay + az * az
-    bb = bx * bx + by * by + bz * bz
-    if not (nn > 1e-12 * aa * bb) or nn <= 0.0:
-        return 0
-    wx, wy, wz = aa * bx - bb * ax, aa * by - bb * ay, aa * bz - bb * az
-    ox = (wy * nz - wz * ny) / (2.0 * nn)
-    oy = (wz * nx - wx * nz) / (2.0 * nn)
-    oz = (wx * ny - wy * nx) / (2.0 * nn)
-    rho2 = ox * ox + oy * oy + oz * oz
-    if rho2 > radius * radius:
-        return 0
-    hgt = math.sqrt(radius * radius - rho2)
-    inv = 1.0 / math.sqrt(nn)
-    ux, uy, uz = nx * inv, ny * inv, nz * inv
-    qx, qy, qz = x1 + ox, y1 + oy, z1 + oz
-    s = 1.0 if qx * ux + qy * uy + qz * uz >= 0.0 else -1.0
-    out[0, 0], out[0, 1], out[0, 2] = qx + s * hgt * ux, qy + s * hgt * uy, qz + s * hgt * uz
-    out[1, 0], out[1, 1], out[1, 2] = qx - s * hgt * ux, qy - s * hgt * uy, qz - s * hgt * uz
-    return 2
-
-
-@njit(cache=True)
-def pixel_at(index_image, u0, v0, r_in, r_out, ang, u_rad):
-    """The point index at the pixel at angle ang, radius sqrt(r_in^2 + (r_out^2 - r_in^2) u_rad)
-    (uniform in the annulus) from (u0, v0); -1 when outside the image or without depth."""
-    h, w = index_image.shape
-    rad = math.sqrt(r_in * r_in + (r_out * r_out - r_in * r_in) * u_rad)
-    c = int(math.floor(u0 + rad * math.cos(ang) + 0.5))
-    r = int(math.floor(v0 + rad * math.sin(ang) + 0.5))
-    if r < 0 or r >= h or c < 0 or c >= w:
-        return -1
-    return index_image[r, c]
-
-
-@njit(cache=True)
-def pretest(points, index_image, cx, cy, cz, e, prm, state):
-    """Cheap test before scoring, stopping at the first decisive pixel.
-
-    Pixels drawn in 0.8 of the candidate's disc must be ray inliers (|dt| <= e) in at least
-    ``pretest_frac`` of the drawn ones (it fails as soon as that is out of reach); then of half as
-    many pixels just outside the outline (1.1-1.3 of its radius) at most half may continue the
-    surface at the ball's depth (a wall or a plane through the ball).
-    """
-    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    n_draws = int(prm[P_PRETEST_N])
-    max_fail = int((1.0 - prm[P_PRETEST_FRAC]) * n_draws)
-    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-    rpx = disc_radius_px(cz, dist, radius, fx)
-    u0 = fx * cx / cz + ppx
-    v0 = fy * cy / cz + ppy
-    valid = 0
-    fails = 0
-    for _ in range(n_draws):
-        ang = 2.0 * math.pi * next_u01(state)
-        i = pixel_at(index_image, u0, v0, 0.0, 0.8 * rpx, ang, next_u01(state))
-        if i < 0:
-            continue
-        valid += 1
-        dt, hit = ray_residual(float(points[i, 0]), float(points[i, 1]), float(points[i, 2]), cx, cy, cz, radius)
-        if not (hit and abs(dt) <= e):
-            fails += 1
-            if fails > max_fail:
-                return False
-    if valid < 3 or valid - fails < prm[P_PRETEST_FRAC] * valid:
-        return False
-    valid = 0
-    cont = 0
-    n_ring = max(2, n_draws // 2)
-    for _ in range(n_ring):
-        ang = 2.0 * math.pi * next_u01(state)
-        i = pixel_at(index_image, u0, v0, 1.1 * rpx, RING_FACTOR * rpx, ang, next_u01(state))
-        if i < 0:
-            continue
-        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
-        pn = math.sqrt(px * px + py * py + pz * pz)
-        tc = (px * cx + py * cy + pz * cz) / pn
-        valid += 1
-        if abs(pn - tc) <= e:
-            cont += 1
-            if cont > n_ring // 2:
-                return False
-    return not (valid >= 2 and cont > 0.5 * valid)
-
-
-@njit(cache=True)
-def patch_mean(tab, u, v, half):
-    """(mean depth, valid count) of the square patch of half-side ``half`` px around pixel (u, v)."""
-    hh = tab.shape[0] - 1
-    ww = tab.shape[1] - 1
-    c = int(math.floor(u + 0.5))
-    r = int(math.floor(v + 0.5))
-    r0, r1 = max(r - half, 0), min(r + half + 1, hh)
-    c0, c1 = max(c - half, 0), min(c + half + 1, ww)
+def box_sums(tab, v, u, h):
+    """(depth sum in mm, valid count, area in cells) of the box of half-side h cells about cell (v, u),
+    clipped to the grid (area 0 when it is wholly outside)."""
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    r0, r1 = max(v - h, 0), min(v + h + 1, hc)
+    c0, c1 = max(u - h, 0), min(u + h + 1, wc)
     if r0 >= r1 or c0 >= c1:
-        return math.nan, 0.0
-    n = _box(tab, r0, r1, c0, c1, T_N)
-    if n <= 0.0:
-        return math.nan, 0.0
-    return _box(tab, r0, r1, c0, c1, T_Z) / n, n
+        return 0, 0, 0
+    s = (np.int64(tab[r1, c1, 0]) - np.int64(tab[r0, c1, 0]) - np.int64(tab[r1, c0, 0])
+         + np.int64(tab[r0, c0, 0])) & _MASK32
+    n = (np.int64(tab[r1, c1, 1]) - np.int64(tab[r0, c1, 1]) - np.int64(tab[r1, c0, 1])
+         + np.int64(tab[r0, c0, 1])) & _MASK32
+    return s, n, (r1 - r0) * (c1 - c0)
 
 
 @njit(cache=True)
-def patch_pretest(tab, cx, cy, cz, e, prm):
-    """A noise-proof test of a candidate on patch means (a few summed-area lookups).
+def box_range(tab, prm, v, u, h):
+    """(mean range m, valid count) of the box of half-side h cells about cell (v, u); the mean is nan
+    when under MIN_VALID of the box's pixels are valid (a hole, the shadow band, off the image)."""
+    s, n, a = box_sums(tab, v, u, h)
+    if n == 0 or n < MIN_VALID * a * prm[P_BIN] * prm[P_BIN]:
+        return math.nan, n
+    b = prm[P_BIN]
+    rx = (u * b + 0.5 * (b - 1.0) - prm[P_PPX]) / prm[P_FX]
+    ry = (v * b + 0.5 * (b - 1.0) - prm[P_PPY]) / prm[P_FY]
+    return s / n * 1e-3 * math.sqrt(1.0 + rx * rx + ry * ry), n
 
-    The patch around the projected centre (half-side a third of the disc radius) must not lie
-    behind the sphere's front by more than e + 3 sigma_z / sqrt(n) (a surface seen through the
-    ball; in front is allowed: an occluder). Of four patches just outside the outline (1.4 disc
-    radii up, down, left, right), at most two may be *continued*, i.e. at a depth between the
-    front of the sphere and its centre: a wall or a plane the sphere is tangent to or cut by. Unlike
-    single pixels, these means stay decisive at 3 m and 424x240, where one pixel's noise is 7 cm.
-    """
-    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-    rpx = disc_radius_px(cz, dist, radius, fx)
-    u0 = fx * cx / cz + ppx
-    v0 = fy * cy / cz + ppy
-    z_front = (dist - radius) * cz / dist
-    sz = prm[P_NOISE_A] * z_front * z_front
-    half = max(1, int(rpx / 3.0))
-    m, n = patch_mean(tab, u0, v0, half)
-    if n >= 3.0 and m > z_front + e + 3.0 * sz / math.sqrt(n):
-        return False
-    half = max(1, int(rpx / 4.0))
-    cont = 0
-    for k in range(4):
-        du = 1.4 * rpx if k == 0 else (-1.4 * rpx if k == 1 else 0.0)
-        dv = 1.4 * rpx if k == 2 else (-1.4 * rpx if k == 3 else 0.0)
-        m, n = patch_mean(tab, u0 + du, v0 + dv, half)
-        if n < 0.3 * (2 * half + 1) ** 2:
+
+@njit(cache=True)
+def descent_step(m0, mA, mB, d, k, off, lim):
+    """Step (cells) toward the sphere's front point along one axis, from the mean ranges m0 at the
+    current cell and mA, mB at -d and +d cells, with the sphere's known curvature k (metres per
+    cell^2: near its front point a cap's range is front + k x^2). A side mean that is missing or
+    more than ``off`` metres above m0 (off the cap: the background) is not used; none usable: no
+    step. (A free parabola through the three means overshoots when one of them is off the cap,
+    and then oscillates.) Clamped to +/- lim."""
+    okA = not math.isnan(mA) and mA - m0 <= off
+    okB = not math.isnan(mB) and mB - m0 <= off
+    if okA and okB:
+        x = (mA - mB) / (4.0 * k * d)
+    elif okB:
+        x = (d * d - (mB - m0) / k) / (2.0 * d)
+    elif okA:
+        x = ((mA - m0) / k - d * d) / (2.0 * d)
+    else:
+        return 0.0
+    return min(max(x, -lim), lim)
+
+
+@njit(cache=True)
+def cap_relief(s):
+    """Range relief of a sphere's visible cap, in units of R, at squared lateral offset s (units of R^2):
+    1 - sqrt(1 - s) (s clipped to 1). A box's mean is approximated by its value at the box's mean s."""
+    return 1.0 - math.sqrt(1.0 - min(s, 1.0))
+
+
+@njit(cache=True)
+def plane_free(tab, prm, v, u, m0):
+    """False if the inverse depth about cell (v, u) is affine within noise along every available axis
+    (horizontal, vertical, then the diagonals while an axis is missing, two at most): the second
+    difference of 1 / (box mean z) over boxes at +/- PREFILTER_FRAC r (half-side H_FRAC r; the centre
+    box has half-side 1), within 3 sigma (inverse depth has per-pixel noise noise_a at any depth:
+    sigma_z = noise_a z^2) plus slack. A box off the image or without depth makes its axis missing;
+    no axis at all, or a curved one, keeps the cell."""
+    R = prm[P_R]
+    rr = prm[P_FX] / prm[P_BIN] * R / m0
+    hp = max(1, int(H_FRAC * rr + 0.5))
+    dp = int(PREFILTER_FRAC * rr + 0.5)
+    dg = int(PREFILTER_FRAC * rr * 0.7071067811865476 + 0.5)
+    bb = prm[P_BIN] * prm[P_BIN]
+    s0, n0, a0 = box_sums(tab, v, u, 1)
+    if n0 == 0:
+        return True
+    i0 = 1000.0 * n0 / s0
+    planar = 0
+    for axis in range(4):
+        du = dp if axis == 0 else (0 if axis == 1 else dg)
+        dv = 0 if axis == 0 else (dp if axis == 1 else (dg if axis == 2 else -dg))
+        sa, na_, aa = box_sums(tab, v + dv, u + du, hp)
+        sb, nb_, ab = box_sums(tab, v - dv, u - du, hp)
+        if na_ == 0 or nb_ == 0 or na_ < MIN_VALID * aa * bb or nb_ < MIN_VALID * ab * bb:
             continue
-        tol = e + 3.0 * sz / math.sqrt(n)
-        if z_front - tol <= m <= cz:
-            cont += 1
-            if cont > 2:
-                return False
-    return True
+        q = 1000.0 * na_ / sa + 1000.0 * nb_ / sb - 2.0 * i0
+        tol = 3.0 * prm[P_NOISE_A] * math.sqrt(1.0 / na_ + 1.0 / nb_ + 4.0 / n0) + prm[P_SLACK] * R / (m0 * m0)
+        if abs(q) > tol:
+            return True
+        planar += 1
+        if planar == 2:
+            return False
+    return planar == 0
 
 
 @njit(cache=True)
-def search_quality(stats, e):
-    """Search score of window statistics: MSAC over inliers minus the pixels seen through the sphere
-    or hugging it just in front (a bigger object), times (1 - share of the outline ring where the
-    surface continues at the sphere's depth)^2 (a wall, or a big object at 3 m where eps is wide:
-    a difference would favour big surfaces, which have more inliers)."""
-    ring = 1.0 - stats[ST_RING_CONT] / max(stats[ST_RING], 1.0)
-    return (stats[ST_INLIER] - stats[ST_SSE] / (e * e) - stats[ST_BEHIND] - stats[ST_FRONT_NEAR]) * ring * ring
+def ring_boxes(tab, prm, v, u, front, sig):
+    """The eight boxes around the outline of the sphere whose front point (range ``front`` m) is on
+    the ray through cell (v, u): at RING_FRAC r in the 4 axis and 4 diagonal directions, half-side
+    RING_H_FRAC r (r: the disc radius in cells). Each is background (farther than the centre, or
+    invalid: the shadow band, nothing), an occluder (nearer than the front by 3 sigma / sqrt(n) +
+    slack, sig: one pixel's noise) or continues the surface at the ball's depth (a wall, a floor, a
+    bigger object). Returns (r, background count, continued count); stops counting past
+    MAX_CONTINUED continued."""
+    R = prm[P_R]
+    dist = front + R
+    rr = prm[P_FX] / prm[P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
+    hr = max(1, int(RING_H_FRAC * rr + 0.5))
+    dr = RING_FRAC * rr
+    dd = dr * 0.7071067811865476
+    slack = prm[P_SLACK] * R
+    cont = 0
+    bg = 0
+    for j in range(8):
+        if j < 4:
+            ou = dr if j == 0 else (-dr if j == 1 else 0.0)
+            ov = dr if j == 2 else (-dr if j == 3 else 0.0)
+        else:
+            ou = dd if (j == 4 or j == 6) else -dd
+            ov = dd if (j == 4 or j == 5) else -dd
+        m, n = box_range(tab, prm, v + int(math.floor(ov + 0.5)), u + int(math.floor(ou + 0.5)), hr)
+        if math.isnan(m) or m > dist:
+            bg += 1
+        elif m >= front - (3.0 * sig / math.sqrt(n) + slack):
+            cont += 1
+            if cont > MAX_CONTINUED:
+                break
+    return rr, bg, cont
+
+
+@njit(cache=True)
+def front_hypothesis(tab, prm, v, u, out):
+    """A hypothesis from the first cell (v, u), and its O(1) pretest; returns its score (-inf: rejected).
+
+    Descent: the ball's front point is the local minimum of the range |p| (it lies on the ray through
+    the centre). A stencil of five box means (centre, left, right, up, down; half-side H_FRAC r,
+    offset D_FRAC r, r the ball's disc radius in cells at the centre box's range) and the sphere's
+    known curvature give the step to the front point (``descent_step``), at most r / 2, up to
+    DESCENT_STEPS times. The means average sigma / sqrt(n) of the per-pixel noise, which is what
+    makes a hypothesis possible at 3 m, where one pixel's depth is +/- 7 cm and the relief between
+    two pixels 1-2 cm.
+    Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
+    cell, all from the table: at least three of the four side boxes must lie on the sphere's cap
+    (range relief ``cap_relief`` above the front, within 3 sigma / sqrt(n) + slack), at most one
+    *behind* it (a surface seen through the ball; one box may straddle the outline); of the eight
+    ``ring_boxes`` at most MAX_CONTINUED may continue the surface at the ball's depth. out (4,) gets
+    (v, u, front range m, disc radius cells); the score is 2 agreeing + background ring boxes
+    - 2 continued - 2 behind - chi^2 / 2 of the agreeing ones (at most 16).
+    """
+    R = prm[P_R]
+    fc = prm[P_FX] / prm[P_BIN]
+    na = prm[P_NOISE_A]
+    slack = prm[P_SLACK] * R
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    m0, n0 = box_range(tab, prm, v, u, 1)
+    if math.isnan(m0):
+        return -np.inf
+    # prefilter: inverse depth is affine in the pixel coordinates on any plane, so its second
+    # difference over boxes two disc radii apart (off the ball wherever on it the first cell is)
+    # vanishes on a wall, a floor, a box face (most first cells) and not where a ball stands out
+    if not plane_free(tab, prm, v, u, m0):
+        return -np.inf
+    h = 1
+    d = 2
+    rr = 1.0
+    mL = mR = mU = mD = 0.0
+    nL = nR = nU = nD = 0
+    for step in range(DESCENT_STEPS + 1):
+        rr = fc * R / m0
+        if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
+            return -np.inf
+        h = max(1, int(H_FRAC * rr + 0.5))
+        d = max(h + 1, int(D_FRAC * rr + 0.5))
+        m0, n0 = box_range(tab, prm, v, u, h)
+        if math.isnan(m0):
+            return -np.inf
+        mL, nL = box_range(tab, prm, v, u - d, h)
+        mR, nR = box_range(tab, prm, v, u + d, h)
+        mU, nU = box_range(tab, prm, v - d, u, h)
+        mD, nD = box_range(tab, prm, v + d, u, h)
+        if step == DESCENT_STEPS:
+            break
+        k = 0.5 * R / (rr * rr)
+        off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
+        iu = int(math.floor(descent_step(m0, mL, mR, d, k, off, 0.5 * rr) + 0.5))
+        iv = int(math.floor(descent_step(m0, mU, mD, d, k, off, 0.5 * rr) + 0.5))
+        if iu == 0 and iv == 0:
+            break
+        u += iu
+        v += iv
+        if u < 0 or u >= wc or v < 0 or v >= hc:
+            return -np.inf
+    # pretest: the side boxes on the cap
+    ah = (h + 0.5) / rr
+    x0 = d / rr
+    front = m0 - R * cap_relief(2.0 * ah * ah / 3.0)
+    pred = front + R * cap_relief(x0 * x0 + 2.0 * ah * ah / 3.0)
+    sig = na * m0 * m0
+    agree = 0
+    behind = 0
+    chi = 0.0
+    for j in range(4):
+        m = mL if j == 0 else (mR if j == 1 else (mU if j == 2 else mD))
+        nk = nL if j == 0 else (nR if j == 1 else (nU if j == 2 else nD))
+        if math.isnan(m):
+            continue
+        tol = 3.0 * sig / math.sqrt(nk) + slack
+        res = m - pred
+        if res > tol:
+            behind += 1
+        elif res >= -tol:
+            agree += 1
+            chi += (res / tol) ** 2
+    if behind > 1 or agree < 3:
+        return -np.inf
+    # pretest: the ring around the outline
+    rr, bg, cont = ring_boxes(tab, prm, v, u, front, sig)
+    if cont > MAX_CONTINUED:
+        return -np.inf
+    out[0], out[1], out[2], out[3] = v, u, front, rr
+    return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi
+
+
+@njit(cache=True)
+def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, radius):
+    """Keep the best distinct hypotheses in cands (K, 5) rows (v, u, front m, r cells, score), best
+    first: one within r / 2 cells (and R in range) of a kept one is the same ball (the better stays)."""
+    k_max = cands.shape[0]
+    lim = 0.5 * rr
+    for j in range(n_kept):
+        if abs(cands[j, 0] - v) <= lim and abs(cands[j, 1] - u) <= lim and abs(cands[j, 2] - front) <= radius:
+            if q <= cands[j, 4]:
+                return n_kept
+            for m in range(j, n_kept - 1):
+                cands[m, :] = cands[m + 1, :]
+            n_kept -= 1
+            break
+    if n_kept == k_max and q <= cands[n_kept - 1, 4]:
+        return n_kept
+    pos = n_kept if n_kept < k_max else k_max - 1
+    while pos > 0 and cands[pos - 1, 4] < q:
+        if pos < k_max:
+            cands[pos, :] = cands[pos - 1, :]
+        pos -= 1
+    cands[pos, 0], cands[pos, 1], cands[pos, 2], cands[pos, 3], cands[pos, 4] = v, u, front, rr, q
+    return min(n_kept + 1, k_max)
+
+
+@njit(cache=True)
+def cell_centre(prm, v, u, front):
+    """The sphere centre (3,) of a hypothesis: on the ray through cell (v, u)'s centre pixel, at
+    front range + R (the front point of a sphere lies on the ray through its centre)."""
+    b = prm[P_BIN]
+    px = u * b + 0.5 * (b - 1.0)
+    py = v * b + 0.5 * (b - 1.0)
+    rx = (px - prm[P_PPX]) / prm[P_FX]
+    ry = (py - prm[P_PPY]) / prm[P_FY]
+    t = (front + prm[P_R]) / math.sqrt(rx * rx + ry * ry + 1.0)
+    return np.array([rx * t, ry * t, t])
+
+
+@njit(cache=True)
+def search_organised(rows, cols, tab, prm, seed, cands, counters):
+    """Random-start RANSAC on an organised cloud: ``prm[P_ITERS]`` first pixels drawn uniformly
+    among the valid points, each giving one ``front_hypothesis``; the distinct passing ones are kept
+    by score in cands (K, 5) (v, u, front m, r cells, score), best first (``cell_centre`` gives
+    their centres). counters (2,) int64 gets: first pixels drawn, hypotheses past the pretest.
+    Returns the number kept. The caller computes the iteration count (``improved.iteration_bound``).
+    """
+    n = rows.shape[0]
+    b = int(prm[P_BIN])
+    counters[:] = 0
+    state = np.empty(1, np.uint64)
+    state[0] = np.uint64(seed)
+    out = np.empty(4, np.float64)
+    n_kept = 0
+    for _ in range(int(prm[P_ITERS])):
+        i1 = min(int(next_u01(state) * n), n - 1)
+        counters[0] += 1
+        q = front_hypothesis(tab, prm, rows[i1] // b, cols[i1] // b, out)
+        if q == -np.inf:
+            continue
+        counters[1] += 1
+        n_kept = _keep_hypothesis(cands, n_kept, out[0], out[1], out[2], out[3], q, prm[P_R])
+    return n_kept
 
 
 @njit(cache=True)
@@ -519,130 +660,13 @@ def required_iterations(support, n_points, window_px, confidence):
         return 1e18
     return math.log(1.0 - confidence) / math.log(1.0 - p)
 
-
-@njit(cache=True)
-def search_organised(points, rows, cols, index_image, tab, prm, seed, cands, quals, counters):
-    """Local-sampling RANSAC on an organised cloud; fills cands (K, 3), quals (K,) best first.
-
-    Each of the ``prm[P_ITERS]`` iterations (the bound is computed by the caller, see
-    ``improved.iteration_bound``): a random valid point p1; two more pixels in the annulus 0.3-1 of
-    the disc of radius ``sample_r`` (metres) at p1's depth, the 3rd at 90-270 degrees from the 2nd
-    (well-shaped triangles), each kept only within 2R of p1 in 3D (else redrawn, up to ``retries``
-    times); the three moved to their patch-mean depth (``denoised_point``); both known-radius
-    centres on whose camera side the three lie; the early-exit ``pretest``; a centre within
-    ``dedup`` of a kept one is skipped (verification refines it anyway); the rest are scored on
-    their pixel window (``window_stats``, strided to about ``score_max`` pixels, ``search_quality``).
-    counters (4,) int64 gets: samples drawn, centres solved, centres past the pretest, scored > 0.
-    Returns the number of candidates kept.
-    """
-    n = points.shape[0]
-    h, w = index_image.shape
-    counters[:] = 0
-    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    retries = int(prm[P_RETRIES])
-    iters = int(prm[P_ITERS])
-    dedup2 = prm[P_DEDUP] * prm[P_DEDUP]
-    state = np.empty(1, np.uint64)
-    state[0] = np.uint64(seed)
-    pts = np.empty((3, 3), np.float64)
-    picks = np.empty(3, np.int64)
-    pix = np.empty((3, 2), np.int64)
-    two = np.empty((2, 3), np.float64)
-    stats = np.empty(N_STATS, np.float64)
-    n_kept = 0
-    for _ in range(iters):
-        i1 = min(int(next_u01(state) * n), n - 1)
-        r1, c1 = rows[i1], cols[i1]
-        if index_image[r1, c1] != i1:  # no pixel: invalid point
-            continue
-        z1 = float(points[i1, 2])
-        if z1 <= radius:
-            continue
-        rpx = fx * prm[P_SAMPLE_R] / z1
-        # raw points for the 3D reach test (widened by the noise), patch means only for a full sample
-        reach = 2.0 * radius + 3.0 * prm[P_NOISE_A] * z1 * z1
-        reach2 = reach * reach
-        ang2 = 0.0
-        got = 1
-        for slot in range(2):
-            for _ in range(retries):
-                if slot == 0:
-                    ang = 2.0 * math.pi * next_u01(state)
-                else:
-                    ang = ang2 + 0.5 * math.pi + math.pi * next_u01(state)
-                rad = rpx * math.sqrt(0.09 + 0.91 * next_u01(state))
-                c = int(math.floor(c1 + rad * math.cos(ang) + 0.5))
-                r = int(math.floor(r1 + rad * math.sin(ang) + 0.5))
-                if r < 0 or r >= h or c < 0 or c >= w:
-                    continue
-                j = index_image[r, c]
-                if j < 0:
-                    continue
-                dx = float(points[j, 0]) - float(points[i1, 0])
-                dy = float(points[j, 1]) - float(points[i1, 1])
-                dz = float(points[j, 2]) - z1
-                if dx * dx + dy * dy + dz * dz > reach2:
-                    continue
-                picks[got] = j
-                pix[got, 0], pix[got, 1] = r, c
-                ang2 = ang
-                got += 1
-                break
-        if got < 3:
-            continue
-        pix[0, 0], pix[0, 1] = r1, c1
-        picks[0] = i1
-        ok = True
-        for k in range(3):
-            if not denoised_point(points, tab, picks[k], pix[k, 0], pix[k, 1], prm, pts, k):
-                ok = False
-                break
-        if not ok:
-            continue
-        counters[0] += 1
-        if centres_xyz(pts, radius, two) == 0:
-            continue
-        counters[1] += 1
-        for s in range(2):
-            cx, cy, cz = two[s, 0], two[s, 1], two[s, 2]
-            if cz <= radius:
-                continue
-            facing = True
-            for k in range(3):
-                if (pts[k, 0] - cx) * pts[k, 0] + (pts[k, 1] - cy) * pts[k, 1] + (pts[k, 2] - cz) * pts[k, 2] >= 0.0:
-                    facing = False
-            if not facing:
-                continue
-            e = noise_eps(cz, prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
-            if not patch_pretest(tab, cx, cy, cz, e, prm):
-                continue
-            if not pretest(points, index_image, cx, cy, cz, e, prm, state):
-                continue
-            counters[2] += 1
-            dup = False
-            for j in range(n_kept):
-                ddx, ddy, ddz = cands[j, 0] - cx, cands[j, 1] - cy, cands[j, 2] - cz
-                if ddx * ddx + ddy * ddy + ddz * ddz <= dedup2:
-                    dup = True
-                    break
-            if dup:
-                continue
-            dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-            box = 2.0 * (RING_FACTOR * 1.05 * disc_radius_px(cz, dist, radius, fx) + 2.0) + 1.0  # window side, px
-            stride = max(1, int(math.ceil(box / math.sqrt(prm[P_SCORE_MAX]))))
-            window_stats(points, index_image, cx, cy, cz, radius, e, fx, fy, ppx, ppy, stride, stats)
-            q = search_quality(stats, e)
-            if q <= 0.0:
-                continue
-            counters[3] += 1
-            n_kept = _keep_candidate(cands, quals, n_kept, cx, cy, cz, q, 0.5 * radius)
-    return n_kept
-
-
 # ----------------------------------------------------------------------------------------------
 # Organised clouds: verification of one candidate, in one call.
 
 V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE = range(11)
+
+#: The first refinement round takes inliers within at least this fraction of R.
+COARSE_BAND_FRACTION = 0.25
 N_VOUT = 11
 
 
@@ -654,60 +678,88 @@ def _strided(idx, n, max_points):
 
 
 @njit(cache=True)
+def window_stride(cx, cy, cz, radius, fx, max_visits):
+    """The stride (rows and columns) that visits about max_visits pixels of a candidate's window."""
+    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
+    side = 2.0 * (1.1 * disc_radius_px(cz, dist, radius, fx) + 2.0) + 1.0
+    return max(1, int(side / math.sqrt(max_visits)))
+
+
+@njit(cache=True)
 def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, idx, out, stats):
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
 
     Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
-    current depth (``gather_window``), then 2 Gauss-Newton steps on the ray residuals with R fixed
-    (``fit_ray``; on at most ``max_fit_points`` inliers, evenly strided), until the centre moves
-    less than 10 um. Then the final inliers (idx[:out[V_N]]), 2 more steps and a free-radius ray
-    fit (the size check) on up to 4 ``max_fit_points`` of them,
-    the RMS of ||p - c|| - R over the inliers, and the silhouette statistics (``window_stats``).
-    out[V_N] = 0 when fewer than 3 inliers remain.
+    current depth (``gather_window``; in the first round at least COARSE_BAND_FRACTION R), then 2 Gauss-Newton steps on the ray residuals with R fixed
+    (``fit_ray``), until the centre moves less than 0.1 mm. Every window is visited with the stride
+    that keeps it to about 4 ``max_fit_points`` pixels (a ball at 0.4 m covers 15,000 pixels at
+    424x240, 140,000 at 1280x720; ``final_inliers`` collects all of them for a reported sphere),
+    and every fit uses at most ``max_fit_points`` of the inliers, evenly strided. Then 2 more steps
+    and a free-radius ray fit (the size check), and the silhouette statistics (``window_stats``).
+    out[V_N] gets the inlier count (estimated: strided count times stride^2), out[V_RMSE] the RMS of
+    the ray residuals over the fitted inliers; out[V_N] = 0 when fewer than 3 inliers remain.
     """
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    budget = 4.0 * max_fit_points
     c = c0.copy()
     out[:] = math.nan
     out[V_N] = 0.0
-    for _ in range(refine_iterations):
+    for it in range(refine_iterations):
+        if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
+            return
         e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
-        n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, idx)
+        if it == 0:
+            # a hypothesis from box means can be a few cm off: near the camera eps is 1 cm, and
+            # inliers within it would hold the fit where it started
+            e = max(e, COARSE_BAND_FRACTION * radius)
+        stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
+        n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
         if n < 3:
             return
         cn = fit_ray(points, _strided(idx, n, max_fit_points), c[0], c[1], c[2], radius, False, 2, s_min)[0]
         moved = math.sqrt((cn[0] - c[0]) ** 2 + (cn[1] - c[1]) ** 2 + (cn[2] - c[2]) ** 2)
         c[:] = cn
-        if moved < 1e-5:
+        if moved < 1e-4:
             break
-    if not c[2] > radius:
+    if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
         return
     e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
-    n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, idx)
+    stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
+    n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
     if n < 3:
         return
-    # the final estimates on up to 4x as many inliers: the centre (R fixed), then the free radius
-    sub = _strided(idx, n, 4 * max_fit_points)
-    c = fit_ray(points, sub, c[0], c[1], c[2], radius, False, 2, s_min)[0]
-    fc, fr, fse, _ = fit_ray(points, sub, c[0], c[1], c[2], radius, True, 5, s_min)
+    sub = _strided(idx, n, max_fit_points)
+    c, _, _, rms = fit_ray(points, sub, c[0], c[1], c[2], radius, False, 2, s_min)
+    fc, fr, fse, _ = fit_ray(points, sub, c[0], c[1], c[2], radius, True, 4, s_min)
+    ring_band = min(e, max(prm[P_EPS], prm[P_NOISE_A] * c[2] * c[2]))
+    window_stats(points, index_image, c[0], c[1], c[2], radius, e, ring_band, fx, fy, ppx, ppy,
+                 window_stride(c[0], c[1], c[2], radius * RING_FACTOR, max(fx, fy), budget), stats)
+    out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
+    out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
+    out[V_RMSE] = rms
+
+
+@njit(cache=True)
+def final_inliers(points, index_image, c, prm, e, idx):
+    """All inliers of a verified sphere (every pixel of its window; ``gather_window`` with band e)
+    into idx; returns (their count, the RMS of ||p - c|| - R over them)."""
+    radius = prm[P_R]
+    n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, prm[P_FX], prm[P_FY], prm[P_PPX],
+                      prm[P_PPY], 1, idx)
     sse = 0.0
     for k in range(n):
         i = idx[k]
         d = math.sqrt((points[i, 0] - c[0]) ** 2 + (points[i, 1] - c[1]) ** 2 + (points[i, 2] - c[2]) ** 2) - radius
         sse += d * d
-    dist = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
-    box = 2.0 * (RING_FACTOR * 1.05 * disc_radius_px(c[2], dist, radius, fx) + 2.0) + 1.0
-    stride = max(1, int(math.ceil(box / math.sqrt(4.0 * max_fit_points))))
-    window_stats(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, stats)
-    out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n
-    out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
-    out[V_RMSE] = math.sqrt(sse / n)
+    return n, math.sqrt(sse / n) if n > 0 else math.nan
 
 
 @njit(cache=True)
-def gather_window(points, index_image, cx, cy, cz, radius, band, fx, fy, ppx, ppy, out_idx):
+def gather_window(points, index_image, cx, cy, cz, radius, band, fx, fy, ppx, ppy, stride, out_idx):
     """Indices of the points in the candidate's silhouette whose ray residual is within band.
 
-    out_idx: preallocated int64 buffer (large enough for the window); returns the count.
+    stride: visit every stride-th row and column. out_idx: preallocated int64 buffer (large
+    enough for the window); returns the count.
     """
     h, w = index_image.shape
     dist = math.sqrt(cx * cx + cy * cy + cz * cz)
@@ -717,8 +769,8 @@ def gather_window(points, index_image, cx, cy, cz, radius, band, fx, fy, ppx, pp
     u0 = fx * cx / cz + ppx
     v0 = fy * cy / cz + ppy
     k = 0
-    for r in range(max(0, int(math.floor(v0 - rpx))), min(h - 1, int(math.ceil(v0 + rpx))) + 1):
-        for c in range(max(0, int(math.floor(u0 - rpx))), min(w - 1, int(math.ceil(u0 + rpx))) + 1):
+    for r in range(max(0, int(math.floor(v0 - rpx))), min(h - 1, int(math.ceil(v0 + rpx))) + 1, stride):
+        for c in range(max(0, int(math.floor(u0 - rpx))), min(w - 1, int(math.ceil(u0 + rpx))) + 1, stride):
             i = index_image[r, c]
             if i < 0:
                 continue
@@ -824,6 +876,42 @@ def fit_free_radius(points, idx, cx, cy, cz, radius, iterations):
     return x[:3].copy(), x[3], se, math.sqrt(sse / max(n, 1))
 
 
+#: The radius's standard error floors s = sqrt(r^2 - m^2) at this fraction of r (see ``fit_ray``).
+SE_S_MIN = 0.3
+
+
+@njit(cache=True)
+def cholesky_solve(A, g, npar, x):
+    """Solve A x = g for the leading npar x npar block of a symmetric A (4, 4) by Cholesky, in place
+    of a LAPACK call (whose per-call cost exceeded the fit's). Returns 1 / L[npar-1, npar-1]^2, the
+    last diagonal element of A^-1 (the variance factor of the last parameter), or -1 when A is not
+    positive definite (then x is undefined)."""
+    L = np.zeros((4, 4))
+    for i in range(npar):
+        for j in range(i + 1):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            if i == j:
+                if not acc > 1e-300:
+                    return -1.0
+                L[i, i] = math.sqrt(acc)
+            else:
+                L[i, j] = acc / L[j, j]
+    y = np.zeros(4)
+    for i in range(npar):
+        acc = g[i]
+        for k in range(i):
+            acc -= L[i, k] * y[k]
+        y[i] = acc / L[i, i]
+    for i in range(npar - 1, -1, -1):
+        acc = y[i]
+        for k in range(i + 1, npar):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+    return 1.0 / (L[npar - 1, npar - 1] * L[npar - 1, npar - 1])
+
+
 @njit(cache=True)
 def fit_ray(points, idx, cx, cy, cz, radius, free_radius, iterations, s_min):
     """Gauss-Newton on the ray residuals |p| - t_near(c, r) of points[idx] (depth noise model).
@@ -837,53 +925,88 @@ def fit_ray(points, idx, cx, cy, cz, radius, free_radius, iterations, s_min):
     npar = 4 if free_radius else 3
     A = np.zeros((4, 4))
     g = np.zeros(4)
-    jj = np.zeros(4)
+    step = np.zeros(4)
     n = idx.shape[0]
+    var_r = -1.0
     for _ in range(iterations):
         A[:] = 0.0
         g[:] = 0.0
+        cc = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
         for k in range(n):
             i = idx[k]
             px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
             pn = math.sqrt(px * px + py * py + pz * pz)
-            ux, uy, uz = px / pn, py / pn, pz / pn
+            ipn = 1.0 / pn
+            ux, uy, uz = px * ipn, py * ipn, pz * ipn
             tc = ux * x[0] + uy * x[1] + uz * x[2]
-            s2 = x[3] * x[3] - (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]) + tc * tc
+            s2 = x[3] * x[3] - cc + tc * tc
             # res = pn - tc + s; d res / d c = -u + (tc u - c) / s; d res / d r = r / s, with s floored
             # in the derivative only, so that the residual stays exact (and continuous) at the outline
-            sj = max(math.sqrt(max(s2, 0.0)), s_min * x[3])
-            jj[0] = -ux + (tc * ux - x[0]) / sj
-            jj[1] = -uy + (tc * uy - x[1]) / sj
-            jj[2] = -uz + (tc * uz - x[2]) / sj
-            jj[3] = x[3] / sj
-            res = pn - tc + math.sqrt(max(s2, 0.0))
-            for a in range(npar):
-                g[a] += jj[a] * res
-                for b in range(npar):
-                    A[a, b] += jj[a] * jj[b]
-        if npar == 3:
-            A[3, 3] = 1.0
-        if abs(np.linalg.det(A)) < 1e-30:
+            s = math.sqrt(max(s2, 0.0))
+            isj = 1.0 / max(s, s_min * abs(x[3]), 1e-12)
+            j0 = -ux + (tc * ux - x[0]) * isj
+            j1 = -uy + (tc * uy - x[1]) * isj
+            j2 = -uz + (tc * uz - x[2]) * isj
+            j3 = x[3] * isj
+            res = pn - tc + s
+            A[0, 0] += j0 * j0
+            A[1, 0] += j1 * j0
+            A[1, 1] += j1 * j1
+            A[2, 0] += j2 * j0
+            A[2, 1] += j2 * j1
+            A[2, 2] += j2 * j2
+            A[3, 0] += j3 * j0
+            A[3, 1] += j3 * j1
+            A[3, 2] += j3 * j2
+            A[3, 3] += j3 * j3
+            g[0] -= j0 * res
+            g[1] -= j1 * res
+            g[2] -= j2 * res
+            g[3] -= j3 * res
+        var_r = cholesky_solve(A, g, npar, step)
+        if var_r < 0.0:
             break
-        step = -np.linalg.solve(A, g)
-        x += step
-        if math.sqrt((step * step).sum()) < 1e-9:
+        for a in range(npar):
+            x[a] += step[a]
+        if math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2 + (step[3] ** 2 if free_radius else 0.0)) < 1e-9:
             break
+    # the residuals at the solution, and for the radius's standard error a normal matrix whose
+    # derivatives floor s at SE_S_MIN r: the floor of the fit (s_min) lets the few pixels at the
+    # outline, where the residual has no derivative, claim a radius known to a fraction of a mm
     sse = 0.0
+    A[:] = 0.0
+    cc = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+    s_floor = max(max(s_min, SE_S_MIN) * abs(x[3]), 1e-12)
     for k in range(n):
         i = idx[k]
         px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
         pn = math.sqrt(px * px + py * py + pz * pz)
-        tc = (px * x[0] + py * x[1] + pz * x[2]) / pn
-        s2 = x[3] * x[3] - (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]) + tc * tc
-        res = pn - tc + math.sqrt(max(s2, 0.0))
+        ipn = 1.0 / pn
+        ux, uy, uz = px * ipn, py * ipn, pz * ipn
+        tc = ux * x[0] + uy * x[1] + uz * x[2]
+        s = math.sqrt(max(x[3] * x[3] - cc + tc * tc, 0.0))
+        res = pn - tc + s
         sse += res * res
+        if free_radius:
+            isj = 1.0 / max(s, s_floor)
+            j0 = -ux + (tc * ux - x[0]) * isj
+            j1 = -uy + (tc * uy - x[1]) * isj
+            j2 = -uz + (tc * uz - x[2]) * isj
+            j3 = x[3] * isj
+            A[0, 0] += j0 * j0
+            A[1, 0] += j1 * j0
+            A[1, 1] += j1 * j1
+            A[2, 0] += j2 * j0
+            A[2, 1] += j2 * j1
+            A[2, 2] += j2 * j2
+            A[3, 0] += j3 * j0
+            A[3, 1] += j3 * j1
+            A[3, 2] += j3 * j2
+            A[3, 3] += j3 * j3
     se = math.nan
     if free_radius:
-        if abs(np.linalg.det(A)) > 1e-30:
-            se = math.sqrt(max(sse / max(n - 4, 1) * np.linalg.inv(A)[3, 3], 0.0))
-        else:
-            se = math.inf
+        var_r = cholesky_solve(A, g, 4, step)
+        se = math.sqrt(max(sse / max(n - 4, 1) * var_r, 0.0)) if var_r > 0.0 else math.inf
     return x[:3].copy(), x[3], se, math.sqrt(sse / max(n, 1))
 
 

@@ -40,10 +40,9 @@ class DetectorConfig:
         pipeline: "paper" (candidate-centre list, section 2.5) or "improved".
         sampling: "global" (3 points from the whole cloud) or "local" (2nd and 3rd point near the
             1st: the paper's future work).
-        sample_radius_m: organised clouds: the 2nd and 3rd pixels are drawn in the image disc of
-            this radius at the 1st point's depth (default R: a ball's image seen from its front
-            point), and kept only within one ball diameter (2R) of the 1st in 3D. Unorganised
-            clouds: the grid cells within this radius (default 2R) of the 1st point.
+        sample_radius_m: unorganised clouds: the 2nd and 3rd points come from the grid cells within
+            this radius (default 2R) of the 1st point. (Organised clouds: the search's boxes scale
+            with the ball's image radius at the first pixel's depth.)
         solver: "known_radius" (two centres from three points; the far one) or "lstsq_eq12".
         iterations: the iteration limit (the paper: 1,000; 10,000 for its cluttered scene E2).
         adaptive: organised clouds: run the standard RANSAC bound's number of iterations for the
@@ -51,17 +50,22 @@ class DetectorConfig:
             unorganised clouds: stop early by the bound once a sphere is found.
         confidence: the probability of having drawn one all-inlier sample, for the bound.
         min_iterations: never stop before this many iterations.
-        sample_success: the probability that the 2nd and 3rd local draws land on the ball given
-            that the 1st did (for the bound; the disc sampler's geometry gives about 0.56 per draw,
-            and redraws of points beyond 2R raise it).
-        bound_noise_fraction: the bound provides for balls up to the depth where one pixel's
-            depth noise reaches this fraction of R (3.5 m at 424x240 for the D435 model)...
+        sample_success: organised clouds: the probability that an iteration whose first pixel is on
+            the ball yields a hypothesis that passes the pretest (the descent from anywhere on the
+            ball's disc reaches its front point unless the first pixel is on the rim); unorganised
+            clouds: unused (the bound there follows the best candidate's support).
+        bound_noise_fraction: the bound provides for balls up to the depth where one pixel's depth
+            noise reaches this fraction of R (3.5 m at 424x240 for the D435 model)...
         max_range_m: ... or up to this depth, whichever is nearer.
         bound_visible_fraction: ... of which at least this fraction is visible.
-        denoise_sigma_m: organised search: sample points whose pixel's depth noise exceeds this are
-            moved to the mean depth of a square patch about that noise (0 disables it).
-        denoise_max_half_px: the patch's largest half-side (pixels).
-        sample_retries: draws allowed for the 2nd and 3rd local point before giving up an iteration.
+        search_width_px: organised search: streams wider than this are searched on cells of
+            width // search_width_px pixels (binned sums), so that the search costs the same at
+            every resolution; verification uses every pixel.
+        pretest_slack: organised search: a fraction of R added to the pretest's noise tolerances
+            (the box-mean relief model's error).
+        search_candidates: organised search: hypotheses kept (distinct in the image, by score).
+        sample_retries: unorganised search: draws allowed for the 2nd and 3rd local point before
+            giving up an iteration.
     Paper pipeline:
         candidate_merge_m: a new centre within this distance of a listed candidate joins it.
         zscore_threshold: drop points whose |z| exceeds it (the paper: 1.5; Table 2 also 2, 3).
@@ -75,13 +79,14 @@ class DetectorConfig:
             cloud's intrinsics are known (0 subpixel disables it).
         noise_sigmas: the shell half-width is max(eps, noise_sigmas * sigma_z) ...
         max_eps_fraction: ... capped at this fraction of R.
-        pretest_points: pixels of a candidate's silhouette checked before scoring it fully.
+        pretest_points: unorganised search: points near a candidate checked before scoring it fully.
         pretest_min_fraction: fraction of those that must be inliers.
         verify_candidates: verify at most this many of the best search candidates.
-        fit_max_points: refinement rounds fit at most about this many inliers (evenly strided); the
-            final fits 4 times as many.
-        score_max_points: scoring visits at most about this many pixels/points per candidate
-            (strided window), bounding the cost for balls near the camera.
+        fit_max_points: organised verification: every fit uses at most about this many inliers
+            (evenly strided), and every window visit about 4 times as many pixels (strided); the
+            reported spheres' inliers are then collected from every pixel.
+        score_max_points: unorganised search: scoring visits at most about this many points per
+            candidate, bounding the cost for balls near the camera.
         refine_iterations: Gauss-Newton rounds (each re-selects inliers).
         min_inliers: fewer inliers than this: no detection.
         size_check: compare the free-radius fit with R.
@@ -106,12 +111,13 @@ class DetectorConfig:
     adaptive: bool = True
     confidence: float = 0.99
     min_iterations: int = 300
-    sample_success: float = 0.3
+    sample_success: float = 0.8
     bound_noise_fraction: float = 0.75
     max_range_m: float = 6.0
     bound_visible_fraction: float = 1.0
-    denoise_sigma_m: float = 0.01
-    denoise_max_half_px: int = 4
+    search_width_px: int = 424
+    pretest_slack: float = 0.1
+    search_candidates: int = 16
     sample_retries: int = 4
     candidate_merge_m: float | None = None
     zscore_threshold: float = 1.5
@@ -123,7 +129,7 @@ class DetectorConfig:
     max_eps_fraction: float = 1.0
     pretest_points: int = 12
     pretest_min_fraction: float = 0.5
-    verify_candidates: int = 8
+    verify_candidates: int = 6
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 6
@@ -133,7 +139,7 @@ class DetectorConfig:
     size_sigmas: float = 3.0
     max_spheres: int = 4
     nms_distance_fraction: float = 0.75
-    min_score: float = 0.3
+    min_score: float = 0.35
     max_points: int = 2_000_000
     mm_check: bool = True
     mm_check_median_m: float = 50.0
@@ -147,11 +153,6 @@ class DetectorConfig:
     def local_radius_m(self) -> float:
         """The local sampling radius: ``sample_radius_m`` or one ball diameter."""
         return 2.0 * self.radius_m if self.sample_radius_m is None else float(self.sample_radius_m)
-
-    @property
-    def sample_r_m(self) -> float:
-        """The organised sampler's disc radius (metres at the 1st point's depth): ``sample_radius_m`` or R."""
-        return self.radius_m if self.sample_radius_m is None else float(self.sample_radius_m)
 
     @property
     def merge_m(self) -> float:
@@ -181,8 +182,8 @@ def _problems(c: DetectorConfig) -> list[str]:
         if getattr(c, name) not in allowed:
             out.append(f"{name}={getattr(c, name)!r} is not one of {', '.join(allowed)}")
     for name in ("iterations", "min_iterations", "sample_retries", "pretest_points", "score_max_points",
-                 "refine_iterations", "min_inliers", "max_spheres", "max_points", "denoise_max_half_px",
-                 "verify_candidates", "fit_max_points"):
+                 "refine_iterations", "min_inliers", "max_spheres", "max_points", "search_width_px",
+                 "verify_candidates", "fit_max_points", "search_candidates"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int):
             out.append(f"{name}={v!r} must be an integer")
@@ -193,9 +194,10 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append("min_iterations must be >= 0, sample_retries >= 1, score_max_points >= 50")
         if c.max_spheres < 1 or c.min_inliers < 3 or c.max_points < 1000:
             out.append("max_spheres must be >= 1, min_inliers >= 3, max_points >= 1000")
-        if c.denoise_max_half_px < 0 or c.verify_candidates < 1 or c.fit_max_points < 10 or c.pretest_points < 1:
-            out.append("denoise_max_half_px must be >= 0, verify_candidates >= 1, fit_max_points >= 10, "
-                       "pretest_points >= 1")
+        if (c.search_width_px < 16 or c.verify_candidates < 1 or c.fit_max_points < 10 or c.pretest_points < 1
+                or c.search_candidates < 1):
+            out.append("search_width_px must be >= 16, verify_candidates >= 1, fit_max_points >= 10, "
+                       "pretest_points >= 1, search_candidates >= 1")
     for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction", "max_eps_fraction",
                  "bound_visible_fraction"):
         if finite(name) and not 0.0 <= getattr(c, name) <= 1.0:
@@ -208,7 +210,7 @@ def _problems(c: DetectorConfig) -> list[str]:
     for name in ("max_range_m", "bound_noise_fraction"):
         if finite(name) and getattr(c, name) <= 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")
-    for name in ("zscore_threshold", "noise_sigmas", "denoise_sigma_m", "size_tolerance_m", "size_sigmas", "noise_subpixel",
+    for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas", "noise_subpixel",
                  "noise_baseline_m", "mm_check_median_m"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")

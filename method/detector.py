@@ -19,7 +19,7 @@ from spherebench.cloud import Cloud
 from spherebench.errors import SphereBenchError
 from spherebench.method import _kernels as K
 from spherebench.method.config import IMPROVED, DetectorConfig
-from spherebench.method.improved import Frame, run_improved, workspace
+from spherebench.method.improved import Frame, run_improved
 from spherebench.method.paper import PaperTrace, run_paper
 
 Circle = tuple[float, float, float]
@@ -103,11 +103,9 @@ def prepare(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> t
 def prepare_frame(cloud: Cloud, config: DetectorConfig) -> Frame:
     """Validate an organised cloud and build what its kernels need (one pass over the points)."""
     _check_cloud(cloud)
-    intr = cloud.intrinsics
-    img = workspace("index", (int(intr.height), int(intr.width)), np.int32)
-    n_ok, n_big = K.prepare_organised(cloud.points, cloud.rows, cloud.cols, img, float(config.mm_check_median_m))
-    _check_counts(len(cloud.points), int(n_ok), int(n_big), config)
-    return Frame(cloud, img, int(n_ok), config)
+    frame = Frame(cloud, config)
+    _check_counts(len(cloud.points), frame.n_ok, frame.n_big, config)
+    return frame
 
 
 def _circles(cloud: Cloud, c: np.ndarray, R: float) -> tuple[Circle | None, Circle | None]:

@@ -1,14 +1,22 @@
-"""The improved pipeline: local sampling, windowed scoring, refinement, size check, NMS, confidence.
+"""The improved pipeline: a box-mean search, refinement, size check, NMS, confidence.
 
-Search (compiled, ``_kernels``): the 2nd and 3rd points are drawn near the 1st (in the image disc
-of radius ``sample_radius_m`` at the 1st point's depth for an organised cloud, or in the grid
-cells around it for an unorganised one); for an organised cloud the three are moved to the mean
-depth of a small pixel patch when the stereo noise at their depth exceeds ``denoise_sigma_m``
-(at 3 m and 424x240 one pixel's depth is +/- 7 cm: three raw points give no usable centre);
-both known-radius centres are kept when the three points lie on their camera side; a few pixels
-of the candidate's silhouette pretest it (stopping at the first decisive one); the survivors are
-scored on their pixel window only. The number of iterations is the standard RANSAC bound for the
-smallest ball the frame can hold (``iteration_bound``).
+Search (compiled, ``_kernels``), for an organised cloud: one pass builds the index image and a
+summed-area table of the depth (mm) and of the valid count over cells of width // search_width_px
+pixels (about ``search_width_px`` cells across), so that the mean range of any box (its mean depth
+times the ray length) costs a few loads.
+Each RANSAC iteration draws a first pixel among the valid ones and makes one hypothesis from box
+means about it whose size follows the ball's image radius at that depth (``front_hypothesis``):
+a descent to the local minimum of the range (the ball's front point, on the ray through its
+centre), then an O(1) pretest (the four side boxes on the sphere's cap, the eight boxes around
+the outline not continuing the surface). Raw three-point samples cannot place a ball beyond about
+1.5 m at 424x240 (one pixel's depth noise exceeds the relief between two samples); box means of
+n pixels have sigma / sqrt(n). The distinct survivors are kept by score. The number of iterations
+is the standard RANSAC bound for the smallest ball the frame can hold (``iteration_bound``).
+(The issue's three-point samples in a ball diameter are here a five-box stencil about the first
+pixel, and the known radius enters as the cap's curvature: the previous three-point search on
+patch means found 176 of the default preset's 200 balls, missing most beyond 2.3 m; a box-mean
+sample gives a centre only when all its boxes lie inside the disc, the descent from anywhere on it.)
+Unorganised clouds: three-point local samples in a spatial grid (``_kernels.search_unorganised``).
 
 Verification (compiled, one call per candidate, best first, at most ``verify_candidates``):
 Gauss-Newton with R fixed, re-selecting the inliers each round, on the depth residual along each
@@ -63,7 +71,7 @@ def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
                              config.max_eps_fraction * config.radius_m))
 
 
-def parameters(config: DetectorConfig, intr, iterations: int) -> np.ndarray:
+def parameters(config: DetectorConfig, intr, iterations: int, bin_px: int, grid_shape: tuple) -> np.ndarray:
     """The float64 parameter vector (``_kernels.N_PRM``,) of the organised kernels."""
     prm = np.zeros(K.N_PRM, np.float64)
     R = config.radius_m
@@ -71,11 +79,11 @@ def parameters(config: DetectorConfig, intr, iterations: int) -> np.ndarray:
     prm[K.P_R], prm[K.P_EPS] = R, config.eps_m
     prm[K.P_NOISE_A], prm[K.P_NOISE_K] = noise_a(config, float(intr.fx)), config.noise_sigmas
     prm[K.P_EPS_CAP] = config.max_eps_fraction * R
-    prm[K.P_SAMPLE_R] = config.sample_r_m
-    prm[K.P_SIGMA_T], prm[K.P_H_MAX] = config.denoise_sigma_m, config.denoise_max_half_px
-    prm[K.P_RETRIES], prm[K.P_PRETEST_N] = config.sample_retries, config.pretest_points
-    prm[K.P_PRETEST_FRAC], prm[K.P_SCORE_MAX] = config.pretest_min_fraction, config.score_max_points
-    prm[K.P_ITERS], prm[K.P_DEDUP] = iterations, 0.25 * R
+    prm[K.P_ITERS], prm[K.P_BIN] = iterations, bin_px
+    # hypotheses whose ball would be beyond the range limit (with a margin), or larger than the grid
+    prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / range_limit_m(config, float(intr.fx))
+    prm[K.P_RR_MAX] = float(max(grid_shape))
+    prm[K.P_SLACK] = config.pretest_slack
     return prm
 
 
@@ -88,26 +96,42 @@ def range_limit_m(config: DetectorConfig, fx: float | None) -> float:
     return min(lim, config.max_range_m)
 
 
-def iteration_bound(config: DetectorConfig, intr, z_valid: np.ndarray, n_valid: int) -> int:
+def iteration_bound(config: DetectorConfig, intr, z_scene_m: float, n_valid: int) -> int:
     """Iterations for the standard RANSAC bound, for the smallest ball the frame can hold.
 
     A ball of radius R at depth z covers A(z) = pi (fx R / z)^2 pixels, a share w = A / N of the
-    N valid points; a local sample is good with probability p = w * ``sample_success`` (the 2nd
-    and 3rd draws on the ball given the 1st is); k = log(1 - confidence) / log(1 - p). The
-    binding z is the farthest a ball can be: the scene's 98th depth percentile plus R (a ball is
-    in front of what is behind it) or ``range_limit_m``, whichever is nearer; and at least
-    ``bound_visible_fraction`` of it is assumed visible. Clamped to [min_iterations, iterations].
+    N valid points; an iteration succeeds with probability p = w * ``sample_success`` (its first
+    pixel on the ball, and the hypothesis from it passing the pretest);
+    k = log(1 - confidence) / log(1 - p). The binding z is the farthest a ball can be: the scene's
+    depth ``z_scene_m`` (its 98th percentile) plus R (a ball is in front of what is behind it) or
+    ``range_limit_m``, whichever is nearer; and at least ``bound_visible_fraction`` of it is
+    assumed visible. Clamped to [min_iterations, iterations].
     """
     if not config.adaptive:
         return config.iterations
     z_far = range_limit_m(config, float(intr.fx))
-    if len(z_valid):
-        z_far = min(z_far, float(np.percentile(z_valid, 98)) + config.radius_m)
+    if math.isfinite(z_scene_m):
+        z_far = min(z_far, z_scene_m + config.radius_m)
     z_far = max(z_far, 2.0 * config.radius_m)
     area = math.pi * (intr.fx * config.radius_m / z_far) ** 2 * config.bound_visible_fraction
     p = min(area / max(n_valid, 1), 1.0) * config.sample_success
     k = math.log(1.0 - config.confidence) / math.log1p(-p) if 0 < p < 1 else (1.0 if p >= 1 else math.inf)
     return int(min(max(math.ceil(k), config.min_iterations), config.iterations))
+
+
+#: Depth histogram of a frame (for the scene's far depth): bins of this many metres, up to 20 m.
+HIST_STEP_M = 0.05
+HIST_BINS = 400
+
+
+def hist_percentile(hist: np.ndarray, q: float, step_m: float = HIST_STEP_M) -> float:
+    """The q-th percentile (0-100) of the depths counted in hist (B,) (bins of step_m), to a bin's
+    upper edge; nan when empty."""
+    total = int(hist.sum())
+    if total == 0:
+        return math.nan
+    k = int(np.searchsorted(np.cumsum(hist), q / 100.0 * total))
+    return (min(k, len(hist) - 1) + 1) * step_m
 
 
 _WORKSPACE: dict = {}
@@ -125,34 +149,56 @@ def workspace(name: str, shape: tuple, dtype) -> np.ndarray:
     return buf
 
 
-class Frame:
-    """An organised cloud made ready for the kernels: index image, depth integrals, parameters."""
+_LOOKUPS: dict = {}
 
-    def __init__(self, cloud: Cloud, index_image: np.ndarray, n_valid: int, config: DetectorConfig):
+
+def _cell_lookup(h: int, w: int, bin_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The table cell (1-based) of each pixel row (H,) and column (W,) int32, cached per size."""
+    key = (h, w, bin_px)
+    if key not in _LOOKUPS:
+        if len(_LOOKUPS) > 16:
+            _LOOKUPS.clear()
+        _LOOKUPS[key] = ((np.arange(h) // bin_px + 1).astype(np.int32), (np.arange(w) // bin_px + 1).astype(np.int32))
+    return _LOOKUPS[key]
+
+
+class Frame:
+    """An organised cloud made ready for the kernels: index image, range integrals, parameters.
+
+    One pass over the points (``_kernels.prepare_organised``); the buffers are reused between
+    frames of one size. n_ok, n_big: finite points, and those with |z| beyond the millimetre limit.
+    """
+
+    def __init__(self, cloud: Cloud, config: DetectorConfig):
+        intr = cloud.intrinsics
+        h, w = int(intr.height), int(intr.width)
         self.cloud = cloud
         self.points = cloud.points
-        self.index_image = index_image
-        intr = cloud.intrinsics
-        step = max(1, len(cloud.points) // 2048)
-        z = cloud.points[::step, 2]
-        z = z[np.isfinite(z) & (z > 0)]
-        self.iterations = iteration_bound(config, intr, z, n_valid)
-        self.prm = parameters(config, intr, self.iterations)
-        self.tab = workspace("tab", (index_image.shape[0] + 1, index_image.shape[1] + 1, 3), np.float64)
-        K.depth_integrals(cloud.points, index_image, self.tab)
+        self.bin = max(1, w // config.search_width_px)
+        hc, wc = -(-h // self.bin), -(-w // self.bin)
+        self.index_image = workspace("index", (h, w), np.int32)
+        self.tab = workspace("tab", (hc + 1, wc + 1, 2), np.uint32)
+        self.hist = workspace("hist", (HIST_BINS,), np.int64)
+        row_cell, col_cell = _cell_lookup(h, w, self.bin)
+        n_ok, n_big = K.prepare_organised(cloud.points, cloud.rows, cloud.cols, self.index_image, self.tab, row_cell,
+                                          col_cell, np.float32(config.mm_check_median_m), self.hist,
+                                          np.float32(1.0 / HIST_STEP_M))
+        self.n_ok, self.n_big = int(n_ok), int(n_big)
+        self.n_valid = int(self.tab[-1, -1, 1])  # the table's total count (below 2^32 pixels)
+        self.iterations = iteration_bound(config, intr, hist_percentile(self.hist, 98.0), self.n_valid)
+        self.prm = parameters(config, intr, self.iterations, self.bin, (hc, wc))
 
 
 def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Run the compiled organised search. Returns (candidate centres (M, 3), qualities (M,))."""
-    k = max(2 * config.max_spheres, 4)
-    cands = np.zeros((k, 3), np.float64)
-    quals = np.zeros(k, np.float64)
-    counters = np.zeros(4, np.int64)
+    """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,)), best first."""
+    hyp = np.zeros((config.search_candidates, 5), np.float64)
+    counters = np.zeros(2, np.int64)
     c = frame.cloud
-    m = K.search_organised(frame.points, c.rows, c.cols, frame.index_image, frame.tab, frame.prm, np.uint64(seed),
-                           cands, quals, counters)
+    m = K.search_organised(c.rows, c.cols, frame.tab, frame.prm, np.uint64(seed), hyp, counters)
     frame.counters = counters  # diagnostics (see _kernels.search_organised)
-    return cands[:m], quals[:m]
+    frame.hypotheses = hyp[:m]
+    centres = np.array([K.cell_centre(frame.prm, h[0], h[1], h[2]) for h in hyp[:m]]).reshape(-1, 3)
+    return centres, hyp[:m, 4].copy()
 
 
 def search_unorganised(points: np.ndarray, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -183,7 +229,8 @@ def build_grid(points: np.ndarray, cell_m: float) -> dict:
     return {"order": order, "keys": keys[order], "origin": lo, "cell": float(cell_m), "dims": dims}
 
 
-#: Candidates whose search quality is below this fraction of the best one's are not verified.
+#: Unorganised: candidates whose search quality is below this fraction of the best one's are not verified
+#: (organised: the best ``verify_candidates`` hypotheses are, whatever their pretest scores).
 VERIFY_QUALITY_FRACTION = 0.15
 
 #: Ray fits floor s = sqrt(r^2 - m^2) at this fraction of r (see ``_kernels.fit_ray``).
@@ -191,7 +238,38 @@ RAY_S_MIN = 0.03
 
 _STAT_NAMES = {"valid_disc": K.ST_VALID_DISC, "inlier": K.ST_INLIER, "front": K.ST_FRONT,
                "front_near": K.ST_FRONT_NEAR, "behind": K.ST_BEHIND, "invalid_disc": K.ST_INVALID_DISC,
-               "ring": K.ST_RING, "ring_continued": K.ST_RING_CONT}
+               "ring": K.ST_RING, "ring_continued": K.ST_RING_CONT, "inner_n": K.ST_IN_N, "inner_sum": K.ST_IN_SUM,
+               "outer_h_n": K.ST_OUTH_N, "outer_h_sum": K.ST_OUTH_SUM, "outer_v_n": K.ST_OUTV_N,
+               "outer_v_sum": K.ST_OUTV_SUM}
+
+
+#: The relief test tolerates this much mean residual difference between the zones (a fraction of R:
+#: flying pixels and quantisation, which no noise model covers) before counting standard errors.
+RELIEF_FLOOR_FRACTION = 0.03
+#: ... and this many standard errors without penalty.
+RELIEF_FREE_SIGMAS = 1.0
+
+
+def relief_agreement(stats: dict, radius_m: float) -> float:
+    """exp(-max(0, t - RELIEF_FREE_SIGMAS)^2 / 2), t the worse of the horizontal and vertical outer zones' test:
+    t = (|outer mean - inner mean| - floor) / its standard error, with the inliers' mean ray
+    residuals of the disc's inner zone and of its outer zone left and right of the
+    centre, or above and below it (``_kernels.window_stats``). 1 for a sphere; small for a flatter
+    surface the sphere was fitted to, or one curved along one axis only (a box's edge, a
+    cylinder), at any depth: at 3 m one pixel's noise is 7 cm, but zone means of ~50-100 pixels
+    tell a 3 cm relief apart."""
+    n_in = stats.get("inner_n", 0.0)
+    sigma = stats.get("sigma_m", 0.0)
+    if n_in < 3 or not sigma > 0:
+        return 1.0
+    m_in = stats["inner_sum"] / n_in
+    t = 0.0
+    for side in ("outer_h", "outer_v"):
+        n = stats[side + "_n"]
+        if n >= 3:
+            diff = abs(stats[side + "_sum"] / n - m_in)
+            t = max(t, (diff - RELIEF_FLOOR_FRACTION * radius_m) / (sigma * math.sqrt(1.0 / n_in + 1.0 / n)))
+    return math.exp(-0.5 * max(0.0, t - RELIEF_FREE_SIGMAS) ** 2)
 
 
 def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
@@ -202,7 +280,8 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     silhouette's valid pixels that are inliers (coverage: occlusion lowers it), (1 - behind share)^2
     (the ball would hide what is seen through it) and (1 - share hugging the sphere just in front
     of it)^2 (a cylinder or another non-spherical surface), (1 - share of the outline ring where
-    the surface continues at the ball's depth)^2 (a wall or a plane); the size agreement exp(-d^2 / 2) with
+    the surface continues at the ball's depth)^2 (a wall or a plane), the ``relief_agreement`` of the
+    inner and outer zones (a surface flatter than the ball); the size agreement exp(-d^2 / 2) with
     d the free radius's deviation from R in units of (tolerance + its standard error).
     """
     R = config.radius_m
@@ -214,6 +293,7 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         hug = min(1.0, stats["front_near"] / vd)
         ring = stats["ring_continued"] / max(stats["ring"], 1.0)
         score *= coverage * (1.0 - behind) ** 2 * (1.0 - hug) ** 2 * (1.0 - ring) ** 2
+        score *= relief_agreement(stats, R)
     size_ok = True
     if config.size_check:
         se = free_se if math.isfinite(free_se) else R
@@ -235,8 +315,10 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
     if n < config.min_inliers:
         return None
     stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
+    stats["sigma_m"] = frame.prm[K.P_NOISE_A] * float(out[K.V_CZ]) ** 2  # one pixel's depth noise at the centre
     score, size_ok = confidence(stats, n, out[K.V_FR], out[K.V_FSE], config, True)
-    return Candidate(center_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:n].copy(), eps_m=float(out[K.V_EPS]),
+    # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
+    return Candidate(center_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),
                      free_center_m=out[K.V_FCX:K.V_FCZ + 1].copy(), free_radius_m=float(out[K.V_FR]),
                      free_radius_se_m=float(out[K.V_FSE]), rmse_m=float(out[K.V_RMSE]), stats=stats, score=score,
                      size_ok=size_ok)
@@ -284,9 +366,9 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
     else:
         cands, quals = search_unorganised(points, config, seed)
     found: list[Candidate] = []
-    # candidates far below the best cannot win: verifying them would only cost time
     for c0, q in zip(cands[:config.verify_candidates], quals[:config.verify_candidates]):
-        if q < VERIFY_QUALITY_FRACTION * quals[0]:
+        # unorganised: candidates far below the best cannot win, verifying them would only cost time
+        if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
             break
         v = verify_organised(frame, c0, config, buf) if frame is not None else verify_unorganised(points, c0, config)
         if v is None or not v.size_ok or v.score < config.min_score:
@@ -300,4 +382,8 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
             kept.append(v)
         if len(kept) == config.max_spheres:
             break
+    if frame is not None:  # verification visited strided windows: collect every inlier of the reported ones
+        for v in kept:
+            n, v.rmse_m = K.final_inliers(frame.points, frame.index_image, v.center_m, frame.prm, v.eps_m, buf)
+            v.inliers = buf[:n].copy()
     return kept

@@ -1,10 +1,11 @@
-"""Readable pure-Python/numpy replay of the compiled organised search (``_kernels.search_organised``).
+"""Readable pure-Python/numpy replays of the compiled organised kernels, for the tests.
 
-It draws the same random numbers (splitmix64, in Python integers) in the same order and applies
-the same tests, written plainly: patch means are summed directly over the depth image (the
-kernel uses summed-area tables), the window statistics are vectorised numpy, the minimal solver
-is ``sphere_model.solve_known_radius``. The tests run both on a small cloud with one seed and
-require the same candidates. Far too slow for real frames; it exists to check the fast path.
+``search_organised`` replays ``_kernels.search_organised``: it draws the same random numbers
+(splitmix64, in Python integers) in the same order and applies the same tests, written plainly: the
+box sums are summed directly over an image of the cells' depth sums and counts (the kernel uses a
+summed-area table kept modulo 2^32), the steps and the tests are the same formulas in the same
+order, so the tests can require the same hypotheses. ``window_stats`` is the kernel's silhouette
+classification, vectorised. Far too slow for real frames; they exist to check the fast path.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import math
 import numpy as np
 
 from spherebench.method import _kernels as K
-from spherebench.method import sphere_model as sm
 
 _MASK = (1 << 64) - 1
 
@@ -34,147 +34,221 @@ class SplitMix64:
         return (z >> 11) * (1.0 / 9007199254740992.0)
 
 
-def depth_image(points: np.ndarray, index_image: np.ndarray) -> np.ndarray:
-    """(H, W) float64 depth of each pixel's point, NaN where there is none."""
-    z = np.full(index_image.shape, np.nan)
-    ok = index_image >= 0
-    z[ok] = points[index_image[ok], 2]
-    return z
+def cell_images(points: np.ndarray, index_image: np.ndarray, bin_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """(depth sums in mm (Hc, Wc) int64, valid counts (Hc, Wc) int64) over cells of bin_px x bin_px pixels.
 
-
-def patch(zimg: np.ndarray, r: int, c: int, half: int) -> np.ndarray:
-    """(the patch (h, w), its valid depths (K,)): the square of half-side ``half`` around pixel (r, c), clipped."""
-    h, w = zimg.shape
-    r0, r1 = max(r - half, 0), max(min(r + half + 1, h), 0)  # a patch off the image is empty
-    c0, c1 = max(c - half, 0), max(min(c + half + 1, w), 0)
-    block = zimg[r0:max(r1, r0), c0:max(c1, c0)]
-    return block, block[np.isfinite(block)]
-
-
-def noise_eps(cz, prm):
-    e = max(prm[K.P_EPS], prm[K.P_NOISE_K] * prm[K.P_NOISE_A] * cz * cz)
-    cap = prm[K.P_EPS_CAP]
-    return min(e, cap) if cap > prm[K.P_EPS] else prm[K.P_EPS]
-
-
-def disc_radius_px(cz, dist, radius, fx):
-    return fx * radius / math.sqrt(max(dist * dist - radius * radius, 1e-12)) * dist / cz
-
-
-def ray_residual(p, c, radius):
-    """(|p| - t_near, hit) for point p (3,) and centre c (3,)."""
-    pn = math.sqrt(float(p @ p))
-    if pn <= 0:
-        return math.nan, False
-    tc = float(p @ c) / pn
-    m2 = float(c @ c) - tc * tc
-    if m2 > radius * radius:
-        return math.nan, False
-    return pn - (tc - math.sqrt(radius * radius - m2)), True
-
-
-def denoised(points, zimg, i, r, c, prm):
-    """Point i moved to its patch's mean depth, or None (see ``_kernels.denoised_point``)."""
-    p = points[i].astype(np.float64)
-    z = p[2]
-    h = K.patch_half(z, prm[K.P_NOISE_A], prm[K.P_SIGMA_T], int(prm[K.P_H_MAX]))
-    if h == 0:
-        return p
-    block, vals = patch(zimg, r, c, h)
-    if len(vals) < 0.5 * block.size:
-        return None
-    m = vals.mean()
-    lim = 2.0 * prm[K.P_NOISE_A] * z * z + 0.25 * prm[K.P_R]
-    if (vals * vals).mean() - m * m > lim * lim:
-        return None
-    return p * (m / z)
-
-
-def pixel_at(index_image, u0, v0, r_in, r_out, ang, u_rad):
+    Each pixel's depth is rounded to mm as the kernel does it (float32 z * 1000 + 0.5, truncated).
+    """
     h, w = index_image.shape
-    rad = math.sqrt(r_in * r_in + (r_out * r_out - r_in * r_in) * u_rad)
-    c = int(math.floor(u0 + rad * math.cos(ang) + 0.5))
-    r = int(math.floor(v0 + rad * math.sin(ang) + 0.5))
-    return -1 if (r < 0 or r >= h or c < 0 or c >= w) else int(index_image[r, c])
+    hc, wc = -(-h // bin_px), -(-w // bin_px)
+    zs = np.zeros((hc, wc), np.int64)
+    ns = np.zeros((hc, wc), np.int64)
+    rr, cc = np.nonzero(index_image >= 0)
+    z = points[index_image[rr, cc], 2].astype(np.float32)
+    zmm = (z * np.float32(1000.0) + np.float32(0.5)).astype(np.uint32).astype(np.int64)
+    np.add.at(zs, (rr // bin_px, cc // bin_px), zmm)
+    np.add.at(ns, (rr // bin_px, cc // bin_px), 1)
+    return zs, ns
 
 
-def pretest(points, index_image, centre, e, prm, rng: SplitMix64) -> bool:
-    """The pixel pretest, drawing exactly as the kernel (it stops at the first decisive pixel)."""
-    fx, fy, ppx, ppy, radius = prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY], prm[K.P_R]
-    n_draws = int(prm[K.P_PRETEST_N])
-    max_fail = int((1.0 - prm[K.P_PRETEST_FRAC]) * n_draws)
-    cx, cy, cz = centre
-    rpx = disc_radius_px(cz, math.sqrt(float(centre @ centre)), radius, fx)
-    u0, v0 = fx * cx / cz + ppx, fy * cy / cz + ppy
-    valid = fails = 0
-    for _ in range(n_draws):
-        ang = 2.0 * math.pi * rng.u01()
-        i = pixel_at(index_image, u0, v0, 0.0, 0.8 * rpx, ang, rng.u01())
-        if i < 0:
+class Grid:
+    """The search grid: cell images, the parameters, and plainly summed boxes."""
+
+    def __init__(self, zs: np.ndarray, ns: np.ndarray, prm: np.ndarray):
+        self.zs, self.ns, self.prm = zs, ns, prm
+        self.hc, self.wc = zs.shape
+
+    def box_sums(self, v: int, u: int, h: int) -> tuple[int, int, int]:
+        r0, r1 = max(v - h, 0), min(v + h + 1, self.hc)
+        c0, c1 = max(u - h, 0), min(u + h + 1, self.wc)
+        if r0 >= r1 or c0 >= c1:
+            return 0, 0, 0
+        return int(self.zs[r0:r1, c0:c1].sum()), int(self.ns[r0:r1, c0:c1].sum()), (r1 - r0) * (c1 - c0)
+
+    def box_range(self, v: int, u: int, h: int) -> tuple[float, int]:
+        """(mean range m or nan, valid count): mean depth times the ray length at the box's centre."""
+        prm = self.prm
+        s, n, a = self.box_sums(v, u, h)
+        if n == 0 or n < K.MIN_VALID * a * prm[K.P_BIN] * prm[K.P_BIN]:
+            return math.nan, n
+        b = prm[K.P_BIN]
+        rx = (u * b + 0.5 * (b - 1.0) - prm[K.P_PPX]) / prm[K.P_FX]
+        ry = (v * b + 0.5 * (b - 1.0) - prm[K.P_PPY]) / prm[K.P_FY]
+        return s / n * 1e-3 * math.sqrt(1.0 + rx * rx + ry * ry), n
+
+
+def cap_relief(s: float) -> float:
+    return 1.0 - math.sqrt(1.0 - min(s, 1.0))
+
+
+def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
+    """``_kernels.plane_free``: is the inverse depth about (v, u) curved along some available axis?"""
+    prm = g.prm
+    R = prm[K.P_R]
+    rr = prm[K.P_FX] / prm[K.P_BIN] * R / m0
+    hp = max(1, int(K.H_FRAC * rr + 0.5))
+    dp = int(K.PREFILTER_FRAC * rr + 0.5)
+    dg = int(K.PREFILTER_FRAC * rr * 0.7071067811865476 + 0.5)
+    bb = prm[K.P_BIN] * prm[K.P_BIN]
+    s0, n0, _ = g.box_sums(v, u, 1)
+    if n0 == 0:
+        return True
+    i0 = 1000.0 * n0 / s0
+    planar = 0
+    for du, dv in ((dp, 0), (0, dp), (dg, dg), (dg, -dg)):
+        sa, na, aa = g.box_sums(v + dv, u + du, hp)
+        sb, nb, ab = g.box_sums(v - dv, u - du, hp)
+        if na == 0 or nb == 0 or na < K.MIN_VALID * aa * bb or nb < K.MIN_VALID * ab * bb:
             continue
-        valid += 1
-        dt, hit = ray_residual(points[i].astype(np.float64), centre, radius)
-        if not (hit and abs(dt) <= e):
-            fails += 1
-            if fails > max_fail:
-                return False
-    if valid < 3 or valid - fails < prm[K.P_PRETEST_FRAC] * valid:
-        return False
-    valid = cont = 0
-    n_ring = max(2, n_draws // 2)
-    for _ in range(n_ring):
-        ang = 2.0 * math.pi * rng.u01()
-        i = pixel_at(index_image, u0, v0, 1.1 * rpx, K.RING_FACTOR * rpx, ang, rng.u01())
-        if i < 0:
-            continue
-        p = points[i].astype(np.float64)
-        pn = math.sqrt(float(p @ p))
-        valid += 1
-        if abs(pn - float(p @ centre) / pn) <= e:
+        q = 1000.0 * na / sa + 1000.0 * nb / sb - 2.0 * i0
+        tol = 3.0 * prm[K.P_NOISE_A] * math.sqrt(1.0 / na + 1.0 / nb + 4.0 / n0) + prm[K.P_SLACK] * R / (m0 * m0)
+        if abs(q) > tol:
+            return True
+        planar += 1
+        if planar == 2:
+            return False
+    return planar == 0
+
+
+def descent_step(m0, mA, mB, d, k, off, lim) -> float:
+    """``_kernels.descent_step``: the front point's offset along one axis, from known curvature k."""
+    okA = not math.isnan(mA) and mA - m0 <= off
+    okB = not math.isnan(mB) and mB - m0 <= off
+    if okA and okB:
+        x = (mA - mB) / (4.0 * k * d)
+    elif okB:
+        x = (d * d - (mB - m0) / k) / (2.0 * d)
+    elif okA:
+        x = ((mA - m0) / k - d * d) / (2.0 * d)
+    else:
+        return 0.0
+    return min(max(x, -lim), lim)
+
+
+def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float, int, int]:
+    """``_kernels.ring_boxes``: (disc radius, background boxes, continued boxes) of the outline ring."""
+    prm = g.prm
+    R = prm[K.P_R]
+    dist = front + R
+    rr = prm[K.P_FX] / prm[K.P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
+    hr = max(1, int(K.RING_H_FRAC * rr + 0.5))
+    dr = K.RING_FRAC * rr
+    dd = dr * 0.7071067811865476
+    bg = cont = 0
+    for ou, ov in ((dr, 0.0), (-dr, 0.0), (0.0, dr), (0.0, -dr), (dd, dd), (-dd, dd), (dd, -dd), (-dd, -dd)):
+        m, n = g.box_range(v + int(math.floor(ov + 0.5)), u + int(math.floor(ou + 0.5)), hr)
+        if math.isnan(m) or m > dist:
+            bg += 1
+        elif m >= front - (3.0 * sig / math.sqrt(n) + prm[K.P_SLACK] * R):
             cont += 1
-            if cont > n_ring // 2:
-                return False
-    return not (valid >= 2 and cont > 0.5 * valid)
+            if cont > K.MAX_CONTINUED:
+                break
+    return rr, bg, cont
 
 
-def patch_pretest(zimg, centre, e, prm) -> bool:
-    """``_kernels.patch_pretest`` with directly summed patches."""
-    fx, fy, ppx, ppy, radius = prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY], prm[K.P_R]
-    cx, cy, cz = centre
-    dist = math.sqrt(float(centre @ centre))
-    rpx = disc_radius_px(cz, dist, radius, fx)
-    u0, v0 = fx * cx / cz + ppx, fy * cy / cz + ppy
-    z_front = (dist - radius) * cz / dist
-    sz = prm[K.P_NOISE_A] * z_front * z_front
-
-    def mean(u, v, half):
-        _, vals = patch(zimg, int(math.floor(v + 0.5)), int(math.floor(u + 0.5)), half)
-        return (vals.mean(), len(vals)) if len(vals) else (math.nan, 0)
-
-    m, n = mean(u0, v0, max(1, int(rpx / 3.0)))
-    if n >= 3 and m > z_front + e + 3.0 * sz / math.sqrt(n):
-        return False
-    half = max(1, int(rpx / 4.0))
-    cont = 0
-    for du, dv in ((1.4 * rpx, 0.0), (-1.4 * rpx, 0.0), (0.0, 1.4 * rpx), (0.0, -1.4 * rpx)):
-        m, n = mean(u0 + du, v0 + dv, half)
-        if n < 0.3 * (2 * half + 1) ** 2:
+def front_hypothesis(g: Grid, v: int, u: int):
+    """``_kernels.front_hypothesis``: (score, (v, u, front m, disc radius)) or (-inf, None)."""
+    prm = g.prm
+    R = prm[K.P_R]
+    fc = prm[K.P_FX] / prm[K.P_BIN]
+    na = prm[K.P_NOISE_A]
+    slack = prm[K.P_SLACK] * R
+    m0, _ = g.box_range(v, u, 1)
+    if math.isnan(m0) or not plane_free(g, v, u, m0):
+        return -math.inf, None
+    for step in range(K.DESCENT_STEPS + 1):
+        rr = fc * R / m0
+        if rr < prm[K.P_RR_MIN] or rr > prm[K.P_RR_MAX]:
+            return -math.inf, None
+        h = max(1, int(K.H_FRAC * rr + 0.5))
+        d = max(h + 1, int(K.D_FRAC * rr + 0.5))
+        m0, n0 = g.box_range(v, u, h)
+        if math.isnan(m0):
+            return -math.inf, None
+        sides = [g.box_range(v, u - d, h), g.box_range(v, u + d, h), g.box_range(v - d, u, h), g.box_range(v + d, u, h)]
+        if step == K.DESCENT_STEPS:
+            break
+        k = 0.5 * R / (rr * rr)
+        off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
+        iu = int(math.floor(descent_step(m0, sides[0][0], sides[1][0], d, k, off, 0.5 * rr) + 0.5))
+        iv = int(math.floor(descent_step(m0, sides[2][0], sides[3][0], d, k, off, 0.5 * rr) + 0.5))
+        if iu == 0 and iv == 0:
+            break
+        u, v = u + iu, v + iv
+        if not (0 <= u < g.wc and 0 <= v < g.hc):
+            return -math.inf, None
+    ah = (h + 0.5) / rr
+    x0 = d / rr
+    front = m0 - R * cap_relief(2.0 * ah * ah / 3.0)
+    pred = front + R * cap_relief(x0 * x0 + 2.0 * ah * ah / 3.0)
+    sig = na * m0 * m0
+    agree = behind = 0
+    chi = 0.0
+    for m, nk in sides:
+        if math.isnan(m):
             continue
-        if z_front - (e + 3.0 * sz / math.sqrt(n)) <= m <= cz:
-            cont += 1
-            if cont > 2:
-                return False
-    return True
+        tol = 3.0 * sig / math.sqrt(nk) + slack
+        res = m - pred
+        if res > tol:
+            behind += 1
+        elif res >= -tol:
+            agree += 1
+            chi += (res / tol) ** 2
+    if behind > 1 or agree < 3:
+        return -math.inf, None
+    rr, bg, cont = ring_boxes(g, v, u, front, sig)
+    if cont > K.MAX_CONTINUED:
+        return -math.inf, None
+    return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi, (v, u, front, rr)
 
 
-def window_stats(points, index_image, centre, e, prm, stride) -> np.ndarray:
-    """``_kernels.window_stats`` vectorised over the strided window: (N_STATS,) counts."""
+def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int) -> None:
+    """``_kernels._keep_hypothesis`` on a list of (score, (v, u, front, r)), best first."""
+    v, u, front, rr = hyp
+    for j, (qj, hj) in enumerate(kept):
+        if abs(hj[0] - v) <= 0.5 * rr and abs(hj[1] - u) <= 0.5 * rr and abs(hj[2] - front) <= radius:
+            if q <= qj:
+                return
+            del kept[j]
+            break
+    if len(kept) == k_max and q <= kept[-1][0]:
+        return
+    pos = len(kept)
+    while pos > 0 and kept[pos - 1][0] < q:
+        pos -= 1
+    kept.insert(pos, (q, hyp))
+    del kept[k_max:]
+
+
+def search_organised(points, rows, cols, index_image, prm, seed: int, k_max: int):
+    """Replay of ``_kernels.search_organised``: (hypotheses (M, 5) rows (v, u, front, r, score), counters (2,))."""
+    b = int(prm[K.P_BIN])
+    g = Grid(*cell_images(points, index_image, b), prm)
+    rng = SplitMix64(seed)
+    n = len(rows)
+    kept: list = []
+    counters = np.zeros(2, np.int64)
+    for _ in range(int(prm[K.P_ITERS])):
+        i1 = min(int(rng.u01() * n), n - 1)
+        counters[0] += 1
+        q, hyp = front_hypothesis(g, int(rows[i1]) // b, int(cols[i1]) // b)
+        if hyp is None:
+            continue
+        counters[1] += 1
+        keep_hypothesis(kept, hyp, q, prm[K.P_R], k_max)
+    out = np.array([[*h, q] for q, h in kept], np.float64).reshape(-1, 5)
+    return out, counters
+
+
+def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.ndarray:
+    """``_kernels.window_stats`` vectorised over the strided window: (N_STATS,) counts and sums."""
     fx, fy, ppx, ppy, radius = prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY], prm[K.P_R]
     out = np.zeros(K.N_STATS)
     h, w = index_image.shape
     cx, cy, cz = centre
     dist = math.sqrt(float(centre @ centre))
-    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * K.RING_FACTOR * 1.05 + 2.0
+    rpx = fx * radius / math.sqrt(max(dist * dist - radius * radius, 1e-12)) * dist / cz
+    rpx = rpx * K.RING_FACTOR * 1.05 + 2.0
     u0, v0 = fx * cx / cz + ppx, fy * cy / cz + ppy
     r = np.arange(max(0, int(math.floor(v0 - rpx))), min(h - 1, int(math.ceil(v0 + rpx))) + 1, stride)
     c = np.arange(max(0, int(math.floor(u0 - rpx))), min(w - 1, int(math.ceil(u0 + rpx))) + 1, stride)
@@ -185,7 +259,9 @@ def window_stats(points, index_image, centre, e, prm, stride) -> np.ndarray:
     rays = np.stack([(cc - ppx) / fx, (rr - ppy) / fy, np.ones(len(cc))], axis=1)
     in_disc = rays @ centre / (np.linalg.norm(rays, axis=1) * dist) >= math.sqrt(1.0 - (radius / dist) ** 2)
     out[K.ST_INVALID_DISC] = np.count_nonzero((idx < 0) & in_disc)
-    p = points[idx[idx >= 0]].astype(np.float64)
+    ok = idx >= 0
+    p = points[idx[ok]].astype(np.float64)
+    du, dv = (cc[ok] - u0), (rr[ok] - v0)
     pn = np.linalg.norm(p, axis=1)
     tc = p @ centre / pn
     m2 = centre @ centre - tc * tc
@@ -201,92 +277,15 @@ def window_stats(points, index_image, centre, e, prm, stride) -> np.ndarray:
     out[K.ST_BEHIND] = np.count_nonzero(~inl & (dt >= 0))
     ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (K.RING_FACTOR * radius) ** 2)
     out[K.ST_RING] = ring.sum()
-    out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= e))
-    return out * float(stride * stride)
-
-
-def keep_candidate(kept: list, centre, q, merge, k_max):
-    """``_kernels._keep_candidate`` on a list of (quality, centre), best first."""
-    for j, (qj, cj) in enumerate(kept):
-        if np.sum((cj - centre) ** 2) <= merge * merge:
-            if q <= qj:
-                return
-            del kept[j]
-            break
-    if len(kept) == k_max and q <= kept[-1][0]:
-        return
-    pos = len(kept)
-    while pos > 0 and kept[pos - 1][0] < q:
-        pos -= 1
-    kept.insert(pos, (q, centre.copy()))
-    del kept[k_max:]
-
-
-def search_organised(points, rows, cols, index_image, prm, seed: int, k_max: int):
-    """Replay of ``_kernels.search_organised``: (centres (M, 3), qualities (M,), counters (4,))."""
-    n = len(points)
-    h, w = index_image.shape
-    fx, radius = prm[K.P_FX], prm[K.P_R]
-    zimg = depth_image(points, index_image)
-    rng = SplitMix64(seed)
-    kept: list = []
-    counters = np.zeros(4, np.int64)
-    for _ in range(int(prm[K.P_ITERS])):
-        i1 = min(int(rng.u01() * n), n - 1)
-        r1, c1 = int(rows[i1]), int(cols[i1])
-        if index_image[r1, c1] != i1:
-            continue
-        z1 = float(points[i1, 2])
-        if z1 <= radius:
-            continue
-        rpx = fx * prm[K.P_SAMPLE_R] / z1
-        reach = 2.0 * radius + 3.0 * prm[K.P_NOISE_A] * z1 * z1
-        picks, pix, ang2 = [i1], [(r1, c1)], 0.0
-        for slot in range(2):
-            for _ in range(int(prm[K.P_RETRIES])):
-                ang = 2.0 * math.pi * rng.u01() if slot == 0 else ang2 + 0.5 * math.pi + math.pi * rng.u01()
-                rad = rpx * math.sqrt(0.09 + 0.91 * rng.u01())
-                c = int(math.floor(c1 + rad * math.cos(ang) + 0.5))
-                r = int(math.floor(r1 + rad * math.sin(ang) + 0.5))
-                if not (0 <= r < h and 0 <= c < w) or index_image[r, c] < 0:
-                    continue
-                j = int(index_image[r, c])
-                if np.sum((points[j].astype(np.float64) - points[i1]) ** 2) > reach * reach:
-                    continue
-                picks.append(j)
-                pix.append((r, c))
-                ang2 = ang
-                break
-        if len(picks) < 3:
-            continue
-        pts = [denoised(points, zimg, i, r, c, prm) for i, (r, c) in zip(picks, pix)]
-        if any(p is None for p in pts):
-            continue
-        counters[0] += 1
-        near, far, ok = sm.solve_known_radius(pts[0], pts[1], pts[2], radius, both=True)
-        if not ok[0]:
-            continue
-        counters[1] += 1
-        for centre in (far[0], near[0]):
-            if centre[2] <= radius or any(float((p - centre) @ p) >= 0.0 for p in pts):
-                continue
-            e = noise_eps(centre[2], prm)
-            if not patch_pretest(zimg, centre, e, prm):
-                continue
-            if not pretest(points, index_image, centre, e, prm, rng):
-                continue
-            counters[2] += 1
-            if any(np.sum((cj - centre) ** 2) <= prm[K.P_DEDUP] ** 2 for _, cj in kept):
-                continue
-            dist = math.sqrt(float(centre @ centre))
-            box = 2.0 * (K.RING_FACTOR * 1.05 * disc_radius_px(centre[2], dist, radius, fx) + 2.0) + 1.0
-            stride = max(1, int(math.ceil(box / math.sqrt(prm[K.P_SCORE_MAX]))))
-            st = window_stats(points, index_image, centre, e, prm, stride)
-            ring = 1.0 - st[K.ST_RING_CONT] / max(st[K.ST_RING], 1.0)
-            q = (st[K.ST_INLIER] - st[K.ST_SSE] / (e * e) - st[K.ST_BEHIND] - st[K.ST_FRONT_NEAR]) * ring * ring
-            if q <= 0.0:
-                continue
-            counters[3] += 1
-            keep_candidate(kept, centre, q, 0.5 * radius, k_max)
-    centres = np.array([c for _, c in kept]).reshape(-1, 3)
-    return centres, np.array([q for q, _ in kept]), counters
+    out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
+    out[:K.ST_IN_N] *= float(stride * stride)
+    # the relief profile over the inliers: inner zone, outer zone left/right and above/below
+    mz = m2[hit][inl]
+    d_in = dt[inl]
+    horiz = (np.abs(du[hit]) >= np.abs(dv[hit]))[inl]
+    inner = mz <= K.PROFILE_INNER * radius * radius
+    outer = ~inner & (mz <= K.PROFILE_OUTER * radius * radius)
+    out[K.ST_IN_N], out[K.ST_IN_SUM] = inner.sum(), d_in[inner].sum()
+    out[K.ST_OUTH_N], out[K.ST_OUTH_SUM] = (outer & horiz).sum(), d_in[outer & horiz].sum()
+    out[K.ST_OUTV_N], out[K.ST_OUTV_SUM] = (outer & ~horiz).sum(), d_in[outer & ~horiz].sum()
+    return out

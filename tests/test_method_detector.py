@@ -129,10 +129,10 @@ def test_window_stats_classifies_pixels():
     img = K.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
     out = np.zeros(K.N_STATS)
     c = np.array([0.1, -0.05, 1.0])
-    K.window_stats(cloud.points, img, *c, R, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+    K.window_stats(cloud.points, img, *c, R, 0.005, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
     assert out[K.ST_INLIER] > 100 and out[K.ST_BEHIND] <= 0.02 * out[K.ST_VALID_DISC]
     # a sphere 3 cm smaller at the same place: its disc sees the ball in front of it (occluded)
-    K.window_stats(cloud.points, img, *(c + [0, 0, 0.05]), R, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+    K.window_stats(cloud.points, img, *(c + [0, 0, 0.05]), R, 0.005, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
     assert out[K.ST_FRONT] > out[K.ST_INLIER]
 
 

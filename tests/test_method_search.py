@@ -29,50 +29,71 @@ def test_splitmix_replay_matches_kernel():
     assert [K.next_u01(state) for _ in range(50)] == [gen.u01() for _ in range(50)]
 
 
-@pytest.mark.parametrize("ball, noise, seed", [((0.1, -0.05, 1.6), 0.01, 99), ((-0.05, 0.02, 0.9), 0.003, 5)])
-def test_compiled_search_equals_reference(ball, noise, seed):
-    # a small, noisy frame: far enough that sample points are moved to patch means (denoising)
-    cloud = scene(ball_c=ball, noise=noise, width=120, height=90, seed=seed)
-    cfg = config_for("improved", iterations=500, adaptive=False)
+@pytest.mark.parametrize("ball, noise, seed, width", [((0.1, -0.05, 1.6), 0.01, 99, 120),
+                                                      ((-0.05, 0.02, 0.9), 0.003, 5, 120),
+                                                      ((0.05, 0.0, 1.2), 0.004, 7, 260)])
+def test_compiled_search_equals_reference(ball, noise, seed, width):
+    # a small, noisy frame; the 260-pixel one is binned 2x2 (search_width_px=130)
+    cloud = scene(ball_c=ball, noise=noise, width=width, height=width * 3 // 4, seed=seed)
+    cfg = config_for("improved", iterations=400, adaptive=False, search_width_px=130)
     frame = det.prepare_frame(cloud, cfg)
-    assert K.patch_half(ball[2], frame.prm[K.P_NOISE_A], cfg.denoise_sigma_m, cfg.denoise_max_half_px) > 0
-    k = max(2 * cfg.max_spheres, 4)
+    assert frame.bin == max(1, width // 130)
     cands, quals = imp.search_organised(frame, cfg, seed)
-    rc, rq, rctr = ref.search_organised(cloud.points, cloud.rows, cloud.cols, frame.index_image, frame.prm, seed, k)
-    assert np.array_equal(frame.counters, rctr)
-    assert len(cands) == len(rc) >= 1
-    assert np.allclose(cands, rc, atol=1e-9)
-    assert np.allclose(quals, rq, rtol=1e-4)  # the kernel measures |p| in float32
-    # and the best candidate is the ball (unrefined: a hypothesis from three noisy samples)
-    assert np.linalg.norm(cands[0] - ball) < 0.08
+    hyp, ctr = ref.search_organised(cloud.points, cloud.rows, cloud.cols, frame.index_image, frame.prm, seed,
+                                    cfg.search_candidates)
+    assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
+    assert np.array_equal(frame.hypotheses, hyp)
+    # and the best hypothesis is the ball (unrefined: from box means)
+    assert np.linalg.norm(cands[0] - ball) < 0.03
 
 
-def test_depth_integrals_give_patch_means():
-    cloud = scene(noise=0.01, width=60, height=40)
-    cfg = config_for("improved")
-    frame = det.prepare_frame(cloud, cfg)
-    zimg = ref.depth_image(cloud.points, frame.index_image)
-    for (r, c, half) in ((0, 0, 2), (20, 30, 3), (39, 59, 1), (10, 5, 0)):
-        m, n = K.patch_mean(frame.tab, float(c), float(r), half)
-        _, vals = ref.patch(zimg, r, c, half)
-        assert n == len(vals) and m == pytest.approx(vals.mean(), rel=1e-9)
+def test_summed_area_table_gives_box_sums():
+    cloud = scene(noise=0.01, width=100, height=60)
+    for width_px, b in ((424, 1), (50, 2), (33, 3)):
+        frame = det.prepare_frame(cloud, config_for("improved", search_width_px=width_px))
+        assert frame.bin == b
+        grid = ref.Grid(*ref.cell_images(cloud.points, frame.index_image, b), frame.prm)
+        for (v, u, h) in ((0, 0, 2), (10, 15, 3), (19, 33, 1), (5, 2, 0), (-4, 3, 2), (40, 40, 1)):
+            assert K.box_sums(frame.tab, v, u, h) == grid.box_sums(v, u, h)
+            got, want = K.box_range(frame.tab, frame.prm, v, u, h), grid.box_range(v, u, h)
+            assert got[1] == want[1] and (got[0] == want[0] or (math.isnan(got[0]) and math.isnan(want[0])))
+    # the table is modulo 2^32, box sums are exact: a frame of 10 m depths (2.4e9 mm in all at 240 x 1000)
+    far = Cloud(np.column_stack([np.zeros(240_000), np.zeros(240_000), np.full(240_000, 10.0)]),
+                np.repeat(np.arange(240), 1000), np.tile(np.arange(1000), 240), Intrinsics.d435(1000, 240))
+    frame = det.prepare_frame(far, config_for("improved", search_width_px=1000))
+    assert K.box_sums(frame.tab, 120, 500, 10) == (441 * 10_000, 441, 441)
+
+
+def test_window_stats_compiled_equals_reference():
+    cloud = scene(ball_c=(0.1, -0.05, 1.0), noise=0.003, width=160, height=120, seed=3)
+    frame = det.prepare_frame(cloud, config_for("improved"))
+    c = np.array([0.102, -0.049, 1.003])
+    for stride in (1, 2):
+        got = np.zeros(K.N_STATS)
+        K.window_stats(cloud.points, frame.index_image, *c, R, 0.006, 0.004, *(frame.prm[k] for k in
+                       (K.P_FX, K.P_FY, K.P_PPX, K.P_PPY)), stride, got)
+        want = ref.window_stats(cloud.points, frame.index_image, c, 0.006, 0.004, frame.prm, stride)
+        assert np.allclose(got, want, rtol=1e-5, atol=2e-5)  # residual sums: the kernel rounds differently
+        assert got[K.ST_INLIER] > 0.7 * got[K.ST_VALID_DISC] and got[K.ST_IN_N] > 10 and got[K.ST_OUTV_N] > 10
 
 
 def test_iteration_bound_follows_ball_area():
     cfg = config_for("improved")
     intr = Intrinsics.d435(424, 240)
     # a room 3 m deep: the bound provides for a ball at 3 m + R, of area pi (fx R / z)^2 pixels
-    z = np.full(1000, 3.0)
-    k = imp.iteration_bound(cfg, intr, z, 100_000)
+    k = imp.iteration_bound(cfg, intr, 3.0, 100_000)
     area = math.pi * (intr.fx * R / 3.12) ** 2
     expect = math.log(1 - cfg.confidence) / math.log(1 - area / 100_000 * cfg.sample_success)
     assert k == math.ceil(expect)
     # a shallow scene needs fewer; a deep one is capped by the noise range limit (3.5 m at 424x240)
-    assert imp.iteration_bound(cfg, intr, np.full(1000, 1.0), 100_000) < k
+    assert imp.iteration_bound(cfg, intr, 1.0, 100_000) < k
     assert imp.range_limit_m(cfg, intr.fx) == pytest.approx(math.sqrt(0.75 * R * intr.fx * 0.05 / 0.08))
-    assert imp.iteration_bound(cfg, intr, np.full(1000, 8.0), 100_000) == \
-        imp.iteration_bound(cfg, intr, np.full(1000, 5.0), 100_000)
-    assert imp.iteration_bound(config_for("improved", adaptive=False), intr, z, 100_000) == cfg.iterations
+    assert imp.iteration_bound(cfg, intr, 8.0, 100_000) == imp.iteration_bound(cfg, intr, 5.0, 100_000)
+    assert imp.iteration_bound(config_for("improved", adaptive=False), intr, 3.0, 100_000) == cfg.iterations
+    # the scene depth comes from the frame's histogram (98th percentile, to a bin's upper edge)
+    hist = np.zeros(imp.HIST_BINS, np.int64)
+    hist[[20, 40, 60]] = [50, 48, 2]
+    assert imp.hist_percentile(hist, 98.0) == pytest.approx(41 * imp.HIST_STEP_M)
 
 
 def test_exact_circle_analytic_inside_rasterised_at_border():
@@ -122,7 +143,7 @@ def test_bad_organised_input():
     inf[::3] = np.inf
     out = detect(Cloud(inf, cloud.rows, cloud.cols, cloud.intrinsics), seed=0)
     assert all(np.all(np.isfinite(inf[s.inlier_indices])) for s in out)
-    for kw in ({"radius_m": 0.0}, {"eps_m": 0.12}, {"eps_m": 0.5}, {"confidence": 1.0}, {"denoise_sigma_m": -1.0}):
+    for kw in ({"radius_m": 0.0}, {"eps_m": 0.12}, {"eps_m": 0.5}, {"confidence": 1.0}, {"pretest_slack": -1.0}, {"search_width_px": 4}):
         with pytest.raises(SphereBenchError):
             config_for("improved", **kw)
 
