@@ -229,16 +229,8 @@ def markdown(result: dict) -> str:
 
 
 def _machine() -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(),
-            "load_start": [round(x, 2) for x in os.getloadavg()]}
+    from spherebench.eval.runner import machine_info
+    return {**machine_info(), "load_start": [round(x, 2) for x in os.getloadavg()]}
 
 
 def _versions() -> dict:
