@@ -663,11 +663,34 @@ def required_iterations(support, n_points, window_px, confidence):
 # ----------------------------------------------------------------------------------------------
 # Organised clouds: verification of one candidate, in one call.
 
-V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE = range(11)
+V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE, V_SIGMA = range(12)
 
 #: The first refinement round takes inliers within at least this fraction of R.
 COARSE_BAND_FRACTION = 0.25
-N_VOUT = 11
+N_VOUT = 12
+#: MAD of a normal sample times this is its standard deviation.
+MAD_TO_SIGMA = 1.482602218505602
+
+
+@njit(cache=True)
+def ray_residual_sigma(points, idx, cx, cy, cz, radius):
+    """Robust standard deviation (MAD about the median, metres) of the ray residuals of points[idx]
+    about the sphere (c, R); nan when fewer than 8 rays meet it. The candidate's own depth noise,
+    whatever the sensor: quantisation steps (a structured-light sensor) and spatially correlated
+    errors count, which local differences of the depth image miss."""
+    res = np.empty(idx.shape[0], np.float64)
+    m = 0
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        dt, hit = ray_residual(float(points[i, 0]), float(points[i, 1]), float(points[i, 2]), cx, cy, cz, radius)
+        if hit:
+            res[m] = dt
+            m += 1
+    if m < 8:
+        return math.nan
+    r = res[:m]
+    med = np.median(r)
+    return MAD_TO_SIGMA * np.median(np.abs(r - med))
 
 
 @njit(cache=True)
@@ -686,7 +709,8 @@ def window_stride(cx, cy, cz, radius, fx, max_visits):
 
 
 @njit(cache=True)
-def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, idx, out, stats):
+def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, idx, out,
+                     stats):
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
 
     Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
@@ -696,8 +720,12 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     424x240, 140,000 at 1280x720; ``final_inliers`` collects all of them for a reported sphere),
     and every fit uses at most ``max_fit_points`` of the inliers, evenly strided. Then 2 more steps
     and a free-radius ray fit (the size check), and the silhouette statistics (``window_stats``).
+    data_noise: before those, narrow the band to noise_k times the robust spread of the candidate's
+    own ray residuals (``ray_residual_sigma``) where that is below the noise model's (never below eps).
     out[V_N] gets the inlier count (estimated: strided count times stride^2), out[V_RMSE] the RMS of
-    the ray residuals over the fitted inliers; out[V_N] = 0 when fewer than 3 inliers remain.
+    the ray residuals over the fitted inliers, out[V_SIGMA] the per-pixel depth noise used (metres:
+    the model's at the centre's depth, or the measured one where smaller); out[V_N] = 0 when fewer
+    than 3 inliers remain.
     """
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
     budget = 4.0 * max_fit_points
@@ -729,14 +757,33 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     if n < 3:
         return
     sub = _strided(idx, n, max_fit_points)
+    # the noise model is the most noise expected; a quieter sensor (or a nearer ball) shows less in
+    # the candidate's own residuals, and a band wider than that takes in the outline's mixed pixels,
+    # a holder, a hand, which bias the free radius upward. Narrow the band to the measured noise
+    # (never widen it: on clutter the residuals' spread is no noise level).
+    sigma = noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP])
+    if sigma <= 0.0:  # no noise model: eps alone
+        sigma = prm[P_EPS] / max(prm[P_NOISE_K], 1e-12)
+    if data_noise:
+        s_hat = ray_residual_sigma(points, sub, c[0], c[1], c[2], radius)
+        if s_hat < sigma:  # False for nan
+            sigma = s_hat
+            e_data = max(prm[P_EPS], prm[P_NOISE_K] * s_hat)
+            if e_data < e:
+                e = e_data
+                n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
+                if n < 3:
+                    return
+                sub = _strided(idx, n, max_fit_points)
     c, _, _, rms = fit_ray(points, sub, c[0], c[1], c[2], radius, False, 2, s_min)
     fc, fr, fse, _ = fit_ray(points, sub, c[0], c[1], c[2], radius, True, 4, s_min)
-    ring_band = min(e, max(prm[P_EPS], prm[P_NOISE_A] * c[2] * c[2]))
+    ring_band = min(e, max(prm[P_EPS], sigma))
     window_stats(points, index_image, c[0], c[1], c[2], radius, e, ring_band, fx, fy, ppx, ppy,
                  window_stride(c[0], c[1], c[2], radius * RING_FACTOR, max(fx, fy), budget), stats)
     out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
     out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
     out[V_RMSE] = rms
+    out[V_SIGMA] = sigma
 
 
 @njit(cache=True)

@@ -76,7 +76,17 @@ class DetectorConfig:
     Improved pipeline:
         noise_subpixel, noise_baseline_m: Intel's stereo depth RMS model
             sigma_z = z^2 * subpixel / (fx * baseline), used to widen eps with depth when the
-            cloud's intrinsics are known (0 subpixel disables it).
+            cloud's intrinsics are known (0 subpixel disables it). The default is the D435's.
+        noise_z2_per_m: another sensor's noise as sigma_z = noise_z2_per_m * z^2 (1/m), in place of
+            the stereo model (None: the stereo model with the stream's fx). For a sensor noisier
+            than the D435 model at its fx, set it: the search's tolerances and the largest band
+            follow it. E.g. a first-generation Kinect quantises disparity to 1/8 pixel, a depth
+            step of z^2 / (8 f b) = 0.0029 z^2 (f 580 px, b 7.5 cm): sigma about 0.0029 / sqrt(12)
+            = 0.00083 plus noise (Khoshelham and Elberink, Sensors 2012, report about 0.0015).
+        noise_from_data: organised verification narrows the band to noise_sigmas times the robust
+            spread (MAD) of the candidate's own ray residuals where that is below the model's: the
+            model is the most noise expected; a quieter sensor keeps the outline's mixed pixels and
+            a holder out of the fits (they bias the free radius upward).
         noise_sigmas: the shell half-width is max(eps, noise_sigmas * sigma_z) ...
         max_eps_fraction: ... capped at this fraction of R.
         pretest_points: unorganised search: points near a candidate checked before scoring it fully.
@@ -90,7 +100,12 @@ class DetectorConfig:
         refine_iterations: Gauss-Newton rounds (each re-selects inliers).
         min_inliers: fewer inliers than this: no detection.
         size_check: compare the free-radius fit with R.
-        size_tolerance_m: the free radius may differ from R by this plus size_sigmas standard errors.
+        size_tolerance_m, size_tolerance_fraction: the free radius may differ from R by the larger of
+            size_tolerance_m and size_tolerance_fraction * R, plus size_sigmas standard errors. The
+            relative part: a real ball is not its nominal size (a size-7 basketball's circumference
+            may be 749-780 mm, +/- 2 %; inflation; a calibration target's radius is often a
+            nominal figure) and a sensor's scale is a percent or two off; balls of other sizes
+            differ by more (a soccer ball is 8 % smaller than a basketball).
         size_sigmas: see size_tolerance_m.
         max_spheres: at most this many spheres per frame.
         nms_distance_fraction: a sphere whose centre is within this fraction of 2R of a better
@@ -125,6 +140,8 @@ class DetectorConfig:
     refine: str = "least_squares"
     noise_subpixel: float = 0.08
     noise_baseline_m: float = 0.050
+    noise_z2_per_m: float | None = None
+    noise_from_data: bool = True
     noise_sigmas: float = 2.5
     max_eps_fraction: float = 1.0
     pretest_points: int = 12
@@ -136,6 +153,7 @@ class DetectorConfig:
     min_inliers: int = 30
     size_check: bool = True
     size_tolerance_m: float = 0.004
+    size_tolerance_fraction: float = 0.04
     size_sigmas: float = 3.0
     max_spheres: int = 4
     nms_distance_fraction: float = 0.75
@@ -199,7 +217,7 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append("search_width_px must be >= 16, verify_candidates >= 1, fit_max_points >= 10, "
                        "pretest_points >= 1, search_candidates >= 1")
     for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction", "max_eps_fraction",
-                 "bound_visible_fraction"):
+                 "bound_visible_fraction", "size_tolerance_fraction"):
         if finite(name) and not 0.0 <= getattr(c, name) <= 1.0:
             out.append(f"{name}={getattr(c, name)} must be within [0, 1]")
     for name in ("confidence", "sample_success"):
@@ -220,6 +238,8 @@ def _problems(c: DetectorConfig) -> list[str]:
         out.append("the paper pipeline samples globally: use sampling='global' (local sampling is pipeline='improved')")
     if c.sample_radius_m is not None and not (finite("sample_radius_m") and c.sample_radius_m > 0):
         out.append(f"sample_radius_m={c.sample_radius_m} must be > 0")
+    if c.noise_z2_per_m is not None and not (finite("noise_z2_per_m") and c.noise_z2_per_m >= 0):
+        out.append(f"noise_z2_per_m={c.noise_z2_per_m} must be >= 0 (sigma_z / z^2 in 1/m, e.g. 0.0015)")
     if c.candidate_merge_m is not None and not (finite("candidate_merge_m") and c.candidate_merge_m > 0):
         out.append(f"candidate_merge_m={c.candidate_merge_m} must be > 0")
     return out

@@ -59,8 +59,13 @@ class Candidate:
 
 
 def noise_a(config: DetectorConfig, fx: float | None) -> float:
-    """sigma_z / z^2 (1/m) of Intel's stereo model for focal length fx px; 0 without intrinsics."""
-    if fx is None or config.noise_subpixel <= 0 or config.noise_baseline_m <= 0:
+    """sigma_z / z^2 (1/m): ``config.noise_z2_per_m`` where set, else Intel's stereo model for focal
+    length fx px; 0 without intrinsics."""
+    if fx is None:
+        return 0.0
+    if config.noise_z2_per_m is not None:
+        return float(config.noise_z2_per_m)
+    if config.noise_subpixel <= 0 or config.noise_baseline_m <= 0:
         return 0.0
     return config.noise_subpixel / (fx * config.noise_baseline_m)
 
@@ -272,6 +277,12 @@ def relief_agreement(stats: dict, radius_m: float) -> float:
     return math.exp(-0.5 * max(0.0, t - RELIEF_FREE_SIGMAS) ** 2)
 
 
+def size_tolerance(config: DetectorConfig) -> float:
+    """The size check's tolerance before standard errors (metres): the larger of the absolute and the
+    relative one (``DetectorConfig.size_tolerance_fraction``)."""
+    return max(config.size_tolerance_m, config.size_tolerance_fraction * config.radius_m)
+
+
 def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
                organised: bool) -> tuple[float, bool]:
     """A confidence in [0, 1] and the size check's verdict.
@@ -282,7 +293,7 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     of it)^2 (a cylinder or another non-spherical surface), (1 - share of the outline ring where
     the surface continues at the ball's depth)^2 (a wall or a plane), the ``relief_agreement`` of the
     inner and outer zones (a surface flatter than the ball); the size agreement exp(-d^2 / 2) with
-    d the free radius's deviation from R in units of (tolerance + its standard error).
+    d the free radius's deviation from R in units of (``size_tolerance`` + its standard error).
     """
     R = config.radius_m
     score = n_inliers / (n_inliers + config.min_inliers)
@@ -297,10 +308,11 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     size_ok = True
     if config.size_check:
         se = free_se if math.isfinite(free_se) else R
-        d = (free_r - R) / (config.size_tolerance_m + se) if math.isfinite(free_r) else math.inf
+        tol = size_tolerance(config)
+        d = (free_r - R) / (tol + se) if math.isfinite(free_r) else math.inf
         score *= math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
         # consistent with R given the noise, and never beyond a quarter of R whatever the error says
-        size_ok = (math.isfinite(free_r) and abs(free_r - R) <= config.size_tolerance_m + config.size_sigmas * se
+        size_ok = (math.isfinite(free_r) and abs(free_r - R) <= tol + config.size_sigmas * se
                    and abs(free_r - R) <= 0.25 * R)
     return float(min(max(score, 0.0), 1.0)), size_ok
 
@@ -310,12 +322,17 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
     out = np.empty(K.N_VOUT, np.float64)
     st = np.empty(K.N_STATS, np.float64)
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, buf, out, st)
+                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data, buf,
+                       out, st)
     n = int(out[K.V_N])
     if n < config.min_inliers:
         return None
     stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
-    stats["sigma_m"] = frame.prm[K.P_NOISE_A] * float(out[K.V_CZ]) ** 2  # one pixel's depth noise at the centre
+    # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
+    # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
+    # quantisation steps) would otherwise fail a real ball's zone means by a few mm
+    stats["sigma_m"] = frame.prm[K.P_NOISE_A] * float(out[K.V_CZ]) ** 2
+    stats["sigma_measured_m"] = float(out[K.V_SIGMA])
     score, size_ok = confidence(stats, n, out[K.V_FR], out[K.V_FSE], config, True)
     # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
     return Candidate(center_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),

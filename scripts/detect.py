@@ -30,6 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--radius", type=float, default=0.12, help="ball radius, metres (default 0.12: a basketball)")
     p.add_argument("--eps", type=float, default=0.01, help="inlier tolerance around the radius, metres")
     p.add_argument("--method", choices=sorted(PRESETS), default="improved", help="detector configuration")
+    p.add_argument("--depth-noise", type=float, default=None, metavar="A",
+                   help="the sensor's depth noise as sigma_z = A z^2 (A in 1/m) for organised clouds, in place of "
+                        "the D435 stereo model at the stream's fx (0.08 / (fx 0.05 m)); set it for a sensor "
+                        "noisier than that (a quieter one is measured from the data)")
     p.add_argument("--intrinsics", default=None, help="intrinsics.json for clouds without their own")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same output)")
     p.add_argument("--json", action="store_true", help="one JSON line per input")
@@ -74,7 +78,10 @@ def run(args: argparse.Namespace) -> int:
         raise SphereBenchError(f"--radius {args.radius}: the ball radius must be > 0 metres (e.g. 0.12)")
     if not (np.isfinite(args.eps) and 0 < args.eps < args.radius):
         raise SphereBenchError(f"--eps {args.eps}: the tolerance must be > 0 and smaller than the radius (e.g. 0.01)")
-    config = config_for(args.method, radius_m=args.radius, eps_m=args.eps)
+    if args.depth_noise is not None and not (np.isfinite(args.depth_noise) and args.depth_noise >= 0):
+        raise SphereBenchError(f"--depth-noise {args.depth_noise}: give sigma_z / z^2 in 1/m, >= 0 (e.g. 0.0015)")
+    extra = {} if args.depth_noise is None else {"noise_z2_per_m": args.depth_noise}
+    config = config_for(args.method, radius_m=args.radius, eps_m=args.eps, **extra)
     intr = io.read_intrinsics(args.intrinsics) if args.intrinsics else None
     for raw in args.paths:
         path = Path(raw)

@@ -40,6 +40,8 @@ def test_detect_command_bad_input(paper_dataset, tmp_path, capsys):
     assert "radius" in capsys.readouterr().err
     assert cli.main(["detect", str(scene), "--eps", "0.2"]) == 2
     assert "eps" in capsys.readouterr().err
+    assert cli.main(["detect", str(scene), "--depth-noise", "-0.001"]) == 2
+    assert "depth-noise" in capsys.readouterr().err
     empty = tmp_path / "empty.xyz"
     empty.write_text("# nothing\n")
     assert cli.main(["detect", str(empty)]) == 2
