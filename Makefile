@@ -53,7 +53,7 @@ train: venv data-train
 		--workers 1 --threads $(TRAIN_THREADS) $(if $(RESUME),--resume)
 	cp $(CIRCLENET_RUN)/model.onnx baselines/circlenet/model.onnx
 	cp $(CIRCLENET_RUN)/model_card.md $(CIRCLENET_RUN)/model_card.json $(CIRCLENET_RUN)/training_curve.png baselines/circlenet/
-TRAIN_THREADS ?= 2
+TRAIN_THREADS ?= 1
 
 bench: venv data data-hard
 	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench

@@ -165,7 +165,9 @@ def detection_stats(records: Sequence[dict], references: Sequence | None = None)
     refs = list(references) if references is not None else [None] * n
     dist = np.asarray([np.linalg.norm(np.asarray(b["center_m"]) - np.asarray(ref)) for b, ref in zip(best, refs)
                        if b is not None and ref is not None and b.get("center_m") is not None], np.float64)
-    n_ref = sum(1 for ref in refs if ref is not None)
+    # a reference centre is 3D: 2D methods (no centre_m) are not compared with it
+    is_3d = any(b is not None and b.get("center_m") is not None for b in best)
+    n_ref = sum(1 for ref in refs if ref is not None) if is_3d else 0
     out = {"n_scenes": n, "scenes_with_detection": int(np.count_nonzero(counts)),
            "fraction_with_detection": float(np.count_nonzero(counts) / n) if n else None,
            "detections_per_scene": float(counts.mean()) if n else None,
@@ -453,6 +455,9 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
                     ref = (f"; its best detection lies within 5 cm of the recording's reference centre in "
                            f"{round(u['within_5cm_of_reference'] * u['n_reference'])} of the {u['n_reference']} "
                            "scenes that have one")
+                refused = s.metrics.get("scenes_refused")
+                if refused:
+                    ref += f"; it could not run on {refused} scenes (see the predictions' meta file for why)"
                 out.append(f"`{label}` has no ground truth: {s.method} reports a ball in {u['scenes_with_detection']} of "
                            f"{u['n_scenes']} scenes{ref}.")
     default = per_dataset.get("default")

@@ -43,6 +43,7 @@ import json
 import math
 import multiprocessing
 import os
+import sys
 import platform
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -222,12 +223,26 @@ def hough_spec(config) -> MethodSpec:
                       modules=_CORE_MODULES + ("spherebench.baselines.hough",))
 
 
+def card_budget(card: dict) -> str:
+    """One line of a CircleNet model card: its training budget and validation score."""
+    val = card.get("val_onnx") or card.get("val_torch") or {}
+    data = card.get("data", {})
+    return (f"trained from scratch on {data.get('train_images', '?')} `{data.get('preset', 'train')}` images, "
+            f"{card.get('epochs', '?')} epochs, {card.get('train_seconds', 0) / 60:.0f} min on {card.get('device', '?')}; "
+            f"validation mAP.50 {val.get('mAP50', float('nan')):.3f}")
+
+
 def circlenet_spec(model_path: str | Path) -> MethodSpec:
     """CircleNet from an ONNX file; raises SphereBenchError if the file is missing."""
     path = Path(model_path)
     if not path.is_file():
         shown = path.resolve().relative_to(REPO_ROOT) if path.resolve().is_relative_to(REPO_ROOT) else path
         raise SphereBenchError(f"CircleNet model {shown} not found (train it with `make train`)")
+    card_path = path.with_name("model_card.json")
+    budget = ""
+    if card_path.is_file():  # the training budget belongs next to the numbers (fairness)
+        card = json.loads(card_path.read_text())
+        budget = "; " + card_budget(card)
     return MethodSpec(name="circlenet", kind="2d",
                       config={"engine": "circlenet", "model": path.name, "min_score": CIRCLENET_MIN_SCORE,
                               "top_k": CIRCLENET_TOP_K, "onnxruntime": _dist_version("onnxruntime")},
@@ -235,7 +250,7 @@ def circlenet_spec(model_path: str | Path) -> MethodSpec:
                       extra_fingerprint=file_sha256(path), resource=str(path.resolve()),
                       note="ONNX Runtime, CPU, 1 thread; an image of another size than the model's is scaled "
                            "uniformly to fit it (nearest neighbour, padded; the detector's own rule, as in training) "
-                           "and the circles scaled back")
+                           "and the circles scaled back" + budget)
 
 
 def _dist_version(name: str) -> str | None:
@@ -408,7 +423,8 @@ def _engine(spec_name: str, config_json: str, model_path: str | None, warm_scene
 def _single_thread() -> None:
     """Pin this process's libraries to one thread (the timings are single-threaded)."""
     for k, v in SINGLE_THREAD_ENV.items():
-        os.environ[k] = v
+        if k != "NUMBA_NUM_THREADS" or "numba" not in sys.modules:  # numba: only before it loads
+            os.environ[k] = v
     try:
         import cv2
         cv2.setNumThreads(1)
@@ -553,8 +569,12 @@ def _pool(workers: int):
         with _SingleThreadHere():
             yield None
         return
-    saved = {k: os.environ.get(k) for k in SINGLE_THREAD_ENV}
-    os.environ.update(SINGLE_THREAD_ENV)  # inherited by the workers before they import anything
+    # inherited by the workers before they import anything; NUMBA_NUM_THREADS is left to the
+    # workers' initializer: numba rereads it in this process at its next compilation, and refuses
+    # a value other than its running thread pool's
+    child_env = {k: v for k, v in SINGLE_THREAD_ENV.items() if k != "NUMBA_NUM_THREADS"}
+    saved = {k: os.environ.get(k) for k in child_env}
+    os.environ.update(child_env)
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_single_thread)
     try:
