@@ -14,10 +14,6 @@ from spherebench.camera import Intrinsics
 from spherebench.circles import mask_circle
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 
-#: Scene families of the presets (recorded data uses "recorded").
-FAMILIES = ("clean", "cluttered", "paper", "hard", "train", "recorded")
-
-
 @dataclass
 class Ball:
     """Ground truth of one ball of the dataset's radius.
