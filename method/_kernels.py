@@ -23,8 +23,9 @@ _INV53 = 1.0 / 9007199254740992.0  # 2^-53
 
 # Categories of a pixel of a candidate's window (window statistics, in this order).
 ST_VALID_DISC, ST_INLIER, ST_FRONT, ST_FRONT_NEAR, ST_BEHIND, ST_INVALID_DISC, ST_SSE, ST_RING, ST_RING_CONT, \
-    ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM = range(15)
-N_STATS = 15
+    ST_RING_FRONT, ST_VALID_INNER, ST_BEHIND_INNER, ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, \
+    ST_OUTV_SUM = range(18)
+N_STATS = 18
 
 #: The relief profile: inner zone (rays passing the centre within sqrt(PROFILE_INNER) R) and outer
 #: zone (up to sqrt(PROFILE_OUTER) R, short of the outline, where flying pixels mix in the background).
@@ -32,6 +33,11 @@ PROFILE_INNER, PROFILE_OUTER = 0.3, 0.8
 
 #: The outline ring: rays passing the centre at R to RING_FACTOR * R.
 RING_FACTOR = 1.3
+#: A ring pixel whose point is RING_FRONT_MIN R to RING_FRONT_MAX R in front of where its ray passes the
+#: centre is an attached surface in front (RING_FRONT): a cylinder's body, a corner's faces, a bigger
+#: object the sphere was fitted into. A free ball's ring sees what is behind it; a floor or a holder
+#: fills a small part of it; an occluder is usually farther in front.
+RING_FRONT_MIN, RING_FRONT_MAX = 0.3, 1.2
 
 
 @njit(cache=True)
@@ -146,7 +152,10 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
     outline RING; RING_CONT counts those whose point is within ring_band of the depth where the ray
     passes the centre (a surface continuing beyond the outline: a wall, a plane, a bigger object;
     a band of one sigma of the depth noise rather than eps: at 3 m eps is +/- R, and a background
-    20 cm behind a ball would count as continuing it).
+    20 cm behind a ball would count as continuing it), RING_FRONT those RING_FRONT_MIN R to
+    RING_FRONT_MAX R in front of it (an attached surface in front: a cylinder's body).
+    VALID_INNER and BEHIND_INNER count the valid and the BEHIND pixels whose rays pass the centre
+    within sqrt(PROFILE_OUTER) R (short of the outline, where mixed pixels see past a real ball).
     The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
     the centre within sqrt(PROFILE_INNER) R; OUTH_* and OUTV_*
     those between that and sqrt(PROFILE_OUTER) R, left or right of the centre (OUTH) or above or
@@ -186,12 +195,18 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
                     out[ST_RING] += 1.0
                     if abs(pn - tc) <= ring_band:
                         out[ST_RING_CONT] += 1.0
+                    elif -RING_FRONT_MAX * radius <= pn - tc <= -RING_FRONT_MIN * radius:
+                        out[ST_RING_FRONT] += 1.0
                 continue
             out[ST_VALID_DISC] += 1.0
             # the relief profile: the inliers' mean ray residual per zone (a flat or a less curved
             # surface fitted by the sphere sits in front of it in the outer zone; occluders, such as
             # a tripod's cup, are not inliers and do not bias it)
             m2 = dist * dist - ((px * cx + py * cy + pz * cz) / pn) ** 2
+            if m2 <= PROFILE_OUTER * radius * radius:  # short of the outline's mixed pixels
+                out[ST_VALID_INNER] += 1.0
+                if dt > eps:
+                    out[ST_BEHIND_INNER] += 1.0
             if abs(dt) > eps:
                 pass
             elif m2 <= PROFILE_INNER * radius * radius:
@@ -232,8 +247,8 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
 # squared-depth channel did not stay in cache): a box's sums, far below 2^32, come out exact.
 
 P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_ITERS, P_BIN, P_RR_MIN, P_RR_MAX, \
-    P_SLACK = range(14)
-N_PRM = 14
+    P_SLACK, P_Z_FAR = range(15)
+N_PRM = 15
 
 #: The search's box geometry, as fractions of the disc radius r (cells) of the ball at the box's depth:
 #: box half-side, offset of the four side boxes of the stencil, offset and half-side of the 8 ring boxes.
@@ -256,8 +271,8 @@ def noise_eps(cz, eps, noise_a, noise_k, cap):
     return min(e, cap) if cap > eps else eps
 
 
-#: The depth histogram (for the scene's far depth) counts every HIST_STRIDE-th point: enough for a
-#: percentile, and consecutive increments of one bin would serialise the pass.
+#: The depth histogram (for the scene's far depth) counts every HIST_STRIDE-th point (a power of 2):
+#: enough for a percentile, and consecutive increments of one bin would serialise the pass.
 HIST_STRIDE = 8
 
 
@@ -281,12 +296,6 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     nb = hist.shape[0]
     n_ok = 0
     n_big = 0
-    # binned cells: consecutive points of a row-major cloud share a cell; their sums stay in
-    # registers until the cell changes (a read-modify-write per point serialised the pass)
-    cur_r = -1
-    cur_c = -1
-    acc_z = np.uint32(0)
-    acc_n = np.uint32(0)
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         if not math.isfinite(x + y + z):  # NaN or inf anywhere (a huge finite sum too: no such point is sane)
@@ -294,31 +303,19 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
         n_ok += 1
         if abs(z) > mm_limit:
             n_big += 1
+        if (i & (HIST_STRIDE - 1)) == 0 and z > 0.0:
+            hist[min(int(z * hist_per_m), nb - 1)] += 1
         r, c = rows[i], cols[i]
         if z > 0.0 and 0 <= r < height and 0 <= c < width:
             img[r, c] = i
             zmm = np.uint32(z * np.float32(1000.0) + np.float32(0.5))
-            if one_cell:  # a store, not a read-modify-write
+            if one_cell:  # a store
                 tab[r + 1, c + 1, 0] = zmm
                 tab[r + 1, c + 1, 1] = 1
-            else:
+            else:  # a read-modify-write (keeping a cell's sums in registers while it lasted was slower)
                 rc, cc = row_cell[r], col_cell[c]
-                if rc != cur_r or cc != cur_c:
-                    if cur_r >= 0:
-                        tab[cur_r, cur_c, 0] += acc_z
-                        tab[cur_r, cur_c, 1] += acc_n
-                    cur_r, cur_c = rc, cc
-                    acc_z = np.uint32(0)
-                    acc_n = np.uint32(0)
-                acc_z += zmm
-                acc_n += np.uint32(1)
-    if cur_r >= 0:
-        tab[cur_r, cur_c, 0] += acc_z
-        tab[cur_r, cur_c, 1] += acc_n
-    for i in range(0, points.shape[0], HIST_STRIDE):
-        z = points[i, 2]
-        if z > 0.0 and math.isfinite(z):
-            hist[min(int(z * hist_per_m), nb - 1)] += 1
+                tab[rc, cc, 0] += zmm
+                tab[rc, cc, 1] += np.uint32(1)
     hc, wc = tab.shape[0], tab.shape[1]
     for r in range(1, hc):
         a = np.uint32(0)
@@ -590,23 +587,45 @@ def cell_centre(prm, v, u, front):
     return np.array([rx * t, ry * t, t])
 
 
+#: The search's first-pixel weights never go below this. 1 (uniform draws) for now: with depth
+#: weights (0.25 here) the bound saved a third of the iterations, but near balls were missed (4-6 of
+#: the default preset's 200 with the benchmark's seeds): the descent from a first pixel far out on a
+#: big disc fails more often than ``sample_success`` says, and uniform draws had hidden that.
+MIN_DRAW_WEIGHT = 1.0
+
+
 @njit(cache=True)
-def search_organised(rows, cols, tab, prm, seed, cands, counters):
-    """Random-start RANSAC on an organised cloud: ``prm[P_ITERS]`` first pixels drawn uniformly
-    among the valid points, each giving one ``front_hypothesis``; the distinct passing ones are kept
-    by score in cands (K, 5) (v, u, front m, r cells, score), best first (``cell_centre`` gives
-    their centres). counters (2,) int64 gets: first pixels drawn, hypotheses past the pretest.
-    Returns the number kept. The caller computes the iteration count (``improved.iteration_bound``).
+def search_organised(points, rows, cols, tab, prm, seed, cands, counters):
+    """Random-start RANSAC on an organised cloud: ``prm[P_ITERS]`` first pixels, each giving one
+    ``front_hypothesis``; the distinct passing ones are kept by score in cands (K, 5) (v, u, front m,
+    r cells, score), best first (``cell_centre`` gives their centres).
+
+    First pixels are drawn with probability proportional to w = clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1), z the
+    point's depth, z_far = ``prm[P_Z_FAR]`` (the farthest ball provided for): a ball's image area
+    falls as 1 / z^2, so a far ball needs denser draws than a near one, and with these weights every
+    ball up to z_far is hit as often as one at z_far (by rejection: a uniform point, kept with
+    probability w; a rejected draw costs a load, a hypothesis some 50 box sums). The caller computes
+    the iteration count for this (``improved.iteration_bound``). counters (3,) int64 gets: first
+    pixels kept, hypotheses past the pretest, points drawn. Returns the number of hypotheses kept.
     """
     n = rows.shape[0]
     b = int(prm[P_BIN])
+    radius, z_far = prm[P_R], prm[P_Z_FAR]
+    iters = int(prm[P_ITERS])
     counters[:] = 0
     state = np.empty(1, np.uint64)
     state[0] = np.uint64(seed)
     out = np.empty(4, np.float64)
     n_kept = 0
-    for _ in range(int(prm[P_ITERS])):
+    # a guard, never reached in practice: at least 2 % of the points (beyond the 98th percentile
+    # of depth) have weight 1, so a draw is kept with probability >= 0.02
+    max_draws = 64 * iters + 64
+    while counters[0] < iters and counters[2] < max_draws:
         i1 = min(int(next_u01(state) * n), n - 1)
+        counters[2] += 1
+        w = (points[i1, 2] + radius) / z_far
+        if not next_u01(state) < max(w * w, MIN_DRAW_WEIGHT):  # nan (no depth): never kept
+            continue
         counters[0] += 1
         q = front_hypothesis(tab, prm, rows[i1] // b, cols[i1] // b, out)
         if q == -np.inf:
@@ -714,8 +733,9 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
 
     Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
-    current depth (``gather_window``; in the first round at least COARSE_BAND_FRACTION R), then 2 Gauss-Newton steps on the ray residuals with R fixed
-    (``fit_ray``), until the centre moves less than 0.1 mm. Every window is visited with the stride
+    current depth (``gather_window``; in the first round at least COARSE_BAND_FRACTION R), then one
+    Gauss-Newton step on their ray residuals with R fixed (``ray_step``), until the centre moves less
+    than its standard error (or 0.1 mm). Every window is visited with the stride
     that keeps it to about 4 ``max_fit_points`` pixels (a ball at 0.4 m covers 15,000 pixels at
     424x240, 140,000 at 1280x720; ``final_inliers`` collects all of them for a reported sphere),
     and every fit uses at most ``max_fit_points`` of the inliers, evenly strided. Then 2 more steps
@@ -744,10 +764,11 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
         n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
         if n < 3:
             return
-        cn = fit_ray(points, _strided(idx, n, max_fit_points), c[0], c[1], c[2], radius, False, 2, s_min)[0]
-        moved = math.sqrt((cn[0] - c[0]) ** 2 + (cn[1] - c[1]) ** 2 + (cn[2] - c[2]) ** 2)
-        c[:] = cn
-        if moved < 1e-4:
+        sub = _strided(idx, n, max_fit_points)
+        moved = ray_step(points, sub, c, radius, s_min)
+        # the inliers change between rounds: a move within the centre's standard error (per-pixel
+        # noise / sqrt(n)) is that jitter, not progress
+        if moved < max(1e-4, noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP]) / math.sqrt(sub.shape[0])):
             break
     if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
         return
@@ -960,58 +981,90 @@ def cholesky_solve(A, g, npar, x):
 
 
 @njit(cache=True)
+def ray_normal_equations(points, idx, x0, x1, x2, r, s_floor, with_radius):
+    """The Gauss-Newton normal equations of the ray residuals of points[idx] about centre (x0, x1, x2)
+    and radius r: (A (4, 4) lower triangle, g (4,) = -J^T res, sum of squared residuals).
+
+    res = |p| - u.c + s, s = sqrt(r^2 - |c|^2 + (u.c)^2) (0 for rays that miss), u = p / |p|;
+    d res / d c = -u + (u.c u - c) / s, d res / d r = r / s, with s floored at s_floor in the
+    derivatives only (near the outline s -> 0 and they explode; the residual stays exact there).
+    with_radius False: the r row and column stay 0. (Scalar accumulators: sums kept in a (4, 4)
+    array went through memory and cost 3-4 times as much.)
+    """
+    a00 = a10 = a11 = a20 = a21 = a22 = a30 = a31 = a32 = a33 = 0.0
+    g0 = g1 = g2 = g3 = 0.0
+    sse = 0.0
+    cc = x0 * x0 + x1 * x1 + x2 * x2
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
+        pn = math.sqrt(px * px + py * py + pz * pz)
+        ipn = 1.0 / pn
+        ux, uy, uz = px * ipn, py * ipn, pz * ipn
+        tc = ux * x0 + uy * x1 + uz * x2
+        s = math.sqrt(max(r * r - cc + tc * tc, 0.0))
+        res = pn - tc + s
+        isj = 1.0 / max(s, s_floor)
+        j0 = -ux + (tc * ux - x0) * isj
+        j1 = -uy + (tc * uy - x1) * isj
+        j2 = -uz + (tc * uz - x2) * isj
+        sse += res * res
+        a00 += j0 * j0
+        a10 += j1 * j0
+        a11 += j1 * j1
+        a20 += j2 * j0
+        a21 += j2 * j1
+        a22 += j2 * j2
+        g0 -= j0 * res
+        g1 -= j1 * res
+        g2 -= j2 * res
+        if with_radius:
+            j3 = r * isj
+            a30 += j3 * j0
+            a31 += j3 * j1
+            a32 += j3 * j2
+            a33 += j3 * j3
+            g3 -= j3 * res
+    A = np.zeros((4, 4))
+    A[0, 0], A[1, 0], A[1, 1], A[2, 0], A[2, 1], A[2, 2] = a00, a10, a11, a20, a21, a22
+    A[3, 0], A[3, 1], A[3, 2], A[3, 3] = a30, a31, a32, a33
+    g = np.empty(4)
+    g[0], g[1], g[2], g[3] = g0, g1, g2, g3
+    return A, g, sse
+
+
+@njit(cache=True)
+def ray_step(points, idx, c, radius, s_min):
+    """One Gauss-Newton step of the ray residuals of points[idx] with the radius fixed, applied to the
+    centre c (3,) in place (left as it is if the normal matrix is singular); returns the move (m)."""
+    A, g, _ = ray_normal_equations(points, idx, c[0], c[1], c[2], radius, max(s_min * radius, 1e-12), False)
+    step = np.zeros(4)
+    if cholesky_solve(A, g, 3, step) < 0.0:
+        return 0.0
+    c[0] += step[0]
+    c[1] += step[1]
+    c[2] += step[2]
+    return math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+
+
+@njit(cache=True)
 def fit_ray(points, idx, cx, cy, cz, radius, free_radius, iterations, s_min):
     """Gauss-Newton on the ray residuals |p| - t_near(c, r) of points[idx] (depth noise model).
 
     t_near = u.c - s, s = sqrt(r^2 - |c|^2 + (u.c)^2), u = p / |p| (s = 0 for rays that miss: the
     residual is then the depth past the point of closest approach). Near the outline s -> 0 and
-    the derivative explodes: s is floored at ``s_min * r`` in the derivative only. free_radius: fit r too, else r = radius.
+    the derivative explodes: s is floored at ``s_min * r`` in the derivative only
+    (``ray_normal_equations``). free_radius: fit r too, else r = radius.
     Returns (centre (3,), r, standard error of r (nan if fixed), RMS residual).
     """
     x = np.array([cx, cy, cz, radius])
     npar = 4 if free_radius else 3
-    A = np.zeros((4, 4))
-    g = np.zeros(4)
     step = np.zeros(4)
     n = idx.shape[0]
-    var_r = -1.0
     for _ in range(iterations):
-        A[:] = 0.0
-        g[:] = 0.0
-        cc = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
-        for k in range(n):
-            i = idx[k]
-            px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
-            pn = math.sqrt(px * px + py * py + pz * pz)
-            ipn = 1.0 / pn
-            ux, uy, uz = px * ipn, py * ipn, pz * ipn
-            tc = ux * x[0] + uy * x[1] + uz * x[2]
-            s2 = x[3] * x[3] - cc + tc * tc
-            # res = pn - tc + s; d res / d c = -u + (tc u - c) / s; d res / d r = r / s, with s floored
-            # in the derivative only, so that the residual stays exact (and continuous) at the outline
-            s = math.sqrt(max(s2, 0.0))
-            isj = 1.0 / max(s, s_min * abs(x[3]), 1e-12)
-            j0 = -ux + (tc * ux - x[0]) * isj
-            j1 = -uy + (tc * uy - x[1]) * isj
-            j2 = -uz + (tc * uz - x[2]) * isj
-            j3 = x[3] * isj
-            res = pn - tc + s
-            A[0, 0] += j0 * j0
-            A[1, 0] += j1 * j0
-            A[1, 1] += j1 * j1
-            A[2, 0] += j2 * j0
-            A[2, 1] += j2 * j1
-            A[2, 2] += j2 * j2
-            A[3, 0] += j3 * j0
-            A[3, 1] += j3 * j1
-            A[3, 2] += j3 * j2
-            A[3, 3] += j3 * j3
-            g[0] -= j0 * res
-            g[1] -= j1 * res
-            g[2] -= j2 * res
-            g[3] -= j3 * res
-        var_r = cholesky_solve(A, g, npar, step)
-        if var_r < 0.0:
+        A, g, _ = ray_normal_equations(points, idx, x[0], x[1], x[2], x[3], max(s_min * abs(x[3]), 1e-12),
+                                       free_radius)
+        if cholesky_solve(A, g, npar, step) < 0.0:
             break
         for a in range(npar):
             x[a] += step[a]
@@ -1020,36 +1073,8 @@ def fit_ray(points, idx, cx, cy, cz, radius, free_radius, iterations, s_min):
     # the residuals at the solution, and for the radius's standard error a normal matrix whose
     # derivatives floor s at SE_S_MIN r: the floor of the fit (s_min) lets the few pixels at the
     # outline, where the residual has no derivative, claim a radius known to a fraction of a mm
-    sse = 0.0
-    A[:] = 0.0
-    cc = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
     s_floor = max(max(s_min, SE_S_MIN) * abs(x[3]), 1e-12)
-    for k in range(n):
-        i = idx[k]
-        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
-        pn = math.sqrt(px * px + py * py + pz * pz)
-        ipn = 1.0 / pn
-        ux, uy, uz = px * ipn, py * ipn, pz * ipn
-        tc = ux * x[0] + uy * x[1] + uz * x[2]
-        s = math.sqrt(max(x[3] * x[3] - cc + tc * tc, 0.0))
-        res = pn - tc + s
-        sse += res * res
-        if free_radius:
-            isj = 1.0 / max(s, s_floor)
-            j0 = -ux + (tc * ux - x[0]) * isj
-            j1 = -uy + (tc * uy - x[1]) * isj
-            j2 = -uz + (tc * uz - x[2]) * isj
-            j3 = x[3] * isj
-            A[0, 0] += j0 * j0
-            A[1, 0] += j1 * j0
-            A[1, 1] += j1 * j1
-            A[2, 0] += j2 * j0
-            A[2, 1] += j2 * j1
-            A[2, 2] += j2 * j2
-            A[3, 0] += j3 * j0
-            A[3, 1] += j3 * j1
-            A[3, 2] += j3 * j2
-            A[3, 3] += j3 * j3
+    A, g, sse = ray_normal_equations(points, idx, x[0], x[1], x[2], x[3], s_floor, free_radius)
     se = math.nan
     if free_radius:
         var_r = cholesky_solve(A, g, 4, step)

@@ -4,7 +4,8 @@ Search (compiled, ``_kernels``), for an organised cloud: one pass builds the ind
 summed-area table of the depth (mm) and of the valid count over cells of width // search_width_px
 pixels (about ``search_width_px`` cells across), so that the mean range of any box (its mean depth
 times the ray length) costs a few loads.
-Each RANSAC iteration draws a first pixel among the valid ones and makes one hypothesis from box
+Each RANSAC iteration draws a first pixel among the valid ones (with a weight growing as its depth
+squared, since a farther ball covers fewer pixels) and makes one hypothesis from box
 means about it whose size follows the ball's image radius at that depth (``front_hypothesis``):
 a descent to the local minimum of the range (the ball's front point, on the ray through its
 centre), then an O(1) pretest (the four side boxes on the sphere's cap, the eight boxes around
@@ -76,7 +77,8 @@ def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
                              config.max_eps_fraction * config.radius_m))
 
 
-def parameters(config: DetectorConfig, intr, iterations: int, bin_px: int, grid_shape: tuple) -> np.ndarray:
+def parameters(config: DetectorConfig, intr, iterations: int, bin_px: int, grid_shape: tuple,
+               z_far_m: float) -> np.ndarray:
     """The float64 parameter vector (``_kernels.N_PRM``,) of the organised kernels."""
     prm = np.zeros(K.N_PRM, np.float64)
     R = config.radius_m
@@ -89,6 +91,7 @@ def parameters(config: DetectorConfig, intr, iterations: int, bin_px: int, grid_
     prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / range_limit_m(config, float(intr.fx))
     prm[K.P_RR_MAX] = float(max(grid_shape))
     prm[K.P_SLACK] = config.pretest_slack
+    prm[K.P_Z_FAR] = z_far_m
     return prm
 
 
@@ -101,25 +104,31 @@ def range_limit_m(config: DetectorConfig, fx: float | None) -> float:
     return min(lim, config.max_range_m)
 
 
-def iteration_bound(config: DetectorConfig, intr, z_scene_m: float, n_valid: int) -> int:
-    """Iterations for the standard RANSAC bound, for the smallest ball the frame can hold.
-
-    A ball of radius R at depth z covers A(z) = pi (fx R / z)^2 pixels, a share w = A / N of the
-    N valid points; an iteration succeeds with probability p = w * ``sample_success`` (its first
-    pixel on the ball, and the hypothesis from it passing the pretest);
-    k = log(1 - confidence) / log(1 - p). The binding z is the farthest a ball can be: the scene's
-    depth ``z_scene_m`` (its 98th percentile) plus R (a ball is in front of what is behind it) or
-    ``range_limit_m``, whichever is nearer; and at least ``bound_visible_fraction`` of it is
-    assumed visible. Clamped to [min_iterations, iterations].
-    """
-    if not config.adaptive:
-        return config.iterations
+def far_depth_m(config: DetectorConfig, intr, z_scene_m: float) -> float:
+    """The farthest centre depth the search provides for (metres): the scene's depth ``z_scene_m``
+    (its 98th percentile) plus R (a ball is in front of what is behind it) or ``range_limit_m``,
+    whichever is nearer, and at least 2 R."""
     z_far = range_limit_m(config, float(intr.fx))
     if math.isfinite(z_scene_m):
         z_far = min(z_far, z_scene_m + config.radius_m)
-    z_far = max(z_far, 2.0 * config.radius_m)
-    area = math.pi * (intr.fx * config.radius_m / z_far) ** 2 * config.bound_visible_fraction
-    p = min(area / max(n_valid, 1), 1.0) * config.sample_success
+    return max(z_far, 2.0 * config.radius_m)
+
+
+def iteration_bound(config: DetectorConfig, intr, z_far_m: float, n_weighted: float) -> int:
+    """Iterations for the standard RANSAC bound, for the smallest ball the frame can hold.
+
+    A ball of radius R at depth z_far covers A = pi (fx R / z_far)^2 pixels. First pixels are drawn
+    with weights w = clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1) (``_kernels.search_organised``): a ball at any depth
+    up to z_far carries at least A of weight, a share A / n_weighted of the total (n_weighted: the
+    sum of the weights of the valid points, ``weighted_count``). An iteration succeeds with
+    probability p = that share * ``sample_success`` (its first pixel on the ball, and the hypothesis
+    from it passing the pretest); k = log(1 - confidence) / log(1 - p). At least
+    ``bound_visible_fraction`` of the ball is assumed visible. Clamped to [min_iterations, iterations].
+    """
+    if not config.adaptive:
+        return config.iterations
+    area = math.pi * (intr.fx * config.radius_m / z_far_m) ** 2 * config.bound_visible_fraction
+    p = min(area / max(n_weighted, 1.0), 1.0) * config.sample_success
     k = math.log(1.0 - config.confidence) / math.log1p(-p) if 0 < p < 1 else (1.0 if p >= 1 else math.inf)
     return int(min(max(math.ceil(k), config.min_iterations), config.iterations))
 
@@ -127,6 +136,19 @@ def iteration_bound(config: DetectorConfig, intr, z_scene_m: float, n_valid: int
 #: Depth histogram of a frame (for the scene's far depth): bins of this many metres, up to 20 m.
 HIST_STEP_M = 0.05
 HIST_BINS = 400
+
+
+def weighted_count(hist: np.ndarray, n_valid: int, z_far_m: float, radius_m: float,
+                   step_m: float = HIST_STEP_M) -> float:
+    """The sum over n_valid points of the search's weights clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1), from the
+    depth histogram hist (B,) of a sample of them (each bin at its upper edge: an overestimate, so
+    that the bound errs toward more iterations)."""
+    total = int(hist.sum())
+    if total == 0:
+        return float(n_valid)
+    upper = (np.arange(1, len(hist) + 1)) * step_m
+    w = np.clip(((upper + radius_m) / z_far_m) ** 2, K.MIN_DRAW_WEIGHT, 1.0)
+    return n_valid * float(hist @ w) / total
 
 
 def hist_percentile(hist: np.ndarray, q: float, step_m: float = HIST_STEP_M) -> float:
@@ -190,16 +212,18 @@ class Frame:
                                           np.float32(1.0 / HIST_STEP_M))
         self.n_ok, self.n_big = int(n_ok), int(n_big)
         self.n_valid = int(self.tab[-1, -1, 1])  # the table's total count (below 2^32 pixels)
-        self.iterations = iteration_bound(config, intr, hist_percentile(self.hist, 98.0), self.n_valid)
-        self.prm = parameters(config, intr, self.iterations, self.bin, (hc, wc))
+        self.z_far_m = far_depth_m(config, intr, hist_percentile(self.hist, 98.0))
+        self.n_weighted = weighted_count(self.hist, self.n_valid, self.z_far_m, config.radius_m)
+        self.iterations = iteration_bound(config, intr, self.z_far_m, self.n_weighted)
+        self.prm = parameters(config, intr, self.iterations, self.bin, (hc, wc), self.z_far_m)
 
 
 def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,)), best first."""
     hyp = np.zeros((config.search_candidates, 5), np.float64)
-    counters = np.zeros(2, np.int64)
+    counters = np.zeros(3, np.int64)
     c = frame.cloud
-    m = K.search_organised(c.rows, c.cols, frame.tab, frame.prm, np.uint64(seed), hyp, counters)
+    m = K.search_organised(c.points, c.rows, c.cols, frame.tab, frame.prm, np.uint64(seed), hyp, counters)
     frame.counters = counters  # diagnostics (see _kernels.search_organised)
     frame.hypotheses = hyp[:m]
     centres = np.array([K.cell_centre(frame.prm, h[0], h[1], h[2]) for h in hyp[:m]]).reshape(-1, 3)
@@ -243,7 +267,8 @@ RAY_S_MIN = 0.03
 
 _STAT_NAMES = {"valid_disc": K.ST_VALID_DISC, "inlier": K.ST_INLIER, "front": K.ST_FRONT,
                "front_near": K.ST_FRONT_NEAR, "behind": K.ST_BEHIND, "invalid_disc": K.ST_INVALID_DISC,
-               "ring": K.ST_RING, "ring_continued": K.ST_RING_CONT, "inner_n": K.ST_IN_N, "inner_sum": K.ST_IN_SUM,
+               "ring": K.ST_RING, "ring_continued": K.ST_RING_CONT, "ring_front": K.ST_RING_FRONT,
+               "valid_inner": K.ST_VALID_INNER, "behind_inner": K.ST_BEHIND_INNER, "inner_n": K.ST_IN_N, "inner_sum": K.ST_IN_SUM,
                "outer_h_n": K.ST_OUTH_N, "outer_h_sum": K.ST_OUTH_SUM, "outer_v_n": K.ST_OUTV_N,
                "outer_v_sum": K.ST_OUTV_SUM}
 
@@ -277,6 +302,31 @@ def relief_agreement(stats: dict, radius_m: float) -> float:
     return math.exp(-0.5 * max(0.0, t - RELIEF_FREE_SIGMAS) ** 2)
 
 
+def see_through_excess(stats: dict) -> float:
+    """The share of the inner disc's valid pixels seen *behind* the sphere (``_kernels.window_stats``:
+    rays passing the centre within sqrt(PROFILE_OUTER) R) beyond what the depth noise explains: a
+    real ball hides what is behind it, and short of its outline no mixed pixels see past it. The
+    noise explains a share q = P(residual > band) of a normal error (``sigma_m``, band ``eps_m``)
+    plus 3 binomial standard errors plus SEE_THROUGH_FREE (flying pixels, a band narrowed to the
+    data)."""
+    n = stats.get("valid_inner", 0.0)
+    sigma = stats.get("sigma_m", 0.0)
+    if n < 1:
+        return 0.0
+    q = 0.5 * math.erfc(stats["eps_m"] / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
+    allowed = q + 3.0 * math.sqrt(q * (1.0 - q) / n) + SEE_THROUGH_FREE
+    return max(0.0, stats["behind_inner"] / n - allowed)
+
+
+#: See ``see_through_excess``.
+SEE_THROUGH_FREE = 0.03
+
+#: The share of the outline ring that may show a surface attached in front of the ball without
+#: penalty: a floor under it, a holder, a hand (simulated free balls: at most 13 % at seed 7, as did
+#: a hand-held real one; clutter that passed the other tests: a median of 25 %).
+RING_FRONT_FREE = 0.15
+
+
 def size_tolerance(config: DetectorConfig) -> float:
     """The size check's tolerance before standard errors (metres): the larger of the absolute and the
     relative one (``DetectorConfig.size_tolerance_fraction``)."""
@@ -291,7 +341,10 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     silhouette's valid pixels that are inliers (coverage: occlusion lowers it), (1 - behind share)^2
     (the ball would hide what is seen through it) and (1 - share hugging the sphere just in front
     of it)^2 (a cylinder or another non-spherical surface), (1 - share of the outline ring where
-    the surface continues at the ball's depth)^2 (a wall or a plane), the ``relief_agreement`` of the
+    the surface continues at the ball's depth)^2 (a wall or a plane) and (1 - a)^8, a the share where
+    a surface attached in front of it continues (a cylinder's body, a corner) beyond RING_FRONT_FREE,
+    (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat top, a smaller
+    ball), the ``relief_agreement`` of the
     inner and outer zones (a surface flatter than the ball); the size agreement exp(-d^2 / 2) with
     d the free radius's deviation from R in units of (``size_tolerance`` + its standard error).
     """
@@ -303,7 +356,9 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         behind = min(1.0, stats["behind"] / vd)
         hug = min(1.0, stats["front_near"] / vd)
         ring = stats["ring_continued"] / max(stats["ring"], 1.0)
-        score *= coverage * (1.0 - behind) ** 2 * (1.0 - hug) ** 2 * (1.0 - ring) ** 2
+        attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - RING_FRONT_FREE)
+        score *= coverage * (1.0 - behind) ** 2 * (1.0 - hug) ** 2 * (1.0 - ring) ** 2 * (1.0 - attached) ** 8
+        score *= (1.0 - see_through_excess(stats)) ** 4
         score *= relief_agreement(stats, R)
     size_ok = True
     if config.size_check:
@@ -333,6 +388,7 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
     # quantisation steps) would otherwise fail a real ball's zone means by a few mm
     stats["sigma_m"] = frame.prm[K.P_NOISE_A] * float(out[K.V_CZ]) ** 2
     stats["sigma_measured_m"] = float(out[K.V_SIGMA])
+    stats["eps_m"] = float(out[K.V_EPS])
     score, size_ok = confidence(stats, n, out[K.V_FR], out[K.V_FSE], config, True)
     # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
     return Candidate(center_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),
@@ -378,8 +434,10 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
     """
     if frame is not None:
         cands, quals = search_organised(frame, config, seed)
-        # gather_window's index buffer: one silhouette's pixels at most
-        buf = workspace("inliers", (min(len(points), frame.index_image.size) + 1,), np.int64)
+        # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
+        # cloud, so that frames of one stream reuse it (a fresh 7 MB buffer per 1280x720 frame cost
+        # more in page faults than the detection)
+        buf = workspace("inliers", (frame.index_image.size + 1,), np.int64)
     else:
         cands, quals = search_unorganised(points, config, seed)
     found: list[Candidate] = []
@@ -387,6 +445,9 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
         if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
             break
+        # a start within R of a sphere already accepted converges onto it, and would be suppressed
+        if any(np.linalg.norm(c0 - v.center_m) < config.radius_m for v in found):
+            continue
         v = verify_organised(frame, c0, config, buf) if frame is not None else verify_unorganised(points, c0, config)
         if v is None or not v.size_ok or v.score < config.min_score:
             continue

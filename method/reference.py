@@ -221,15 +221,21 @@ def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int)
 
 
 def search_organised(points, rows, cols, index_image, prm, seed: int, k_max: int):
-    """Replay of ``_kernels.search_organised``: (hypotheses (M, 5) rows (v, u, front, r, score), counters (2,))."""
+    """Replay of ``_kernels.search_organised``: (hypotheses (M, 5) rows (v, u, front, r, score), counters (3,))."""
     b = int(prm[K.P_BIN])
     g = Grid(*cell_images(points, index_image, b), prm)
     rng = SplitMix64(seed)
     n = len(rows)
     kept: list = []
-    counters = np.zeros(2, np.int64)
-    for _ in range(int(prm[K.P_ITERS])):
+    counters = np.zeros(3, np.int64)
+    iters = int(prm[K.P_ITERS])
+    while counters[0] < iters and counters[2] < 64 * iters + 64:
         i1 = min(int(rng.u01() * n), n - 1)
+        counters[2] += 1
+        # first pixels weighted by min(1, ((z + R) / z_far)^2), by rejection
+        w = (float(points[i1, 2]) + prm[K.P_R]) / prm[K.P_Z_FAR]
+        if not rng.u01() < max(w * w, K.MIN_DRAW_WEIGHT):
+            continue
         counters[0] += 1
         q, hyp = front_hypothesis(g, int(rows[i1]) // b, int(cols[i1]) // b)
         if hyp is None:
@@ -275,9 +281,14 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     out[K.ST_FRONT] = front.sum()
     out[K.ST_FRONT_NEAR] = np.count_nonzero(front & (dt >= -0.5 * radius))
     out[K.ST_BEHIND] = np.count_nonzero(~inl & (dt >= 0))
+    inner_disc = m2[hit] <= K.PROFILE_OUTER * radius * radius
+    out[K.ST_VALID_INNER] = inner_disc.sum()
+    out[K.ST_BEHIND_INNER] = np.count_nonzero(inner_disc & (dt > e))
     ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (K.RING_FACTOR * radius) ** 2)
     out[K.ST_RING] = ring.sum()
     out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
+    attached = (pn - tc >= -K.RING_FRONT_MAX * radius) & (pn - tc <= -K.RING_FRONT_MIN * radius)
+    out[K.ST_RING_FRONT] = np.count_nonzero(ring & (np.abs(pn - tc) > ring_band) & attached)
     out[:K.ST_IN_N] *= float(stride * stride)
     # the relief profile over the inliers: inner zone, outer zone left/right and above/below
     mz = m2[hit][inl]

@@ -175,6 +175,51 @@ def test_box_corner_is_not_a_ball():
     assert len(spheres) == 1 and np.linalg.norm(spheres[0].center_m - [0.25, 0.0, 1.2]) < 0.005
 
 
+def cylinder_scene(top_y, x0=0.05, z0=1.2, noise=0.002, width=160, height=120, seed=0):
+    """A vertical cylinder of radius R (axis along y, down from top_y: y points down) before a wall at
+    1.8 m, its flat top in view: a ball's size and horizontal profile, but no ball."""
+    intr = Intrinsics.d435(width, height)
+    d = image_rays(intr)
+    dx, dy = d[..., 0], d[..., 1]
+    z = np.full((height, width), 1.8)
+    # the side: (t dx - x0)^2 + (t - z0)^2 = R^2, nearer root, below the top
+    a, b, c = dx * dx + 1.0, -2.0 * (dx * x0 + z0), x0 * x0 + z0 * z0 - R * R
+    disc = b * b - 4 * a * c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-b - np.sqrt(disc)) / (2 * a)
+        side = (disc >= 0) & (t * dy >= top_y)
+        z = np.where(side, np.minimum(z, t), z)
+        # the top: the plane y = top_y, within the disc
+        t = top_y / dy
+        top = (dy > 0) & ((t * dx - x0) ** 2 + (t - z0) ** 2 <= R * R)
+        z = np.where(top, np.minimum(z, t), z)
+    z = z + np.random.default_rng(seed).normal(size=z.shape) * noise
+    return cloud_from_depth(z.astype(np.float32), intr)
+
+
+@pytest.mark.parametrize("top_y", [-0.05, 0.05, 0.1])
+def test_cylinder_of_the_ball_radius_is_not_a_ball(top_y):
+    # its top end fits a sphere's cap and outline from the side; the body attached below the outline,
+    # the background seen through the disc above the flat top and the flat vertical profile do not
+    cloud = cylinder_scene(top_y)
+    assert detect(cloud, seed=0) == []
+    # while a ball standing on it is found
+    ball = scene(ball_c=(0.05, top_y - R, 1.2))
+    assert len(detect(ball, seed=0)) == 1
+
+
+def test_see_through_excess_follows_noise():
+    from spherebench.method import improved as imp
+    stats = {"valid_inner": 400.0, "behind_inner": 4.0, "sigma_m": 0.01, "eps_m": 0.025}
+    assert imp.see_through_excess(stats) == 0.0  # 1 %: the noise's tail
+    stats["behind_inner"] = 80.0  # 20 %: seen through
+    q = 0.5 * math.erfc(2.5 / math.sqrt(2.0))
+    assert imp.see_through_excess(stats) == pytest.approx(0.2 - q - 3 * math.sqrt(q * (1 - q) / 400) - imp.SEE_THROUGH_FREE)
+    # a band capped below the noise lets more through without penalty
+    stats["eps_m"] = 0.01
+    assert imp.see_through_excess(stats) == 0.0
+
+
 def test_same_seed_same_output():
     cloud = scene(noise=0.004)
     a = detect(cloud, seed=7)

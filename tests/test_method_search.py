@@ -81,15 +81,25 @@ def test_iteration_bound_follows_ball_area():
     cfg = config_for("improved")
     intr = Intrinsics.d435(424, 240)
     # a room 3 m deep: the bound provides for a ball at 3 m + R, of area pi (fx R / z)^2 pixels
-    k = imp.iteration_bound(cfg, intr, 3.0, 100_000)
+    z_far = imp.far_depth_m(cfg, intr, 3.0)
+    assert z_far == pytest.approx(3.12)
+    k = imp.iteration_bound(cfg, intr, z_far, 100_000)
     area = math.pi * (intr.fx * R / 3.12) ** 2
     expect = math.log(1 - cfg.confidence) / math.log(1 - area / 100_000 * cfg.sample_success)
     assert k == math.ceil(expect)
     # a shallow scene needs fewer; a deep one is capped by the noise range limit (3.5 m at 424x240)
-    assert imp.iteration_bound(cfg, intr, 1.0, 100_000) < k
+    assert imp.iteration_bound(cfg, intr, imp.far_depth_m(cfg, intr, 1.0), 100_000) < k
     assert imp.range_limit_m(cfg, intr.fx) == pytest.approx(math.sqrt(0.75 * R * intr.fx * 0.05 / 0.08))
-    assert imp.iteration_bound(cfg, intr, 8.0, 100_000) == imp.iteration_bound(cfg, intr, 5.0, 100_000)
-    assert imp.iteration_bound(config_for("improved", adaptive=False), intr, 3.0, 100_000) == cfg.iterations
+    assert imp.far_depth_m(cfg, intr, 8.0) == imp.far_depth_m(cfg, intr, 5.0) == imp.range_limit_m(cfg, intr.fx)
+    assert imp.iteration_bound(config_for("improved", adaptive=False), intr, z_far, 100_000) == cfg.iterations
+    # first pixels are weighted by clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1): a frame whose points
+    # all lie at z_far / 2 - R weighs a quarter of its count (or the floor), and needs fewer iterations
+    hist = np.zeros(imp.HIST_BINS, np.int64)
+    hist[int((z_far / 2 - R) / imp.HIST_STEP_M)] = 1000
+    n_w = imp.weighted_count(hist, 100_000, z_far, R)
+    floor = max(0.25, K.MIN_DRAW_WEIGHT)
+    assert floor <= n_w / 100_000 < max(0.27, floor + 1e-9)  # the bin's upper edge: a slight overestimate
+    assert imp.iteration_bound(cfg, intr, z_far, n_w) <= math.ceil(floor * 1.1 * k)
     # the scene depth comes from the frame's histogram (98th percentile, to a bin's upper edge)
     hist = np.zeros(imp.HIST_BINS, np.int64)
     hist[[20, 40, 60]] = [50, 48, 2]
