@@ -1140,6 +1140,26 @@ def _cell_ranges(sorted_keys, origin, cell, dims, x, y, z, reach, starts, ends):
 
 
 @njit(cache=True)
+def _ranges_size(starts, ends, m):
+    """The number of points in the first m sorted-order ranges."""
+    total = 0
+    for k in range(m):
+        total += ends[k] - starts[k]
+    return total
+
+
+@njit(cache=True)
+def _draw_in_ranges(state, order, starts, ends, total):
+    """A point drawn uniformly from the ranges (``total`` points in all): its index into points."""
+    t = min(int(next_u01(state) * total), total - 1)
+    k = 0
+    while t >= ends[k] - starts[k]:
+        t -= ends[k] - starts[k]
+        k += 1
+    return order[starts[k] + t]
+
+
+@njit(cache=True)
 def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, eps, win_m, max_iter, min_iter,
                        confidence, retries, pretest_n, pretest_frac, score_max, seed, cands, quals):
     """Local-sampling RANSAC on an unorganised cloud (grid cells of size ``cell`` >= win_m / 1).
@@ -1166,19 +1186,12 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
         it += 1
         i1 = order[min(int(next_u01(state) * n), n - 1)]
         m = _cell_ranges(sorted_keys, origin, cell, dims, points[i1, 0], points[i1, 1], points[i1, 2], 1, starts, ends)
-        total = 0
-        for k in range(m):
-            total += ends[k] - starts[k]
+        total = _ranges_size(starts, ends, m)
         picks[0] = i1
         got = 1
         for slot in range(2):
             for _ in range(retries):
-                t = min(int(next_u01(state) * total), total - 1)
-                k = 0
-                while t >= ends[k] - starts[k]:
-                    t -= ends[k] - starts[k]
-                    k += 1
-                j = order[starts[k] + t]
+                j = _draw_in_ranges(state, order, starts, ends, total)
                 if j == i1 or (slot == 1 and j == picks[1]):
                     continue
                 dx, dy, dz = points[j, 0] - points[i1, 0], points[j, 1] - points[i1, 1], points[j, 2] - points[i1, 2]
@@ -1197,21 +1210,14 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
                     and faces_camera(points, picks[2], cx, cy, cz)):
                 continue
             ms = _cell_ranges(sorted_keys, origin, cell, dims, cx, cy, cz, reach_sphere, starts, ends)
-            tot_s = 0
-            for k in range(ms):
-                tot_s += ends[k] - starts[k]
+            tot_s = _ranges_size(starts, ends, ms)
             if tot_s == 0:
                 continue
             # pretest: among near points (inside the outer shell), the share on the shell
             near = 0
             inl = 0
             for _ in range(pretest_n * 3):
-                t = min(int(next_u01(state) * tot_s), tot_s - 1)
-                k = 0
-                while t >= ends[k] - starts[k]:
-                    t -= ends[k] - starts[k]
-                    k += 1
-                j = order[starts[k] + t]
+                j = _draw_in_ranges(state, order, starts, ends, tot_s)
                 dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
                 d = math.sqrt(dx * dx + dy * dy + dz * dz)
                 if d <= radius + eps:
