@@ -278,7 +278,7 @@ HIST_STRIDE = 8
 
 @njit(cache=True)
 def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit, hist, hist_per_m):
-    """One pass over an organised cloud, then the table's prefix sums.
+    """One pass over an organised cloud (and a strided one for the histogram), then the table's prefix sums.
 
     Fills img (H, W) int32 (the point index of each pixel, -1 where none), tab (Hc + 1, Wc + 1, 2)
     uint32 (summed-area table over cells of the depth z in mm and of the valid count, modulo 2^32;
@@ -294,17 +294,19 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     tab[:] = 0
     hist[:] = 0
     nb = hist.shape[0]
+    n = points.shape[0]
+    for i in range(0, n, HIST_STRIDE):
+        z = points[i, 2]
+        if z > 0.0 and math.isfinite(points[i, 0] + points[i, 1] + z):
+            hist[min(int(z * hist_per_m), nb - 1)] += 1
     n_ok = 0
     n_big = 0
-    for i in range(points.shape[0]):
+    for i in range(n):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         if not math.isfinite(x + y + z):  # NaN or inf anywhere (a huge finite sum too: no such point is sane)
             continue
         n_ok += 1
-        if abs(z) > mm_limit:
-            n_big += 1
-        if (i & (HIST_STRIDE - 1)) == 0 and z > 0.0:
-            hist[min(int(z * hist_per_m), nb - 1)] += 1
+        n_big += abs(z) > mm_limit
         r, c = rows[i], cols[i]
         if z > 0.0 and 0 <= r < height and 0 <= c < width:
             img[r, c] = i
@@ -686,24 +688,27 @@ V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE, V_SIGMA 
 
 #: The first refinement round takes inliers within at least this fraction of R.
 COARSE_BAND_FRACTION = 0.25
+#: The size check never accepts a free radius further than this fraction of R from R.
+SIZE_LIMIT_FRACTION = 0.25
 N_VOUT = 12
 #: MAD of a normal sample times this is its standard deviation.
 MAD_TO_SIGMA = 1.482602218505602
 
 
 @njit(cache=True)
-def ray_residual_sigma(points, idx, cx, cy, cz, radius):
-    """Robust standard deviation (MAD about the median, metres) of the ray residuals of points[idx]
-    about the sphere (c, R); nan when fewer than 8 rays meet it. The candidate's own depth noise,
-    whatever the sensor: quantisation steps (a structured-light sensor) and spatially correlated
-    errors count, which local differences of the depth image miss."""
-    res = np.empty(idx.shape[0], np.float64)
+def ray_residual_sigma(rays, cx, cy, cz, radius):
+    """Robust standard deviation (MAD about the median, metres) of the ray residuals of the points on
+    rays (K, 4) (``unit_rays``) about the sphere (c, R); nan when fewer than 8 rays meet it. The
+    candidate's own depth noise, whatever the sensor: quantisation steps (a structured-light sensor)
+    and spatially correlated errors count, which local differences of the depth image miss."""
+    res = np.empty(rays.shape[0], np.float64)
+    cc = cx * cx + cy * cy + cz * cz
     m = 0
-    for k in range(idx.shape[0]):
-        i = idx[k]
-        dt, hit = ray_residual(float(points[i, 0]), float(points[i, 1]), float(points[i, 2]), cx, cy, cz, radius)
-        if hit:
-            res[m] = dt
+    for k in range(rays.shape[0]):
+        tc = rays[k, 0] * cx + rays[k, 1] * cy + rays[k, 2] * cz
+        m2 = cc - tc * tc
+        if m2 <= radius * radius:
+            res[m] = rays[k, 3] - (tc - math.sqrt(radius * radius - m2))
             m += 1
     if m < 8:
         return math.nan
@@ -728,8 +733,8 @@ def window_stride(cx, cy, cz, radius, fx, max_visits):
 
 
 @njit(cache=True)
-def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, idx, out,
-                     stats):
+def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
+                     idx, out, stats):
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
 
     Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
@@ -746,9 +751,15 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     the ray residuals over the fitted inliers, out[V_SIGMA] the per-pixel depth noise used (metres:
     the model's at the centre's depth, or the measured one where smaller); out[V_N] = 0 when fewer
     than 3 inliers remain.
+    size_gate (4,): (tolerance m, standard errors) of the size check, the least score and
+    min_inliers (``improved.confidence``); a candidate whose free radius fails the check, or whose
+    support and size factors of the confidence are already below the least score, gets
+    out[V_N] = -1 and no statistics (most candidates fail here, and the statistics' pass over the
+    window is the costliest). inf tolerance: no gate.
     """
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
     budget = 4.0 * max_fit_points
+    rbuf = np.empty((2 * max_fit_points + 2, 4))  # _strided keeps fewer than 2 max_fit_points
     c = c0.copy()
     out[:] = math.nan
     out[V_N] = 0.0
@@ -764,11 +775,11 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
         n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
         if n < 3:
             return
-        sub = _strided(idx, n, max_fit_points)
-        moved = ray_step(points, sub, c, radius, s_min)
+        rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
+        moved = ray_step(rays, c, radius, s_min)
         # the inliers change between rounds: a move within the centre's standard error (per-pixel
         # noise / sqrt(n)) is that jitter, not progress
-        if moved < max(1e-4, noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP]) / math.sqrt(sub.shape[0])):
+        if moved < max(1e-4, noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP]) / math.sqrt(rays.shape[0])):
             break
     if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
         return
@@ -777,7 +788,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
     if n < 3:
         return
-    sub = _strided(idx, n, max_fit_points)
+    rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
     # the noise model is the most noise expected; a quieter sensor (or a nearer ball) shows less in
     # the candidate's own residuals, and a band wider than that takes in the outline's mixed pixels,
     # a holder, a hand, which bias the free radius upward. Narrow the band to the measured noise
@@ -786,7 +797,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     if sigma <= 0.0:  # no noise model: eps alone
         sigma = prm[P_EPS] / max(prm[P_NOISE_K], 1e-12)
     if data_noise:
-        s_hat = ray_residual_sigma(points, sub, c[0], c[1], c[2], radius)
+        s_hat = ray_residual_sigma(rays, c[0], c[1], c[2], radius)
         if s_hat < sigma:  # False for nan
             sigma = s_hat
             e_data = max(prm[P_EPS], prm[P_NOISE_K] * s_hat)
@@ -795,14 +806,26 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
                 n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
                 if n < 3:
                     return
-                sub = _strided(idx, n, max_fit_points)
-    c, _, _, rms = fit_ray(points, sub, c[0], c[1], c[2], radius, False, 2, s_min)
-    fc, fr, fse, _ = fit_ray(points, sub, c[0], c[1], c[2], radius, True, 4, s_min)
+                rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
+    c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min)
+    fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min)
+    out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
+    if math.isfinite(size_gate[0]):
+        se = fse if math.isfinite(fse) else radius
+        d = abs(fr - radius)
+        if not (d <= size_gate[0] + size_gate[1] * se and d <= SIZE_LIMIT_FRACTION * radius):  # nan fails
+            out[V_N] = -1.0
+            return
+        # the confidence's support and size factors bound it (the others are at most 1)
+        nn = float(n * stride * stride)
+        z = d / (size_gate[0] + se)
+        if nn / (nn + size_gate[3]) * math.exp(-0.5 * z * z) < size_gate[2] * (1.0 - 1e-9):  # rounding: never stricter
+            out[V_N] = -1.0
+            return
     ring_band = min(e, max(prm[P_EPS], sigma))
     window_stats(points, index_image, c[0], c[1], c[2], radius, e, ring_band, fx, fy, ppx, ppy,
                  window_stride(c[0], c[1], c[2], radius * RING_FACTOR, max(fx, fy), budget), stats)
     out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
-    out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
     out[V_RMSE] = rms
     out[V_SIGMA] = sigma
 
@@ -981,9 +1004,24 @@ def cholesky_solve(A, g, npar, x):
 
 
 @njit(cache=True)
-def ray_normal_equations(points, idx, x0, x1, x2, r, s_floor, with_radius):
-    """The Gauss-Newton normal equations of the ray residuals of points[idx] about centre (x0, x1, x2)
-    and radius r: (A (4, 4) lower triangle, g (4,) = -J^T res, sum of squared residuals).
+def unit_rays(points, idx, out):
+    """The viewing rays of points[idx] (K,) into out (>= K, 4) float64: (u (3,) = p / |p|, |p| m), which
+    every Gauss-Newton pass of a fit needs (computed once: a square root and a division per point,
+    and the scattered loads, cost as much as the pass itself). Returns out[:K]."""
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
+        pn = math.sqrt(px * px + py * py + pz * pz)
+        ipn = 1.0 / pn
+        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = px * ipn, py * ipn, pz * ipn, pn
+    return out[:idx.shape[0]]
+
+
+@njit(cache=True)
+def ray_normal_equations(rays, x0, x1, x2, r, s_floor, with_radius):
+    """The Gauss-Newton normal equations of the ray residuals of the points on rays (K, 4)
+    (``unit_rays``) about centre (x0, x1, x2) and radius r: (A (4, 4) lower triangle,
+    g (4,) = -J^T res, sum of squared residuals).
 
     res = |p| - u.c + s, s = sqrt(r^2 - |c|^2 + (u.c)^2) (0 for rays that miss), u = p / |p|;
     d res / d c = -u + (u.c u - c) / s, d res / d r = r / s, with s floored at s_floor in the
@@ -995,12 +1033,8 @@ def ray_normal_equations(points, idx, x0, x1, x2, r, s_floor, with_radius):
     g0 = g1 = g2 = g3 = 0.0
     sse = 0.0
     cc = x0 * x0 + x1 * x1 + x2 * x2
-    for k in range(idx.shape[0]):
-        i = idx[k]
-        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
-        pn = math.sqrt(px * px + py * py + pz * pz)
-        ipn = 1.0 / pn
-        ux, uy, uz = px * ipn, py * ipn, pz * ipn
+    for k in range(rays.shape[0]):
+        ux, uy, uz, pn = rays[k, 0], rays[k, 1], rays[k, 2], rays[k, 3]
         tc = ux * x0 + uy * x1 + uz * x2
         s = math.sqrt(max(r * r - cc + tc * tc, 0.0))
         res = pn - tc + s
@@ -1034,10 +1068,11 @@ def ray_normal_equations(points, idx, x0, x1, x2, r, s_floor, with_radius):
 
 
 @njit(cache=True)
-def ray_step(points, idx, c, radius, s_min):
-    """One Gauss-Newton step of the ray residuals of points[idx] with the radius fixed, applied to the
-    centre c (3,) in place (left as it is if the normal matrix is singular); returns the move (m)."""
-    A, g, _ = ray_normal_equations(points, idx, c[0], c[1], c[2], radius, max(s_min * radius, 1e-12), False)
+def ray_step(rays, c, radius, s_min):
+    """One Gauss-Newton step of the ray residuals of the points on rays (K, 4) (``unit_rays``) with the
+    radius fixed, applied to the centre c (3,) in place (left as it is if the normal matrix is
+    singular); returns the move (m)."""
+    A, g, _ = ray_normal_equations(rays, c[0], c[1], c[2], radius, max(s_min * radius, 1e-12), False)
     step = np.zeros(4)
     if cholesky_solve(A, g, 3, step) < 0.0:
         return 0.0
@@ -1048,8 +1083,9 @@ def ray_step(points, idx, c, radius, s_min):
 
 
 @njit(cache=True)
-def fit_ray(points, idx, cx, cy, cz, radius, free_radius, iterations, s_min):
-    """Gauss-Newton on the ray residuals |p| - t_near(c, r) of points[idx] (depth noise model).
+def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min):
+    """Gauss-Newton on the ray residuals |p| - t_near(c, r) of the points on rays (K, 4)
+    (``unit_rays``; depth noise model).
 
     t_near = u.c - s, s = sqrt(r^2 - |c|^2 + (u.c)^2), u = p / |p| (s = 0 for rays that miss: the
     residual is then the depth past the point of closest approach). Near the outline s -> 0 and
@@ -1060,9 +1096,9 @@ def fit_ray(points, idx, cx, cy, cz, radius, free_radius, iterations, s_min):
     x = np.array([cx, cy, cz, radius])
     npar = 4 if free_radius else 3
     step = np.zeros(4)
-    n = idx.shape[0]
+    n = rays.shape[0]
     for _ in range(iterations):
-        A, g, _ = ray_normal_equations(points, idx, x[0], x[1], x[2], x[3], max(s_min * abs(x[3]), 1e-12),
+        A, g, _ = ray_normal_equations(rays, x[0], x[1], x[2], x[3], max(s_min * abs(x[3]), 1e-12),
                                        free_radius)
         if cholesky_solve(A, g, npar, step) < 0.0:
             break
@@ -1074,7 +1110,7 @@ def fit_ray(points, idx, cx, cy, cz, radius, free_radius, iterations, s_min):
     # derivatives floor s at SE_S_MIN r: the floor of the fit (s_min) lets the few pixels at the
     # outline, where the residual has no derivative, claim a radius known to a fraction of a mm
     s_floor = max(max(s_min, SE_S_MIN) * abs(x[3]), 1e-12)
-    A, g, sse = ray_normal_equations(points, idx, x[0], x[1], x[2], x[3], s_floor, free_radius)
+    A, g, sse = ray_normal_equations(rays, x[0], x[1], x[2], x[3], s_floor, free_radius)
     se = math.nan
     if free_radius:
         var_r = cholesky_solve(A, g, 4, step)

@@ -97,7 +97,9 @@ class DetectorConfig:
             reported spheres' inliers are then collected from every pixel.
         score_max_points: unorganised search: scoring visits at most about this many points per
             candidate, bounding the cost for balls near the camera.
-        refine_iterations: Gauss-Newton rounds (each re-selects inliers).
+        refine_iterations: Gauss-Newton rounds (each re-selects inliers); organised clouds then take
+            2 more steps on the final inliers (3 rounds: the default preset's balls found as with 6,
+            one false detection fewer, a third less verification time).
         min_inliers: fewer inliers than this: no detection.
         size_check: compare the free-radius fit with R.
         size_tolerance_m, size_tolerance_fraction: the free radius may differ from R by the larger of
@@ -146,10 +148,10 @@ class DetectorConfig:
     max_eps_fraction: float = 1.0
     pretest_points: int = 12
     pretest_min_fraction: float = 0.5
-    verify_candidates: int = 6
+    verify_candidates: int = 10
     fit_max_points: int = 400
     score_max_points: int = 400
-    refine_iterations: int = 6
+    refine_iterations: int = 3
     min_inliers: int = 30
     size_check: bool = True
     size_tolerance_m: float = 0.004

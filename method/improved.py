@@ -144,7 +144,7 @@ def weighted_count(hist: np.ndarray, n_valid: int, z_far_m: float, radius_m: flo
     depth histogram hist (B,) of a sample of them (each bin at its upper edge: an overestimate, so
     that the bound errs toward more iterations)."""
     total = int(hist.sum())
-    if total == 0:
+    if total == 0 or K.MIN_DRAW_WEIGHT >= 1.0:  # uniform draws: every weight is 1
         return float(n_valid)
     upper = (np.arange(1, len(hist) + 1)) * step_m
     w = np.clip(((upper + radius_m) / z_far_m) ** 2, K.MIN_DRAW_WEIGHT, 1.0)
@@ -368,7 +368,7 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         score *= math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
         # consistent with R given the noise, and never beyond a quarter of R whatever the error says
         size_ok = (math.isfinite(free_r) and abs(free_r - R) <= tol + config.size_sigmas * se
-                   and abs(free_r - R) <= 0.25 * R)
+                   and abs(free_r - R) <= K.SIZE_LIMIT_FRACTION * R)
     return float(min(max(score, 0.0), 1.0)), size_ok
 
 
@@ -376,11 +376,13 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
     """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it."""
     out = np.empty(K.N_VOUT, np.float64)
     st = np.empty(K.N_STATS, np.float64)
+    gate = np.array([size_tolerance(config) if config.size_check else math.inf, config.size_sigmas, config.min_score,
+                     config.min_inliers], np.float64)
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data, buf,
-                       out, st)
+                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data, gate,
+                       buf, out, st)
     n = int(out[K.V_N])
-    if n < config.min_inliers:
+    if n < config.min_inliers:  # too few, or failed the size check (-1)
         return None
     stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
     # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the

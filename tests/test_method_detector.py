@@ -106,9 +106,11 @@ def test_refinement_exact_on_noiseless_cap():
     # the barycentre of a cap is pulled toward the camera
     assert np.linalg.norm(p.mean(axis=0) - c) > 0.03
     # the ray fit (noise along rays) is exact on noiseless data too, fixed and free radius
-    cc, r, _, rms = K.fit_ray(p, idx, *(c + 0.005), R, False, 60, 0.03)
+    rays = K.unit_rays(p, idx, np.empty((len(idx), 4)))
+    assert np.allclose(rays[:, :3] * rays[:, 3:], p, atol=1e-6)
+    cc, r, _, rms = K.fit_ray(rays, *(c + 0.005), R, False, 60, 0.03)
     assert np.linalg.norm(cc - c) < 1e-7 and rms < 1e-7
-    cc, r, se, _ = K.fit_ray(p, idx, *(c + 0.005), R + 0.005, True, 60, 0.03)
+    cc, r, se, _ = K.fit_ray(rays, *(c + 0.005), R + 0.005, True, 60, 0.03)
     assert np.linalg.norm(cc - c) < 1e-6 and abs(r - R) < 1e-6
 
 
@@ -168,6 +170,28 @@ def test_paper_trace_has_table2_values():
 def test_rejects_soccer_ball_and_empty_wall():
     assert detect(scene(ball_c=(0.0, 0.0, 0.9), ball_r=0.11), seed=0) == []
     assert detect(scene(ball_c=None), seed=0) == []
+
+
+def test_size_gate_in_the_kernel_agrees_with_the_size_check():
+    """verify_organised stops early on candidates that the size check or the score floor would drop:
+    a 0.11 m ball is dropped by the gate, and without the gate it is verified but fails size_ok."""
+    from spherebench.method import improved as I
+    from spherebench.method.detector import prepare_frame
+
+    c = np.array([0.0, 0.0, 0.9])
+    cloud = scene(ball_c=tuple(c), ball_r=0.11)
+    start = c * (1.0 + 0.01 / np.linalg.norm(c))  # the 0.12 m sphere tangent to the 0.11 m one's front
+    buf = np.empty(cloud.intrinsics.width * cloud.intrinsics.height + 1, np.int64)
+    gated = config_for("improved")
+    assert I.verify_organised(prepare_frame(cloud, gated), start, gated, buf) is None
+    ungated = config_for("improved", size_check=False)
+    v = I.verify_organised(prepare_frame(cloud, ungated), start, ungated, buf)
+    assert v is not None and abs(v.free_radius_m - 0.11) < 0.003
+    assert I.confidence(v.stats, 1000, v.free_radius_m, v.free_radius_se_m, gated, True)[1] is False
+    # a real basketball passes the gate with the same start rule
+    cloud = scene(ball_c=tuple(c), ball_r=R)
+    v = I.verify_organised(prepare_frame(cloud, gated), c, gated, buf)
+    assert v is not None and v.size_ok and np.linalg.norm(v.center_m - c) < 0.003
 
 
 def test_box_corner_is_not_a_ball():
