@@ -4,8 +4,8 @@ Search (compiled, ``_kernels``), for an organised cloud: one pass builds the ind
 summed-area table of the depth (mm) and of the valid count over cells of width // search_width_px
 pixels (about ``search_width_px`` cells across), so that the mean range of any box (its mean depth
 times the ray length) costs a few loads.
-Each RANSAC iteration draws a first pixel among the valid ones (with a weight growing as its depth
-squared, since a farther ball covers fewer pixels) and makes one hypothesis from box
+Each RANSAC iteration draws a first pixel among the valid ones (uniformly: depth weights, which
+favour far balls, are implemented but off, ``_kernels.MIN_DRAW_WEIGHT``) and makes one hypothesis from box
 means about it whose size follows the ball's image radius at that depth (``front_hypothesis``):
 a descent to the local minimum of the range (the ball's front point, on the ray through its
 centre), then an O(1) pretest (the four side boxes on the sphere's cap, the eight boxes around
@@ -23,11 +23,11 @@ Verification (compiled, one call per candidate, best first, at most ``verify_can
 Gauss-Newton with R fixed, re-selecting the inliers each round, on the depth residual along each
 pixel's ray for an organised cloud (the D435's noise is along the rays; the 3D residual
 ||p - c|| - R pulls the centre toward the camera by several mm at 2 m) and on ||p - c|| - R
-otherwise; then the evidence of the whole silhouette (an organised cloud shows where the ball
+otherwise; a free-radius fit as the size check (a candidate failing it, most of them, stops
+there); then the evidence of the whole silhouette (an organised cloud shows where the ball
 should be): the share of its pixels that are inliers (coverage), seen *through* (behind: a
 smaller ball or no ball), or hugged by a surface just in front of the sphere (a cylinder of the
-same radius); a free-radius fit as the size check; and the confidence score that ranks
-detections across frames.
+same radius); and the confidence score that ranks detections across frames.
 """
 
 from __future__ import annotations
