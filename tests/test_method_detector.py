@@ -194,6 +194,19 @@ def test_size_gate_in_the_kernel_agrees_with_the_size_check():
     assert v is not None and v.size_ok and np.linalg.norm(v.center_m - c) < 0.003
 
 
+def test_point_order_does_not_matter():
+    """A cloud in raster order (pixel lookup by row walks) and the same points shuffled (an index
+    image) give the same ball, and the inliers refer to each cloud's own points."""
+    cloud = scene(ball_c=(0.1, -0.05, 1.0), seed=4)
+    perm = np.random.default_rng(1).permutation(len(cloud))
+    shuffled = cloud.subset(perm)
+    a, b = detect(cloud, seed=0), detect(shuffled, seed=0)
+    assert len(a) == len(b) == 1
+    assert np.linalg.norm(a[0].center_m - b[0].center_m) < 5e-4
+    assert abs(len(a[0].inlier_indices) - len(b[0].inlier_indices)) <= 0.02 * len(a[0].inlier_indices)
+    assert np.allclose(np.linalg.norm(shuffled.points[b[0].inlier_indices] - b[0].center_m, axis=1), R, atol=0.02)
+
+
 def test_box_corner_is_not_a_ball():
     spheres = detect(scene(ball_c=(0.25, 0.0, 1.2), box=True), seed=0)
     assert len(spheres) == 1 and np.linalg.norm(spheres[0].center_m - [0.25, 0.0, 1.2]) < 0.005
