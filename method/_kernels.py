@@ -759,7 +759,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     """
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
     budget = 4.0 * max_fit_points
-    rbuf = np.empty((2 * max_fit_points + 2, 4))  # _strided keeps fewer than 2 max_fit_points
+    rbuf = np.empty((max_fit_points, 4))  # _strided keeps at most max_fit_points
     c = c0.copy()
     out[:] = math.nan
     out[V_N] = 0.0
