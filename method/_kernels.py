@@ -241,14 +241,16 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
 #
 # The search works on a grid of cells of BIN x BIN pixels (1 at 424x240, 2 at 848x480, 3 at
 # 1280x720: about 424 cells across whatever the stream), through the summed-area table ``tab``
-# (Hc + 1, Wc + 1, 2) uint32 of the depth z in millimetres and of the valid-pixel count per cell; a box's
-# mean range |p| is its mean depth times the length of the ray (z = 1) through the box's centre.
-# The table is kept modulo 2^32 (one 8-byte load per corner; the 2.4 MB of a float64 table with a
-# squared-depth channel did not stay in cache): a box's sums, far below 2^32, come out exact.
+# (Hc + 1, Wc + 1) uint64 of the depth z in millimetres and of the valid-pixel count per cell, packed
+# in one word (depth sum + count << COUNT_SHIFT); a box's mean range |p| is its mean depth times the
+# length of the ray (z = 1) through the box's centre. The table is kept modulo 2^64: a box's packed
+# sum comes out exact, its depth sum below 2^40 mm (a whole 4k frame at 60 m) and its count below
+# 2^24, so one load per corner and one add per cell serve both (the 2.4 MB of a float64 table with
+# a squared-depth channel did not stay in cache; two uint32 channels took twice the adds).
 
-P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_ITERS, P_BIN, P_RR_MIN, P_RR_MAX, \
-    P_SLACK, P_Z_FAR = range(15)
-N_PRM = 15
+P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_STRATUM_V, P_BIN, P_RR_MIN, P_RR_MAX, \
+    P_SLACK, P_Z_FAR, P_STRATUM_U = range(16)
+N_PRM = 16
 
 #: The search's box geometry, as fractions of the disc radius r (cells) of the ball at the box's depth:
 #: box half-side, offset of the four side boxes of the stencil, offset and half-side of the 8 ring boxes.
@@ -261,7 +263,9 @@ PREFILTER_FRAC = 2.0
 DESCENT_STEPS = 3
 #: Pretest: at most this many ring boxes may continue the surface at the ball's depth (a table, a tripod).
 MAX_CONTINUED = 3
-_MASK32 = 0xFFFFFFFF
+#: The packed table's count field starts at this bit; the depth sum (mm) takes the bits below.
+COUNT_SHIFT = 40
+_DEPTH_MASK = (1 << COUNT_SHIFT) - 1
 
 
 @njit(cache=True)
@@ -271,22 +275,25 @@ def noise_eps(cz, eps, noise_a, noise_k, cap):
     return min(e, cap) if cap > eps else eps
 
 
-#: The depth histogram (for the scene's far depth) counts every HIST_STRIDE-th point (a power of 2):
-#: enough for a percentile, and consecutive increments of one bin would serialise the pass.
+#: The depth histogram (for the scene's far depth) counts about HIST_SAMPLES points, every k-th one
+#: (k at least HIST_STRIDE): enough for a percentile, and consecutive increments of one bin would
+#: serialise the pass.
 HIST_STRIDE = 8
+HIST_SAMPLES = 32768
 
 
 @njit(cache=True)
 def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit, hist, hist_per_m):
     """One pass over an organised cloud (and a strided one for the histogram), then the table's prefix sums.
 
-    Fills img (H, W) int32 (the point index of each pixel, -1 where none), tab (Hc + 1, Wc + 1, 2)
-    uint32 (summed-area table over cells of the depth z in mm and of the valid count, modulo 2^32;
-    pixel (r, c) is in table cell (row_cell[r], col_cell[c]), both (H,), (W,) int32, 1-based) and
-    hist (B,) int64 (counts of z in bins of 1 / hist_per_m metres, the last bin open, over every
-    HIST_STRIDE-th point). Points with a non-finite coordinate or z <= 0 get no pixel, so the search
-    never meets them; two points on one pixel: the last one. Returns (finite count, count of
-    |z| > mm_limit). (Lookup tables: an integer division per point cost more than the rest.)
+    Fills img (H, W) int32 (the point index of each pixel, -1 where none), tab (Hc + 1, Wc + 1)
+    uint64 (summed-area table over cells of the depth z in mm and of the valid count, packed: depth
+    + count << COUNT_SHIFT, modulo 2^64; pixel (r, c) is in table cell (row_cell[r], col_cell[c]),
+    both (H,), (W,) int32, 1-based) and hist (B,) int64 (counts of z in bins of 1 / hist_per_m
+    metres, the last bin open, over a strided sample). Points with a non-finite coordinate or z <= 0
+    get no pixel, so the search never meets them; two points on one pixel: the last one. Returns
+    (finite count, count of |z| > mm_limit). (Lookup tables: an integer division per point cost more
+    than the rest.)
     """
     height, width = img.shape
     one_cell = tab.shape[0] == height + 1 and tab.shape[1] == width + 1
@@ -295,10 +302,11 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     hist[:] = 0
     nb = hist.shape[0]
     n = points.shape[0]
-    for i in range(0, n, HIST_STRIDE):
+    for i in range(0, n, max(HIST_STRIDE, n // HIST_SAMPLES)):
         z = points[i, 2]
         if z > 0.0 and math.isfinite(points[i, 0] + points[i, 1] + z):
             hist[min(int(z * hist_per_m), nb - 1)] += 1
+    one = np.uint64(1) << np.uint64(COUNT_SHIFT)
     n_ok = 0
     n_big = 0
     for i in range(n):
@@ -310,23 +318,17 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
         r, c = rows[i], cols[i]
         if z > 0.0 and 0 <= r < height and 0 <= c < width:
             img[r, c] = i
-            zmm = np.uint32(z * np.float32(1000.0) + np.float32(0.5))
+            packed = np.uint64(np.uint32(z * np.float32(1000.0) + np.float32(0.5))) + one
             if one_cell:  # a store
-                tab[r + 1, c + 1, 0] = zmm
-                tab[r + 1, c + 1, 1] = 1
+                tab[r + 1, c + 1] = packed
             else:  # a read-modify-write (keeping a cell's sums in registers while it lasted was slower)
-                rc, cc = row_cell[r], col_cell[c]
-                tab[rc, cc, 0] += zmm
-                tab[rc, cc, 1] += np.uint32(1)
+                tab[row_cell[r], col_cell[c]] += packed
     hc, wc = tab.shape[0], tab.shape[1]
     for r in range(1, hc):
-        a = np.uint32(0)
-        k = np.uint32(0)
+        a = np.uint64(0)
         for c in range(1, wc):
-            a += tab[r, c, 0]
-            k += tab[r, c, 1]
-            tab[r, c, 0] = tab[r - 1, c, 0] + a
-            tab[r, c, 1] = tab[r - 1, c, 1] + k
+            a += tab[r, c]
+            tab[r, c] = tab[r - 1, c] + a
     return n_ok, n_big
 
 
@@ -339,11 +341,8 @@ def box_sums(tab, v, u, h):
     c0, c1 = max(u - h, 0), min(u + h + 1, wc)
     if r0 >= r1 or c0 >= c1:
         return 0, 0, 0
-    s = (np.int64(tab[r1, c1, 0]) - np.int64(tab[r0, c1, 0]) - np.int64(tab[r1, c0, 0])
-         + np.int64(tab[r0, c0, 0])) & _MASK32
-    n = (np.int64(tab[r1, c1, 1]) - np.int64(tab[r0, c1, 1]) - np.int64(tab[r1, c0, 1])
-         + np.int64(tab[r0, c0, 1])) & _MASK32
-    return s, n, (r1 - r0) * (c1 - c0)
+    p = tab[r1, c1] - tab[r0, c1] - tab[r1, c0] + tab[r0, c0]  # uint64: wraps, exact for the box
+    return np.int64(p & np.uint64(_DEPTH_MASK)), np.int64(p >> np.uint64(COUNT_SHIFT)), (r1 - r0) * (c1 - c0)
 
 
 @njit(cache=True)
@@ -589,51 +588,40 @@ def cell_centre(prm, v, u, front):
     return np.array([rx * t, ry * t, t])
 
 
-#: The search's first-pixel weights never go below this. 1 (uniform draws) for now: with depth
-#: weights (0.25 here) the bound saved a third of the iterations, but near balls were missed (4-6 of
-#: the default preset's 200 with the benchmark's seeds): the descent from a first pixel far out on a
-#: big disc fails more often than ``sample_success`` says, and uniform draws had hidden that.
-MIN_DRAW_WEIGHT = 1.0
-
-
 @njit(cache=True)
-def search_organised(points, rows, cols, tab, prm, seed, cands, counters):
-    """Random-start RANSAC on an organised cloud: ``prm[P_ITERS]`` first pixels, each giving one
-    ``front_hypothesis``; the distinct passing ones are kept by score in cands (K, 5) (v, u, front m,
-    r cells, score), best first (``cell_centre`` gives their centres).
+def search_organised(tab, prm, seed, cands, counters):
+    """Stratified RANSAC on the cell grid: the grid is cut into strata of ``prm[P_STRATUM_V]`` x
+    ``prm[P_STRATUM_U]`` cells (those at the far edges smaller), visited in raster order; in each, one
+    first cell is drawn uniformly and gives one ``front_hypothesis``. The distinct passing ones are
+    kept by score in cands (K, 5) (v, u, front m, r cells, score), best first (``cell_centre`` gives
+    their centres).
 
-    First pixels are drawn with probability proportional to w = clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1), z the
-    point's depth, z_far = ``prm[P_Z_FAR]`` (the farthest ball provided for): a ball's image area
-    falls as 1 / z^2, so a far ball needs denser draws than a near one, and with these weights every
-    ball up to z_far is hit as often as one at z_far (by rejection: a uniform point, kept with
-    probability w; a rejected draw costs a load, a hypothesis some 50 box sums). The caller computes
-    the iteration count for this (``improved.iteration_bound``). counters (3,) int64 gets: first
-    pixels kept, hypotheses past the pretest, points drawn. Returns the number of hypotheses kept.
+    Why strata rather than independent draws: a ball is missed only if every stratum it covers draws
+    off it or fails, so the miss probability is at most that of as many independent draws (the
+    bound, ``improved.strata``) and far below it once the ball covers whole strata; and first cells
+    in raster order keep the table's rows in cache (a third of the time per draw of random points).
+    counters (2,) int64 gets: first cells drawn, hypotheses past the pretest. Returns the number of
+    hypotheses kept.
     """
-    n = rows.shape[0]
-    b = int(prm[P_BIN])
-    radius, z_far = prm[P_R], prm[P_Z_FAR]
-    iters = int(prm[P_ITERS])
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    sv, su = max(1, int(prm[P_STRATUM_V])), max(1, int(prm[P_STRATUM_U]))
     counters[:] = 0
     state = np.empty(1, np.uint64)
     state[0] = np.uint64(seed)
     out = np.empty(4, np.float64)
     n_kept = 0
-    # a guard, never reached in practice: at least 2 % of the points (beyond the 98th percentile
-    # of depth) have weight 1, so a draw is kept with probability >= 0.02
-    max_draws = 64 * iters + 64
-    while counters[0] < iters and counters[2] < max_draws:
-        i1 = min(int(next_u01(state) * n), n - 1)
-        counters[2] += 1
-        w = (points[i1, 2] + radius) / z_far
-        if not next_u01(state) < max(w * w, MIN_DRAW_WEIGHT):  # nan (no depth): never kept
-            continue
-        counters[0] += 1
-        q = front_hypothesis(tab, prm, rows[i1] // b, cols[i1] // b, out)
-        if q == -np.inf:
-            continue
-        counters[1] += 1
-        n_kept = _keep_hypothesis(cands, n_kept, out[0], out[1], out[2], out[3], q, prm[P_R])
+    for v0 in range(0, hc, sv):
+        nv = min(sv, hc - v0)
+        for u0 in range(0, wc, su):
+            nu = min(su, wc - u0)
+            v = v0 + min(int(next_u01(state) * nv), nv - 1)
+            u = u0 + min(int(next_u01(state) * nu), nu - 1)
+            counters[0] += 1
+            q = front_hypothesis(tab, prm, v, u, out)
+            if q == -np.inf:
+                continue
+            counters[1] += 1
+            n_kept = _keep_hypothesis(cands, n_kept, out[0], out[1], out[2], out[3], q, prm[P_R])
     return n_kept
 
 

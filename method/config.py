@@ -44,12 +44,14 @@ class DetectorConfig:
             this radius (default 2R) of the 1st point. (Organised clouds: the search's boxes scale
             with the ball's image radius at the first pixel's depth.)
         solver: "known_radius" (two centres from three points; the far one) or "lstsq_eq12".
-        iterations: the iteration limit (the paper: 1,000; 10,000 for its cluttered scene E2).
-        adaptive: organised clouds: run the standard RANSAC bound's number of iterations for the
-            smallest ball the frame can hold (``improved.iteration_bound``), at most ``iterations``;
-            unorganised clouds: stop early by the bound once a sphere is found.
+        iterations: the iteration limit (the paper: 1,000; 10,000 for its cluttered scene E2);
+            organised clouds: about the most strata (first cells) the search draws.
+        adaptive: organised clouds: strata sized by the standard RANSAC bound for the smallest ball
+            the frame can hold (``improved.strata``), one first cell drawn in each, at most about
+            ``iterations`` of them (without it: ``iterations`` strata); unorganised clouds: stop
+            early by the bound once a sphere is found.
         confidence: the probability of having drawn one all-inlier sample, for the bound.
-        min_iterations: never stop before this many iterations.
+        min_iterations: never stop before this many iterations (organised: never fewer strata).
         sample_success: organised clouds: the probability that an iteration whose first pixel is on
             the ball yields a hypothesis that passes the pretest (the descent from anywhere on the
             ball's disc reaches its front point unless the first pixel is on the rim); unorganised
@@ -148,7 +150,7 @@ class DetectorConfig:
     max_eps_fraction: float = 1.0
     pretest_points: int = 12
     pretest_min_fraction: float = 0.5
-    verify_candidates: int = 10
+    verify_candidates: int = 8
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 3

@@ -4,15 +4,15 @@ Search (compiled, ``_kernels``), for an organised cloud: one pass builds the ind
 summed-area table of the depth (mm) and of the valid count over cells of width // search_width_px
 pixels (about ``search_width_px`` cells across), so that the mean range of any box (its mean depth
 times the ray length) costs a few loads.
-Each RANSAC iteration draws a first pixel among the valid ones (uniformly: depth weights, which
-favour far balls, are implemented but off, ``_kernels.MIN_DRAW_WEIGHT``) and makes one hypothesis from box
-means about it whose size follows the ball's image radius at that depth (``front_hypothesis``):
+Each RANSAC iteration draws a first cell, one per stratum of the grid (strata of a few cells
+a side, in raster order, the cell uniform within its stratum: ``strata``), and makes one hypothesis
+from box means about it whose size follows the ball's image radius at that depth (``front_hypothesis``):
 a descent to the local minimum of the range (the ball's front point, on the ray through its
 centre), then an O(1) pretest (the four side boxes on the sphere's cap, the eight boxes around
 the outline not continuing the surface). Raw three-point samples cannot place a ball beyond about
 1.5 m at 424x240 (one pixel's depth noise exceeds the relief between two samples); box means of
-n pixels have sigma / sqrt(n). The distinct survivors are kept by score. The number of iterations
-is the standard RANSAC bound for the smallest ball the frame can hold (``iteration_bound``).
+n pixels have sigma / sqrt(n). The distinct survivors are kept by score. The strata's size is
+the standard RANSAC bound for the smallest ball the frame can hold (``strata``).
 (The issue's three-point samples in a ball diameter are here a five-box stencil about the first
 pixel, and the known radius enters as the cap's curvature: the previous three-point search on
 patch means found 176 of the default preset's 200 balls, missing most beyond 2.3 m; a box-mean
@@ -77,7 +77,7 @@ def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
                              config.max_eps_fraction * config.radius_m))
 
 
-def parameters(config: DetectorConfig, intr, iterations: int, bin_px: int, grid_shape: tuple,
+def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: int, grid_shape: tuple,
                z_far_m: float) -> np.ndarray:
     """The float64 parameter vector (``_kernels.N_PRM``,) of the organised kernels."""
     prm = np.zeros(K.N_PRM, np.float64)
@@ -86,7 +86,7 @@ def parameters(config: DetectorConfig, intr, iterations: int, bin_px: int, grid_
     prm[K.P_R], prm[K.P_EPS] = R, config.eps_m
     prm[K.P_NOISE_A], prm[K.P_NOISE_K] = noise_a(config, float(intr.fx)), config.noise_sigmas
     prm[K.P_EPS_CAP] = config.max_eps_fraction * R
-    prm[K.P_ITERS], prm[K.P_BIN] = iterations, bin_px
+    prm[K.P_STRATUM_V], prm[K.P_STRATUM_U], prm[K.P_BIN] = stratum[0], stratum[1], bin_px
     # hypotheses whose ball would be beyond the range limit (with a margin), or larger than the grid
     prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / range_limit_m(config, float(intr.fx))
     prm[K.P_RR_MAX] = float(max(grid_shape))
@@ -114,41 +114,39 @@ def far_depth_m(config: DetectorConfig, intr, z_scene_m: float) -> float:
     return max(z_far, 2.0 * config.radius_m)
 
 
-def iteration_bound(config: DetectorConfig, intr, z_far_m: float, n_weighted: float) -> int:
-    """Iterations for the standard RANSAC bound, for the smallest ball the frame can hold.
+def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape: tuple[int, int]) -> tuple[int, int]:
+    """The search's strata: (rows, columns) of cells; one first cell is drawn in each (``_kernels.search_organised``).
 
-    A ball of radius R at depth z_far covers A = pi (fx R / z_far)^2 pixels. First pixels are drawn
-    with weights w = clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1) (``_kernels.search_organised``): a ball at any depth
-    up to z_far carries at least A of weight, a share A / n_weighted of the total (n_weighted: the
-    sum of the weights of the valid points, ``weighted_count``). An iteration succeeds with
-    probability p = that share * ``sample_success`` (its first pixel on the ball, and the hypothesis
-    from it passing the pretest); k = log(1 - confidence) / log(1 - p). At least
-    ``bound_visible_fraction`` of the ball is assumed visible. Clamped to [min_iterations, iterations].
+    The standard RANSAC bound for the smallest ball the frame can hold: a ball of radius R at depth
+    z_far covers A = pi (fx R / (bin z_far))^2 cells, at least ``bound_visible_fraction`` of it
+    visible. A first cell on it gives a passing hypothesis with probability p = ``sample_success``.
+    If it covers shares f_j of the strata j (sum f_j = A / S, S a stratum's area in cells), it is
+    missed with probability prod_j (1 - p f_j) <= exp(-p A / S), the bound of as many independent
+    uniform draws as there are strata (and far less once it covers whole strata). So
+    S = p A / -ln(1 - confidence): the largest stratum of at most that area, at most twice as wide as high;
+    the number of strata is kept within [min_iterations, iterations] (about: strata are whole
+    cells). Without ``adaptive``, ``iterations`` strata.
     """
-    if not config.adaptive:
-        return config.iterations
-    area = math.pi * (intr.fx * config.radius_m / z_far_m) ** 2 * config.bound_visible_fraction
-    p = min(area / max(n_weighted, 1.0), 1.0) * config.sample_success
-    k = math.log(1.0 - config.confidence) / math.log1p(-p) if 0 < p < 1 else (1.0 if p >= 1 else math.inf)
-    return int(min(max(math.ceil(k), config.min_iterations), config.iterations))
+    hc, wc = grid_shape
+    cells = float(hc * wc)
+    if config.adaptive:
+        area = math.pi * (intr.fx / bin_px * config.radius_m / z_far_m) ** 2 * config.bound_visible_fraction
+        s2 = config.sample_success * area / -math.log1p(-config.confidence)
+    else:
+        s2 = cells / config.iterations
+    s2 = min(max(s2, cells / config.iterations), cells / max(config.min_iterations, 1))
+    best = (1, 1)
+    top = max(1, int(math.sqrt(s2)))
+    for sv in range(top, (top - 1) // 2, -1):  # strata at most twice as wide as high
+        su = max(1, int(s2 / sv))
+        if sv * su > best[0] * best[1]:
+            best = (sv, su)
+    return best
 
 
 #: Depth histogram of a frame (for the scene's far depth): bins of this many metres, up to 20 m.
 HIST_STEP_M = 0.05
 HIST_BINS = 400
-
-
-def weighted_count(hist: np.ndarray, n_valid: int, z_far_m: float, radius_m: float,
-                   step_m: float = HIST_STEP_M) -> float:
-    """The sum over n_valid points of the search's weights clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1), from the
-    depth histogram hist (B,) of a sample of them (each bin at its upper edge: an overestimate, so
-    that the bound errs toward more iterations)."""
-    total = int(hist.sum())
-    if total == 0 or K.MIN_DRAW_WEIGHT >= 1.0:  # uniform draws: every weight is 1
-        return float(n_valid)
-    upper = (np.arange(1, len(hist) + 1)) * step_m
-    w = np.clip(((upper + radius_m) / z_far_m) ** 2, K.MIN_DRAW_WEIGHT, 1.0)
-    return n_valid * float(hist @ w) / total
 
 
 def hist_percentile(hist: np.ndarray, q: float, step_m: float = HIST_STEP_M) -> float:
@@ -204,26 +202,26 @@ class Frame:
         self.bin = max(1, w // config.search_width_px)
         hc, wc = -(-h // self.bin), -(-w // self.bin)
         self.index_image = workspace("index", (h, w), np.int32)
-        self.tab = workspace("tab", (hc + 1, wc + 1, 2), np.uint32)
+        self.tab = workspace("tab", (hc + 1, wc + 1), np.uint64)
         self.hist = workspace("hist", (HIST_BINS,), np.int64)
         row_cell, col_cell = _cell_lookup(h, w, self.bin)
         n_ok, n_big = K.prepare_organised(cloud.points, cloud.rows, cloud.cols, self.index_image, self.tab, row_cell,
                                           col_cell, np.float32(config.mm_check_median_m), self.hist,
                                           np.float32(1.0 / HIST_STEP_M))
         self.n_ok, self.n_big = int(n_ok), int(n_big)
-        self.n_valid = int(self.tab[-1, -1, 1])  # the table's total count (below 2^32 pixels)
+        self.n_valid = int(self.tab[-1, -1] >> np.uint64(K.COUNT_SHIFT))  # the table's total count
         self.z_far_m = far_depth_m(config, intr, hist_percentile(self.hist, 98.0))
-        self.n_weighted = weighted_count(self.hist, self.n_valid, self.z_far_m, config.radius_m)
-        self.iterations = iteration_bound(config, intr, self.z_far_m, self.n_weighted)
-        self.prm = parameters(config, intr, self.iterations, self.bin, (hc, wc), self.z_far_m)
+        self.stratum = strata(config, intr, self.z_far_m, self.bin, (hc, wc))
+        #: first cells the search draws: one per stratum
+        self.iterations = -(-hc // self.stratum[0]) * -(-wc // self.stratum[1])
+        self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m)
 
 
 def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,)), best first."""
     hyp = np.zeros((config.search_candidates, 5), np.float64)
-    counters = np.zeros(3, np.int64)
-    c = frame.cloud
-    m = K.search_organised(c.points, c.rows, c.cols, frame.tab, frame.prm, np.uint64(seed), hyp, counters)
+    counters = np.zeros(2, np.int64)
+    m = K.search_organised(frame.tab, frame.prm, np.uint64(seed), hyp, counters)
     frame.counters = counters  # diagnostics (see _kernels.search_organised)
     frame.hypotheses = hyp[:m]
     centres = np.array([K.cell_centre(frame.prm, h[0], h[1], h[2]) for h in hyp[:m]]).reshape(-1, 3)

@@ -1,10 +1,10 @@
 """Readable pure-Python/numpy replays of the compiled organised kernels, for the tests.
 
-``search_organised`` replays ``_kernels.search_organised``: it draws the same random numbers
+``search_organised`` replays ``_kernels.search_organised``: it draws the same first cells
 (splitmix64, in Python integers) in the same order and applies the same tests, written plainly: the
 box sums are summed directly over an image of the cells' depth sums and counts (the kernel uses a
-summed-area table kept modulo 2^32), the steps and the tests are the same formulas in the same
-order, so the tests can require the same hypotheses. ``window_stats`` is the kernel's silhouette
+summed-area table, depth and count packed in one uint64), the steps and the tests are the same
+formulas in the same order, so the tests can require the same hypotheses. ``window_stats`` is the kernel's silhouette
 classification, vectorised. Far too slow for real frames; they exist to check the fast path.
 """
 
@@ -220,28 +220,26 @@ def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int)
     del kept[k_max:]
 
 
-def search_organised(points, rows, cols, index_image, prm, seed: int, k_max: int):
-    """Replay of ``_kernels.search_organised``: (hypotheses (M, 5) rows (v, u, front, r, score), counters (3,))."""
+def search_organised(points, index_image, prm, seed: int, k_max: int):
+    """Replay of ``_kernels.search_organised``: (hypotheses (M, 5) rows (v, u, front, r, score), counters (2,))."""
     b = int(prm[K.P_BIN])
     g = Grid(*cell_images(points, index_image, b), prm)
+    hc, wc = g.zs.shape
+    sv, su = int(prm[K.P_STRATUM_V]), int(prm[K.P_STRATUM_U])
     rng = SplitMix64(seed)
-    n = len(rows)
     kept: list = []
-    counters = np.zeros(3, np.int64)
-    iters = int(prm[K.P_ITERS])
-    while counters[0] < iters and counters[2] < 64 * iters + 64:
-        i1 = min(int(rng.u01() * n), n - 1)
-        counters[2] += 1
-        # first pixels weighted by min(1, ((z + R) / z_far)^2), by rejection
-        w = (float(points[i1, 2]) + prm[K.P_R]) / prm[K.P_Z_FAR]
-        if not rng.u01() < max(w * w, K.MIN_DRAW_WEIGHT):
-            continue
-        counters[0] += 1
-        q, hyp = front_hypothesis(g, int(rows[i1]) // b, int(cols[i1]) // b)
-        if hyp is None:
-            continue
-        counters[1] += 1
-        keep_hypothesis(kept, hyp, q, prm[K.P_R], k_max)
+    counters = np.zeros(2, np.int64)
+    for v0 in range(0, hc, sv):  # strata in raster order, one uniform first cell in each
+        for u0 in range(0, wc, su):
+            nv, nu = min(sv, hc - v0), min(su, wc - u0)
+            v = v0 + min(int(rng.u01() * nv), nv - 1)
+            u = u0 + min(int(rng.u01() * nu), nu - 1)
+            counters[0] += 1
+            q, hyp = front_hypothesis(g, v, u)
+            if hyp is None:
+                continue
+            counters[1] += 1
+            keep_hypothesis(kept, hyp, q, prm[K.P_R], k_max)
     out = np.array([[*h, q] for q, h in kept], np.float64).reshape(-1, 5)
     return out, counters
 

@@ -35,12 +35,11 @@ def test_splitmix_replay_matches_kernel():
 def test_compiled_search_equals_reference(ball, noise, seed, width):
     # a small, noisy frame; the 260-pixel one is binned 2x2 (search_width_px=130)
     cloud = scene(ball_c=ball, noise=noise, width=width, height=width * 3 // 4, seed=seed)
-    cfg = config_for("improved", iterations=400, adaptive=False, search_width_px=130)
+    cfg = config_for("improved", iterations=2000, adaptive=False, search_width_px=130)
     frame = det.prepare_frame(cloud, cfg)
     assert frame.bin == max(1, width // 130)
     cands, quals = imp.search_organised(frame, cfg, seed)
-    hyp, ctr = ref.search_organised(cloud.points, cloud.rows, cloud.cols, frame.index_image, frame.prm, seed,
-                                    cfg.search_candidates)
+    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, frame.prm, seed, cfg.search_candidates)
     assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
     assert np.array_equal(frame.hypotheses, hyp)
     # and the best hypothesis is the ball (unrefined: from box means)
@@ -57,7 +56,7 @@ def test_summed_area_table_gives_box_sums():
             assert K.box_sums(frame.tab, v, u, h) == grid.box_sums(v, u, h)
             got, want = K.box_range(frame.tab, frame.prm, v, u, h), grid.box_range(v, u, h)
             assert got[1] == want[1] and (got[0] == want[0] or (math.isnan(got[0]) and math.isnan(want[0])))
-    # the table is modulo 2^32, box sums are exact: a frame of 10 m depths (2.4e9 mm in all at 240 x 1000)
+    # depth sums and counts packed in one uint64 stay apart: a frame of 10 m depths (2.4e9 mm in all at 240 x 1000)
     far = Cloud(np.column_stack([np.zeros(240_000), np.zeros(240_000), np.full(240_000, 10.0)]),
                 np.repeat(np.arange(240), 1000), np.tile(np.arange(1000), 240), Intrinsics.d435(1000, 240))
     frame = det.prepare_frame(far, config_for("improved", search_width_px=1000))
@@ -77,29 +76,46 @@ def test_window_stats_compiled_equals_reference():
         assert got[K.ST_INLIER] > 0.7 * got[K.ST_VALID_DISC] and got[K.ST_IN_N] > 10 and got[K.ST_OUTV_N] > 10
 
 
-def test_iteration_bound_follows_ball_area():
+def test_strata_follow_the_ransac_bound():
     cfg = config_for("improved")
     intr = Intrinsics.d435(424, 240)
-    # a room 3 m deep: the bound provides for a ball at 3 m + R, of area pi (fx R / z)^2 pixels
+    grid = (240, 424)
+    # a room 3 m deep: the bound provides for a ball at 3 m + R, of area pi (fx R / z)^2 cells
     z_far = imp.far_depth_m(cfg, intr, 3.0)
     assert z_far == pytest.approx(3.12)
-    k = imp.iteration_bound(cfg, intr, z_far, 100_000)
+    sv, su = imp.strata(cfg, intr, z_far, 1, grid)
     area = math.pi * (intr.fx * R / 3.12) ** 2
-    expect = math.log(1 - cfg.confidence) / math.log(1 - area / 100_000 * cfg.sample_success)
-    assert k == math.ceil(expect)
-    # a shallow scene needs fewer; a deep one is capped by the noise range limit (3.5 m at 424x240)
-    assert imp.iteration_bound(cfg, intr, imp.far_depth_m(cfg, intr, 1.0), 100_000) < k
+    s_max = cfg.sample_success * area / -math.log(1 - cfg.confidence)
+    # the largest stratum within the bound, at most about twice as wide as high
+    assert sv * su <= s_max < (sv + 1) * (su + 1) and sv <= su <= 2 * sv + 1
+    # the miss probability bound exp(-p A / S) holds
+    assert math.exp(-cfg.sample_success * area / (sv * su)) <= 1 - cfg.confidence
+    # a shallow scene needs fewer, larger strata; a deep one is capped by the noise range limit (3.5 m at 424x240)
+    sv1, su1 = imp.strata(cfg, intr, imp.far_depth_m(cfg, intr, 1.0), 1, grid)
+    assert sv1 * su1 > 4 * sv * su
     assert imp.range_limit_m(cfg, intr.fx) == pytest.approx(math.sqrt(0.75 * R * intr.fx * 0.05 / 0.08))
     assert imp.far_depth_m(cfg, intr, 8.0) == imp.far_depth_m(cfg, intr, 5.0) == imp.range_limit_m(cfg, intr.fx)
-    assert imp.iteration_bound(config_for("improved", adaptive=False), intr, z_far, 100_000) == cfg.iterations
-    # first pixels are weighted by clip(((z + R) / z_far)^2, MIN_DRAW_WEIGHT, 1): a frame whose points
-    # all lie at z_far / 2 - R weighs a quarter of its count (or the floor), and needs fewer iterations
-    hist = np.zeros(imp.HIST_BINS, np.int64)
-    hist[int((z_far / 2 - R) / imp.HIST_STEP_M)] = 1000
-    n_w = imp.weighted_count(hist, 100_000, z_far, R)
-    floor = max(0.25, K.MIN_DRAW_WEIGHT)
-    assert floor <= n_w / 100_000 < max(0.27, floor + 1e-9)  # the bin's upper edge: a slight overestimate
-    assert imp.iteration_bound(cfg, intr, z_far, n_w) <= math.ceil(floor * 1.1 * k)
+    # cells of 3 x 3 pixels: the same ball covers 9 times fewer of them
+    hd = Intrinsics.d435(1280, 720)
+    sv3, su3 = imp.strata(cfg, hd, z_far, 3, grid)
+    assert sv3 * su3 <= cfg.sample_success * math.pi * (hd.fx / 3 * R / 3.12) ** 2 / -math.log(1 - cfg.confidence)
+    # without the bound: about `iterations` strata; never fewer than min_iterations
+    sv, su = imp.strata(config_for("improved", adaptive=False, iterations=400), intr, z_far, 1, grid)
+    assert 400 <= -(-240 // sv) * -(-424 // su) <= 520
+    sv, su = imp.strata(config_for("improved", min_iterations=2000), intr, 0.5, 1, grid)
+    assert -(-240 // sv) * -(-424 // su) >= 2000
+
+
+def test_search_draws_one_first_cell_per_stratum():
+    cloud = scene(ball_c=(0.05, 0.0, 1.2), noise=0.004, width=160, height=120, seed=2)
+    cfg = config_for("improved")
+    frame = det.prepare_frame(cloud, cfg)
+    imp.search_organised(frame, cfg, 3)
+    sv, su = frame.stratum
+    assert frame.counters[0] == frame.iterations == -(-120 // sv) * -(-160 // su)
+
+
+def test_scene_depth_from_the_histogram():
     # the scene depth comes from the frame's histogram (98th percentile, to a bin's upper edge)
     hist = np.zeros(imp.HIST_BINS, np.int64)
     hist[[20, 40, 60]] = [50, 48, 2]
