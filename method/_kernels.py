@@ -676,6 +676,8 @@ V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE, V_SIGMA 
 
 #: The first refinement round takes inliers within at least this fraction of R.
 COARSE_BAND_FRACTION = 0.25
+FIRST_BAND_FRACTION = 0.5
+FIRST_STEPS = 3
 #: The size check never accepts a free radius further than this fraction of R from R.
 SIZE_LIMIT_FRACTION = 0.25
 N_VOUT = 12
@@ -751,18 +753,30 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     c = c0.copy()
     out[:] = math.nan
     out[V_N] = 0.0
+    moved = COARSE_BAND_FRACTION * radius
     for it in range(refine_iterations):
         if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
             return
         e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
-        if it == 0:
-            # a hypothesis from box means can be a few cm off: near the camera eps is 1 cm, and
-            # inliers within it would hold the fit where it started
-            e = max(e, COARSE_BAND_FRACTION * radius)
+        # a hypothesis from box means can be a few cm off, and the sphere's own points then lie up
+        # to that far from the current one: near the camera eps is 1 cm, and inliers within it would
+        # hold the fit where it started. So the band starts at COARSE_BAND_FRACTION R and stays wider
+        # than twice the last move while the centre travels
+        e = max(e, FIRST_BAND_FRACTION * radius if it == 0 else min(COARSE_BAND_FRACTION * radius, 2.0 * moved))
         stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
         n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
         if n < 3:
             return
+        if it == 0:
+            # 3D residuals first: a ray that misses the current sphere (a centre some cm to the side)
+            # has a ray residual nearly flat in the centre, and ray steps then creep (a third of the
+            # offset per round); ||p - c|| - R pulls from anywhere, and its bias (depth noise along
+            # the rays, a few mm at 2 m) is left to the ray steps that follow
+            c_new = refine_fixed_radius(points, _strided(idx, n, max_fit_points), c[0], c[1], c[2], radius,
+                                        FIRST_STEPS)
+            moved = math.sqrt((c_new[0] - c[0]) ** 2 + (c_new[1] - c[1]) ** 2 + (c_new[2] - c[2]) ** 2)
+            c[0], c[1], c[2] = c_new[0], c_new[1], c_new[2]
+            continue
         rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
         moved = ray_step(rays, c, radius, s_min)
         # the inliers change between rounds: a move within the centre's standard error (per-pixel
@@ -878,13 +892,14 @@ def shell_indices(points, cx, cy, cz, radius, band, out_idx):
 
 @njit(cache=True)
 def refine_fixed_radius(points, idx, cx, cy, cz, radius, iterations):
-    """Gauss-Newton on sum (||p - c|| - R)^2 over points[idx]; returns the centre (3,) float64."""
+    """Gauss-Newton on sum (||p - c|| - R)^2 over points[idx]; returns the centre (3,) float64.
+    (Scalar sums and ``cholesky_solve``: a LAPACK call per step cost more than the sums.)"""
     c = np.array([cx, cy, cz])
-    A = np.empty((3, 3))
-    g = np.empty(3)
+    A = np.zeros((4, 4))
+    g = np.zeros(4)
+    step = np.zeros(4)
     for _ in range(iterations):
-        A[:] = 0.0
-        g[:] = 0.0
+        a00 = a10 = a11 = a20 = a21 = a22 = g0 = g1 = g2 = 0.0
         for k in range(idx.shape[0]):
             i = idx[k]
             dx, dy, dz = points[i, 0] - c[0], points[i, 1] - c[1], points[i, 2] - c[2]
@@ -893,20 +908,25 @@ def refine_fixed_radius(points, idx, cx, cy, cz, radius, iterations):
                 continue
             u0, u1, u2 = dx / d, dy / d, dz / d
             r = d - radius
-            A[0, 0] += u0 * u0
-            A[0, 1] += u0 * u1
-            A[0, 2] += u0 * u2
-            A[1, 1] += u1 * u1
-            A[1, 2] += u1 * u2
-            A[2, 2] += u2 * u2
-            g[0] += u0 * r
-            g[1] += u1 * r
-            g[2] += u2 * r
-        A[1, 0], A[2, 0], A[2, 1] = A[0, 1], A[0, 2], A[1, 2]
-        if abs(np.linalg.det(A)) < 1e-18:
+            a00 += u0 * u0
+            a10 += u1 * u0
+            a11 += u1 * u1
+            a20 += u2 * u0
+            a21 += u2 * u1
+            a22 += u2 * u2
+            g0 += u0 * r
+            g1 += u1 * r
+            g2 += u2 * r
+        A[0, 0], A[1, 0], A[1, 1], A[2, 0], A[2, 1], A[2, 2] = a00, a10, a11, a20, a21, a22
+        g[0], g[1], g[2] = g0, g1, g2
+        # J = -u, so the GN step -(J^T J)^-1 J^T r = +A^-1 g; a singular A (too few or collinear
+        # directions) ends the fit where it is
+        det = a00 * (a11 * a22 - a21 * a21) - a10 * (a10 * a22 - a21 * a20) + a20 * (a10 * a21 - a11 * a20)
+        if abs(det) < 1e-18 or cholesky_solve(A, g, 3, step) < 0.0:
             break
-        step = np.linalg.solve(A, g)  # J = -u, so the GN step -(J^T J)^-1 J^T r = +A^-1 g
-        c += step
+        c[0] += step[0]
+        c[1] += step[1]
+        c[2] += step[2]
         if math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2) < 1e-9:
             break
     return c
