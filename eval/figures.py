@@ -19,7 +19,8 @@ from spherebench.eval.circle_iou import circle_iou_matrix  # noqa: E402
 
 RECALL = np.linspace(0.0, 1.0, 101)
 #: Methods drawn on the example scenes, with their colours (matplotlib names).
-EXAMPLE_METHODS = (("improved", "red"), ("paper+paper-circle", "orange"), ("circlenet", "cyan"), ("hough", "magenta"))
+EXAMPLE_METHODS = (("improved", "red"), ("paper+paper-circle", "orange"), ("circlenet", "cyan"),
+                   ("circlenet-full", "black"), ("hough", "magenta"))
 
 
 def _colours(n: int):

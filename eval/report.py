@@ -37,6 +37,11 @@ from spherebench.eval.runner import PAPER_CIRCLE, SceneInfo, _json_safe, machine
 PAPER_TABLE3 = [("SphereDetection (ours), as reported by the paper", 0.512, 0.894, 0.529),
                 ("CircleNet-HG, as reported by the paper", 0.491, 0.843, 0.512)]
 
+#: The CircleNet methods in the reading, with what each one is (``runner.CIRCLENET_MODELS``).
+CIRCLENET_READING = {"circlenet": "`circlenet` (half-width ResNet-18, CPU-trained)",
+                     "circlenet-full": "`circlenet-full` (ResNet-18 at its own widths, GPU-trained)",
+                     "circlenet-hg": "`circlenet-hg` (2-stack hourglass, GPU-trained)"}
+
 #: Packages whose versions go into the provenance.
 PACKAGES = ("numpy", "scipy", "opencv-python-headless", "numba", "pycocotools", "onnxruntime", "torch",
             "pyransac3d", "matplotlib", "tqdm", "plyfile", "open3d")
@@ -483,11 +488,14 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
                        f"{i.metrics['mAP75']:.3f} vs {ip.metrics['mAP75']:.3f}); the paper's rule ignores that a "
                        "sphere's outline is an ellipse off the optical axis and that the ground truth is the visible "
                        "mask's enclosing circle.")
-        c = _get(default, "circlenet")
-        if c is not None and c.metrics.get("mAP") is not None:
-            out.append(f"CircleNet (trained here on the `train` split only) scores {c.metrics['mAP']:.3f} / "
-                       f"{c.metrics['mAP50']:.3f} / {c.metrics['mAP75']:.3f} (paper's CircleNet-HG: "
-                       f"{PAPER_TABLE3[1][1]:.3f} / {PAPER_TABLE3[1][2]:.3f} / {PAPER_TABLE3[1][3]:.3f}).")
+        nets = [(name, c) for name, c in ((n, _get(default, n)) for n in CIRCLENET_READING)
+                if c is not None and c.metrics.get("mAP") is not None]
+        if nets:
+            out.append("CircleNet (trained here on the `train` split only) scores "
+                       + "; ".join(f"{c.metrics['mAP']:.3f} / {c.metrics['mAP50']:.3f} / {c.metrics['mAP75']:.3f} "
+                                   f"as {CIRCLENET_READING[name]}" for name, c in nets)
+                       + f" (paper's CircleNet-HG: {PAPER_TABLE3[1][1]:.3f} / {PAPER_TABLE3[1][2]:.3f} / "
+                       f"{PAPER_TABLE3[1][3]:.3f}).")
         if i is not None and i.metrics.get("3d"):
             d = i.metrics["3d"]
             out.append(f"In 3D, `improved` finds {100 * d['within_2cm']:.1f} % of the `default` balls within 2 cm "

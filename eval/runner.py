@@ -14,7 +14,9 @@ Methods (``build_methods``):
 - ``hough``: OpenCV's Hough circle transform (``spherebench.baselines.hough``) on image.png,
   with a configuration tuned on the training split (``tuned_hough_config``);
 - ``circlenet``: the CircleNet-style ONNX model (``spherebench.baselines.circlenet.infer``)
-  on image.png, when a model file exists.
+  on image.png, when a model file exists; ``circlenet-full`` (ResNet-18 at its own widths) and
+  ``circlenet-hg`` (the stacked hourglass) the same with the GPU-trained models
+  (``CIRCLENET_MODELS``).
 
 Output, per prediction set, in ``<out>/<name>.json``: a COCO results list with CircleNet's
 fields (image_id, category_id, circle_center [x, y], circle_radius (px), score) plus scene_id
@@ -76,7 +78,15 @@ PYRANSAC3D_POINTS = 2_000
 PYRANSAC3D_ITERATIONS = 1000
 PYRANSAC3D_THRESH_M = 0.01
 
-METHOD_ORDER = ("improved", "paper", "paper-lstsq", "pyransac3d", "hough", "circlenet")
+#: The CircleNet models: method name -> (ONNX file under baselines/circlenet/, how to make it).
+#: ``circlenet``: the half-width ResNet-18 trained on the CPU; the others need a CUDA machine.
+CIRCLENET_MODELS = {
+    "circlenet": ("model.onnx", "make train"),
+    "circlenet-full": ("full/model.onnx", "make train-full, on a CUDA machine"),
+    "circlenet-hg": ("hg/model.onnx", "make train-hg, on a CUDA machine"),
+}
+
+METHOD_ORDER = ("improved", "paper", "paper-lstsq", "pyransac3d", "hough", *CIRCLENET_MODELS)
 
 
 def scene_seed(seed: int, index: int) -> int:
@@ -227,23 +237,31 @@ def card_budget(card: dict) -> str:
     """One line of a CircleNet model card: its training budget and validation score."""
     val = card.get("val_onnx") or card.get("val_torch") or {}
     data = card.get("data", {})
+    half = "; weights stored as float16" if (card.get("onnx") or {}).get("weights") == "float16" else ""
     return (f"trained from scratch on {data.get('train_images', '?')} `{data.get('preset', 'train')}` images, "
             f"{card.get('epochs', '?')} epochs, {card.get('train_seconds', 0) / 60:.0f} min on {card.get('device', '?')}; "
-            f"validation mAP.50 {val.get('mAP50', float('nan')):.3f}")
+            f"validation mAP.50 {val.get('mAP50', float('nan')):.3f}{half}")
 
 
-def circlenet_spec(model_path: str | Path) -> MethodSpec:
-    """CircleNet from an ONNX file; raises SphereBenchError if the file is missing."""
+def circlenet_model_path(name: str = "circlenet") -> Path:
+    """The shipped ONNX file of a CircleNet method of ``CIRCLENET_MODELS`` (it may not exist)."""
+    from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
+    return DEFAULT_MODEL.parent / CIRCLENET_MODELS[name][0]
+
+
+def circlenet_spec(model_path: str | Path, name: str = "circlenet") -> MethodSpec:
+    """CircleNet from an ONNX file, as method ``name``; raises SphereBenchError if the file is missing."""
     path = Path(model_path)
     if not path.is_file():
         shown = path.resolve().relative_to(REPO_ROOT) if path.resolve().is_relative_to(REPO_ROOT) else path
-        raise SphereBenchError(f"CircleNet model {shown} not found (train it with `make train`)")
+        how = CIRCLENET_MODELS.get(name, CIRCLENET_MODELS["circlenet"])[1]
+        raise SphereBenchError(f"CircleNet model {shown} not found (train it with `{how}`)")
     card_path = path.with_name("model_card.json")
     budget = ""
     if card_path.is_file():  # the training budget belongs next to the numbers (fairness)
         card = json.loads(card_path.read_text())
         budget = "; " + card_budget(card)
-    return MethodSpec(name="circlenet", kind="2d",
+    return MethodSpec(name=name, kind="2d",
                       config={"engine": "circlenet", "model": path.name, "min_score": CIRCLENET_MIN_SCORE,
                               "top_k": CIRCLENET_TOP_K, "onnxruntime": _dist_version("onnxruntime")},
                       modules=_CORE_MODULES + ("spherebench.baselines.circlenet",),
@@ -267,7 +285,8 @@ def build_methods(names: Sequence[str] | None = None, hough_config=None, circlen
 
     radius_m: the dataset's ball radius (the 3D methods' R).
     hough_config: the tuned ``HoughConfig`` (None: OpenCV-tutorial defaults, said in the note).
-    circlenet_model: the ONNX file (None: the shipped default path).
+    circlenet_model: the ONNX file of ``circlenet`` (None: the shipped one); the other CircleNet
+    methods always use their shipped files (``CIRCLENET_MODELS``).
     table_note(name, reason) is called for every method skipped, with the reason.
     Unknown names raise SphereBenchError.
     """
@@ -288,11 +307,9 @@ def build_methods(names: Sequence[str] | None = None, hough_config=None, circlen
                 if hough_config is None:
                     spec = dataclasses.replace(spec, note="untuned defaults (no tuned configuration given)")
                 specs.append(spec)
-            elif name == "circlenet":
-                if circlenet_model is None:
-                    from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
-                    circlenet_model = DEFAULT_MODEL
-                specs.append(circlenet_spec(circlenet_model))
+            elif name in CIRCLENET_MODELS:
+                given = circlenet_model if name == "circlenet" else None
+                specs.append(circlenet_spec(given if given is not None else circlenet_model_path(name), name=name))
         except SphereBenchError as exc:
             if table_note is None:
                 raise

@@ -36,7 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Hough configuration JSON (default: the tuned one in results/hough_config.json, else "
                         "tuned now on a training subset built under OUT)")
     p.add_argument("--model", metavar="FILE", default=None,
-                   help="CircleNet ONNX model (default: baselines/circlenet/model.onnx; skipped if missing)")
+                   help="the `circlenet` method's ONNX model (default: baselines/circlenet/model.onnx; skipped if "
+                        "missing); circlenet-full and circlenet-hg use theirs under baselines/circlenet/")
     p.add_argument("--no-figures", action="store_true", help="write no figures")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 

@@ -9,8 +9,8 @@ Steps (each resumable; finished work with the same inputs is reused):
 2. predictions of every available method on DATA/default and DATA/hard (OUT/predictions/);
 3. Table 2 on DATA/paper (the paper configuration, z 3, 2, 1.5; 10,000 iterations on E2);
 4. metrics.json, tables/, figures/, README.md, provenance.json.
-The CircleNet baseline joins when its model (baselines/circlenet/model.onnx) exists; otherwise
-the tables say it was skipped.
+Each CircleNet baseline joins when its model exists (baselines/circlenet/model.onnx, full/model.onnx,
+hg/model.onnx); otherwise the tables say it was skipped.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ INTRO = [
     "rules (exact silhouette; `+paper-circle`: the paper's projection); `pyransac3d` (a generic free-radius sphere "
     "RANSAC; its circle from its own centre and radius); `hough` (OpenCV's Hough circle transform, parameters "
     "chosen on the training split); `circlenet` (the CircleNet-style model trained on the training split, ONNX "
-    "Runtime).",
+    "Runtime: a half-width ResNet-18 trained on the CPU), `circlenet-full` (ResNet-18 at its own widths) and "
+    "`circlenet-hg` (a 2-stack hourglass, like the paper's CircleNet-HG), both trained on a GPU.",
 ]
 
 

@@ -1,7 +1,7 @@
 """`spherebench train`: train the CircleNet-style 2D baseline on a training dataset.
 
     spherebench train --data data/train --out checkpoints/circlenet [--backbone resnet18|hourglass]
-                      [--epochs N] [--seed N] [--resume]
+                      [--resnet-width N] [--epochs N] [--seed N] [--onnx-weights float32|float16] [--resume]
 
 Writes checkpoint.pt, history.json, training_curve.png, model.onnx and model_card.{json,md} to
 --out (see spherebench.baselines.circlenet.train). Never train on the benchmark's scenes.
@@ -19,6 +19,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for checkpoints, curve, model.onnx, card")
     parser.add_argument("--backbone", choices=["resnet18", "hourglass"], default=None,
                         help="resnet18 (light, CPU; default) or hourglass (CircleNet-HG-like, for a GPU)")
+    parser.add_argument("--resnet-width", type=int, default=None, metavar="N",
+                        help="resnet18 stage widths N, 2N, 4N, 8N (default 32: half width, for the CPU; "
+                             "64: ResNet-18's own widths, for a GPU)")
     parser.add_argument("--image-size", default=None, metavar="WxH",
                         help="the model's input image size (default 424x240); other D435 modes of the same "
                              "aspect ratio are scaled to it")
@@ -29,6 +32,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--workers", type=int, default=None, metavar="N", help="data-loading processes (default 0)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="CPU threads (default: one per core; 1 is faster when other jobs share the cores)")
+    parser.add_argument("--onnx-weights", choices=["float32", "float16"], default=None,
+                        help="how model.onnx stores its weights (default float32; float16 halves the file, "
+                             "the arithmetic stays float32)")
     parser.add_argument("--resume", action="store_true", help="continue the interrupted run in --out")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -38,7 +44,7 @@ def run(args) -> int:
     from spherebench.baselines.circlenet.train import TrainConfig, run_config, train
     from spherebench.errors import SphereBenchError
 
-    given = {k: getattr(args, k) for k in ("epochs", "batch_size", "device", "workers", "threads")
+    given = {k: getattr(args, k) for k in ("epochs", "batch_size", "device", "workers", "threads", "onnx_weights")
              if getattr(args, k) is not None}
     if any(v < 1 for k, v in given.items() if k in ("epochs", "batch_size", "threads")):
         raise SphereBenchError("--epochs, --batch-size and --threads must be at least 1")
@@ -47,6 +53,13 @@ def run(args) -> int:
         model["backbone"] = args.backbone
     if args.image_size is not None:
         model["image_size"] = _parse_size(args.image_size)
+    if args.resnet_width is not None:
+        if args.resnet_width < 1:
+            raise SphereBenchError("--resnet-width must be at least 1")
+        if args.backbone == "hourglass":
+            raise SphereBenchError("--resnet-width sets the resnet18 backbone's widths; it has no effect on "
+                                   "--backbone hourglass")
+        model["resnet_width"] = args.resnet_width
     if args.resume:  # the run's own settings; an option given here must agree with them (train checks)
         config = run_config(args.out)
         config = replace(config, model=replace(config.model, **model), **given)

@@ -103,6 +103,9 @@ def test_default_backbones_fit_the_benchmark_images_and_the_size_limit():
         assert cfg.input_size == (256, 448)  # 424x240 padded to multiples of 32
         n = sum(p.numel() for p in CircleNet(cfg).parameters())
         assert 4 * n < 25e6, f"{backbone}: {n} parameters, the ONNX file would exceed 25 MB"
+    # ResNet-18 at its own widths (`make train-full`): 25 MB only with its weights stored as float16
+    n = sum(p.numel() for p in CircleNet(CircleNetConfig(resnet_width=64)).parameters())
+    assert 4 * n > 25e6 > 2 * n
 
 
 def test_unknown_backbone_is_an_error():
@@ -353,6 +356,24 @@ def test_onnx_and_torch_heads_agree(tmp_path, tiny_data, backbone):
     np.testing.assert_allclose(det.detect(double, top_k=5), scale_circles(det.detect(image, top_k=5), 2.0), atol=1e-6)
 
 
+def test_float16_weights_halve_the_file_and_keep_the_heads(tmp_path, tiny_data):
+    import onnx
+    torch.manual_seed(0)
+    model = CircleNet(CircleNetConfig(image_size=(48, 64), **TINY)).eval()
+    full = export_onnx(model, tmp_path / "f32.onnx")
+    half = export_onnx(model, tmp_path / "f16.onnx", weights="float16")
+    assert half.stat().st_size < 0.6 * full.stat().st_size
+    inits = onnx.load(str(half)).graph.initializer
+    assert not any(i.data_type == onnx.TensorProto.FLOAT for i in inits)
+    a, b = CircleNetDetector(full), CircleNetDetector(half)
+    assert b.metadata["weights"] == "float16" and "weights" not in a.metadata
+    image = cv2.cvtColor(cv2.imread(str(tiny_data / "scenes/0002/image.png")), cv2.COLOR_BGR2RGB)
+    for x, y in zip(a.heads(image[None]), b.heads(image[None])):  # float32 arithmetic, rounded weights only
+        assert x.dtype == y.dtype == np.float32 and float(np.abs(x - y).max()) < 1e-2
+    with pytest.raises(SphereBenchError, match="weights must be"):
+        export_onnx(model, tmp_path / "x.onnx", weights="int8")
+
+
 # ---------------------------------------------------------------- the command line
 
 def _cli(monkeypatch, capsys, *argv):
@@ -396,6 +417,31 @@ def _one_line_error(monkeypatch, capsys, *argv, match):
     rc, cap = _cli(monkeypatch, capsys, *argv)
     assert rc == 2
     assert len(cap.err.strip().splitlines()) == 1 and match in cap.err, cap.err
+
+
+def test_cli_train_options_reach_the_config(monkeypatch, capsys, tmp_path):
+    seen = []
+
+    def fake_train(data, out, config, **kw):
+        seen.append(config)
+        return {"val_onnx": {"mAP": 0.0, "mAP50": 0.0, "mAP75": 0.0}, "epochs": config.epochs, "train_seconds": 0.0}
+
+    monkeypatch.setattr(ctrain, "train", fake_train)
+    base = ("train", "--data", str(tmp_path), "--out", str(tmp_path / "o"))
+    assert _cli(monkeypatch, capsys, *base)[0] == 0
+    assert _cli(monkeypatch, capsys, *base, "--resnet-width", "64", "--onnx-weights", "float16")[0] == 0
+    default, full = seen
+    assert (default.model.resnet_width, default.onnx_weights) == (32, "float32")  # `make train`'s model
+    assert (full.model.backbone, full.model.resnet_width, full.onnx_weights) == ("resnet18", 64, "float16")
+    _one_line_error(monkeypatch, capsys, *base, "--resnet-width", "0", match="at least 1")
+    _one_line_error(monkeypatch, capsys, *base, "--backbone", "hourglass", "--resnet-width", "64",
+                    match="no effect on --backbone hourglass")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_training_on_cuda_without_a_gpu_is_a_clear_error(tmp_path, tiny_data, monkeypatch, capsys):
+    _one_line_error(monkeypatch, capsys, "train", "--data", str(tiny_data), "--out", str(tmp_path / "o"),
+                    "--device", "cuda", "--epochs", "1", match="no CUDA device")
 
 
 def test_bad_models_are_clear_errors(tmp_path, tiny_data, monkeypatch, capsys):

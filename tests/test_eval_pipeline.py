@@ -102,6 +102,30 @@ def test_circlenet_skipped_when_model_missing(tmp_path):
     assert specs == [] and "not found" in skipped["circlenet"]
 
 
+def test_gpu_trained_circlenets_are_methods_and_skipped_when_missing(monkeypatch):
+    assert runner.METHOD_ORDER[-3:] == ("circlenet", "circlenet-full", "circlenet-hg")
+    for name in ("circlenet-full", "circlenet-hg"):
+        monkeypatch.setitem(runner.CIRCLENET_MODELS, name, (f"absent/{name}.onnx", f"make train-{name[10:]}, on a CUDA machine"))
+    skipped = {}
+    assert runner.build_methods(["circlenet-full", "circlenet-hg"], table_note=skipped.__setitem__) == []
+    assert set(skipped) == {"circlenet-full", "circlenet-hg"}
+    assert "not found" in skipped["circlenet-full"] and "`make train-full, on a CUDA machine`" in skipped["circlenet-full"]
+    with pytest.raises(SphereBenchError, match="make train-hg"):
+        runner.build_methods(["circlenet-hg"])
+
+
+def test_shipped_gpu_circlenets_are_found(tmp_path):
+    shipped = [n for n in ("circlenet-full", "circlenet-hg") if runner.circlenet_model_path(n).is_file()]
+    if not shipped:
+        pytest.skip("no GPU-trained CircleNet model in baselines/circlenet/")
+    # --model replaces the `circlenet` file only; the others keep their own
+    specs = runner.build_methods(shipped, circlenet_model=tmp_path / "absent.onnx")
+    assert [s.name for s in specs] == shipped
+    for s in specs:
+        assert s.resource == str(runner.circlenet_model_path(s.name).resolve())
+        assert s.extra_fingerprint == runner.file_sha256(s.resource) and "on GPU" in s.note
+
+
 def test_evaluate_cli(tiny, tmp_path):
     from spherebench.cli import main
     hough_file = tmp_path / "hough.json"

@@ -44,7 +44,7 @@ class CircleNetConfig:
     pixel_mean: tuple[float, float, float] = (127.5, 127.5, 127.5)
     pixel_std: tuple[float, float, float] = (64.0, 64.0, 64.0)
     # -- "resnet18": stage widths width * (1, 2, 4, 8); 32 = half of ResNet-18's 64, which keeps
-    # the ONNX file ~11 MB and CPU training 3-4x cheaper --
+    # the ONNX file ~11 MB and CPU training 3-4x cheaper (64: `make train-full`, on a GPU) --
     resnet_width: int = 32
     resnet_blocks: tuple[int, int, int, int] = (2, 2, 2, 2)
     neck_channels: int = 64

@@ -60,6 +60,7 @@ class TrainConfig:
     workers: int = 0  # DataLoader workers (0: in the main process; the model dominates the time)
     threads: int | None = None  # torch CPU threads (None: torch's default, one per core); 1 on a busy shared machine
     checkpoint_minutes: float = 5.0
+    onnx_weights: str = "float32"  # how model.onnx stores its weights: "float32", or "float16" (half the file)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -73,7 +74,7 @@ class TrainConfig:
 
 
 #: Fields that may differ between a run and its resume.
-_HOW_FIELDS = ("device", "mixed_precision", "workers", "threads", "checkpoint_minutes")
+_HOW_FIELDS = ("device", "mixed_precision", "workers", "threads", "checkpoint_minutes", "onnx_weights")
 
 
 # ---------------------------------------------------------------- validation mAP
@@ -97,14 +98,15 @@ def coco_circle_map(gt: dict[int, np.ndarray], detections: dict[int, np.ndarray]
 
 @torch.no_grad()
 def predict(model: CircleNet, dataset: CircleDataset, batch_size: int = 16, device="cpu",
-            top_k: int | None = None, amp: torch.dtype | None = None) -> dict[int, np.ndarray]:
+            top_k: int | None = None, amp: torch.dtype | None = None, workers: int = 0) -> dict[int, np.ndarray]:
     """Detections of the model on an un-augmented dataset: image id -> (K, 4) (cx, cy, r, score) px.
 
     amp: autocast dtype (the training's, for speed; the model card's figure is the float32 ONNX model's).
+    workers: DataLoader processes reading the images (the result does not depend on them).
     """
     model.eval()
     device = torch.device(device)
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, num_workers=workers)
     out = {}
     for batch in loader:
         x = batch["image"].to(device).float().contiguous(memory_format=torch.channels_last)
@@ -250,6 +252,9 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
 
     device = torch.device("cuda" if config.device == "auto" and torch.cuda.is_available() else
                           ("cpu" if config.device == "auto" else config.device))
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SphereBenchError(f"device {config.device}: this machine has no CUDA device for torch {torch.__version__}; "
+                               "train on a machine with a GPU (and a CUDA build of torch), or use --device cpu")
     amp = _precision(config, device)
     if config.threads:
         torch.set_num_threads(config.threads)  # OpenMP threads that wait on each other crawl on a busy machine
@@ -309,7 +314,8 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
                 save(epoch, pos + 1)
                 last_save = time.monotonic()
         bar.close()
-        val = coco_circle_map(val_gt, predict(model, val_set, config.batch_size, device, amp=amp))
+        val = coco_circle_map(val_gt, predict(model, val_set, config.batch_size, device, amp=amp,
+                                              workers=config.workers))
         history["val"].append({"epoch": epoch + 1, **val})
         epoch, batch_pos = epoch + 1, 0
         save(epoch, 0)
@@ -351,13 +357,15 @@ def _finish(model, config, seed, out, train_dir, train_recs, val_recs, val_set, 
         "config": config.to_dict(),
     }
     onnx_path = export_onnx(model, out / "model.onnx", metadata={
-        "backbone": config.model.backbone, "seed": seed, "epochs": config.epochs, "train_data": dataset_meta})
+        "backbone": config.model.backbone, "seed": seed, "epochs": config.epochs, "train_data": dataset_meta},
+        weights=config.onnx_weights)
     detector = CircleNetDetector(onnx_path)
     dets = {r.image_id: detector.detect_file(r.path) for r in val_recs}
     card["val_onnx"] = coco_circle_map(val_gt, dets)
     card["onnx"] = {"file": onnx_path.name, "bytes": onnx_path.stat().st_size,
                     "sha256": hashlib.sha256(onnx_path.read_bytes()).hexdigest(),
-                    "input": f"1x3x{config.model.input_size[0]}x{config.model.input_size[1]} float32 RGB [0, 255]"}
+                    "input": f"1x3x{config.model.input_size[0]}x{config.model.input_size[1]} float32 RGB [0, 255]",
+                    "weights": config.onnx_weights}
     _atomic_write(out / "model_card.json", lambda tmp: tmp.write_text(json.dumps(card, indent=2)))
     _atomic_write(out / "model_card.md", lambda tmp: tmp.write_text(_card_markdown(card)))
     return card
@@ -381,8 +389,9 @@ def _card_markdown(card: dict) -> str:
         f"({card['precision']}).",
         f"- Validation (ONNX model, COCO circle IoU): mAP {v['mAP']:.3f}, mAP.50 {v['mAP50']:.3f}, "
         f"mAP.75 {v['mAP75']:.3f}.",
-        f"- Parameters: {card['parameters']:,}; ONNX {card['onnx']['bytes'] / 1e6:.1f} MB, input "
-        f"{card['onnx']['input']}, sha256 `{card['onnx']['sha256'][:16]}...`.",
+        f"- Parameters: {card['parameters']:,}; ONNX {card['onnx']['bytes'] / 1e6:.1f} MB"
+        + (" (weights stored as float16, computed in float32)" if card["onnx"].get("weights") == "float16" else "")
+        + f", input {card['onnx']['input']}, sha256 `{card['onnx']['sha256'][:16]}...`.",
         f"- Command: `{card['command']}`",
         f"- Versions: Python {card['versions']['python']}, torch {card['versions']['torch']}.",
         "",
