@@ -350,12 +350,18 @@ def box_range(tab, prm, v, u, h):
     """(mean range m, valid count) of the box of half-side h cells about cell (v, u); the mean is nan
     when under MIN_VALID of the box's pixels are valid (a hole, the shadow band, off the image)."""
     s, n, a = box_sums(tab, v, u, h)
+    return sums_range(prm, v, u, s, n, a), n
+
+
+@njit(cache=True)
+def sums_range(prm, v, u, s, n, a):
+    """``box_range``'s mean range from the box's sums (``box_sums``)."""
     if n == 0 or n < MIN_VALID * a * prm[P_BIN] * prm[P_BIN]:
-        return math.nan, n
+        return math.nan
     b = prm[P_BIN]
     rx = (u * b + 0.5 * (b - 1.0) - prm[P_PPX]) / prm[P_FX]
     ry = (v * b + 0.5 * (b - 1.0) - prm[P_PPY]) / prm[P_FY]
-    return s / n * 1e-3 * math.sqrt(1.0 + rx * rx + ry * ry), n
+    return s / n * 1e-3 * math.sqrt(1.0 + rx * rx + ry * ry)
 
 
 @njit(cache=True)
@@ -387,20 +393,20 @@ def cap_relief(s):
 
 
 @njit(cache=True)
-def plane_free(tab, prm, v, u, m0):
+def plane_free(tab, prm, v, u, m0, s0, n0):
     """False if the inverse depth about cell (v, u) is affine within noise along every available axis
     (horizontal, vertical, then the diagonals while an axis is missing, two at most): the second
     difference of 1 / (box mean z) over boxes at +/- PREFILTER_FRAC r (half-side H_FRAC r; the centre
     box has half-side 1), within 3 sigma (inverse depth has per-pixel noise noise_a at any depth:
     sigma_z = noise_a z^2) plus slack. A box off the image or without depth makes its axis missing;
-    no axis at all, or a curved one, keeps the cell."""
+    no axis at all, or a curved one, keeps the cell. m0, s0, n0: the centre box's mean range and sums
+    (``box_sums``; the caller has them)."""
     R = prm[P_R]
     rr = prm[P_FX] / prm[P_BIN] * R / m0
     hp = max(1, int(H_FRAC * rr + 0.5))
     dp = int(PREFILTER_FRAC * rr + 0.5)
     dg = int(PREFILTER_FRAC * rr * 0.7071067811865476 + 0.5)
     bb = prm[P_BIN] * prm[P_BIN]
-    s0, n0, a0 = box_sums(tab, v, u, 1)
     if n0 == 0:
         return True
     i0 = 1000.0 * n0 / s0
@@ -481,13 +487,14 @@ def front_hypothesis(tab, prm, v, u, out):
     na = prm[P_NOISE_A]
     slack = prm[P_SLACK] * R
     hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
-    m0, n0 = box_range(tab, prm, v, u, 1)
+    s0, n0, a0 = box_sums(tab, v, u, 1)
+    m0 = sums_range(prm, v, u, s0, n0, a0)
     if math.isnan(m0):
         return -np.inf
     # prefilter: inverse depth is affine in the pixel coordinates on any plane, so its second
     # difference over boxes two disc radii apart (off the ball wherever on it the first cell is)
     # vanishes on a wall, a floor, a box face (most first cells) and not where a ball stands out
-    if not plane_free(tab, prm, v, u, m0):
+    if not plane_free(tab, prm, v, u, m0, s0, n0):
         return -np.inf
     h = 1
     d = 2

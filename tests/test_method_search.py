@@ -80,30 +80,59 @@ def test_strata_follow_the_ransac_bound():
     cfg = config_for("improved")
     intr = Intrinsics.d435(424, 240)
     grid = (240, 424)
-    # a room 3 m deep: the bound provides for a ball at 3 m + R, of area pi (fx R / z)^2 cells
+    # a room 3 m deep: the bound provides for a ball at 3 m + R, a disc of r = fx R / z cells
     z_far = imp.far_depth_m(cfg, intr, 3.0)
     assert z_far == pytest.approx(3.12)
-    sv, su = imp.strata(cfg, intr, z_far, 1, grid)
-    area = math.pi * (intr.fx * R / 3.12) ** 2
-    s_max = cfg.sample_success * area / -math.log(1 - cfg.confidence)
-    # the largest stratum within the bound, at most about twice as wide as high
-    assert sv * su <= s_max < (sv + 1) * (su + 1) and sv <= su <= 2 * sv + 1
-    # the miss probability bound exp(-p A / S) holds
-    assert math.exp(-cfg.sample_success * area / (sv * su)) <= 1 - cfg.confidence
+    r = intr.fx * R / 3.12
+    k = imp.stratum_side_ratio(cfg.sample_success, cfg.confidence)
+    assert imp.strata(cfg, intr, z_far, 1, grid) == (int(k * r), int(k * r))
+    # k: the worst case over where the disc falls is within the confidence, a slightly larger one is not
+    assert imp.stratified_miss(k, cfg.sample_success) <= 1 - cfg.confidence < imp.stratified_miss(1.05 * k, 0.8)
+    # independent draws (the area bound) would need strata of 0.74 r: half as many again
+    k_area = math.sqrt(cfg.sample_success * math.pi / -math.log(1 - cfg.confidence))
+    assert k_area == pytest.approx(0.739, abs=1e-3) and k > 1.18 * k_area
+    # a partly visible ball: the area bound, which holds for any shape
+    part = config_for("improved", bound_visible_fraction=0.5)
+    s_part = imp.strata(part, intr, z_far, 1, grid)[0]
+    assert s_part == int(math.sqrt(0.8 * 0.5 * math.pi * r * r / -math.log(0.01)))
     # a shallow scene needs fewer, larger strata; a deep one is capped by the noise range limit (3.5 m at 424x240)
-    sv1, su1 = imp.strata(cfg, intr, imp.far_depth_m(cfg, intr, 1.0), 1, grid)
-    assert sv1 * su1 > 4 * sv * su
+    assert imp.strata(cfg, intr, imp.far_depth_m(cfg, intr, 1.0), 1, grid)[0] > 2 * int(k * r)
     assert imp.range_limit_m(cfg, intr.fx) == pytest.approx(math.sqrt(0.75 * R * intr.fx * 0.05 / 0.08))
     assert imp.far_depth_m(cfg, intr, 8.0) == imp.far_depth_m(cfg, intr, 5.0) == imp.range_limit_m(cfg, intr.fx)
-    # cells of 3 x 3 pixels: the same ball covers 9 times fewer of them
+    # cells of 3 x 3 pixels: the disc is 3 times smaller in cells
     hd = Intrinsics.d435(1280, 720)
-    sv3, su3 = imp.strata(cfg, hd, z_far, 3, grid)
-    assert sv3 * su3 <= cfg.sample_success * math.pi * (hd.fx / 3 * R / 3.12) ** 2 / -math.log(1 - cfg.confidence)
+    assert imp.strata(cfg, hd, z_far, 3, grid)[0] == int(k * hd.fx / 3 * R / 3.12)
     # without the bound: about `iterations` strata; never fewer than min_iterations
     sv, su = imp.strata(config_for("improved", adaptive=False, iterations=400), intr, z_far, 1, grid)
     assert 400 <= -(-240 // sv) * -(-424 // su) <= 520
     sv, su = imp.strata(config_for("improved", min_iterations=2000), intr, 0.5, 1, grid)
     assert -(-240 // sv) * -(-424 // su) >= 2000
+
+
+def test_stratified_miss_matches_simulated_draws():
+    # one uniform draw per square stratum of side k, a disc of radius 1 at a given offset, success p
+    rng = np.random.default_rng(0)
+    p, k, trials = 0.8, 0.9, 20_000
+    for ox, oy in ((0.0, 0.0), (0.45, 0.45), (0.2, 0.0)):
+        j = np.arange(-3, 3)
+        jx, jy = (a.ravel() for a in np.meshgrid(j, j, indexing="ij"))
+        x = (jx * k - ox) + k * rng.random((trials, len(jx)))
+        y = (jy * k - oy) + k * rng.random((trials, len(jx)))
+        hit = (x * x + y * y <= 1.0) & (rng.random((trials, len(jx))) < p)
+        simulated = 1.0 - hit.any(axis=1).mean()
+        # the product formula at this offset, its areas by the midpoint rule
+        share = []
+        for a, b in zip(jx, jy):
+            xs = (a * k - ox) + k * (np.arange(400) + 0.5) / 400
+            h = np.sqrt(np.clip(1 - xs * xs, 0, None))
+            y0 = b * k - oy
+            share.append(np.clip(np.minimum(y0 + k, h) - np.maximum(y0, -h), 0, None).mean() / k)
+        exact = float(np.prod(1 - p * np.array(share)))
+        se = math.sqrt(exact * (1 - exact) / trials)
+        assert abs(simulated - exact) < 4 * se + 1e-4
+        assert exact <= imp.stratified_miss(k, p) + 1e-9  # the worst case covers every offset
+    # and the worst case is far below the area bound exp(-p pi / k^2) of independent draws
+    assert imp.stratified_miss(k, p) < 0.5 * math.exp(-p * math.pi / k ** 2)
 
 
 def test_search_draws_one_first_cell_per_stratum():
