@@ -583,16 +583,18 @@ def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, radius):
 
 
 @njit(cache=True)
-def cell_centre(prm, v, u, front):
-    """The sphere centre (3,) of a hypothesis: on the ray through cell (v, u)'s centre pixel, at
-    front range + R (the front point of a sphere lies on the ray through its centre)."""
+def cell_centres(prm, hyp):
+    """The sphere centres (M, 3) of hypotheses hyp (M, >= 3) rows (v, u, front m, ...): on the ray
+    through cell (v, u)'s centre pixel, at front range + R (the front point of a sphere lies on the
+    ray through its centre)."""
     b = prm[P_BIN]
-    px = u * b + 0.5 * (b - 1.0)
-    py = v * b + 0.5 * (b - 1.0)
-    rx = (px - prm[P_PPX]) / prm[P_FX]
-    ry = (py - prm[P_PPY]) / prm[P_FY]
-    t = (front + prm[P_R]) / math.sqrt(rx * rx + ry * ry + 1.0)
-    return np.array([rx * t, ry * t, t])
+    out = np.empty((hyp.shape[0], 3))
+    for k in range(hyp.shape[0]):
+        rx = (hyp[k, 1] * b + 0.5 * (b - 1.0) - prm[P_PPX]) / prm[P_FX]
+        ry = (hyp[k, 0] * b + 0.5 * (b - 1.0) - prm[P_PPY]) / prm[P_FY]
+        t = (hyp[k, 2] + prm[P_R]) / math.sqrt(rx * rx + ry * ry + 1.0)
+        out[k, 0], out[k, 1], out[k, 2] = rx * t, ry * t, t
+    return out
 
 
 @njit(cache=True)
@@ -600,7 +602,7 @@ def search_organised(tab, prm, seed, cands, counters):
     """Stratified RANSAC on the cell grid: the grid is cut into strata of ``prm[P_STRATUM_V]`` x
     ``prm[P_STRATUM_U]`` cells (those at the far edges smaller), visited in raster order; in each, one
     first cell is drawn uniformly and gives one ``front_hypothesis``. The distinct passing ones are
-    kept by score in cands (K, 5) (v, u, front m, r cells, score), best first (``cell_centre`` gives
+    kept by score in cands (K, 5) (v, u, front m, r cells, score), best first (``cell_centres`` gives
     their centres).
 
     Why strata rather than independent draws: a ball is missed only if every stratum it covers draws

@@ -255,6 +255,11 @@ class Frame:
         #: first cells the search draws: one per stratum
         self.iterations = -(-hc // self.stratum[0]) * -(-wc // self.stratum[1])
         self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m)
+        # verification's size/score gate (``_kernels.verify_organised``) and its output buffers
+        self.gate = np.array([size_tolerance(config) if config.size_check else math.inf, config.size_sigmas,
+                              config.min_score, config.min_inliers], np.float64)
+        self.vout = np.empty(K.N_VOUT, np.float64)
+        self.vstats = np.empty(K.N_STATS, np.float64)
 
 
 def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -264,7 +269,7 @@ def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[n
     m = K.search_organised(frame.tab, frame.prm, np.uint64(seed), hyp, counters)
     frame.counters = counters  # diagnostics (see _kernels.search_organised)
     frame.hypotheses = hyp[:m]
-    centres = np.array([K.cell_centre(frame.prm, h[0], h[1], h[2]) for h in hyp[:m]]).reshape(-1, 3)
+    centres = K.cell_centres(frame.prm, hyp[:m])
     return centres, hyp[:m, 4].copy()
 
 
@@ -412,12 +417,9 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
 
 def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray) -> Candidate | None:
     """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it."""
-    out = np.empty(K.N_VOUT, np.float64)
-    st = np.empty(K.N_STATS, np.float64)
-    gate = np.array([size_tolerance(config) if config.size_check else math.inf, config.size_sigmas, config.min_score,
-                     config.min_inliers], np.float64)
+    out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data, gate,
+                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data, frame.gate,
                        buf, out, st)
     n = int(out[K.V_N])
     if n < config.min_inliers:  # too few, or failed the size check (-1)
@@ -486,7 +488,7 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
         if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
             break
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
-        if any(np.linalg.norm(c0 - v.center_m) < config.radius_m for v in found):
+        if any(math.dist(c0, v.center_m) < config.radius_m for v in found):
             continue
         v = verify_organised(frame, c0, config, buf) if frame is not None else verify_unorganised(points, c0, config)
         if v is None or not v.size_ok or v.score < config.min_score:
@@ -496,7 +498,7 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
     kept: list[Candidate] = []
     min_sep = config.nms_distance_fraction * 2.0 * config.radius_m
     for v in found:
-        if all(np.linalg.norm(v.center_m - k.center_m) >= min_sep for k in kept):
+        if all(math.dist(v.center_m, k.center_m) >= min_sep for k in kept):
             kept.append(v)
         if len(kept) == config.max_spheres:
             break
