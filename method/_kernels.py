@@ -870,11 +870,20 @@ def gather_window(points, index_image, cx, cy, cz, radius, band, fx, fy, ppx, pp
     rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * 1.1 + 2.0
     u0 = fx * cx / cz + ppx
     v0 = fy * cy / cz + ppy
+    # the distance to the sphere | ||p - c|| - R | never exceeds the ray residual (the sphere's point
+    # on p's ray is at |dt| from p): points off the shell [R - band, R + band] are skipped on squared
+    # distances alone, before the ray residual's square roots and division (most of a window)
+    lo2 = (radius - band) ** 2 * (1.0 - 1e-9) if band < radius else 0.0
+    hi2 = (radius + band) ** 2 * (1.0 + 1e-9)
     k = 0
     for r in range(max(0, int(math.floor(v0 - rpx))), min(h - 1, int(math.ceil(v0 + rpx))) + 1, stride):
         for c in range(max(0, int(math.floor(u0 - rpx))), min(w - 1, int(math.ceil(u0 + rpx))) + 1, stride):
             i = index_image[r, c]
             if i < 0:
+                continue
+            px, py, pz = points[i, 0] - cx, points[i, 1] - cy, points[i, 2] - cz
+            d2 = px * px + py * py + pz * pz
+            if d2 > hi2 or d2 < lo2:
                 continue
             dt, hit = ray_residual(points[i, 0], points[i, 1], points[i, 2], cx, cy, cz, radius)
             if hit and abs(dt) <= band and k < out_idx.shape[0]:
