@@ -150,7 +150,7 @@ class DetectorConfig:
     max_eps_fraction: float = 1.0
     pretest_points: int = 12
     pretest_min_fraction: float = 0.5
-    verify_candidates: int = 8
+    verify_candidates: int = 6
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 3

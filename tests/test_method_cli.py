@@ -65,3 +65,8 @@ def test_bench_script_on_small_dataset(small_default, tmp_path, capsys):
     s = data["datasets"]["default6"]["summary"]["improved"]
     assert s["balls"] == 6 and s["found"] >= 5 and "424x240" in s["time"]
     assert data["versions"]["numba"] and data["seed"] == 0
+    # the best of 3 timing passes is never slower than the first one, frame by frame
+    t = s["time"]["424x240"]
+    assert data["passes"] == 3 and "best of 3" in md and t["cpu_best_median_ms"] <= t["cpu_median_ms"]
+    assert all(r["cpu_best_ms"] <= r["cpu_ms"] for r in data["rows"]["default6"]["improved"])
+    assert bench.main([str(small_default), "--passes", "0"]) == 2
