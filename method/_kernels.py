@@ -683,10 +683,12 @@ def required_iterations(support, n_points, window_px, confidence):
 
 V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE, V_SIGMA = range(12)
 
-#: The first refinement round takes inliers within at least this fraction of R.
-COARSE_BAND_FRACTION = 0.25
+#: Refinement bands: the first round takes inliers within FIRST_BAND_FRACTION R of the start (a
+#: hypothesis from box means can be 4-5 cm off) and makes FIRST_STEPS 3D Gauss-Newton steps; later
+#: rounds keep the band at least twice the last move, at most COARSE_BAND_FRACTION R.
 FIRST_BAND_FRACTION = 0.5
 FIRST_STEPS = 3
+COARSE_BAND_FRACTION = 0.25
 #: The size check never accepts a free radius further than this fraction of R from R.
 SIZE_LIMIT_FRACTION = 0.25
 N_VOUT = 12
@@ -737,9 +739,10 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
 
     Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
-    current depth (``gather_window``; in the first round at least COARSE_BAND_FRACTION R), then one
-    Gauss-Newton step on their ray residuals with R fixed (``ray_step``), until the centre moves less
-    than its standard error (or 0.1 mm). Every window is visited with the stride
+    current depth (``gather_window``; in the first round at least FIRST_BAND_FRACTION R, later at
+    least twice the last move, up to COARSE_BAND_FRACTION R), then Gauss-Newton with R fixed: in the
+    first round FIRST_STEPS steps on the 3D residuals (``refine_fixed_radius``), later one step on
+    the ray residuals (``ray_step``), until the centre moves less than its standard error (or 0.1 mm). Every window is visited with the stride
     that keeps it to about 4 ``max_fit_points`` pixels (a ball at 0.4 m covers 15,000 pixels at
     424x240, 140,000 at 1280x720; ``final_inliers`` collects all of them for a reported sphere),
     and every fit uses at most ``max_fit_points`` of the inliers, evenly strided. Then 2 more steps

@@ -20,10 +20,11 @@ sample gives a centre only when all its boxes lie inside the disc, the descent f
 Unorganised clouds: three-point local samples in a spatial grid (``_kernels.search_unorganised``).
 
 Verification (compiled, one call per candidate, best first, at most ``verify_candidates``):
-Gauss-Newton with R fixed, re-selecting the inliers each round, on the depth residual along each
-pixel's ray for an organised cloud (the D435's noise is along the rays; the 3D residual
-||p - c|| - R pulls the centre toward the camera by several mm at 2 m) and on ||p - c|| - R
-otherwise; a free-radius fit as the size check (a candidate failing it, most of them, stops
+Gauss-Newton with R fixed, re-selecting the inliers each round, for an organised cloud first on
+||p - c|| - R (from a start some cm to the side, the ray residual of the rays that miss the
+current sphere hardly moves the centre) and then on the depth residual along each pixel's ray
+(the D435's noise is along the rays; the 3D residual pulls the centre toward the camera by
+several mm at 2 m), and on ||p - c|| - R otherwise; a free-radius fit as the size check (a candidate failing it, most of them, stops
 there); then the evidence of the whole silhouette (an organised cloud shows where the ball
 should be): the share of its pixels that are inliers (coverage), seen *through* (behind: a
 smaller ball or no ball), or hugged by a surface just in front of the sphere (a cylinder of the
