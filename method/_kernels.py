@@ -240,7 +240,8 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
 # the P_* names below): one argument instead of twenty keeps numba's call overhead small.
 #
 # The search works on a grid of cells of BIN x BIN pixels (1 at 424x240, 2 at 848x480, 3 at
-# 1280x720: about 424 cells across whatever the stream), through the summed-area table ``tab``
+# 1280x720: about 424 cells across whatever the stream; from 3 x 3 on a cell sums its middle pixel
+# row only, ``improved.cell_rows``, P_CELL_PX pixels), through the summed-area table ``tab``
 # (Hc + 1, Wc + 1) uint64 of the depth z in millimetres and of the valid-pixel count per cell, packed
 # in one word (depth sum + count << COUNT_SHIFT); a box's mean range |p| is its mean depth times the
 # length of the ray (z = 1) through the box's centre. The table is kept modulo 2^64: a box's packed
@@ -249,8 +250,8 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
 # a squared-depth channel did not stay in cache; two uint32 channels took twice the adds).
 
 P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_STRATUM_V, P_BIN, P_RR_MIN, P_RR_MAX, \
-    P_SLACK, P_Z_FAR, P_STRATUM_U = range(16)
-N_PRM = 16
+    P_SLACK, P_Z_FAR, P_STRATUM_U, P_CELL_PX = range(17)
+N_PRM = 17
 
 #: The search's box geometry, as fractions of the disc radius r (cells) of the ball at the box's depth:
 #: box half-side, offset of the four side boxes of the stencil, offset and half-side of the 8 ring boxes.
@@ -289,7 +290,8 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     Fills img (H, W) int32 (the point index of each pixel, -1 where none), tab (Hc + 1, Wc + 1)
     uint64 (summed-area table over cells of the depth z in mm and of the valid count, packed: depth
     + count << COUNT_SHIFT, modulo 2^64; pixel (r, c) is in table cell (row_cell[r], col_cell[c]),
-    both (H,), (W,) int32, 1-based) and hist (B,) int64 (counts of z in bins of 1 / hist_per_m
+    both (H,), (W,) int32, 1-based; a row with row_cell -1 is left out of the table, see
+    ``improved.cell_lookup``) and hist (B,) int64 (counts of z in bins of 1 / hist_per_m
     metres, the last bin open, over a strided sample). Points with a non-finite coordinate or z <= 0
     get no pixel, so the search never meets them; two points on one pixel: the last one. Returns
     (finite count, count of |z| > mm_limit). (Lookup tables: an integer division per point cost more
@@ -321,7 +323,7 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
             packed = np.uint64(np.uint32(z * np.float32(1000.0) + np.float32(0.5))) + one
             if one_cell:  # a store
                 tab[r + 1, c + 1] = packed
-            else:  # a read-modify-write (keeping a cell's sums in registers while it lasted was slower)
+            elif row_cell[r] >= 0:  # a read-modify-write (keeping a cell's sums in registers while it lasted was slower)
                 tab[row_cell[r], col_cell[c]] += packed
     hc, wc = tab.shape[0], tab.shape[1]
     for r in range(1, hc):
@@ -356,7 +358,7 @@ def box_range(tab, prm, v, u, h):
 @njit(cache=True)
 def sums_range(prm, v, u, s, n, a):
     """``box_range``'s mean range from the box's sums (``box_sums``)."""
-    if n == 0 or n < MIN_VALID * a * prm[P_BIN] * prm[P_BIN]:
+    if n == 0 or n < MIN_VALID * a * prm[P_CELL_PX]:
         return math.nan
     b = prm[P_BIN]
     rx = (u * b + 0.5 * (b - 1.0) - prm[P_PPX]) / prm[P_FX]
@@ -406,7 +408,7 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
     hp = max(1, int(H_FRAC * rr + 0.5))
     dp = int(PREFILTER_FRAC * rr + 0.5)
     dg = int(PREFILTER_FRAC * rr * 0.7071067811865476 + 0.5)
-    bb = prm[P_BIN] * prm[P_BIN]
+    bb = prm[P_CELL_PX]
     if n0 == 0:
         return True
     i0 = 1000.0 * n0 / s0

@@ -88,6 +88,7 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     prm[K.P_NOISE_A], prm[K.P_NOISE_K] = noise_a(config, float(intr.fx)), config.noise_sigmas
     prm[K.P_EPS_CAP] = config.max_eps_fraction * R
     prm[K.P_STRATUM_V], prm[K.P_STRATUM_U], prm[K.P_BIN] = stratum[0], stratum[1], bin_px
+    prm[K.P_CELL_PX] = bin_px * cell_rows(bin_px)  # the pixels a cell's table entry sums
     # hypotheses whose ball would be beyond the range limit (with a margin), or larger than the grid
     prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / range_limit_m(config, float(intr.fx))
     prm[K.P_RR_MAX] = float(max(grid_shape))
@@ -218,13 +219,25 @@ def workspace(name: str, shape: tuple, dtype) -> np.ndarray:
 _LOOKUPS: dict = {}
 
 
-def _cell_lookup(h: int, w: int, bin_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """The table cell (1-based) of each pixel row (H,) and column (W,) int32, cached per size."""
+def cell_rows(bin_px: int) -> int:
+    """Pixel rows of a cell that its table entry sums: all of them up to 2 x 2 cells; from 3 x 3 on,
+    the middle one only (a cell's pixel count is then bin_px, ``_kernels.P_CELL_PX``). A box mean
+    of n cells then averages bin_px n pixels instead of bin_px^2 n, and at 1280x720 one pixel's
+    depth noise is a third of 424x240's: the search's box means stay more precise than at
+    424x240, and the frame pass reads the depth of a third of the points (a third less time)."""
+    return bin_px if bin_px < 3 else 1
+
+
+def cell_lookup(h: int, w: int, bin_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The table cell (1-based) of each pixel row (H,) and column (W,) int32, cached per size; rows
+    the table leaves out (``cell_rows``) get -1."""
     key = (h, w, bin_px)
     if key not in _LOOKUPS:
         if len(_LOOKUPS) > 16:
             _LOOKUPS.clear()
-        _LOOKUPS[key] = ((np.arange(h) // bin_px + 1).astype(np.int32), (np.arange(w) // bin_px + 1).astype(np.int32))
+        r = np.arange(h)
+        row_cell = np.where((cell_rows(bin_px) == bin_px) | (r % bin_px == bin_px // 2), r // bin_px + 1, -1)
+        _LOOKUPS[key] = (row_cell.astype(np.int32), (np.arange(w) // bin_px + 1).astype(np.int32))
     return _LOOKUPS[key]
 
 
@@ -245,7 +258,7 @@ class Frame:
         self.index_image = workspace("index", (h, w), np.int32)
         self.tab = workspace("tab", (hc + 1, wc + 1), np.uint64)
         self.hist = workspace("hist", (HIST_BINS,), np.int64)
-        row_cell, col_cell = _cell_lookup(h, w, self.bin)
+        row_cell, col_cell = cell_lookup(h, w, self.bin)
         n_ok, n_big = K.prepare_organised(cloud.points, cloud.rows, cloud.cols, self.index_image, self.tab, row_cell,
                                           col_cell, np.float32(config.mm_check_median_m), self.hist,
                                           np.float32(1.0 / HIST_STEP_M))

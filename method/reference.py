@@ -44,6 +44,9 @@ def cell_images(points: np.ndarray, index_image: np.ndarray, bin_px: int) -> tup
     zs = np.zeros((hc, wc), np.int64)
     ns = np.zeros((hc, wc), np.int64)
     rr, cc = np.nonzero(index_image >= 0)
+    if bin_px >= 3:  # the middle pixel row of each cell only (``improved.cell_rows``)
+        keep = rr % bin_px == bin_px // 2
+        rr, cc = rr[keep], cc[keep]
     z = points[index_image[rr, cc], 2].astype(np.float32)
     zmm = (z * np.float32(1000.0) + np.float32(0.5)).astype(np.uint32).astype(np.int64)
     np.add.at(zs, (rr // bin_px, cc // bin_px), zmm)
@@ -69,7 +72,7 @@ class Grid:
         """(mean range m or nan, valid count): mean depth times the ray length at the box's centre."""
         prm = self.prm
         s, n, a = self.box_sums(v, u, h)
-        if n == 0 or n < K.MIN_VALID * a * prm[K.P_BIN] * prm[K.P_BIN]:
+        if n == 0 or n < K.MIN_VALID * a * prm[K.P_CELL_PX]:
             return math.nan, n
         b = prm[K.P_BIN]
         rx = (u * b + 0.5 * (b - 1.0) - prm[K.P_PPX]) / prm[K.P_FX]
@@ -89,7 +92,7 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     hp = max(1, int(K.H_FRAC * rr + 0.5))
     dp = int(K.PREFILTER_FRAC * rr + 0.5)
     dg = int(K.PREFILTER_FRAC * rr * 0.7071067811865476 + 0.5)
-    bb = prm[K.P_BIN] * prm[K.P_BIN]
+    bb = prm[K.P_CELL_PX]
     s0, n0, _ = g.box_sums(v, u, 1)
     if n0 == 0:
         return True

@@ -56,6 +56,9 @@ def test_summed_area_table_gives_box_sums():
             assert K.box_sums(frame.tab, v, u, h) == grid.box_sums(v, u, h)
             got, want = K.box_range(frame.tab, frame.prm, v, u, h), grid.box_range(v, u, h)
             assert got[1] == want[1] and (got[0] == want[0] or (math.isnan(got[0]) and math.isnan(want[0])))
+        # cells of 2 x 2 count all their pixels, cells of 3 x 3 their middle row (every pixel is valid here)
+        rows_counted = np.arange(60) % b == b // 2 if b >= 3 else np.ones(60, bool)
+        assert frame.n_valid == 100 * rows_counted.sum() and frame.prm[K.P_CELL_PX] == b * (1 if b >= 3 else b)
     # depth sums and counts packed in one uint64 stay apart: a frame of 10 m depths (2.4e9 mm in all at 240 x 1000)
     far = Cloud(np.column_stack([np.zeros(240_000), np.zeros(240_000), np.full(240_000, 10.0)]),
                 np.repeat(np.arange(240), 1000), np.tile(np.arange(1000), 240), Intrinsics.d435(1000, 240))
