@@ -16,6 +16,11 @@ import math
 import numpy as np
 from numba import njit
 
+#: Every kernel's compilation: cached on disk, and numpy's error model: a float division by zero
+#: gives inf or nan (the kernels guard the divisors that can vanish) instead of a zero check and a
+#: Python exception path per division, which cost a fifth of the search's and verification's time.
+kernel = njit(cache=True, error_model="numpy")
+
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
 _MIX2 = np.uint64(0x94D049BB133111EB)
@@ -40,7 +45,7 @@ RING_FACTOR = 1.3
 RING_FRONT_MIN, RING_FRONT_MAX = 0.3, 1.2
 
 
-@njit(cache=True)
+@kernel
 def next_u01(state):
     """splitmix64: advance state (uint64 array of 1) and return a float64 uniform in [0, 1)."""
     state[0] += _GOLDEN
@@ -51,7 +56,7 @@ def next_u01(state):
     return float(z >> np.uint64(11)) * _INV53
 
 
-@njit(cache=True)
+@kernel
 def finite_rows(points):
     """(N,) bool: rows of points (N, 3) with three finite coordinates; and their count."""
     n = points.shape[0]
@@ -64,7 +69,7 @@ def finite_rows(points):
     return ok, k
 
 
-@njit(cache=True)
+@kernel
 def build_index_image(rows, cols, height, width):
     """(H, W) int32 image of point indices (-1: no point) from per-point pixel rows, cols (N,)."""
     img = np.full((height, width), -1, np.int32)
@@ -75,7 +80,7 @@ def build_index_image(rows, cols, height, width):
     return img
 
 
-@njit(cache=True)
+@kernel
 def known_radius_centres(points, i1, i2, i3, radius, out):
     """Both centres of radius R through points i1, i2, i3; out (2, 3) gets (far, near).
 
@@ -109,20 +114,20 @@ def known_radius_centres(points, i1, i2, i3, radius, out):
     return 2
 
 
-@njit(cache=True)
+@kernel
 def faces_camera(points, i, cx, cy, cz):
     """True if point i is on the camera-facing side of the sphere centred at c: (p - c) . p < 0."""
     px, py, pz = points[i, 0], points[i, 1], points[i, 2]
     return (px - cx) * px + (py - cy) * py + (pz - cz) * pz < 0.0
 
 
-@njit(cache=True)
+@kernel
 def disc_radius_px(cz, dist, radius, fx):
     """Approximate pixel radius of a sphere's image at centre depth cz, distance |c| (pinhole)."""
     return fx * radius / math.sqrt(max(dist * dist - radius * radius, 1e-12)) * dist / cz
 
 
-@njit(cache=True)
+@kernel
 def ray_residual(px, py, pz, cx, cy, cz, radius):
     """Depth residual along the point's ray: |p| - t_near, and whether the ray meets the sphere.
 
@@ -140,7 +145,7 @@ def ray_residual(px, py, pz, cx, cy, cz, radius):
     return pn - (tc - math.sqrt(radius * radius - m2)), True
 
 
-@njit(cache=True)
+@kernel
 def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy, ppx, ppy, stride, out):
     """Classify the pixels of a candidate's silhouette; out (N_STATS,) float64 gets the counts.
 
@@ -269,7 +274,7 @@ COUNT_SHIFT = 40
 _DEPTH_MASK = (1 << COUNT_SHIFT) - 1
 
 
-@njit(cache=True)
+@kernel
 def noise_eps(cz, eps, noise_a, noise_k, cap):
     """Shell half-width at depth cz: max(eps, k sigma_z), sigma_z = noise_a cz^2 (metres), at most cap."""
     e = max(eps, noise_k * noise_a * cz * cz)
@@ -283,7 +288,7 @@ HIST_STRIDE = 8
 HIST_SAMPLES = 32768
 
 
-@njit(cache=True)
+@kernel
 def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit, hist, hist_per_m):
     """One pass over an organised cloud (and a strided one for the histogram), then the table's prefix sums.
 
@@ -334,7 +339,7 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     return n_ok, n_big
 
 
-@njit(cache=True)
+@kernel
 def box_sums(tab, v, u, h):
     """(depth sum in mm, valid count, area in cells) of the box of half-side h cells about cell (v, u),
     clipped to the grid (area 0 when it is wholly outside)."""
@@ -347,7 +352,7 @@ def box_sums(tab, v, u, h):
     return np.int64(p & np.uint64(_DEPTH_MASK)), np.int64(p >> np.uint64(COUNT_SHIFT)), (r1 - r0) * (c1 - c0)
 
 
-@njit(cache=True)
+@kernel
 def box_range(tab, prm, v, u, h):
     """(mean range m, valid count) of the box of half-side h cells about cell (v, u); the mean is nan
     when under MIN_VALID of the box's pixels are valid (a hole, the shadow band, off the image)."""
@@ -355,7 +360,7 @@ def box_range(tab, prm, v, u, h):
     return sums_range(prm, v, u, s, n, a), n
 
 
-@njit(cache=True)
+@kernel
 def sums_range(prm, v, u, s, n, a):
     """``box_range``'s mean range from the box's sums (``box_sums``)."""
     if n == 0 or n < MIN_VALID * a * prm[P_CELL_PX]:
@@ -366,7 +371,7 @@ def sums_range(prm, v, u, s, n, a):
     return s / n * 1e-3 * math.sqrt(1.0 + rx * rx + ry * ry)
 
 
-@njit(cache=True)
+@kernel
 def descent_step(m0, mA, mB, d, k, off, lim):
     """Step (cells) toward the sphere's front point along one axis, from the mean ranges m0 at the
     current cell and mA, mB at -d and +d cells, with the sphere's known curvature k (metres per
@@ -387,14 +392,14 @@ def descent_step(m0, mA, mB, d, k, off, lim):
     return min(max(x, -lim), lim)
 
 
-@njit(cache=True)
+@kernel
 def cap_relief(s):
     """Range relief of a sphere's visible cap, in units of R, at squared lateral offset s (units of R^2):
     1 - sqrt(1 - s) (s clipped to 1). A box's mean is approximated by its value at the box's mean s."""
     return 1.0 - math.sqrt(1.0 - min(s, 1.0))
 
 
-@njit(cache=True)
+@kernel
 def plane_free(tab, prm, v, u, m0, s0, n0):
     """False if the inverse depth about cell (v, u) is affine within noise along every available axis
     (horizontal, vertical, then the diagonals while an axis is missing, two at most): the second
@@ -430,7 +435,7 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
     return planar == 0
 
 
-@njit(cache=True)
+@kernel
 def ring_boxes(tab, prm, v, u, front, sig):
     """The eight boxes around the outline of the sphere whose front point (range ``front`` m) is on
     the ray through cell (v, u): at RING_FRAC r in the 4 axis and 4 diagonal directions, half-side
@@ -465,7 +470,7 @@ def ring_boxes(tab, prm, v, u, front, sig):
     return rr, bg, cont
 
 
-@njit(cache=True)
+@kernel
 def front_hypothesis(tab, prm, v, u, out):
     """A hypothesis from the first cell (v, u), and its O(1) pretest; returns its score (-inf: rejected).
 
@@ -559,7 +564,7 @@ def front_hypothesis(tab, prm, v, u, out):
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi
 
 
-@njit(cache=True)
+@kernel
 def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, radius):
     """Keep the best distinct hypotheses in cands (K, 5) rows (v, u, front m, r cells, score), best
     first: one within r / 2 cells (and R in range) of a kept one is the same ball (the better stays)."""
@@ -584,7 +589,7 @@ def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, radius):
     return min(n_kept + 1, k_max)
 
 
-@njit(cache=True)
+@kernel
 def cell_centres(prm, hyp):
     """The sphere centres (M, 3) of hypotheses hyp (M, >= 3) rows (v, u, front m, ...): on the ray
     through cell (v, u)'s centre pixel, at front range + R (the front point of a sphere lies on the
@@ -599,7 +604,7 @@ def cell_centres(prm, hyp):
     return out
 
 
-@njit(cache=True)
+@kernel
 def search_organised(tab, prm, seed, cands, counters):
     """Stratified RANSAC on the cell grid: the grid is cut into strata of ``prm[P_STRATUM_V]`` x
     ``prm[P_STRATUM_U]`` cells (those at the far edges smaller), visited in raster order; in each, one
@@ -636,7 +641,7 @@ def search_organised(tab, prm, seed, cands, counters):
     return n_kept
 
 
-@njit(cache=True)
+@kernel
 def _keep_candidate(cands, quals, n_kept, cx, cy, cz, q, merge):
     """Keep the best distinct candidates: (K, 3) centres and (K,) qualities, sorted best first."""
     k_max = cands.shape[0]
@@ -664,7 +669,7 @@ def _keep_candidate(cands, quals, n_kept, cx, cy, cz, q, merge):
     return min(n_kept + 1, k_max)
 
 
-@njit(cache=True)
+@kernel
 def required_iterations(support, n_points, window_px, confidence):
     """Standard RANSAC bound log(1 - conf) / log(1 - p) for a local sampler.
 
@@ -698,7 +703,7 @@ N_VOUT = 12
 MAD_TO_SIGMA = 1.482602218505602
 
 
-@njit(cache=True)
+@kernel
 def ray_residual_sigma(rays, cx, cy, cz, radius):
     """Robust standard deviation (MAD about the median, metres) of the ray residuals of the points on
     rays (K, 4) (``unit_rays``) about the sphere (c, R); nan when fewer than 8 rays meet it. The
@@ -720,14 +725,14 @@ def ray_residual_sigma(rays, cx, cy, cz, radius):
     return MAD_TO_SIGMA * np.median(np.abs(r - med))
 
 
-@njit(cache=True)
+@kernel
 def _strided(idx, n, max_points):
     """idx[:n] thinned by a stride to at most about max_points entries (a view)."""
     step = max(1, (n + max_points - 1) // max_points)
     return idx[0:n:step]
 
 
-@njit(cache=True)
+@kernel
 def window_stride(cx, cy, cz, radius, fx, max_visits):
     """The stride (rows and columns) that visits about max_visits pixels of a candidate's window."""
     dist = math.sqrt(cx * cx + cy * cy + cz * cz)
@@ -735,7 +740,7 @@ def window_stride(cx, cy, cz, radius, fx, max_visits):
     return max(1, int(side / math.sqrt(max_visits)))
 
 
-@njit(cache=True)
+@kernel
 def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
                      idx, out, stats):
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
@@ -846,7 +851,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     out[V_SIGMA] = sigma
 
 
-@njit(cache=True)
+@kernel
 def final_inliers(points, index_image, c, prm, e, idx):
     """All inliers of a verified sphere (every pixel of its window; ``gather_window`` with band e)
     into idx; returns (their count, the RMS of ||p - c|| - R over them)."""
@@ -861,7 +866,7 @@ def final_inliers(points, index_image, c, prm, e, idx):
     return n, math.sqrt(sse / n) if n > 0 else math.nan
 
 
-@njit(cache=True)
+@kernel
 def gather_window(points, index_image, cx, cy, cz, radius, band, fx, fy, ppx, ppy, stride, out_idx):
     """Indices of the points in the candidate's silhouette whose ray residual is within band.
 
@@ -897,7 +902,7 @@ def gather_window(points, index_image, cx, cy, cz, radius, band, fx, fy, ppx, pp
     return k
 
 
-@njit(cache=True)
+@kernel
 def shell_indices(points, cx, cy, cz, radius, band, out_idx):
     """Indices of all points with | ||p - c|| - R | <= band (unorganised clouds); returns the count."""
     k = 0
@@ -913,7 +918,7 @@ def shell_indices(points, cx, cy, cz, radius, band, out_idx):
     return k
 
 
-@njit(cache=True)
+@kernel
 def refine_fixed_radius(points, idx, cx, cy, cz, radius, iterations):
     """Gauss-Newton on sum (||p - c|| - R)^2 over points[idx]; returns the centre (3,) float64.
     (Scalar sums and ``cholesky_solve``: a LAPACK call per step cost more than the sums.)"""
@@ -955,7 +960,7 @@ def refine_fixed_radius(points, idx, cx, cy, cz, radius, iterations):
     return c
 
 
-@njit(cache=True)
+@kernel
 def fit_free_radius(points, idx, cx, cy, cz, radius, iterations):
     """Gauss-Newton on (centre, radius) from (c, R) over points[idx].
 
@@ -1002,7 +1007,7 @@ def fit_free_radius(points, idx, cx, cy, cz, radius, iterations):
 SE_S_MIN = 0.3
 
 
-@njit(cache=True)
+@kernel
 def cholesky_solve(A, g, npar, x):
     """Solve A x = g for the leading npar x npar block of a symmetric A (4, 4) by Cholesky, in place
     of a LAPACK call (whose per-call cost exceeded the fit's). Returns 1 / L[npar-1, npar-1]^2, the
@@ -1034,7 +1039,7 @@ def cholesky_solve(A, g, npar, x):
     return 1.0 / (L[npar - 1, npar - 1] * L[npar - 1, npar - 1])
 
 
-@njit(cache=True)
+@kernel
 def unit_rays(points, idx, out):
     """The viewing rays of points[idx] (K,) into out (>= K, 4) float64: (u (3,) = p / |p|, |p| m), which
     every Gauss-Newton pass of a fit needs (computed once: a square root and a division per point,
@@ -1048,7 +1053,7 @@ def unit_rays(points, idx, out):
     return out[:idx.shape[0]]
 
 
-@njit(cache=True)
+@kernel
 def ray_normal_equations(rays, x0, x1, x2, r, s_floor, with_radius):
     """The Gauss-Newton normal equations of the ray residuals of the points on rays (K, 4)
     (``unit_rays``) about centre (x0, x1, x2) and radius r: (A (4, 4) lower triangle,
@@ -1098,7 +1103,7 @@ def ray_normal_equations(rays, x0, x1, x2, r, s_floor, with_radius):
     return A, g, sse
 
 
-@njit(cache=True)
+@kernel
 def ray_step(rays, c, radius, s_min):
     """One Gauss-Newton step of the ray residuals of the points on rays (K, 4) (``unit_rays``) with the
     radius fixed, applied to the centre c (3,) in place (left as it is if the normal matrix is
@@ -1113,7 +1118,7 @@ def ray_step(rays, c, radius, s_min):
     return math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
 
 
-@njit(cache=True)
+@kernel
 def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min):
     """Gauss-Newton on the ray residuals |p| - t_near(c, r) of the points on rays (K, 4)
     (``unit_rays``; depth noise model).
@@ -1149,7 +1154,7 @@ def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min):
     return x[:3].copy(), x[3], se, math.sqrt(sse / max(n, 1))
 
 
-@njit(cache=True)
+@kernel
 def shell_counts(points, centres, radius, eps):
     """For each centre (M, 3): the number of points (N, 3) with | ||p - c|| - R | <= eps (the paper's step 3)."""
     m = centres.shape[0]
@@ -1173,7 +1178,7 @@ def shell_counts(points, centres, radius, eps):
 # Unorganised clouds: a uniform grid of cells sorted by key, looked up by binary search.
 
 
-@njit(cache=True)
+@kernel
 def grid_keys(points, origin, cell, dims):
     """Linear cell key (N,) int64 of every point for a grid of ``dims`` (3,) cells of size ``cell``."""
     n = points.shape[0]
@@ -1186,7 +1191,7 @@ def grid_keys(points, origin, cell, dims):
     return keys
 
 
-@njit(cache=True)
+@kernel
 def _cell_ranges(sorted_keys, origin, cell, dims, x, y, z, reach, starts, ends):
     """Sorted-order ranges of the cells within ``reach`` cells of (x, y, z); returns their count."""
     ix = min(max(int((x - origin[0]) / cell), 0), dims[0] - 1)
@@ -1206,7 +1211,7 @@ def _cell_ranges(sorted_keys, origin, cell, dims, x, y, z, reach, starts, ends):
     return m
 
 
-@njit(cache=True)
+@kernel
 def _ranges_size(starts, ends, m):
     """The number of points in the first m sorted-order ranges."""
     total = 0
@@ -1215,7 +1220,7 @@ def _ranges_size(starts, ends, m):
     return total
 
 
-@njit(cache=True)
+@kernel
 def _draw_in_ranges(state, order, starts, ends, total):
     """A point drawn uniformly from the ranges (``total`` points in all): its index into points."""
     t = min(int(next_u01(state) * total), total - 1)
@@ -1226,7 +1231,7 @@ def _draw_in_ranges(state, order, starts, ends, total):
     return order[starts[k] + t]
 
 
-@njit(cache=True)
+@kernel
 def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, eps, win_m, max_iter, min_iter,
                        confidence, retries, pretest_n, pretest_frac, score_max, seed, cands, quals):
     """Local-sampling RANSAC on an unorganised cloud (grid cells of size ``cell`` >= win_m / 1).
