@@ -328,7 +328,7 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
             packed = np.uint64(np.uint32(z * np.float32(1000.0) + np.float32(0.5))) + one
             if one_cell:  # a store
                 tab[r + 1, c + 1] = packed
-            elif row_cell[r] >= 0:  # a read-modify-write (keeping a cell's sums in registers while it lasted was slower)
+            elif row_cell[r] >= 0:  # a read-modify-write (a cell's sum kept in a register was no faster)
                 tab[row_cell[r], col_cell[c]] += packed
     hc, wc = tab.shape[0], tab.shape[1]
     for r in range(1, hc):
@@ -749,8 +749,9 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     current depth (``gather_window``; in the first round at least FIRST_BAND_FRACTION R, later at
     least twice the last move, up to COARSE_BAND_FRACTION R), then Gauss-Newton with R fixed: in the
     first round FIRST_STEPS steps on the 3D residuals (``refine_fixed_radius``), later one step on
-    the ray residuals (``ray_step``), until the centre moves less than its standard error (or 0.1 mm). Every window is visited with the stride
-    that keeps it to about 4 ``max_fit_points`` pixels (a ball at 0.4 m covers 15,000 pixels at
+    the ray residuals (``ray_step``), until the centre moves less than its standard error (or
+    0.1 mm). Every window is visited with the stride that keeps it to about 4 ``max_fit_points``
+    pixels (a ball at 0.4 m covers 15,000 pixels at
     424x240, 140,000 at 1280x720; ``final_inliers`` collects all of them for a reported sphere),
     and every fit uses at most ``max_fit_points`` of the inliers, evenly strided. Then 2 more steps
     and a free-radius ray fit (the size check), and the silhouette statistics (``window_stats``).

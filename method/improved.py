@@ -24,11 +24,12 @@ Gauss-Newton with R fixed, re-selecting the inliers each round, for an organised
 ||p - c|| - R (from a start some cm to the side, the ray residual of the rays that miss the
 current sphere hardly moves the centre) and then on the depth residual along each pixel's ray
 (the D435's noise is along the rays; the 3D residual pulls the centre toward the camera by
-several mm at 2 m), and on ||p - c|| - R otherwise; a free-radius fit as the size check (a candidate failing it, most of them, stops
-there); then the evidence of the whole silhouette (an organised cloud shows where the ball
-should be): the share of its pixels that are inliers (coverage), seen *through* (behind: a
-smaller ball or no ball), or hugged by a surface just in front of the sphere (a cylinder of the
-same radius); and the confidence score that ranks detections across frames.
+several mm at 2 m), and on ||p - c|| - R otherwise; a free-radius fit as the size check (a
+candidate failing it, most of them, stops there); then the evidence of the whole silhouette (an
+organised cloud shows where the ball should be): the share of its pixels that are inliers
+(coverage), seen *through* (behind: a smaller ball or no ball), or hugged by a surface just in
+front of the sphere (a cylinder of the same radius); and the confidence score that ranks
+detections across frames.
 """
 
 from __future__ import annotations
@@ -125,8 +126,8 @@ def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape
     missed with probability prod_j (1 - p f_j), f_j the share of stratum j that the disc covers;
     the worst case over where the disc falls depends on s / r alone (``stratified_miss``), so
     s = k r with k the largest ratio whose worst case is within 1 - confidence
-    (``stratum_side_ratio``: 0.90 for p = 0.8 and 99 %, where as many independent uniform draws as
-    strata would need 0.74, half as many draws again). With ``bound_visible_fraction`` below 1 the
+    (``stratum_side_ratio``: 0.89 for p = 0.8 and 99 %, where as many independent uniform draws as
+    strata would need 0.74, nearly half as many draws again). With ``bound_visible_fraction`` below 1 the
     visible part is no disc, and the area bound is used instead: prod_j (1 - p f_j) <=
     exp(-p A / s^2), A the visible area, which holds for any shape. The number of strata is kept
     within [min_iterations, iterations] (about: strata are whole cells). Without ``adaptive``,
