@@ -28,9 +28,9 @@ _INV53 = 1.0 / 9007199254740992.0  # 2^-53
 
 # Categories of a pixel of a candidate's window (window statistics, in this order).
 ST_VALID_DISC, ST_INLIER, ST_FRONT, ST_FRONT_NEAR, ST_BEHIND, ST_INVALID_DISC, ST_SSE, ST_RING, ST_RING_CONT, \
-    ST_RING_FRONT, ST_VALID_INNER, ST_BEHIND_INNER, ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, \
-    ST_OUTV_SUM = range(18)
-N_STATS = 18
+    ST_RING_FRONT, ST_VALID_INNER, ST_BEHIND_INNER, ST_EDGE_N, ST_EDGE_BEHIND, ST_IN_N, ST_IN_SUM, ST_OUTH_N, \
+    ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM = range(20)
+N_STATS = 20
 
 #: The relief profile: inner zone (rays passing the centre within sqrt(PROFILE_INNER) R) and outer
 #: zone (up to sqrt(PROFILE_OUTER) R, short of the outline, where flying pixels mix in the background).
@@ -160,7 +160,10 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
     20 cm behind a ball would count as continuing it), RING_FRONT those RING_FRONT_MIN R to
     RING_FRONT_MAX R in front of it (an attached surface in front: a cylinder's body).
     VALID_INNER and BEHIND_INNER count the valid and the BEHIND pixels whose rays pass the centre
-    within sqrt(PROFILE_OUTER) R (short of the outline, where mixed pixels see past a real ball).
+    within sqrt(PROFILE_OUTER) R (short of the outline, where mixed pixels see past a real ball);
+    EDGE_N and EDGE_BEHIND the pixels beyond that, up to the outline, that are INLIER or BEHIND, and
+    the BEHIND ones (a smaller ball leaves this band to the background; an occluder's FRONT pixels
+    tell nothing of the size and are left out).
     The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
     the centre within sqrt(PROFILE_INNER) R; OUTH_* and OUTV_*
     those between that and sqrt(PROFILE_OUTER) R, left or right of the centre (OUTH) or above or
@@ -212,6 +215,10 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
                 out[ST_VALID_INNER] += 1.0
                 if dt > eps:
                     out[ST_BEHIND_INNER] += 1.0
+            elif dt >= -eps:
+                out[ST_EDGE_N] += 1.0
+                if dt > eps:
+                    out[ST_EDGE_BEHIND] += 1.0
             if abs(dt) > eps:
                 pass
             elif m2 <= PROFILE_INNER * radius * radius:

@@ -285,6 +285,8 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     inner_disc = m2[hit] <= K.PROFILE_OUTER * radius * radius
     out[K.ST_VALID_INNER] = inner_disc.sum()
     out[K.ST_BEHIND_INNER] = np.count_nonzero(inner_disc & (dt > e))
+    out[K.ST_EDGE_N] = np.count_nonzero(~inner_disc & (dt >= -e))
+    out[K.ST_EDGE_BEHIND] = np.count_nonzero(~inner_disc & (dt > e))
     ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (K.RING_FACTOR * radius) ** 2)
     out[K.ST_RING] = ring.sum()
     out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))

@@ -138,6 +138,26 @@ def test_window_stats_classifies_pixels():
     assert out[K.ST_FRONT] > out[K.ST_INLIER]
 
 
+def test_edge_band_tells_a_smaller_ball():
+    """The silhouette's edge band (0.89 R to R): a ball of radius R fills it; a 0.11 m ball seen as a
+    0.12 m one (the 0.12 m sphere tangent to its front) leaves most of it to the wall behind."""
+    from spherebench.method import improved as I
+
+    c = np.array([0.05, 0.0, 1.2])
+    excess = {}
+    for r in (R, 0.11):
+        cloud = scene(ball_c=tuple(c), ball_r=r, noise=0.0, width=424, height=240)
+        intr = cloud.intrinsics
+        img = K.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
+        centre = c * (1.0 + (R - r) / np.linalg.norm(c))
+        out = np.zeros(K.N_STATS)
+        K.window_stats(cloud.points, img, *centre, R, 0.005, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+        share = out[K.ST_EDGE_BEHIND] / out[K.ST_EDGE_N]
+        assert out[K.ST_EDGE_N] > 50 and (share < 0.05 if r == R else share > 0.5), (r, share)
+        excess[r] = I.edge_behind_excess({"edge_n": out[K.ST_EDGE_N], "edge_behind": out[K.ST_EDGE_BEHIND]})
+    assert excess[R] == 0.0 and excess[0.11] > 0.1
+
+
 # ------------------------------------------------------------------------------------ detection
 
 @pytest.mark.parametrize("method", ["improved", "paper"])
