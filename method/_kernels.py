@@ -297,52 +297,61 @@ HIST_SAMPLES = 32768
 
 @kernel
 def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit, hist, hist_per_m):
-    """One pass over an organised cloud (and a strided one for the histogram), then the table's prefix sums.
+    """One pass over an organised cloud, then the table's prefix sums.
 
     Fills img (H, W) int32 (the point index of each pixel, -1 where none), tab (Hc + 1, Wc + 1)
     uint64 (summed-area table over cells of the depth z in mm and of the valid count, packed: depth
     + count << COUNT_SHIFT, modulo 2^64; pixel (r, c) is in table cell (row_cell[r], col_cell[c]),
     both (H,), (W,) int32, 1-based; a row with row_cell -1 is left out of the table, see
     ``improved.cell_lookup``) and hist (B,) int64 (counts of z in bins of 1 / hist_per_m
-    metres, the last bin open, over a strided sample). Points with a non-finite coordinate or z <= 0
+    metres, the last bin open, over every k-th point that gets a pixel). Points with a non-finite coordinate or z <= 0
     get no pixel, so the search never meets them; two points on one pixel: the last one. Returns
     (finite count, count of |z| > mm_limit). (Lookup tables: an integer division per point cost more
     than the rest.)
     """
     height, width = img.shape
-    one_cell = tab.shape[0] == height + 1 and tab.shape[1] == width + 1
-    img[:] = -1
-    tab[:] = 0
+    hc, wc = tab.shape[0], tab.shape[1]
+    one_cell = hc == height + 1 and wc == width + 1
+    # flat views and unsigned bounds tests: 2D indexing with numba's negative-index wraparound cost a
+    # fifth of the pass
+    img1 = img.reshape(img.size)  # views (contiguous arrays only: numba raises otherwise)
+    tab1 = tab.reshape(tab.size)
+    img1[:] = -1
+    tab1[:] = 0
     hist[:] = 0
     nb = hist.shape[0]
     n = points.shape[0]
-    for i in range(0, n, max(HIST_STRIDE, n // HIST_SAMPLES)):
-        z = points[i, 2]
-        if z > 0.0 and math.isfinite(points[i, 0] + points[i, 1] + z):
-            hist[min(int(z * hist_per_m), nb - 1)] += 1
+    # the histogram samples every hstride-th point (i = 0, hstride, ...) in this pass: a separate
+    # strided pass over the cold cloud cost a sixth of the frame pass
+    hstride = max(HIST_STRIDE, n // HIST_SAMPLES)
+    next_h = 0
     one = np.uint64(1) << np.uint64(COUNT_SHIFT)
     n_ok = 0
     n_big = 0
     for i in range(n):
+        sample = i == next_h
+        if sample:
+            next_h += hstride
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         if not math.isfinite(x + y + z):  # NaN or inf anywhere (a huge finite sum too: no such point is sane)
             continue
         n_ok += 1
         n_big += abs(z) > mm_limit
         r, c = rows[i], cols[i]
-        if z > 0.0 and 0 <= r < height and 0 <= c < width:
-            img[r, c] = i
+        if z > 0.0 and np.uint32(r) < np.uint32(height) and np.uint32(c) < np.uint32(width):
+            img1[r * width + c] = i
+            if sample:
+                hist[min(int(z * hist_per_m), nb - 1)] += 1
             packed = np.uint64(np.uint32(z * np.float32(1000.0) + np.float32(0.5))) + one
             if one_cell:  # a store
-                tab[r + 1, c + 1] = packed
+                tab1[(r + 1) * wc + c + 1] = packed
             elif row_cell[r] >= 0:  # a read-modify-write (a cell's sum kept in a register was no faster)
-                tab[row_cell[r], col_cell[c]] += packed
-    hc, wc = tab.shape[0], tab.shape[1]
+                tab1[row_cell[r] * wc + col_cell[c]] += packed
     for r in range(1, hc):
         a = np.uint64(0)
         for c in range(1, wc):
-            a += tab[r, c]
-            tab[r, c] = tab[r - 1, c] + a
+            a += tab1[r * wc + c]
+            tab1[r * wc + c] = tab1[(r - 1) * wc + c] + a
     return n_ok, n_big
 
 
