@@ -26,6 +26,7 @@ import math
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import cv2
@@ -234,7 +235,9 @@ def read_xyz(path: str | Path) -> Cloud:
     if not path.is_file():
         raise SphereBenchError(f"{path}: file not found")
     try:
-        data = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", usecols=(0, 1, 2))
+        with warnings.catch_warnings():  # an empty file: numpy warns, and detect() says what is wrong
+            warnings.simplefilter("ignore", UserWarning)
+            data = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", usecols=(0, 1, 2))
     except (ValueError, IndexError) as exc:
         raise SphereBenchError(f"{path}: not an XYZ text file with three numbers per line ({exc})") from None
     return Cloud(data.astype(np.float32))

@@ -7,8 +7,8 @@ Arrays in, results out: this package reads no files (see ``spherebench.datasets.
 """
 
 from spherebench.method.config import IMPROVED, PAPER, PAPER_LSTSQ, PRESETS, DetectorConfig, config_for
-from spherebench.method.detector import Sphere, detect
+from spherebench.method.detector import Sphere, detect, warm_up
 from spherebench.method.paper import PaperTrace
 
 __all__ = ["DetectorConfig", "PAPER", "PAPER_LSTSQ", "IMPROVED", "PRESETS", "config_for", "detect", "Sphere",
-           "PaperTrace"]
+           "PaperTrace", "warm_up"]

@@ -142,6 +142,30 @@ def search_seed(seed: int | None) -> int:
     return _SEEDS[seed]
 
 
+def warm_up(config: DetectorConfig = IMPROVED) -> None:
+    """Load (or compile) the compiled kernels that ``detect`` uses with ``config``, on a small synthetic
+    frame with a ball, organised and unorganised: the first call in a process otherwise pays this
+    (0.3-0.5 s from numba's cache, tens of seconds on a fresh install), which a stream's first frame
+    or a command line's first timing would show as detection time."""
+    from spherebench.camera import Intrinsics, image_rays  # the method reads no files: synthesised here
+
+    intr = Intrinsics.d435(96, 72)
+    rays = image_rays(intr)
+    centre = np.array([0.0, 0.0, 0.8]) * max(config.radius_m / 0.12, 1e-3)
+    u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    tc = u @ centre
+    m2 = centre @ centre - tc * tc
+    t_ball = tc - np.sqrt(np.maximum(config.radius_m ** 2 - m2, 0.0))
+    z = np.where(m2 < config.radius_m ** 2, t_ball * u[..., 2], 1.5 * centre[2])
+    rows, cols = np.nonzero(np.ones(intr.shape, bool))
+    pts = (rays * z[..., None]).reshape(-1, 3)
+    for cloud in (Cloud(pts, rows, cols, intr), Cloud(pts)):
+        try:
+            detect(cloud, config, seed=0)
+        except SphereBenchError:  # a configuration this frame does not suit (a 5 m ball): best effort
+            pass
+
+
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0) -> list[Sphere]:
     """Find balls of radius ``config.radius_m`` in ``cloud``; best first (at most ``config.max_spheres``).
 

@@ -187,6 +187,14 @@ def test_paper_trace_has_table2_values():
     assert np.all(np.abs(t.zscores[np.isin(t.ransac_indices, t.kept_indices)]) <= 1.5)
 
 
+@pytest.mark.parametrize("method, radius", [("improved", R), ("improved", 0.03), ("improved", 5.0), ("paper", R),
+                                            ("paper-lstsq", R)])
+def test_warm_up_runs_for_any_valid_configuration(method, radius):
+    from spherebench.method import warm_up
+
+    warm_up(config_for(method, radius_m=radius, eps_m=0.2 * radius))
+
+
 def test_rejects_soccer_ball_and_empty_wall():
     assert detect(scene(ball_c=(0.0, 0.0, 0.9), ball_r=0.11), seed=0) == []
     assert detect(scene(ball_c=None), seed=0) == []
