@@ -304,16 +304,16 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     + count << COUNT_SHIFT, modulo 2^64; pixel (r, c) is in table cell (row_cell[r], col_cell[c]),
     both (H,), (W,) int32, 1-based; a row with row_cell -1 is left out of the table, see
     ``improved.cell_lookup``) and hist (B,) int64 (counts of z in bins of 1 / hist_per_m
-    metres, the last bin open, over every k-th point that gets a pixel). Points with a non-finite coordinate or z <= 0
-    get no pixel, so the search never meets them; two points on one pixel: the last one. Returns
+    metres, the last bin open, over every k-th point that gets a pixel). Points with a non-finite
+    coordinate or z <= 0 get no pixel, so the search never meets them; two points on one pixel: the
+    last one. Returns
     (finite count, count of |z| > mm_limit). (Lookup tables: an integer division per point cost more
     than the rest.)
     """
     height, width = img.shape
     hc, wc = tab.shape[0], tab.shape[1]
     one_cell = hc == height + 1 and wc == width + 1
-    # flat views and unsigned bounds tests: 2D indexing with numba's negative-index wraparound cost a
-    # fifth of the pass
+    # flat views and unsigned bounds tests: no negative-index wraparound per 2D access
     img1 = img.reshape(img.size)  # views (contiguous arrays only: numba raises otherwise)
     tab1 = tab.reshape(tab.size)
     img1[:] = -1
@@ -321,8 +321,8 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     hist[:] = 0
     nb = hist.shape[0]
     n = points.shape[0]
-    # the histogram samples every hstride-th point (i = 0, hstride, ...) in this pass: a separate
-    # strided pass over the cold cloud cost a sixth of the frame pass
+    # the histogram samples every hstride-th point (i = 0, hstride, ...) in this pass, not in a
+    # separate strided pass that read the cold cloud once more
     hstride = max(HIST_STRIDE, n // HIST_SAMPLES)
     next_h = 0
     one = np.uint64(1) << np.uint64(COUNT_SHIFT)
