@@ -936,6 +936,17 @@ def shell_indices(points, cx, cy, cz, radius, band, out_idx):
 
 
 @kernel
+def inside_count(points, cx, cy, cz, r_in):
+    """The number of points closer than r_in to c (unorganised clouds: a ball's hidden interior)."""
+    k = 0
+    r2 = r_in * r_in
+    for i in range(points.shape[0]):
+        dx, dy, dz = points[i, 0] - cx, points[i, 1] - cy, points[i, 2] - cz
+        k += dx * dx + dy * dy + dz * dz < r2
+    return k
+
+
+@kernel
 def refine_fixed_radius(points, idx, cx, cy, cz, radius, iterations):
     """Gauss-Newton on sum (||p - c|| - R)^2 over points[idx]; returns the centre (3,) float64.
     (Scalar sums and ``cholesky_solve``: a LAPACK call per step cost more than the sums.)"""

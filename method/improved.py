@@ -425,7 +425,10 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat top, a smaller
     ball), (1 - ``edge_behind_excess``)^4 (seen through the silhouette's edge band: a smaller
     ball), the ``relief_agreement`` of the inner and outer zones (a surface flatter than the
-    ball); the size agreement exp(-d^2 / 2) with
+    ball); for unorganised clouds (1 - min(1, q))^2, q the density of points in the ball's inner
+    half over that in its shell (a wall it cuts, volumetric noise: a real ball hides its interior);
+    the size agreement
+    exp(-d^2 / 2) with
     d the free radius's deviation from R in units of (``size_tolerance`` + its standard error).
     """
     R = config.radius_m
@@ -440,6 +443,8 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         score *= coverage * (1.0 - behind) ** 2 * (1.0 - hug) ** 2 * (1.0 - ring) ** 2 * (1.0 - attached) ** 8
         score *= (1.0 - see_through_excess(stats)) ** 4 * (1.0 - edge_behind_excess(stats)) ** 4
         score *= relief_agreement(stats, R)
+    elif "interior_density_ratio" in stats:  # unorganised: points inside the ball, as dense as on its shell: 0
+        score *= (1.0 - min(1.0, stats["interior_density_ratio"])) ** 2
     size_ok = True
     if config.size_check:
         se = free_se if math.isfinite(free_se) else R
@@ -500,9 +505,22 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     free_c, free_r, free_se, _ = K.fit_free_radius(points, idx, c[0], c[1], c[2], R, 8)
     res = np.linalg.norm(points[idx].astype(np.float64) - c, axis=1) - R
     rmse = float(np.sqrt(np.mean(res * res)))
-    score, size_ok = confidence({}, n, float(free_r), float(free_se), config, False)
+    # a ball hides its interior: points in its inner half (and INTERIOR_BANDS shell half-widths under
+    # its surface) are another surface the sphere cuts (a wall, clutter) or volumetric noise; a noisy
+    # sensor's returns off the ball itself do not reach that deep (a 16-beam LiDAR's do 3 cm deep)
+    r_in = min(R - INTERIOR_BANDS * e, 0.5 * R)
+    inside = float(K.inside_count(points, c[0], c[1], c[2], r_in)) if r_in > 0 else 0.0
+    v_shell = (R + e) ** 3 - max(R - e, 0.0) ** 3  # volumes / (4 pi / 3)
+    stats = {"inside": inside, "shell": float(n),
+             "interior_density_ratio": (inside / max(r_in, 1e-12) ** 3) / (n / v_shell) if r_in > 0 else 0.0}
+    score, size_ok = confidence(stats, n, float(free_r), float(free_se), config, False)
     return Candidate(center_m=c, inliers=idx, eps_m=e, free_center_m=np.asarray(free_c), free_radius_m=float(free_r),
-                     free_radius_se_m=float(free_se), rmse_m=rmse, stats={}, score=score, size_ok=size_ok)
+                     free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
+
+
+#: Unorganised clouds: the interior whose points count against a ball is its inner half, and at least
+#: INTERIOR_BANDS eps under its surface.
+INTERIOR_BANDS = 3.0
 
 
 def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig,

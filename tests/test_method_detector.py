@@ -195,6 +195,18 @@ def test_warm_up_runs_for_any_valid_configuration(method, radius):
     warm_up(config_for(method, radius_m=radius, eps_m=0.2 * radius))
 
 
+def test_unorganised_volumetric_noise_is_no_ball_but_a_ball_in_it_is():
+    """A ball hides its interior: uniform noise fills every shell (with a free radius of R, since the
+    shell selects it), and a sphere there has as many points inside as on it; a ball's cap has none."""
+    rng = np.random.default_rng(3)
+    noise = rng.uniform(-1.0, 1.0, (200_000, 3)) + [0.0, 0.0, 3.0]
+    assert detect(Cloud(noise), seed=0) == []
+    c = np.array([0.3, -0.2, 3.0])
+    got = detect(Cloud(np.concatenate([noise, cap_points(c, R, 4000, rng)])), seed=0)
+    assert len(got) == 1 and np.linalg.norm(got[0].center_m - c) < 0.003
+    assert got[0].evidence["interior_density_ratio"] < 0.1
+
+
 def test_rejects_soccer_ball_and_empty_wall():
     assert detect(scene(ball_c=(0.0, 0.0, 0.9), ball_r=0.11), seed=0) == []
     assert detect(scene(ball_c=None), seed=0) == []
