@@ -28,9 +28,16 @@ _INV53 = 1.0 / 9007199254740992.0  # 2^-53
 
 # Categories of a pixel of a candidate's window (window statistics, in this order).
 ST_VALID_DISC, ST_INLIER, ST_FRONT, ST_FRONT_NEAR, ST_BEHIND, ST_INVALID_DISC, ST_SSE, ST_RING, ST_RING_CONT, \
-    ST_RING_FRONT, ST_VALID_INNER, ST_BEHIND_INNER, ST_EDGE_N, ST_EDGE_BEHIND, ST_IN_N, ST_IN_SUM, ST_OUTH_N, \
-    ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM = range(20)
-N_STATS = 20
+    ST_RING_FRONT, ST_VALID_INNER, ST_BEHIND_INNER, ST_EDGE_N, ST_EDGE_BEHIND = range(14)
+#: The outline ring by angle about the centre's pixel: N_SECTORS sectors of equal angle, in angular
+#: order from -180 degrees (image x right, y down); per sector its ring pixels (ST_SECTOR_RING + k)
+#: and those RING_CONT or RING_FRONT (ST_SECTOR_ATTACHED + k).
+N_SECTORS = 8
+ST_SECTOR_RING = 14
+ST_SECTOR_ATTACHED = ST_SECTOR_RING + N_SECTORS
+ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM = range(ST_SECTOR_ATTACHED + N_SECTORS,
+                                                                    ST_SECTOR_ATTACHED + N_SECTORS + 6)
+N_STATS = ST_OUTV_SUM + 1
 
 #: The relief profile: inner zone (rays passing the centre within sqrt(PROFILE_INNER) R) and outer
 #: zone (up to sqrt(PROFILE_OUTER) R, short of the outline, where flying pixels mix in the background).
@@ -146,6 +153,13 @@ def ray_residual(px, py, pz, cx, cy, cz, radius):
 
 
 @kernel
+def ring_sector(du, dv):
+    """The ring sector (0 .. N_SECTORS - 1) of a pixel at (du, dv) pixels from the centre's."""
+    k = int((math.atan2(dv, du) + math.pi) * (N_SECTORS / (2.0 * math.pi)))
+    return min(max(k, 0), N_SECTORS - 1)
+
+
+@kernel
 def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy, ppx, ppy, stride, out):
     """Classify the pixels of a candidate's silhouette; out (N_STATS,) float64 gets the counts.
 
@@ -158,7 +172,8 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
     passes the centre (a surface continuing beyond the outline: a wall, a plane, a bigger object;
     a band of one sigma of the depth noise rather than eps: at 3 m eps is +/- R, and a background
     20 cm behind a ball would count as continuing it), RING_FRONT those RING_FRONT_MIN R to
-    RING_FRONT_MAX R in front of it (an attached surface in front: a cylinder's body).
+    RING_FRONT_MAX R in front of it (an attached surface in front: a cylinder's body); the same by
+    angular sector (``ring_sector``: ST_SECTOR_RING, ST_SECTOR_ATTACHED).
     VALID_INNER and BEHIND_INNER count the valid and the BEHIND pixels whose rays pass the centre
     within sqrt(PROFILE_OUTER) R (short of the outline, where mixed pixels see past a real ball);
     EDGE_N and EDGE_BEHIND the pixels beyond that, up to the outline, that are INLIER or BEHIND, and
@@ -201,10 +216,14 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
                 tc = (px * cx + py * cy + pz * cz) / pn
                 if tc > 0.0 and dist * dist - tc * tc <= ring2:
                     out[ST_RING] += 1.0
+                    sector = ring_sector(c - u0, r - v0)
+                    out[ST_SECTOR_RING + sector] += 1.0
                     if abs(pn - tc) <= ring_band:
                         out[ST_RING_CONT] += 1.0
+                        out[ST_SECTOR_ATTACHED + sector] += 1.0
                     elif -RING_FRONT_MAX * radius <= pn - tc <= -RING_FRONT_MIN * radius:
                         out[ST_RING_FRONT] += 1.0
+                        out[ST_SECTOR_ATTACHED + sector] += 1.0
                 continue
             out[ST_VALID_DISC] += 1.0
             # the relief profile: the inliers' mean ray residual per zone (a flat or a less curved

@@ -292,6 +292,11 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
     attached = (pn - tc >= -K.RING_FRONT_MAX * radius) & (pn - tc <= -K.RING_FRONT_MIN * radius)
     out[K.ST_RING_FRONT] = np.count_nonzero(ring & (np.abs(pn - tc) > ring_band) & attached)
+    ang = np.arctan2(rr[ok] - v0, cc[ok] - u0)
+    sector = np.clip(((ang + math.pi) * (K.N_SECTORS / (2.0 * math.pi))).astype(int), 0, K.N_SECTORS - 1)
+    joined = ring & ((np.abs(pn - tc) <= ring_band) | attached)
+    out[K.ST_SECTOR_RING:K.ST_SECTOR_RING + K.N_SECTORS] = np.bincount(sector[ring], minlength=K.N_SECTORS)
+    out[K.ST_SECTOR_ATTACHED:K.ST_SECTOR_ATTACHED + K.N_SECTORS] = np.bincount(sector[joined], minlength=K.N_SECTORS)
     out[:K.ST_IN_N] *= float(stride * stride)
     # the relief profile over the inliers: inner zone, outer zone left/right and above/below
     mz = m2[hit][inl]

@@ -158,6 +158,34 @@ def test_edge_band_tells_a_smaller_ball():
     assert excess[R] == 0.0 and excess[0.11] > 0.1
 
 
+def test_ring_spread_tells_support_from_embedding():
+    """A ball on a floor is attached below only (within half its outline: no spread); a cap sticking
+    out of a wall is attached all round."""
+    from spherebench.method import improved as I
+    from spherebench.method.detector import prepare_frame
+
+    assert I.ring_spread(np.full(8, 10.0), np.array([0, 0, 0, 4, 6, 6, 4, 0.0])) == 0.0
+    assert I.ring_spread(np.full(8, 10.0), np.full(8, 5.0)) == pytest.approx(20.0 / 80.0)
+    cfg = config_for("improved", size_check=False, min_score=0.0)
+    buf = np.empty(424 * 240 + 1, np.int64)
+    c = np.array([0.1, 0.13, 1.0])  # resting on the floor of scene(box=True), 0.25 m below the camera
+    floor = scene(ball_c=tuple(c), box=True, noise=0.002, width=424, height=240)
+    # the ball in a surface at its depth all round: each pixel at the range where its ray passes the
+    # centre closest (window_stats' test of a surface continuing the outline)
+    intr = floor.intrinsics
+    u = image_rays(intr)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    tc = u @ c
+    m2 = c @ c - tc * tc
+    z = np.where(m2 < R * R, (tc - np.sqrt(np.maximum(R * R - m2, 0.0))) * u[..., 2], tc * u[..., 2])
+    embedded = cloud_from_depth((z + np.random.default_rng(0).normal(size=z.shape) * 0.002).astype(np.float32), intr)
+    spread = {}
+    for name, cloud in (("floor", floor), ("embedded", embedded)):
+        v = I.verify_organised(prepare_frame(cloud, cfg), c, cfg, buf)
+        spread[name] = v.stats["ring_spread"]
+    assert spread["floor"] < I.RING_SPREAD_FREE < 0.2 < spread["embedded"], spread
+
+
 # ------------------------------------------------------------------------------------ detection
 
 @pytest.mark.parametrize("method", ["improved", "paper"])
