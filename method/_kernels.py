@@ -35,9 +35,9 @@ ST_VALID_DISC, ST_INLIER, ST_FRONT, ST_FRONT_NEAR, ST_BEHIND, ST_INVALID_DISC, S
 N_SECTORS = 8
 ST_SECTOR_RING = 14
 ST_SECTOR_ATTACHED = ST_SECTOR_RING + N_SECTORS
-ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM = range(ST_SECTOR_ATTACHED + N_SECTORS,
-                                                                    ST_SECTOR_ATTACHED + N_SECTORS + 6)
-N_STATS = ST_OUTV_SUM + 1
+ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM, ST_RING_SPREAD = range(
+    ST_SECTOR_ATTACHED + N_SECTORS, ST_SECTOR_ATTACHED + N_SECTORS + 7)
+N_STATS = ST_RING_SPREAD + 1
 
 #: The relief profile: inner zone (rays passing the centre within sqrt(PROFILE_INNER) R) and outer
 #: zone (up to sqrt(PROFILE_OUTER) R, short of the outline, where flying pixels mix in the background).
@@ -154,9 +154,36 @@ def ray_residual(px, py, pz, cx, cy, cz, radius):
 
 @kernel
 def ring_sector(du, dv):
-    """The ring sector (0 .. N_SECTORS - 1) of a pixel at (du, dv) pixels from the centre's."""
-    k = int((math.atan2(dv, du) + math.pi) * (N_SECTORS / (2.0 * math.pi)))
-    return min(max(k, 0), N_SECTORS - 1)
+    """The ring sector (0-7: octants in angular order from the left, image y down) of a pixel at
+    (du, dv) pixels from the centre's; comparisons, not an arctangent per pixel."""
+    ax, ay = abs(du), abs(dv)
+    if dv < 0.0:
+        if du < 0.0:
+            return 0 if ax > ay else 1
+        return 2 if ay > ax else 3
+    if du >= 0.0:
+        return 4 if ax > ay else 5
+    return 6 if ay > ax else 7
+
+
+@kernel
+def ring_spread(out):
+    """The share of the ring's pixels attached (out[ST_SECTOR_ATTACHED + k]) outside the half ring,
+    N_SECTORS / 2 consecutive sectors, that holds the most of them (``improved.RING_SPREAD_FREE``)."""
+    total = 0.0
+    attached = 0.0
+    for k in range(N_SECTORS):
+        total += out[ST_SECTOR_RING + k]
+        attached += out[ST_SECTOR_ATTACHED + k]
+    if total <= 0.0:
+        return 0.0
+    best = 0.0
+    for k in range(N_SECTORS):
+        w = 0.0
+        for j in range(N_SECTORS // 2):
+            w += out[ST_SECTOR_ATTACHED + (k + j) % N_SECTORS]
+        best = max(best, w)
+    return (attached - best) / total
 
 
 @kernel
@@ -173,7 +200,8 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
     a band of one sigma of the depth noise rather than eps: at 3 m eps is +/- R, and a background
     20 cm behind a ball would count as continuing it), RING_FRONT those RING_FRONT_MIN R to
     RING_FRONT_MAX R in front of it (an attached surface in front: a cylinder's body); the same by
-    angular sector (``ring_sector``: ST_SECTOR_RING, ST_SECTOR_ATTACHED).
+    angular sector (``ring_sector``: ST_SECTOR_RING, ST_SECTOR_ATTACHED), and RING_SPREAD
+    (``ring_spread``).
     VALID_INNER and BEHIND_INNER count the valid and the BEHIND pixels whose rays pass the centre
     within sqrt(PROFILE_OUTER) R (short of the outline, where mixed pixels see past a real ball);
     EDGE_N and EDGE_BEHIND the pixels beyond that, up to the outline, that are INLIER or BEHIND, and
@@ -264,6 +292,7 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
     s2 = float(stride * stride)
     for k in range(ST_IN_N):  # the profile keeps the visited counts: its means' errors depend on them
         out[k] *= s2
+    out[ST_RING_SPREAD] = ring_spread(out)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -327,7 +327,8 @@ _STAT_NAMES = {"valid_disc": K.ST_VALID_DISC, "inlier": K.ST_INLIER, "front": K.
                "front_near": K.ST_FRONT_NEAR, "behind": K.ST_BEHIND, "invalid_disc": K.ST_INVALID_DISC,
                "ring": K.ST_RING, "ring_continued": K.ST_RING_CONT, "ring_front": K.ST_RING_FRONT,
                "valid_inner": K.ST_VALID_INNER, "behind_inner": K.ST_BEHIND_INNER,
-               "edge_n": K.ST_EDGE_N, "edge_behind": K.ST_EDGE_BEHIND, "inner_n": K.ST_IN_N, "inner_sum": K.ST_IN_SUM,
+               "edge_n": K.ST_EDGE_N, "edge_behind": K.ST_EDGE_BEHIND, "ring_spread": K.ST_RING_SPREAD,
+               "inner_n": K.ST_IN_N, "inner_sum": K.ST_IN_SUM,
                "outer_h_n": K.ST_OUTH_N, "outer_h_sum": K.ST_OUTH_SUM, "outer_v_n": K.ST_OUTV_N,
                "outer_v_sum": K.ST_OUTV_SUM}
 
@@ -406,26 +407,15 @@ EDGE_BEHIND_FREE = 0.4
 RING_FRONT_FREE = 0.15
 
 
-def ring_spread(sector_ring: np.ndarray, sector_attached: np.ndarray) -> float:
-    """The share of the outline ring attached to a surface (continuing at the ball's depth or just in
-    front of it, ``_kernels.window_stats``) outside the half ring that holds most of it; sectors
-    (N_SECTORS,) of ring pixels and of attached ones. A ball touches what supports it on one side (a
-    floor, a table, a holder, a hand: within half its outline, whatever the camera's roll); clutter
-    that looks like a ball's cap (a jar in a shelf, a box's corner, a cylinder's top) is embedded on
-    several sides."""
-    total = float(np.sum(sector_ring))
-    if total <= 0:
-        return 0.0
-    k = len(sector_attached)
-    half = k // 2
-    window = np.convolve(np.concatenate([sector_attached, sector_attached[:half - 1]]), np.ones(half), "valid")
-    return float((np.sum(sector_attached) - np.max(window)) / total)
-
-
-#: ``ring_spread`` tolerated without penalty (simulated balls found in the 2,000 `train` scenes: 99 %
-#: below 0.034; clutter that passed the other tests: a median of 0.05-0.07), and the exponent of
-#: the factor (1 - (spread - RING_SPREAD_FREE))^RING_SPREAD_POWER beyond it (chosen on `train`:
-#: false detections there 8 -> 1, balls found unchanged; 0.03-0.05 and 8-24 did nearly as well).
+#: The ring spread (``_kernels.ring_spread``): the share of the outline ring attached to a surface
+#: (continuing at the ball's depth or just in front of it) outside the half ring that holds most of
+#: it. A ball touches what supports it on one side (a floor, a table, a holder, a hand: within half
+#: its outline, whatever the camera's roll); clutter that looks like a ball's cap (a jar in a shelf,
+#: a box's corner, a cylinder's top) is embedded on several sides. Tolerated without penalty up to
+#: RING_SPREAD_FREE (simulated balls found in the 2,000 `train` scenes: 99 % below 0.034; clutter
+#: that passed the other tests: a median of 0.05-0.07), beyond it the factor
+#: (1 - (spread - RING_SPREAD_FREE))^RING_SPREAD_POWER (chosen on `train`: false detections of the
+#: verified candidates there 8 -> 1, balls found unchanged; 0.03-0.05 and 8-24 did nearly as well).
 RING_SPREAD_FREE = 0.04
 RING_SPREAD_POWER = 16
 
@@ -449,7 +439,7 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat top, a smaller
     ball), (1 - ``edge_behind_excess``)^4 (seen through the silhouette's edge band: a smaller
     ball), the ``relief_agreement`` of the inner and outer zones (a surface flatter than the
-    ball), (1 - (``ring_spread`` - RING_SPREAD_FREE))^RING_SPREAD_POWER beyond the free share
+    ball), (1 - (ring spread - RING_SPREAD_FREE))^RING_SPREAD_POWER beyond the free share
     (attached on several sides: embedded clutter); for unorganised clouds (1 - min(1, q))^2, q the density of points in the ball's inner
     half over that in its shell (a wall it cuts, volumetric noise: a real ball hides its interior);
     the size agreement
@@ -493,8 +483,6 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
     if n < config.min_inliers:  # too few, or failed the size check (-1)
         return None
     stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
-    stats["ring_spread"] = ring_spread(st[K.ST_SECTOR_RING:K.ST_SECTOR_RING + K.N_SECTORS],
-                                       st[K.ST_SECTOR_ATTACHED:K.ST_SECTOR_ATTACHED + K.N_SECTORS])
     # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
     # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
     # quantisation steps) would otherwise fail a real ball's zone means by a few mm

@@ -292,8 +292,7 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
     attached = (pn - tc >= -K.RING_FRONT_MAX * radius) & (pn - tc <= -K.RING_FRONT_MIN * radius)
     out[K.ST_RING_FRONT] = np.count_nonzero(ring & (np.abs(pn - tc) > ring_band) & attached)
-    ang = np.arctan2(rr[ok] - v0, cc[ok] - u0)
-    sector = np.clip(((ang + math.pi) * (K.N_SECTORS / (2.0 * math.pi))).astype(int), 0, K.N_SECTORS - 1)
+    sector = ring_sectors(cc[ok] - u0, rr[ok] - v0)
     joined = ring & ((np.abs(pn - tc) <= ring_band) | attached)
     out[K.ST_SECTOR_RING:K.ST_SECTOR_RING + K.N_SECTORS] = np.bincount(sector[ring], minlength=K.N_SECTORS)
     out[K.ST_SECTOR_ATTACHED:K.ST_SECTOR_ATTACHED + K.N_SECTORS] = np.bincount(sector[joined], minlength=K.N_SECTORS)
@@ -307,4 +306,25 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     out[K.ST_IN_N], out[K.ST_IN_SUM] = inner.sum(), d_in[inner].sum()
     out[K.ST_OUTH_N], out[K.ST_OUTH_SUM] = (outer & horiz).sum(), d_in[outer & horiz].sum()
     out[K.ST_OUTV_N], out[K.ST_OUTV_SUM] = (outer & ~horiz).sum(), d_in[outer & ~horiz].sum()
+    out[K.ST_RING_SPREAD] = ring_spread(out[K.ST_SECTOR_RING:K.ST_SECTOR_RING + K.N_SECTORS],
+                                        out[K.ST_SECTOR_ATTACHED:K.ST_SECTOR_ATTACHED + K.N_SECTORS])
     return out
+
+
+def ring_sectors(du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """``_kernels.ring_sector`` over arrays: octants 0-7 in angular order from the left (y down)."""
+    ax, ay = np.abs(du), np.abs(dv)
+    upper = np.where(du < 0, np.where(ax > ay, 0, 1), np.where(ay > ax, 2, 3))
+    lower = np.where(du >= 0, np.where(ax > ay, 4, 5), np.where(ay > ax, 6, 7))
+    return np.where(dv < 0, upper, lower)
+
+
+def ring_spread(sector_ring: np.ndarray, sector_attached: np.ndarray) -> float:
+    """``_kernels.ring_spread``: the attached share of the ring (sectors (N_SECTORS,) of ring pixels and
+    of attached ones) outside the half ring that holds the most of it."""
+    total = float(np.sum(sector_ring))
+    if total <= 0:
+        return 0.0
+    half = len(sector_attached) // 2
+    windows = [np.sum(np.roll(sector_attached, -k)[:half]) for k in range(len(sector_attached))]
+    return float((np.sum(sector_attached) - max(windows)) / total)
