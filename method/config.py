@@ -93,7 +93,10 @@ class DetectorConfig:
         max_eps_fraction: ... capped at this fraction of R.
         pretest_points: unorganised search: points near a candidate checked before scoring it fully.
         pretest_min_fraction: fraction of those that must be inliers.
-        verify_candidates: verify at most this many of the best search candidates.
+        verify_candidates: verify at most this many of the best search candidates ...
+        verify_candidates_if_none: ... or this many, if more (organised clouds), while none has
+            been accepted: a ball whose hypothesis ranks below clutter (one on a floor beside the image
+            border) is then still verified, and a frame with a ball pays nothing for it.
         fit_max_points: organised verification: every fit uses at most about this many inliers
             (evenly strided), and every window visit about 4 times as many pixels (strided); the
             reported spheres' inliers are then collected from every pixel.
@@ -151,6 +154,7 @@ class DetectorConfig:
     pretest_points: int = 12
     pretest_min_fraction: float = 0.5
     verify_candidates: int = 6
+    verify_candidates_if_none: int = 10
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 3
@@ -205,7 +209,7 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append(f"{name}={getattr(c, name)!r} is not one of {', '.join(allowed)}")
     for name in ("iterations", "min_iterations", "sample_retries", "pretest_points", "score_max_points",
                  "refine_iterations", "min_inliers", "max_spheres", "max_points", "search_width_px",
-                 "verify_candidates", "fit_max_points", "search_candidates"):
+                 "verify_candidates", "verify_candidates_if_none", "fit_max_points", "search_candidates"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int):
             out.append(f"{name}={v!r} must be an integer")
@@ -217,9 +221,9 @@ def _problems(c: DetectorConfig) -> list[str]:
         if c.max_spheres < 1 or c.min_inliers < 3 or c.max_points < 1000:
             out.append("max_spheres must be >= 1, min_inliers >= 3, max_points >= 1000")
         if (c.search_width_px < 16 or c.verify_candidates < 1 or c.fit_max_points < 10 or c.pretest_points < 1
-                or c.search_candidates < 1):
-            out.append("search_width_px must be >= 16, verify_candidates >= 1, fit_max_points >= 10, "
-                       "pretest_points >= 1, search_candidates >= 1")
+                or c.search_candidates < 1 or c.verify_candidates_if_none < 1):
+            out.append("search_width_px must be >= 16, verify_candidates and verify_candidates_if_none >= 1, "
+                       "fit_max_points >= 10, pretest_points >= 1, search_candidates >= 1")
     for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction", "max_eps_fraction",
                  "bound_visible_fraction", "size_tolerance_fraction"):
         if finite(name) and not 0.0 <= getattr(c, name) <= 1.0:

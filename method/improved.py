@@ -19,7 +19,8 @@ patch means found 176 of the default preset's 200 balls, missing most beyond 2.3
 sample gives a centre only when all its boxes lie inside the disc, the descent from anywhere on it.)
 Unorganised clouds: three-point local samples in a spatial grid (``_kernels.search_unorganised``).
 
-Verification (compiled, one call per candidate, best first, at most ``verify_candidates``):
+Verification (compiled, one call per candidate, best first, at most ``verify_candidates``, or
+``verify_candidates_if_none`` while none is accepted):
 Gauss-Newton with R fixed, re-selecting the inliers each round, for an organised cloud first on
 ||p - c|| - R (from a start some cm to the side, the ray residual of the rays that miss the
 current sphere hardly moves the centre) and then on the depth residual along each pixel's ray
@@ -554,7 +555,11 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
     else:
         cands, quals = search_unorganised(points, config, seed)
     found: list[Candidate] = []
-    for c0, q in zip(cands[:config.verify_candidates], quals[:config.verify_candidates]):
+    # while none is accepted, an organised frame verifies up to verify_candidates_if_none
+    limit_none = max(config.verify_candidates, config.verify_candidates_if_none if frame is not None else 0)
+    for k, (c0, q) in enumerate(zip(cands, quals)):
+        if k >= (config.verify_candidates if found else limit_none):
+            break
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
         if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
             break

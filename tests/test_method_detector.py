@@ -239,6 +239,22 @@ def test_unorganised_volumetric_noise_is_no_ball_but_a_ball_in_it_is():
     assert got[0].evidence["interior_density_ratio"] < 0.1
 
 
+def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypatch):
+    """verify_candidates_if_none: with 7 failing starts ranked first (points on the wall), the ball's
+    start at rank 7 is verified and found; capped at verify_candidates (6) it is not."""
+    from spherebench.method import improved as I
+
+    c = np.array([0.1, -0.05, 1.0])
+    cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
+    decoys = [np.array([x, y, 1.9]) for x, y in ((-0.6, -0.3), (-0.6, 0.3), (0.6, 0.3), (0.6, -0.3), (0.0, 0.35),
+                                                 (-0.3, 0.35), (0.4, 0.35))]
+    starts = np.array(decoys + [c])
+    monkeypatch.setattr(I, "search_organised", lambda frame, config, seed: (starts, np.arange(len(starts), 0, -1.0)))
+    found = detect(cloud, config_for("improved"), seed=0)
+    assert len(found) == 1 and np.linalg.norm(found[0].center_m - c) < 0.003
+    assert detect(cloud, config_for("improved", verify_candidates_if_none=6), seed=0) == []
+
+
 def test_rejects_soccer_ball_and_empty_wall():
     assert detect(scene(ball_c=(0.0, 0.0, 0.9), ball_r=0.11), seed=0) == []
     assert detect(scene(ball_c=None), seed=0) == []
