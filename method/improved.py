@@ -391,7 +391,7 @@ def edge_behind_excess(stats: dict) -> float:
     of 0.07 at 1 m, 0.32 at 2.5-3 m, at most 0.50); a smaller one leaves it to the background: a
     0.11 m soccer ball fitted with R = 0.12 m shows 0.8-0.95 at 0.6-2 m, where its free radius's
     error is small, but also where its outline is a pixel or more inside the basketball's (its
-    free radius alone lets it through near 2 m at 424x240: 1.13 +/- 0.4 cm)."""
+    free radius alone lets it through near 2 m at 424x240: 11.3 +/- 0.4 cm)."""
     n = stats.get("edge_n", 0.0)
     if n < 1:
         return 0.0
@@ -441,11 +441,10 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     ball), (1 - ``edge_behind_excess``)^4 (seen through the silhouette's edge band: a smaller
     ball), the ``relief_agreement`` of the inner and outer zones (a surface flatter than the
     ball), (1 - (ring spread - RING_SPREAD_FREE))^RING_SPREAD_POWER beyond the free share
-    (attached on several sides: embedded clutter); for unorganised clouds (1 - min(1, q))^2, q the density of points in the ball's inner
-    half over that in its shell (a wall it cuts, volumetric noise: a real ball hides its interior);
-    the size agreement
-    exp(-d^2 / 2) with
-    d the free radius's deviation from R in units of (``size_tolerance`` + its standard error).
+    (attached on several sides: embedded clutter); for unorganised clouds (1 - min(1, q))^2, q the
+    density of points in the ball's inner half over that in its shell (a wall it cuts, volumetric
+    noise: a real ball hides its interior); the size agreement exp(-d^2 / 2) with d the free
+    radius's deviation from R in units of (``size_tolerance`` + its standard error).
     """
     R = config.radius_m
     score = n_inliers / (n_inliers + config.min_inliers)
@@ -460,7 +459,7 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         score *= (1.0 - see_through_excess(stats)) ** 4 * (1.0 - edge_behind_excess(stats)) ** 4
         score *= relief_agreement(stats, R)
         score *= (1.0 - max(0.0, stats.get("ring_spread", 0.0) - RING_SPREAD_FREE)) ** RING_SPREAD_POWER
-    elif "interior_density_ratio" in stats:  # unorganised: points inside the ball, as dense as on its shell: 0
+    elif "interior_density_ratio" in stats:  # unorganised: a ball's interior holds no points
         score *= (1.0 - min(1.0, stats["interior_density_ratio"])) ** 2
     size_ok = True
     if config.size_check:

@@ -169,8 +169,8 @@ def test_ring_spread_tells_support_from_embedding():
     assert ref.ring_spread(np.full(8, 10.0), np.array([0, 0, 0, 4, 6, 6, 4, 0.0])) == 0.0
     assert ref.ring_spread(np.full(8, 10.0), np.array([4, 0, 0, 0, 0, 6, 6, 4.0])) == 0.0  # across sector 0
     assert ref.ring_spread(np.full(8, 10.0), np.full(8, 5.0)) == pytest.approx(20.0 / 80.0)
-    assert ref.ring_sectors(np.array([-2.0, -1, 1, 2, 2, 1, -1, -2]), np.array([-1.0, -2, -2, -1, 1, 2, 2, 1])).tolist() \
-        == list(range(8))
+    du, dv = np.array([-2.0, -1, 1, 2, 2, 1, -1, -2]), np.array([-1.0, -2, -2, -1, 1, 2, 2, 1])
+    assert ref.ring_sectors(du, dv).tolist() == list(range(8))  # octants in angular order
     cfg = config_for("improved", size_check=False, min_score=0.0)
     buf = np.empty(424 * 240 + 1, np.int64)
     c = np.array([0.1, 0.13, 1.0])  # resting on the floor of scene(box=True), 0.25 m below the camera
