@@ -547,10 +547,12 @@ def front_hypothesis(tab, prm, v, u, out):
     two pixels 1-2 cm.
     Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
     cell, all from the table: at least three of the four side boxes must lie on the sphere's cap
-    (range relief ``cap_relief`` above the front, within 3 sigma / sqrt(n) + slack), at most one
-    *behind* it (a surface seen through the ball; one box may straddle the outline); of the eight
-    ``ring_boxes`` at most MAX_CONTINUED may continue the surface at the ball's depth. out (4,) gets
-    (v, u, front range m, disc radius cells); the score is 2 agreeing + background ring boxes
+    (range relief ``cap_relief`` above the front, within 3 sigma / sqrt(n) + slack), or two and a
+    third well in front (more than R past the tolerance: an occluder hides that side of the ball;
+    out[4] flags such a hypothesis, which ``improved`` verifies only while no sphere has been
+    accepted), at most one *behind* it (a surface seen through the ball; one box may straddle the outline); of the eight
+    ``ring_boxes`` at most MAX_CONTINUED may continue the surface at the ball's depth. out (5,) gets
+    (v, u, front range m, disc radius cells, occluded flag); the score is 2 agreeing + background ring boxes
     - 2 continued - 2 behind - chi^2 / 2 of the agreeing ones (at most 16).
     """
     R = prm[P_R]
@@ -605,6 +607,7 @@ def front_hypothesis(tab, prm, v, u, out):
     sig = na * m0 * m0
     agree = 0
     behind = 0
+    occl = 0
     chi = 0.0
     for j in range(4):
         m = mL if j == 0 else (mR if j == 1 else (mU if j == 2 else mD))
@@ -618,20 +621,23 @@ def front_hypothesis(tab, prm, v, u, out):
         elif res >= -tol:
             agree += 1
             chi += (res / tol) ** 2
-    if behind > 1 or agree < 3:
+        elif res < -(tol + R):  # well in front: an occluder hides this side of the cap
+            occl += 1
+    if behind > 1 or agree + min(occl, 1) < 3:
         return -np.inf
     # pretest: the ring around the outline
     rr, bg, cont = ring_boxes(tab, prm, v, u, front, sig)
     if cont > MAX_CONTINUED:
         return -np.inf
-    out[0], out[1], out[2], out[3] = v, u, front, rr
+    out[0], out[1], out[2], out[3], out[4] = v, u, front, rr, 1.0 if agree < 3 else 0.0
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi
 
 
 @kernel
-def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, radius):
-    """Keep the best distinct hypotheses in cands (K, 5) rows (v, u, front m, r cells, score), best
-    first: one within r / 2 cells (and R in range) of a kept one is the same ball (the better stays)."""
+def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, occluded, radius):
+    """Keep the best distinct hypotheses in cands (K, 6) rows (v, u, front m, r cells, score, occluded
+    flag), best first: one within r / 2 cells (and R in range) of a kept one is the same ball (the
+    better stays)."""
     k_max = cands.shape[0]
     lim = 0.5 * rr
     for j in range(n_kept):
@@ -650,6 +656,7 @@ def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, radius):
             cands[pos, :] = cands[pos - 1, :]
         pos -= 1
     cands[pos, 0], cands[pos, 1], cands[pos, 2], cands[pos, 3], cands[pos, 4] = v, u, front, rr, q
+    cands[pos, 5] = occluded
     return min(n_kept + 1, k_max)
 
 
@@ -673,8 +680,8 @@ def search_organised(tab, prm, seed, cands, counters):
     """Stratified RANSAC on the cell grid: the grid is cut into strata of ``prm[P_STRATUM_V]`` x
     ``prm[P_STRATUM_U]`` cells (those at the far edges smaller), visited in raster order; in each, one
     first cell is drawn uniformly and gives one ``front_hypothesis``. The distinct passing ones are
-    kept by score in cands (K, 5) (v, u, front m, r cells, score), best first (``cell_centres`` gives
-    their centres).
+    kept by score in cands (K, 6) (v, u, front m, r cells, score, occluded flag: ``front_hypothesis``),
+    best first (``cell_centres`` gives their centres).
 
     Why strata rather than independent draws: a ball is missed only if every stratum it covers draws
     off it or fails, so the miss probability is at most that of as many independent draws (the
@@ -688,7 +695,7 @@ def search_organised(tab, prm, seed, cands, counters):
     counters[:] = 0
     state = np.empty(1, np.uint64)
     state[0] = np.uint64(seed)
-    out = np.empty(4, np.float64)
+    out = np.empty(5, np.float64)
     n_kept = 0
     for v0 in range(0, hc, sv):
         nv = min(sv, hc - v0)
@@ -701,7 +708,7 @@ def search_organised(tab, prm, seed, cands, counters):
             if q == -np.inf:
                 continue
             counters[1] += 1
-            n_kept = _keep_hypothesis(cands, n_kept, out[0], out[1], out[2], out[3], q, prm[P_R])
+            n_kept = _keep_hypothesis(cands, n_kept, out[0], out[1], out[2], out[3], q, out[4], prm[P_R])
     return n_kept
 
 

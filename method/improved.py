@@ -278,15 +278,16 @@ class Frame:
         self.vstats = np.empty(K.N_STATS, np.float64)
 
 
-def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,)), best first."""
-    hyp = np.zeros((config.search_candidates, 5), np.float64)
+def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,), occluded (M,)
+    bool: passed the pretest with a side hidden by an occluder, ``_kernels.front_hypothesis``), best first."""
+    hyp = np.zeros((config.search_candidates, 6), np.float64)
     counters = np.zeros(2, np.int64)
     m = K.search_organised(frame.tab, frame.prm, np.uint64(seed), hyp, counters)
     frame.counters = counters  # diagnostics (see _kernels.search_organised)
     frame.hypotheses = hyp[:m]
     centres = K.cell_centres(frame.prm, hyp[:m])
-    return centres, hyp[:m, 4].copy()
+    return centres, hyp[:m, 4].copy(), hyp[:m, 5] > 0.0
 
 
 def search_unorganised(points: np.ndarray, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -546,19 +547,24 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
     frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
     """
     if frame is not None:
-        cands, quals = search_organised(frame, config, seed)
+        cands, quals, occluded = search_organised(frame, config, seed)
         # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
         # cloud, so that frames of one stream reuse it (a fresh 7 MB buffer per 1280x720 frame cost
         # more in page faults than the detection)
         buf = workspace("inliers", (frame.index_image.size + 1,), np.int64)
     else:
         cands, quals = search_unorganised(points, config, seed)
+        occluded = np.zeros(len(cands), bool)
     found: list[Candidate] = []
-    # while none is accepted, an organised frame verifies up to verify_candidates_if_none
+    # while none is accepted, an organised frame verifies up to verify_candidates_if_none, and the
+    # hypotheses that passed the search's pretest only by an occluded side: a frame with a ball pays
+    # nothing for either
     limit_none = max(config.verify_candidates, config.verify_candidates_if_none if frame is not None else 0)
     for k, (c0, q) in enumerate(zip(cands, quals)):
         if k >= (config.verify_candidates if found else limit_none):
             break
+        if found and occluded[k]:
+            continue
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
         if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
             break

@@ -150,7 +150,7 @@ def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float
 
 
 def front_hypothesis(g: Grid, v: int, u: int):
-    """``_kernels.front_hypothesis``: (score, (v, u, front m, disc radius)) or (-inf, None)."""
+    """``_kernels.front_hypothesis``: (score, (v, u, front m, disc radius, occluded flag)) or (-inf, None)."""
     prm = g.prm
     R = prm[K.P_R]
     fc = prm[K.P_FX] / prm[K.P_BIN]
@@ -185,7 +185,7 @@ def front_hypothesis(g: Grid, v: int, u: int):
     front = m0 - R * cap_relief(2.0 * ah * ah / 3.0)
     pred = front + R * cap_relief(x0 * x0 + 2.0 * ah * ah / 3.0)
     sig = na * m0 * m0
-    agree = behind = 0
+    agree = behind = occluded = 0
     chi = 0.0
     for m, nk in sides:
         if math.isnan(m):
@@ -197,17 +197,19 @@ def front_hypothesis(g: Grid, v: int, u: int):
         elif res >= -tol:
             agree += 1
             chi += (res / tol) ** 2
-    if behind > 1 or agree < 3:
+        elif res < -(tol + R):
+            occluded += 1
+    if behind > 1 or agree + min(occluded, 1) < 3:
         return -math.inf, None
     rr, bg, cont = ring_boxes(g, v, u, front, sig)
     if cont > K.MAX_CONTINUED:
         return -math.inf, None
-    return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi, (v, u, front, rr)
+    return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi, (v, u, front, rr, float(agree < 3))
 
 
 def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int) -> None:
     """``_kernels._keep_hypothesis`` on a list of (score, (v, u, front, r)), best first."""
-    v, u, front, rr = hyp
+    v, u, front, rr = hyp[:4]
     for j, (qj, hj) in enumerate(kept):
         if abs(hj[0] - v) <= 0.5 * rr and abs(hj[1] - u) <= 0.5 * rr and abs(hj[2] - front) <= radius:
             if q <= qj:
@@ -224,7 +226,8 @@ def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int)
 
 
 def search_organised(points, index_image, prm, seed: int, k_max: int):
-    """Replay of ``_kernels.search_organised``: (hypotheses (M, 5) rows (v, u, front, r, score), counters (2,))."""
+    """Replay of ``_kernels.search_organised``: (hypotheses (M, 6) rows (v, u, front, r, score, occluded),
+    counters (2,))."""
     b = int(prm[K.P_BIN])
     g = Grid(*cell_images(points, index_image, b), prm)
     hc, wc = g.zs.shape
@@ -243,7 +246,7 @@ def search_organised(points, index_image, prm, seed: int, k_max: int):
                 continue
             counters[1] += 1
             keep_hypothesis(kept, hyp, q, prm[K.P_R], k_max)
-    out = np.array([[*h, q] for q, h in kept], np.float64).reshape(-1, 5)
+    out = np.array([[*h[:4], q, h[4]] for q, h in kept], np.float64).reshape(-1, 6)
     return out, counters
 
 

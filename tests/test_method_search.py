@@ -38,7 +38,7 @@ def test_compiled_search_equals_reference(ball, noise, seed, width):
     cfg = config_for("improved", iterations=2000, adaptive=False, search_width_px=130)
     frame = det.prepare_frame(cloud, cfg)
     assert frame.bin == max(1, width // 130)
-    cands, quals = imp.search_organised(frame, cfg, seed)
+    cands, quals, _ = imp.search_organised(frame, cfg, seed)
     hyp, ctr = ref.search_organised(cloud.points, frame.index_image, frame.prm, seed, cfg.search_candidates)
     assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
     assert np.array_equal(frame.hypotheses, hyp)
