@@ -354,9 +354,8 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     ``improved.cell_lookup``) and hist (B,) int64 (counts of z in bins of 1 / hist_per_m
     metres, the last bin open, over every k-th point that gets a pixel). Points with a non-finite
     coordinate or z <= 0 get no pixel, so the search never meets them; two points on one pixel: the
-    last one. Returns
-    (finite count, count of |z| > mm_limit). (Lookup tables: an integer division per point cost more
-    than the rest.)
+    last one. Returns (finite count, count of |z| > mm_limit). (Lookup tables: an integer division
+    per point cost more than the rest.)
     """
     height, width = img.shape
     hc, wc = tab.shape[0], tab.shape[1]
@@ -550,10 +549,11 @@ def front_hypothesis(tab, prm, v, u, out):
     (range relief ``cap_relief`` above the front, within 3 sigma / sqrt(n) + slack), or two and a
     third well in front (more than R past the tolerance: an occluder hides that side of the ball;
     out[4] flags such a hypothesis, which ``improved`` verifies only while no sphere has been
-    accepted), at most one *behind* it (a surface seen through the ball; one box may straddle the outline); of the eight
-    ``ring_boxes`` at most MAX_CONTINUED may continue the surface at the ball's depth. out (5,) gets
-    (v, u, front range m, disc radius cells, occluded flag); the score is 2 agreeing + background ring boxes
-    - 2 continued - 2 behind - chi^2 / 2 of the agreeing ones (at most 16).
+    accepted), at most one *behind* it (a surface seen through the ball; one box may straddle the
+    outline); of the eight ``ring_boxes`` at most MAX_CONTINUED may continue the surface at the
+    ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded flag); the score
+    is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of the agreeing ones
+    (at most 16).
     """
     R = prm[P_R]
     fc = prm[P_FX] / prm[P_BIN]

@@ -151,7 +151,7 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
 
     intr = Intrinsics.d435(96, 72)
     rays = image_rays(intr)
-    centre = np.array([0.0, 0.0, 0.8]) * max(config.radius_m / 0.12, 1e-3)
+    centre = np.array([0.0, 0.0, 0.8 / 0.12 * config.radius_m])  # a basketball's size at 0.8 m
     u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
     tc = u @ centre
     m2 = centre @ centre - tc * tc
