@@ -97,6 +97,11 @@ class DetectorConfig:
         verify_candidates_if_none: ... or this many, if more (organised clouds), while none has
             been accepted: a ball whose hypothesis ranks below clutter (one on a floor beside the image
             border) is then still verified, and a frame with a ball pays nothing for it.
+        verify_score_margin: organised clouds: once a sphere is accepted, hypotheses whose search
+            score (``_kernels.front_hypothesis``: 2 per agreeing side box of the cap, 1 per ring box
+            on background, ...) is more than this below the best accepted one's are not verified.
+            The second of two balls scores at most 3.6 below the first on the train preset;
+            6 is three agreeing sides: cluttered frames verify 3.3 hypotheses instead of 5.6.
         fit_max_points: organised verification: every fit uses at most about this many inliers
             (evenly strided), and every window visit about 4 times as many pixels (strided); the
             reported spheres' inliers are then collected from every pixel.
@@ -155,6 +160,7 @@ class DetectorConfig:
     pretest_min_fraction: float = 0.5
     verify_candidates: int = 6
     verify_candidates_if_none: int = 10
+    verify_score_margin: float = 6.0
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 3
@@ -237,7 +243,7 @@ def _problems(c: DetectorConfig) -> list[str]:
         if finite(name) and getattr(c, name) <= 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")
     for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas", "noise_subpixel",
-                 "noise_baseline_m", "mm_check_median_m"):
+                 "noise_baseline_m", "mm_check_median_m", "verify_score_margin"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
     if finite("zscore_threshold") and c.zscore_threshold == 0:

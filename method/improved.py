@@ -20,7 +20,8 @@ sample gives a centre only when all its boxes lie inside the disc, the descent f
 Unorganised clouds: three-point local samples in a spatial grid (``_kernels.search_unorganised``).
 
 Verification (compiled, one call per candidate, best first, at most ``verify_candidates``, or
-``verify_candidates_if_none`` while none is accepted):
+``verify_candidates_if_none`` while none is accepted, and none whose search score is more than
+``verify_score_margin`` below an accepted one's):
 Gauss-Newton with R fixed, re-selecting the inliers each round, for an organised cloud first on
 ||p - c|| - R (from a start some cm to the side, the ray residual of the rays that miss the
 current sphere hardly moves the centre) and then on the depth residual along each pixel's ray
@@ -319,7 +320,8 @@ def build_grid(points: np.ndarray, cell_m: float) -> dict:
 
 
 #: Unorganised: candidates whose search quality is below this fraction of the best one's are not verified
-#: (organised: the best ``verify_candidates`` hypotheses are, whatever their pretest scores).
+#: (organised: the best ``verify_candidates`` hypotheses are, down to ``verify_score_margin`` below the
+#: best accepted one's search score).
 VERIFY_QUALITY_FRACTION = 0.15
 
 #: Ray fits floor s = sqrt(r^2 - m^2) at this fraction of r (see ``_kernels.fit_ray``).
@@ -560,11 +562,15 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
     # hypotheses that passed the search's pretest only by an occluded side: a frame with a ball pays
     # nothing for either
     limit_none = max(config.verify_candidates, config.verify_candidates_if_none if frame is not None else 0)
+    q_accepted = -math.inf  # the best search score among the accepted
     for k, (c0, q) in enumerate(zip(cands, quals)):
         if k >= (config.verify_candidates if found else limit_none):
             break
         if found and occluded[k]:
             continue
+        # organised: hypotheses are sorted by score; those far below every accepted sphere's are clutter
+        if frame is not None and q < q_accepted - config.verify_score_margin:
+            break
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
         if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
             break
@@ -575,6 +581,7 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
         if v is None or not v.size_ok or v.score < config.min_score:
             continue
         found.append(v)
+        q_accepted = max(q_accepted, float(q))
     found.sort(key=lambda v: -v.score)
     kept: list[Candidate] = []
     min_sep = config.nms_distance_fraction * 2.0 * config.radius_m

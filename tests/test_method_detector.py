@@ -264,6 +264,26 @@ def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypa
     assert detect(cloud, config_for("improved", verify_candidates_if_none=6), seed=0) == []
 
 
+def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
+    """verify_score_margin: after the ball (search score 16) is accepted, a hypothesis at 12 is still
+    verified and ones at 9 and 8 (more than 6 below) are not; without the margin all four are."""
+    from spherebench.method import improved as I
+
+    c = np.array([0.1, -0.05, 1.0])
+    cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
+    starts = np.array([c, [-0.6, -0.3, 1.9], [0.6, 0.3, 1.9], [0.0, 0.35, 1.9]])
+    monkeypatch.setattr(I, "search_organised", lambda frame, config, seed: (starts, np.array([16.0, 12.0, 9.0, 8.0]),
+                                                                     np.zeros(len(starts), bool)))
+    calls = []
+    verify = I.verify_organised
+    monkeypatch.setattr(I, "verify_organised", lambda *a: calls.append(a[1]) or verify(*a))
+    for margin, n_verified in ((6.0, 2), (100.0, 4)):
+        calls.clear()
+        found = detect(cloud, config_for("improved", verify_score_margin=margin), seed=0)
+        assert len(found) == 1 and np.linalg.norm(found[0].center_m - c) < 0.003
+        assert len(calls) == n_verified
+
+
 def test_partly_occluded_balls_are_found():
     """A box 40 % of the way to the camera hides 30-50 % of the ball from the left: the search's
     pretest takes a side of the cap hidden well in front as an occluder (before, 4 of these 10)."""
