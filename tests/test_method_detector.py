@@ -284,6 +284,40 @@ def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
         assert len(calls) == n_verified
 
 
+@pytest.mark.parametrize("first, again, accepted", [(0.30, [0.45] * 6, True), (0.40, [None] * 6, False),
+                                                   (0.40, [0.50] * 5 + [None], True),
+                                                   (0.80, [None] * 6, True)])
+def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, again, accepted):
+    """rescore_band: a candidate scoring within 0.15 of min_score (0.35) is verified again from 6
+    starts about its centre and takes the mean score (a failed start counts 0); one far above it is
+    not (0.80 stands though every other start would fail)."""
+    from spherebench.method import improved as I
+
+    c = np.array([0.1, -0.05, 1.0])
+    cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
+    monkeypatch.setattr(I, "search_organised", lambda frame, config, seed: (c[None], np.array([16.0]), np.zeros(1, bool)))
+    scores = iter([first] + again)
+    starts = []
+
+    def fake_verify(frame, c0, config, buf):
+        starts.append(np.asarray(c0))
+        s = next(scores)
+        return None if s is None else I.Candidate(center_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
+                                                  free_center_m=c.copy(), free_radius_m=R, free_radius_se_m=0.001,
+                                                  rmse_m=0.002, stats={}, score=s, size_ok=True)
+
+    monkeypatch.setattr(I, "verify_organised", fake_verify)
+    found = detect(cloud, config_for("improved"), seed=0)
+    assert (len(found) == 1) == accepted
+    rescored = abs(first - 0.35) < 0.15
+    assert len(starts) == (7 if rescored else 1)
+    if rescored:
+        assert np.allclose(np.linalg.norm(np.array(starts[1:]) - c, axis=1), R * np.array([0.2] * 4 + [0.33] * 2))
+    if accepted and rescored:
+        assert found[0].score == pytest.approx((first + sum(s or 0.0 for s in again)) / 7)
+        assert found[0].evidence["score_single"] == first
+
+
 def test_partly_occluded_balls_are_found():
     """A box 40 % of the way to the camera hides 30-50 % of the ball from the left: the search's
     pretest takes a side of the cap hidden well in front as an occluder (before, 4 of these 10)."""
