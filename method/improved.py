@@ -277,6 +277,8 @@ class Frame:
         # (candidates within rescore_band below min_score get their whole evidence: ``rescore``)
         self.gate = np.array([size_tolerance(config) if config.size_check else math.inf, config.size_sigmas,
                               max(0.0, config.min_score - config.rescore_band), config.min_inliers], np.float64)
+        #: no early stop (``rescore``: a start's whole score and size verdict count)
+        self.no_gate = np.array([math.inf, config.size_sigmas, 0.0, config.min_inliers], np.float64)
         self.vout = np.empty(K.N_VOUT, np.float64)
         self.vstats = np.empty(K.N_STATS, np.float64)
 
@@ -478,12 +480,14 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     return float(min(max(score, 0.0), 1.0)), size_ok
 
 
-def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray) -> Candidate | None:
-    """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it."""
+def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+                     gate: np.ndarray | None = None) -> Candidate | None:
+    """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it.
+    gate: the kernel's early stop (default ``frame.gate``)."""
     out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data, frame.gate,
-                       buf, out, st)
+                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data,
+                       frame.gate if gate is None else gate, buf, out, st)
     n = int(out[K.V_N])
     if n < config.min_inliers:  # too few, or failed the size check (-1)
         return None
@@ -509,14 +513,15 @@ RESCORE_STARTS = ((0.2, 0.0, 0.0), (-0.2, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, -0.2
 
 
 def rescore(frame: Frame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
-    """A candidate near the score threshold, verified again from each of RESCORE_STARTS about its centre:
-    its score becomes the mean of all (a start that fails verification counts 0) and its size check
+    """A candidate near the score threshold, verified again from each of RESCORE_STARTS about its centre
+    (without the kernel's early stop, so that each start's whole score and size verdict count): its
+    score becomes the mean of all (a start left with too few inliers counts 0) and its size check
     the majority's. The centre, evidence and fits stay the first verification's; stats gets
     "score_single", the first score (see ``DetectorConfig.rescore_band``)."""
     scores = [cand.score]
     size_ok = [cand.size_ok]
     for off in RESCORE_STARTS:
-        v = verify_organised(frame, cand.center_m + config.radius_m * np.asarray(off), config, buf)
+        v = verify_organised(frame, cand.center_m + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
         scores.append(0.0 if v is None else v.score)
         size_ok.append(v is not None and v.size_ok)
     cand.stats["score_single"] = cand.score

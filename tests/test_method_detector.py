@@ -299,7 +299,7 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     scores = iter([first] + again)
     starts = []
 
-    def fake_verify(frame, c0, config, buf):
+    def fake_verify(frame, c0, config, buf, gate=None):
         starts.append(np.asarray(c0))
         s = next(scores)
         return None if s is None else I.Candidate(center_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
