@@ -249,8 +249,8 @@ def _problems(c: DetectorConfig) -> list[str]:
     for name in ("max_range_m", "bound_noise_fraction"):
         if finite(name) and getattr(c, name) <= 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")
-    for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas", "noise_subpixel",
-                 "noise_baseline_m", "mm_check_median_m", "verify_score_margin", "rescore_band"):
+    for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas",
+                 "noise_subpixel", "noise_baseline_m", "mm_check_median_m", "verify_score_margin", "rescore_band"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
     if finite("zscore_threshold") and c.zscore_threshold == 0:

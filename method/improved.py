@@ -413,6 +413,10 @@ EDGE_BEHIND_FREE = 0.4
 #: penalty: a floor under it, a holder, a hand (simulated free balls: at most 13 % at seed 7, as did
 #: a hand-held real one; clutter that passed the other tests: a median of 25 %).
 RING_FRONT_FREE = 0.15
+#: ... and beyond it the confidence gets (1 - excess)^RING_FRONT_POWER. 4 rather than 8 since the
+#: rescoring (``rescore``) and the ring spread: on the train preset, 9-10 more balls (on stands, or
+#: on a floor seen from above) at every score threshold for the same false detections.
+RING_FRONT_POWER = 4
 
 
 #: The ring spread (``_kernels.ring_spread``): the share of the outline ring attached to a surface
@@ -442,10 +446,10 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     silhouette's valid pixels that are inliers (coverage: occlusion lowers it), (1 - behind share)^2
     (the ball would hide what is seen through it) and (1 - share hugging the sphere just in front
     of it)^2 (a cylinder or another non-spherical surface), (1 - share of the outline ring where
-    the surface continues at the ball's depth)^2 (a wall or a plane) and (1 - a)^8, a the share where
-    a surface attached in front of it continues (a cylinder's body, a corner) beyond RING_FRONT_FREE,
-    (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat top, a smaller
-    ball), (1 - ``edge_behind_excess``)^4 (seen through the silhouette's edge band: a smaller
+    the surface continues at the ball's depth)^2 (a wall or a plane) and (1 - a)^RING_FRONT_POWER, a
+    the share where a surface attached in front of it continues (a cylinder's body, a corner) beyond
+    RING_FRONT_FREE, (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat
+    top, a smaller ball), (1 - ``edge_behind_excess``)^4 (seen through the silhouette's edge band: a smaller
     ball), the ``relief_agreement`` of the inner and outer zones (a surface flatter than the
     ball), (1 - (ring spread - RING_SPREAD_FREE))^RING_SPREAD_POWER beyond the free share
     (attached on several sides: embedded clutter); for unorganised clouds (1 - min(1, q))^2, q the
@@ -462,7 +466,8 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         hug = min(1.0, stats["front_near"] / vd)
         ring = stats["ring_continued"] / max(stats["ring"], 1.0)
         attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - RING_FRONT_FREE)
-        score *= coverage * (1.0 - behind) ** 2 * (1.0 - hug) ** 2 * (1.0 - ring) ** 2 * (1.0 - attached) ** 8
+        score *= (coverage * (1.0 - behind) ** 2 * (1.0 - hug) ** 2 * (1.0 - ring) ** 2
+                  * (1.0 - attached) ** RING_FRONT_POWER)
         score *= (1.0 - see_through_excess(stats)) ** 4 * (1.0 - edge_behind_excess(stats)) ** 4
         score *= relief_agreement(stats, R)
         score *= (1.0 - max(0.0, stats.get("ring_spread", 0.0) - RING_SPREAD_FREE)) ** RING_SPREAD_POWER

@@ -295,7 +295,8 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
 
     c = np.array([0.1, -0.05, 1.0])
     cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
-    monkeypatch.setattr(I, "search_organised", lambda frame, config, seed: (c[None], np.array([16.0]), np.zeros(1, bool)))
+    monkeypatch.setattr(I, "search_organised",
+                        lambda frame, config, seed: (c[None], np.array([16.0]), np.zeros(1, bool)))
     scores = iter([first] + again)
     starts = []
 
