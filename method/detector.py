@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from spherebench.circles import sphere_circle_exact, sphere_circle_paper
-from spherebench.cloud import Cloud
+from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import _kernels as K
 from spherebench.method.config import IMPROVED, DetectorConfig
@@ -156,10 +156,8 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
     tc = u @ centre
     m2 = centre @ centre - tc * tc
     t_ball = tc - np.sqrt(np.maximum(config.radius_m ** 2 - m2, 0.0))
-    z = np.where(m2 < config.radius_m ** 2, t_ball * u[..., 2], 1.5 * centre[2])
-    rows, cols = np.nonzero(np.ones(intr.shape, bool))
-    pts = (rays * z[..., None]).reshape(-1, 3)
-    for cloud in (Cloud(pts, rows, cols, intr), Cloud(pts)):
+    organised = cloud_from_depth(np.where(m2 < config.radius_m ** 2, t_ball * u[..., 2], 1.5 * centre[2]), intr)
+    for cloud in (organised, Cloud(organised.points)):
         try:
             detect(cloud, config, seed=0)
         except SphereBenchError:  # a configuration this frame does not suit (a 5 m ball): best effort
