@@ -350,12 +350,16 @@ RELIEF_FREE_SIGMAS = 1.0
 
 def relief_agreement(stats: dict, radius_m: float) -> float:
     """exp(-max(0, t - RELIEF_FREE_SIGMAS)^2 / 2), t the worse of the horizontal and vertical outer zones' test:
-    t = (|outer mean - inner mean| - floor) / its standard error, with the inliers' mean ray
-    residuals of the disc's inner zone and of its outer zone left and right of the
-    centre, or above and below it (``_kernels.window_stats``). 1 for a sphere; small for a flatter
-    surface the sphere was fitted to, or one curved along one axis only (a box's edge, a
-    cylinder), at any depth: at 3 m one pixel's noise is 7 cm, but zone means of ~50-100 pixels
-    tell a 3 cm relief apart."""
+    t = (inner mean - outer mean - floor) / its standard error, with the inliers' mean ray
+    residuals (range minus the sphere's, along the ray) of the disc's inner zone and of its outer
+    zone left and right of the centre, or above and below it (``_kernels.window_stats``). 1 for a
+    sphere; small for a flatter surface the sphere was fitted to, or one curved along one axis only
+    (a box's edge, a cylinder), at any depth: at 3 m one pixel's noise is 7 cm, but zone means of
+    ~50-100 pixels tell a 3 cm relief apart.
+    One-sided: a flatter surface lies behind the fitted sphere in the inner zone and in front of it
+    in the outer one (inner - outer > 0). A more curved one (a smaller ball) is left to the size
+    check and the edge band (``edge_behind_excess``): on the train preset the other side rejected
+    no clutter and 2 balls (the test is calibrated: t of the balls found has mean 0, sd 0.9-1.1)."""
     n_in = stats.get("inner_n", 0.0)
     sigma = stats.get("sigma_m", 0.0)
     if n_in < 3 or not sigma > 0:
@@ -365,8 +369,8 @@ def relief_agreement(stats: dict, radius_m: float) -> float:
     for side in ("outer_h", "outer_v"):
         n = stats[side + "_n"]
         if n >= 3:
-            diff = abs(stats[side + "_sum"] / n - m_in)
-            t = max(t, (diff - RELIEF_FLOOR_FRACTION * radius_m) / (sigma * math.sqrt(1.0 / n_in + 1.0 / n)))
+            flatter = m_in - stats[side + "_sum"] / n
+            t = max(t, (flatter - RELIEF_FLOOR_FRACTION * radius_m) / (sigma * math.sqrt(1.0 / n_in + 1.0 / n)))
     return math.exp(-0.5 * max(0.0, t - RELIEF_FREE_SIGMAS) ** 2)
 
 

@@ -428,6 +428,25 @@ def test_see_through_excess_follows_noise():
     assert imp.see_through_excess(stats) == 0.0
 
 
+
+def test_relief_test_is_one_sided():
+    from spherebench.method import improved as imp
+    # zone means of ray residuals (range minus the sphere's): 100 inner and 80 outer pixels, 1 cm noise
+    def stats(inner_m, outer_h_m, outer_v_m=0.0):
+        return {"inner_n": 100.0, "inner_sum": 100.0 * inner_m, "outer_h_n": 80.0, "outer_h_sum": 80.0 * outer_h_m,
+                "outer_v_n": 80.0, "outer_v_sum": 80.0 * outer_v_m, "sigma_m": 0.01}
+    assert imp.relief_agreement(stats(0.0, 0.0), R) == 1.0  # a sphere
+    se = 0.01 * math.sqrt(1 / 100 + 1 / 80)
+    floor = imp.RELIEF_FLOOR_FRACTION * R
+    # flatter than the sphere along x (a cylinder's top, a box's edge): behind it inside, in front outside
+    t = (0.02 - floor) / se
+    want = math.exp(-0.5 * (t - imp.RELIEF_FREE_SIGMAS) ** 2)
+    assert imp.relief_agreement(stats(0.01, -0.01), R) == pytest.approx(want)
+    assert imp.relief_agreement(stats(0.0, 0.0, -0.02), R) == pytest.approx(want)  # or along y
+    assert want < 0.01
+    # more curved (a smaller ball): left to the size check and the edge band
+    assert imp.relief_agreement(stats(-0.01, 0.01, 0.01), R) == 1.0
+
 def test_same_seed_same_output():
     cloud = scene(noise=0.004)
     a = detect(cloud, seed=7)
