@@ -19,6 +19,9 @@ the code's cost without the shared machine's interference, which moves the first
 40 % from one run to the next). Single thread: NUMBA_NUM_THREADS=1 is set before numba is imported.
 The peer's detection additionally needs its free radius within eps of R; its time and detection
 rate are printed as ratios to improved's on the same scenes.
+Operating points: improved again at each ``--min-scores`` threshold (detections only, untimed):
+balls found, false detections, detections on the negatives and distractors rejected, which shows
+how the detection-rate and the no-false-detection figures trade against each other.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ FOUND_M = 0.02          # a ball is found when a detection's centre is within th
 NEAR_M = 2.0            # the median centre error is over balls at most this far
 DISTRACTOR_HIT_M = 0.05  # a detection this close to a distractor's centre accepts it
 CONFIGS = ("improved", "paper", "paper-lstsq", "pyransac3d")
+MIN_SCORES = (0.30, 0.325, 0.35, 0.375, 0.40)  # the operating points (improved's min_score)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,6 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--peer-points", type=int, default=10_000, help="pyransac3d's random subsample per cloud")
     p.add_argument("--peer-iterations", type=int, default=1000, help="pyransac3d's iterations")
     p.add_argument("--limit", type=int, default=None, help="at most this many scenes per dataset (quick runs)")
+    p.add_argument("--min-scores", default=",".join(f"{t:g}" for t in MIN_SCORES),
+                   help="improved's operating points: min_score thresholds, comma-separated ('' for none)")
     p.add_argument("--passes", type=int, default=3,
                    help="timing passes of improved over each block of scenes (>= 1; 'best of N' in the table)")
 
@@ -144,11 +150,25 @@ def _summary(rows: list[dict]) -> dict:
     return out
 
 
+def _operating_point(rows: list[dict]) -> dict:
+    """Detection counts of one threshold's rows (``_score_scene``): found, false, on negatives, distractors."""
+    errs = [e for r in rows for e in r["errs"]]
+    dist = [d for r in rows for d in r["distractors"]]
+    return {"balls": len(errs), "found": int(sum(e <= FOUND_M for e in errs)),
+            "false_detections": int(sum(r["false"] for r in rows)),
+            "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative")),
+            "negative_scenes": int(sum(1 for r in rows if r["family"] == "negative")),
+            "distractors": len(dist), "distractors_rejected": int(sum(not d["accepted"] for d in dist))}
+
+
 def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subset: int = 12,
           peer_points: int = 10_000, peer_iterations: int = 1000, limit: int | None = None, passes: int = 3,
-          progress=print) -> dict:
+          min_scores: tuple[float, ...] = MIN_SCORES, progress=print) -> dict:
     """Run every configuration on every dataset; returns the results (see the module docstring).
-    passes: timing passes of improved over each block (the first one also gives the detections)."""
+    passes: timing passes of improved over each block (the first one also gives the detections).
+    min_scores: improved's operating points (its own min_score reuses the main run)."""
+    import dataclasses
+
     from spherebench.method import config_for
     result = {"seed": seed, "datasets": {}, "notes": []}
     peer_args = {"points": peer_points, "iterations": peer_iterations, "thresh_m": 0.01}
@@ -160,6 +180,8 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
         runs = {"improved": list(range(len(scenes))), "paper": _subset(len(scenes), paper_subset),
                 "paper-lstsq": _subset(len(scenes), paper_subset), "pyransac3d": _subset(len(scenes), peer_subset)}
         rows: dict[str, list] = {k: [] for k in CONFIGS}
+        base = config_for("improved", radius_m=R, eps_m=eps)
+        sweep = {t: [] for t in min_scores if t != base.min_score}
         warmed = set()
         # a block of scenes is loaded first, then each configuration runs over it as over a stream's
         # frames (memory stays bounded by the block, whatever the dataset's size)
@@ -190,6 +212,12 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
                         _, _, cpu = _run_one(name, frames[k][1], config, seed, peer_args)
                         row["cpu_best_ms"] = min(row["cpu_best_ms"], cpu)
                 rows[name] += block_rows
+            for t, sweep_rows in sweep.items():  # detections only: same seed, another threshold
+                config = dataclasses.replace(base, min_score=t)
+                for k in sorted(frames):
+                    gt, cloud = frames[k]
+                    row = _score_scene(_run_one("improved", cloud, config, seed, peer_args)[0], gt, "improved", R, eps)
+                    sweep_rows.append({**row, "family": gt.get("family", "")})
             if progress:
                 progress(f"  {Path(ds).name}: {block.stop}/{len(scenes)} scenes")
         summ = {name: _summary(r) for name, r in rows.items() if r}
@@ -205,9 +233,13 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
                 "scenes": len(sub), "time_ratio": float(t_peer / t_imp) if t_imp > 0 else None,
                 "detection_ratio": (peer["detection_rate"] / s_imp["detection_rate"]) if s_imp["detection_rate"] else None,
                 "improved_detection_rate_same_scenes": s_imp["detection_rate"]}
+        points = {t: _operating_point(r) for t, r in sweep.items()}
+        if min_scores and rows["improved"]:
+            points[base.min_score] = _operating_point(rows["improved"])
         result["datasets"][Path(ds).name] = {"path": str(ds), "scenes": len(scenes), "radius_m": R,
                                              "subsets": {k: len(v) for k, v in runs.items()}, "summary": summ,
-                                             "rows": rows}
+                                             "operating_points": [{"min_score": t, **points[t]} for t in sorted(points)],
+                                             "default_min_score": base.min_score, "rows": rows}
         del imp
     sub = lambda k: "all" if k < 0 else f"{k} evenly spaced"  # noqa: E731
     result["notes"].append(f"paper and paper-lstsq ran on {sub(paper_subset)} scenes per dataset; pyransac3d on "
@@ -264,6 +296,19 @@ def markdown(result: dict) -> str:
             lines.append(f"improved on {ds}, distractors {kind} rejected by depth: " + "; ".join(
                 f"{rng} {v['rejected']}/{v['n']}" for rng, v in sorted(bins.items())))
     lines.append("")
+    for ds, d in result["datasets"].items():
+        if d.get("operating_points"):
+            lines += [f"improved's operating points on {ds} (`min_score`, seed {result['seed']}, detections only; "
+                      f"the default {d['default_min_score']:g} is the table's run):", "",
+                      "| min_score | balls found | false det. | det. on negatives | distractors rejected |",
+                      "|---|---|---|---|---|"]
+            for op in d["operating_points"]:
+                neg = f"{op['detections_on_negatives']} in {op['negative_scenes']}" if op["negative_scenes"] else "-"
+                dis = f"{op['distractors_rejected']}/{op['distractors']}" if op["distractors"] else "-"
+                lines.append(f"| {op['min_score']:g} | {op['found']}/{op['balls']} "
+                             f"({_fmt(op['found'] / op['balls'] if op['balls'] else None, pct=True)}) | "
+                             f"{op['false_detections']} | {neg} | {dis} |")
+            lines.append("")
     lines += [f"- {n}" for n in result["notes"]]
     m = result.get("machine", {})
     if m:
@@ -296,9 +341,17 @@ def run(args: argparse.Namespace) -> int:
     machine = _machine()
     if args.passes < 1:
         raise SphereBenchError(f"--passes {args.passes}: give at least 1 timing pass")
+    try:
+        min_scores = tuple(sorted({float(t) for t in args.min_scores.split(",") if t.strip()}))
+    except ValueError:
+        raise SphereBenchError(f"--min-scores {args.min_scores!r}: give thresholds in [0, 1] separated by commas, "
+                               "e.g. 0.3,0.35,0.4") from None
+    if not all(0.0 <= t <= 1.0 for t in min_scores):
+        raise SphereBenchError(f"--min-scores {args.min_scores!r}: every threshold must be within [0, 1]")
     result = bench(args.datasets, seed=args.seed, paper_subset=args.paper_subset, peer_subset=args.peer_subset,
                    peer_points=args.peer_points, peer_iterations=args.peer_iterations, limit=args.limit,
-                   passes=args.passes, progress=lambda s: print(s, file=sys.stderr, flush=True))
+                   passes=args.passes, min_scores=min_scores,
+                   progress=lambda s: print(s, file=sys.stderr, flush=True))
     machine["load_end"] = [round(x, 2) for x in os.getloadavg()]
     result["machine"] = machine
     result["versions"] = _versions()

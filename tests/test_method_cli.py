@@ -58,7 +58,7 @@ def test_bench_script_on_small_dataset(small_default, tmp_path, capsys):
     from spherebench.scripts import bench
     out = tmp_path / "bench"
     assert bench.main([str(small_default), "--paper-subset", "1", "--peer-subset", "1", "--peer-iterations", "50",
-                       "--peer-points", "2000", "--out", str(out)]) == 0
+                       "--peer-points", "2000", "--min-scores", "0.35,0.9", "--out", str(out)]) == 0
     md = out.with_suffix(".md").read_text()
     assert "| default6 | improved | 6 |" in md and "pyransac3d" in md
     data = json.loads(out.with_suffix(".json").read_text())
@@ -70,3 +70,11 @@ def test_bench_script_on_small_dataset(small_default, tmp_path, capsys):
     assert data["passes"] == 3 and "best of 3" in md and t["cpu_best_median_ms"] <= t["cpu_median_ms"]
     assert all(r["cpu_best_ms"] <= r["cpu_ms"] for r in data["rows"]["default6"]["improved"])
     assert bench.main([str(small_default), "--passes", "0"]) == 2
+    # operating points: the default threshold's row is the table's run; a stricter one finds no more
+    ops = {op["min_score"]: op for op in data["datasets"]["default6"]["operating_points"]}
+    assert set(ops) == {0.35, 0.9} and "operating points" in md
+    assert ops[0.35]["found"] == s["found"] and ops[0.35]["false_detections"] == s["false_detections"]
+    assert ops[0.9]["balls"] == 6 and ops[0.9]["found"] <= ops[0.35]["found"]
+    for bad in ("0.3,x", "1.5"):
+        assert bench.main([str(small_default), "--min-scores", bad]) == 2
+        assert "--min-scores" in capsys.readouterr().err
