@@ -359,7 +359,7 @@ def relief_agreement(stats: dict, radius_m: float) -> float:
     One-sided: a flatter surface lies behind the fitted sphere in the inner zone and in front of it
     in the outer one (inner - outer > 0). A more curved one (a smaller ball) is left to the size
     check and the edge band (``edge_behind_excess``): on the train preset the other side rejected
-    no clutter and 2 balls (the test is calibrated: t of the balls found has mean 0, sd 0.9-1.1)."""
+    no clutter but 2 balls (the test is calibrated: t of the balls found has mean 0, sd 0.9-1.1)."""
     n_in = stats.get("inner_n", 0.0)
     sigma = stats.get("sigma_m", 0.0)
     if n_in < 3 or not sigma > 0:

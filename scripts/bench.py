@@ -35,6 +35,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import platform  # noqa: E402
@@ -167,8 +168,6 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
     """Run every configuration on every dataset; returns the results (see the module docstring).
     passes: timing passes of improved over each block (the first one also gives the detections).
     min_scores: improved's operating points (its own min_score reuses the main run)."""
-    import dataclasses
-
     from spherebench.method import config_for
     result = {"seed": seed, "datasets": {}, "notes": []}
     peer_args = {"points": peer_points, "iterations": peer_iterations, "thresh_m": 0.01}

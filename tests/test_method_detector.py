@@ -428,7 +428,6 @@ def test_see_through_excess_follows_noise():
     assert imp.see_through_excess(stats) == 0.0
 
 
-
 def test_relief_test_is_one_sided():
     from spherebench.method import improved as imp
     # zone means of ray residuals (range minus the sphere's): 100 inner and 80 outer pixels, 1 cm noise
@@ -446,6 +445,7 @@ def test_relief_test_is_one_sided():
     assert want < 0.01
     # more curved (a smaller ball): left to the size check and the edge band
     assert imp.relief_agreement(stats(-0.01, 0.01, 0.01), R) == 1.0
+
 
 def test_same_seed_same_output():
     cloud = scene(noise=0.004)
