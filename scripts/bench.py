@@ -113,17 +113,27 @@ def _score_scene(dets: list[dict], gt: dict, name: str, R: float, eps: float) ->
     return {"errs": errs, "z": [float(b[2]) for b in balls], "false": false, "distractors": distractors}
 
 
+def _operating_point(rows: list[dict]) -> dict:
+    """Detection counts of one threshold's rows (``_score_scene``): found, false, on negatives, distractors."""
+    errs = [e for r in rows for e in r["errs"]]
+    dist = [d for r in rows for d in r["distractors"]]
+    return {"balls": len(errs), "found": int(sum(e <= FOUND_M for e in errs)),
+            "false_detections": int(sum(r["false"] for r in rows)),
+            "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative")),
+            "negative_scenes": int(sum(1 for r in rows if r["family"] == "negative")),
+            "distractors": len(dist), "distractors_rejected": int(sum(not d["accepted"] for d in dist))}
+
+
 def _summary(rows: list[dict]) -> dict:
     errs = np.array([e for r in rows for e in r["errs"]], float)
     zs = np.array([z for r in rows for z in r["z"]], float)
     near = errs[zs <= NEAR_M]
-    out = {"scenes": len(rows), "balls": int(len(errs)),
-           "found": int(np.sum(errs <= FOUND_M)),
+    counts = _operating_point(rows)
+    out = {"scenes": len(rows), "balls": counts["balls"], "found": counts["found"],
            "detection_rate": float(np.mean(errs <= FOUND_M)) if len(errs) else None,
            "median_err_mm_within_2m": float(np.median(near) * 1e3) if len(near) else None,
-           "false_detections": int(sum(r["false"] for r in rows)),
-           "negative_scenes": int(sum(1 for r in rows if r["family"] == "negative")),
-           "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative"))}
+           "false_detections": counts["false_detections"], "negative_scenes": counts["negative_scenes"],
+           "detections_on_negatives": counts["detections_on_negatives"]}
     times = {}
     for res in sorted({r["resolution"] for r in rows}, key=lambda s: int(s.split("x")[0])):
         w = np.array([r["wall_ms"] for r in rows if r["resolution"] == res])
@@ -147,19 +157,8 @@ def _summary(rows: list[dict]) -> dict:
         b = bins.setdefault(kind, {}).setdefault(rng, {"n": 0, "rejected": 0})
         b["n"] += 1
         b["rejected"] += int(not d["accepted"])
-    out["distractors"] = {"n": len(dist), "rejected": int(sum(not d["accepted"] for d in dist)), "by_size_range": bins}
+    out["distractors"] = {"n": counts["distractors"], "rejected": counts["distractors_rejected"], "by_size_range": bins}
     return out
-
-
-def _operating_point(rows: list[dict]) -> dict:
-    """Detection counts of one threshold's rows (``_score_scene``): found, false, on negatives, distractors."""
-    errs = [e for r in rows for e in r["errs"]]
-    dist = [d for r in rows for d in r["distractors"]]
-    return {"balls": len(errs), "found": int(sum(e <= FOUND_M for e in errs)),
-            "false_detections": int(sum(r["false"] for r in rows)),
-            "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative")),
-            "negative_scenes": int(sum(1 for r in rows if r["family"] == "negative")),
-            "distractors": len(dist), "distractors_rejected": int(sum(not d["accepted"] for d in dist))}
 
 
 def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subset: int = 12,
