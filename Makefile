@@ -8,7 +8,7 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: eval test venv data data-hard data-train realdata bench train train-full train-hg eval-real clean distclean
+.PHONY: eval test venv data data-hard data-train realdata bench sweep sweep-train train train-full train-hg eval-real clean distclean
 
 # ---- environment: the virtual environment, created when missing
 venv: .venv/.installed
@@ -81,6 +81,12 @@ train-hg: venv data-train
 
 bench: venv data data-hard
 	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench
+
+# the 3D detector's detections over seeds 0-7 (default, hard) and 0-3 (train): how much they move with it
+sweep: venv data data-hard
+	$(PY) -m spherebench.scripts.sweep $(DATA)/default $(DATA)/hard --seeds 0-7 --workers $(WORKERS) --out results/sweep
+sweep-train: venv data-train
+	$(PY) -m spherebench.scripts.sweep $(DATA)/train --seeds 0-3 --workers $(WORKERS) --out results/sweep_train
 
 test: venv
 	$(PY) -m pytest -q

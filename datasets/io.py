@@ -34,7 +34,7 @@ import numpy as np
 from plyfile import PlyData, PlyElement
 
 from spherebench.camera import Intrinsics
-from spherebench.cloud import Cloud
+from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError
@@ -58,6 +58,16 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def write_report(out: str | Path, markdown: str, data: dict) -> tuple[Path, Path]:
+    """A script's report: OUT.md (the tables) and OUT.json (the figures; infinities as null), each
+    written atomically. Returns the two paths."""
+    out = Path(out)
+    md, js = out.with_suffix(".md"), out.with_suffix(".json")
+    atomic_write_bytes(md, markdown.encode())
+    atomic_write_bytes(js, json.dumps(data, indent=1, default=lambda x: None if x == math.inf else x).encode())
+    return md, js
 
 
 def write_json(path: str | Path, obj, indent: int | None = 1) -> None:
@@ -247,15 +257,20 @@ CLOUD_READERS = {".ply": read_ply, ".xyz": read_xyz, ".txt": read_xyz}
 
 
 def load_cloud(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
-    """A cloud from a PLY/PCD/XYZ file or a scene folder (which supplies its own intrinsics)."""
+    """A cloud from a PLY/PCD/XYZ file or a scene folder (which supplies its own intrinsics): its
+    cloud.ply, else its depth.png deprojected (the `train` preset ships no clouds; the two give the
+    same points where a scene has both)."""
     path = Path(path)
     if path.is_dir():
-        if not (path / "cloud.ply").is_file():
-            raise SphereBenchError(f"{path}: a folder must be a scene folder with cloud.ply in it")
         intr = intrinsics
         if intr is None and (path / "intrinsics.json").is_file():
             intr = read_intrinsics(path / "intrinsics.json")
-        return read_ply(path / "cloud.ply", intr)
+        if (path / "cloud.ply").is_file():
+            return read_ply(path / "cloud.ply", intr)
+        if (path / "depth.png").is_file() and intr is not None:
+            return cloud_from_depth(depth_to_metres(read_depth_png(path / "depth.png"), intr), intr)
+        raise SphereBenchError(f"{path}: a folder must be a scene folder with cloud.ply, or depth.png and "
+                               "intrinsics.json, in it")
     reader = CLOUD_READERS.get(path.suffix.lower())
     if reader is None:
         raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' "

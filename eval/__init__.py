@@ -6,14 +6,14 @@ from spherebench.eval.circle_iou import (circle_intersection_area, circle_inters
 from spherebench.eval.coco_eval import (CircleCOCOeval, coco_from_circles, evaluate_by_family, evaluate_circles,
                                         format_summary, load_ground_truth, load_results, results_from_circles,
                                         scalar_metrics)
-from spherebench.eval.metrics3d import (SceneMatch, detection_rates, error_stats, error_vs_distance, match_scene,
-                                        signed_error_stats, summarize_3d)
+from spherebench.eval.metrics3d import (SceneMatch, detection_counts, detection_rates, error_stats, error_vs_distance,
+                                        match_scene, scene_counts, signed_error_stats, summarize_3d)
 from spherebench.eval.table2 import barycentre, sphere_rmse, table2_row
 
 __all__ = [
     "circle_intersection_area", "circle_intersection_matrix", "circle_iou", "circle_iou_matrix",
     "CircleCOCOeval", "coco_from_circles", "evaluate_by_family", "evaluate_circles", "format_summary",
     "load_ground_truth", "load_results", "results_from_circles", "scalar_metrics",
-    "SceneMatch", "detection_rates", "error_stats", "error_vs_distance", "match_scene", "signed_error_stats",
-    "summarize_3d", "barycentre", "sphere_rmse", "table2_row",
+    "SceneMatch", "detection_counts", "detection_rates", "error_stats", "error_vs_distance", "match_scene",
+    "scene_counts", "signed_error_stats", "summarize_3d", "barycentre", "sphere_rmse", "table2_row",
 ]

@@ -47,11 +47,10 @@ import numpy as np  # noqa: E402
 from spherebench import __version__  # noqa: E402
 from spherebench.datasets import io  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
+from spherebench.eval.metrics3d import FOUND_M, detection_counts, scene_counts  # noqa: E402
 
 STREAM_BLOCK = 50       # scenes loaded at a time (see the module docstring)
-FOUND_M = 0.02          # a ball is found when a detection's centre is within this
 NEAR_M = 2.0            # the median centre error is over balls at most this far
-DISTRACTOR_HIT_M = 0.05  # a detection this close to a distractor's centre accepts it
 CONFIGS = ("improved", "paper", "paper-lstsq", "pyransac3d")
 MIN_SCORES = (0.30, 0.325, 0.35, 0.375, 0.40)  # the operating points (improved's min_score)
 
@@ -99,36 +98,17 @@ def _run_one(name: str, cloud, config, seed: int, peer_args: dict) -> tuple[list
 
 
 def _score_scene(dets: list[dict], gt: dict, name: str, R: float, eps: float) -> dict:
-    """Per-scene counts: each basketball's nearest-detection error, false detections, distractors."""
-    balls = [np.asarray(b["center_m"]) for b in gt["balls"] if b.get("center_m") is not None]
-    if name == "pyransac3d":  # a free fit counts only with the right size
+    """Per-scene counts (``metrics3d.scene_counts``); the peer's free fit counts only with the right size."""
+    if name == "pyransac3d":
         dets = [d for d in dets if d["radius_m"] is not None and abs(d["radius_m"] - R) <= eps]
-    errs = [min((float(np.linalg.norm(d["center_m"] - b)) for d in dets), default=math.inf) for b in balls]
-    false = sum(1 for d in dets if all(np.linalg.norm(d["center_m"] - b) > FOUND_M for b in balls))
-    distractors = []
-    for dd in gt.get("meta", {}).get("distractors", []) or []:
-        c = np.asarray(dd["center_m"])
-        hit = any(np.linalg.norm(d["center_m"] - c) <= DISTRACTOR_HIT_M for d in dets)
-        distractors.append({"radius_m": dd["radius_m"], "z_m": float(c[2]), "accepted": hit})
-    return {"errs": errs, "z": [float(b[2]) for b in balls], "false": false, "distractors": distractors}
-
-
-def _operating_point(rows: list[dict]) -> dict:
-    """Detection counts of one threshold's rows (``_score_scene``): found, false, on negatives, distractors."""
-    errs = [e for r in rows for e in r["errs"]]
-    dist = [d for r in rows for d in r["distractors"]]
-    return {"balls": len(errs), "found": int(sum(e <= FOUND_M for e in errs)),
-            "false_detections": int(sum(r["false"] for r in rows)),
-            "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative")),
-            "negative_scenes": int(sum(1 for r in rows if r["family"] == "negative")),
-            "distractors": len(dist), "distractors_rejected": int(sum(not d["accepted"] for d in dist))}
+    return scene_counts([d["center_m"] for d in dets], gt)
 
 
 def _summary(rows: list[dict]) -> dict:
     errs = np.array([e for r in rows for e in r["errs"]], float)
     zs = np.array([z for r in rows for z in r["z"]], float)
     near = errs[zs <= NEAR_M]
-    counts = _operating_point(rows)
+    counts = detection_counts(rows)
     out = {"scenes": len(rows), "balls": counts["balls"], "found": counts["found"],
            "detection_rate": float(np.mean(errs <= FOUND_M)) if len(errs) else None,
            "median_err_mm_within_2m": float(np.median(near) * 1e3) if len(near) else None,
@@ -231,9 +211,9 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
                 "scenes": len(sub), "time_ratio": float(t_peer / t_imp) if t_imp > 0 else None,
                 "detection_ratio": (peer["detection_rate"] / s_imp["detection_rate"]) if s_imp["detection_rate"] else None,
                 "improved_detection_rate_same_scenes": s_imp["detection_rate"]}
-        points = {t: _operating_point(r) for t, r in sweep.items()}
+        points = {t: detection_counts(r) for t, r in sweep.items()}
         if min_scores and rows["improved"]:
-            points[base.min_score] = _operating_point(rows["improved"])
+            points[base.min_score] = detection_counts(rows["improved"])
         result["datasets"][Path(ds).name] = {"path": str(ds), "scenes": len(scenes), "radius_m": R,
                                              "subsets": {k: len(v) for k, v in runs.items()}, "summary": summ,
                                              "operating_points": [{"min_score": t, **points[t]} for t in sorted(points)],
@@ -356,25 +336,16 @@ def run(args: argparse.Namespace) -> int:
     md = markdown(result)
     print(md)
     if args.out:
-        out = Path(args.out)
-        io.atomic_write_bytes(out.with_suffix(".md"), md.encode())
         slim = {k: v for k, v in result.items() if k != "datasets"}
         slim["datasets"] = {ds: {k: v for k, v in d.items() if k != "rows"} for ds, d in result["datasets"].items()}
         slim["rows"] = {ds: d["rows"] for ds, d in result["datasets"].items()}
-        io.atomic_write_bytes(out.with_suffix(".json"),
-                              json.dumps(slim, indent=1, default=lambda x: None if x == math.inf else x).encode())
-        print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}", file=sys.stderr)
+        print("wrote {} and {}".format(*io.write_report(args.out, md, slim)), file=sys.stderr)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="spherebench-bench", description=__doc__.splitlines()[0])
-    add_arguments(p)
-    try:
-        return run(p.parse_args(argv))
-    except SphereBenchError as exc:
-        print(f"bench: error: {exc}", file=sys.stderr)
-        return 2
+    from spherebench.cli import run_module
+    return run_module("bench", sys.modules[__name__], argv)
 
 
 if __name__ == "__main__":

@@ -53,6 +53,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def run_module(name: str, driver, argv: list[str] | None = None) -> int:
+    """Run a driver module (its ``add_arguments`` and ``run``) on its own, as the benchmark scripts are
+    (``python -m spherebench.scripts.NAME``), with the same one-line errors and exit status 2."""
+    p = argparse.ArgumentParser(prog=f"spherebench-{name}", description=(driver.__doc__ or name).splitlines()[0])
+    driver.add_arguments(p)
+    try:
+        return int(driver.run(p.parse_args(argv)) or 0)
+    except SphereBenchError as exc:
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     if argv is not None:
         sys.argv = [sys.argv[0], *argv]

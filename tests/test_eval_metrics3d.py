@@ -73,3 +73,19 @@ def test_bad_input():
         match_scene([[0, 0, 1]], [1.0], GT, gate_m=0)
     with pytest.raises(SphereBenchError):
         summarize_3d([])
+
+
+def test_scene_counts_and_their_totals():
+    from spherebench.eval.metrics3d import FOUND_M, detection_counts, scene_counts
+    gt = {"balls": [{"center_m": [0.0, 0.0, 2.0]}, {"center_m": [0.5, 0.0, 3.0]}],
+          "meta": {"distractors": [{"center_m": [-0.5, 0.0, 1.0], "radius_m": 0.11}]}}
+    # one detection 1.5 cm from the first ball, one on the distractor, none near the second ball
+    row = scene_counts([[0.015, 0.0, 2.0], [-0.5, 0.01, 1.0]], gt)
+    assert row["errs"][0] == pytest.approx(0.015) and row["errs"][1] > FOUND_M
+    assert row["false"] == 1 and row["distractors"] == [{"radius_m": 0.11, "z_m": 1.0, "accepted": True}]
+    empty = scene_counts([], {"balls": []})
+    assert empty == {"errs": [], "z": [], "false": 0, "distractors": []}
+    neg = {**scene_counts([[1.0, 1.0, 1.0]], {"balls": []}), "family": "negative"}
+    tot = detection_counts([{**row, "family": "clean"}, neg])
+    assert tot == {"balls": 2, "found": 1, "false_detections": 2, "detections_on_negatives": 1, "negative_scenes": 1,
+                   "distractors": 1, "distractors_rejected": 0}

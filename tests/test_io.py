@@ -136,3 +136,17 @@ def test_read_labelme_checks_structure(tmp_path):
     (tmp_path / "n.json").write_text(json.dumps({"imageWidth": 8}))
     with pytest.raises(SphereBenchError, match="not a LabelMe"):
         io.read_labelme(tmp_path / "n.json")
+
+
+def test_scene_folder_without_cloud_is_deprojected_from_its_depth(small_default, tmp_path):
+    # the train preset ships depth.png and intrinsics.json only: the same points as cloud.ply
+    import shutil
+    scene = io.list_scenes(small_default)[0]
+    bare = tmp_path / scene.name
+    shutil.copytree(scene, bare)
+    (bare / "cloud.ply").unlink()
+    a, b = io.load_cloud(scene), io.load_cloud(bare)
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.rows, b.rows) and b.intrinsics is not None
+    (bare / "intrinsics.json").unlink()  # depth counts mean nothing without the depth scale
+    with pytest.raises(SphereBenchError, match="depth.png and intrinsics.json"):
+        io.load_cloud(bare)

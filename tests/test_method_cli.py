@@ -78,3 +78,35 @@ def test_bench_script_on_small_dataset(small_default, tmp_path, capsys):
     for bad in ("0.3,x", "1.5"):
         assert bench.main([str(small_default), "--min-scores", bad]) == 2
         assert "--min-scores" in capsys.readouterr().err
+
+
+def test_sweep_script_on_small_dataset(small_default, tmp_path, capsys):
+    from spherebench.scripts import sweep
+    out = tmp_path / "sweep"
+    assert sweep.main([str(small_default), "--seeds", "0-1,5", "--workers", "2", "--out", str(out)]) == 0
+    data = json.loads(out.with_suffix(".json").read_text())
+    d = data["datasets"]["default6"]
+    assert data["seeds"] == [0, 1, 5] and d["families"] == ["clean", "cluttered"]
+    for seed in ("0", "1", "5"):
+        t = d["per_seed"][seed]["total"]
+        fam = d["per_seed"][seed]["families"]
+        assert t["balls"] == 6 and t["found"] >= 5 and fam["clean"]["balls"] == 3
+        assert t["found"] == fam["clean"]["found"] + fam["cluttered"]["found"]
+    # seed 0 is the bench's run: the same balls found (one worker or two: the same counts)
+    assert sweep.main([str(small_default), "--seeds", "0", "--workers", "1", "--out", str(tmp_path / "one")]) == 0
+    one = json.loads((tmp_path / "one.json").read_text())["datasets"]["default6"]["per_seed"]["0"]
+    assert one == d["per_seed"]["0"]
+    # a configuration override changes what runs: a threshold no ball reaches finds none
+    assert sweep.main([str(small_default), "--seeds", "0", "--set", "min_score=1.0", "--workers", "1",
+                       "--out", str(tmp_path / "strict")]) == 0
+    strict = json.loads((tmp_path / "strict.json").read_text())
+    assert strict["overrides"] == {"min_score": 1.0}
+    assert strict["datasets"]["default6"]["per_seed"]["0"]["total"]["found"] == 0
+    md = out.with_suffix(".md").read_text()
+    assert "| default6 | 5 |" in md and "| clean |" in md
+    capsys.readouterr()
+    for bad in (["--seeds", "x"], ["--seeds", "-1"], ["--set", "nonsense"], ["--set", "no_such_field=1"],
+                ["--set", "min_score=2"], ["--workers", "0"]):
+        assert sweep.main([str(small_default), *bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("sweep: error:") and err.count("\n") == 1
