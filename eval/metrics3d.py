@@ -16,6 +16,10 @@ Summary (``summarize_3d``), over all scenes:
 - false detections: unmatched predictions in all scenes, and on negative scenes (scenes with
   no ball) the number of predictions and the fraction of negatives with at least one.
 ``error_vs_distance`` gives the (distance to camera, centre error) pairs for a figure.
+
+Counts without matching (``scene_counts``, ``detection_counts``; ``make bench`` and ``make sweep``):
+a ball is found when any detection lies within FOUND_M (2 cm) of its centre, and a detection farther
+than that from every ball is a false one.
 """
 
 from __future__ import annotations
