@@ -47,7 +47,7 @@ import numpy as np  # noqa: E402
 from spherebench import __version__  # noqa: E402
 from spherebench.datasets import io  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
-from spherebench.eval.metrics3d import FOUND_M, detection_counts, scene_counts  # noqa: E402
+from spherebench.eval.metrics3d import detection_counts, scene_counts  # noqa: E402
 
 STREAM_BLOCK = 50       # scenes loaded at a time (see the module docstring)
 NEAR_M = 2.0            # the median centre error is over balls at most this far
@@ -110,7 +110,7 @@ def _summary(rows: list[dict]) -> dict:
     near = errs[zs <= NEAR_M]
     counts = detection_counts(rows)
     out = {"scenes": len(rows), "balls": counts["balls"], "found": counts["found"],
-           "detection_rate": float(np.mean(errs <= FOUND_M)) if len(errs) else None,
+           "detection_rate": counts["found"] / counts["balls"] if counts["balls"] else None,
            "median_err_mm_within_2m": float(np.median(near) * 1e3) if len(near) else None,
            "false_detections": counts["false_detections"], "negative_scenes": counts["negative_scenes"],
            "detections_on_negatives": counts["detections_on_negatives"]}
@@ -125,9 +125,8 @@ def _summary(rows: list[dict]) -> dict:
     out["time"] = times
     fam = {}
     for f in sorted({r["family"] for r in rows}):
-        e = np.array([x for r in rows if r["family"] == f for x in r["errs"]], float)
-        fam[f] = {"balls": int(len(e)), "found": int(np.sum(e <= FOUND_M)),
-                  "false": int(sum(r["false"] for r in rows if r["family"] == f))}
+        c = detection_counts([r for r in rows if r["family"] == f])
+        fam[f] = {"balls": c["balls"], "found": c["found"], "false": c["false_detections"]}
     out["families"] = fam
     dist = [d for r in rows for d in r["distractors"]]
     bins = {}
