@@ -21,10 +21,12 @@ run leaves nothing half-written behind.
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import math
 import os
 import shutil
+import socket
 import tempfile
 import warnings
 from pathlib import Path
@@ -43,15 +45,33 @@ CATEGORY_ID = 1
 DEFAULT_CATEGORY = "basketball"
 
 
-# --------------------------------------------------------------------------- atomic writes
+# --------------------------------------------------------------------------- atomic, owned writes
+#
+# The tool replaces only what it wrote: an output folder is replaced when it is empty or holds the
+# marker of its kind (a dataset's dataset.json, a results or training folder's OWNER_MARKER), and
+# refused otherwise. Temporaries are siblings named .tmp-<name>.*; a temporary folder records the
+# process that made it, so that a later run can remove one whose process died (SIGKILL, power).
+
+#: Written into a folder that a command fills over time (evaluate's results, a training run).
+OWNER_MARKER = ".spherebench-output.json"
+_TMP_OWNER = ".spherebench-tmp.json"
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)  # reading the umask means setting it: put it straight back
+    os.umask(mask)
+    return mask
+
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
+    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename. The file
+    gets the mode an ordinary write would (0666 less the umask), not mkstemp's 0600."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".tmp-{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), 0o666 & ~_umask())
             f.write(data)
         os.replace(tmp, path)
     except BaseException:
@@ -82,21 +102,148 @@ def read_json(path: str | Path):
             return json.load(f)
     except FileNotFoundError:
         raise SphereBenchError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise SphereBenchError(f"{path}: is a folder, not a JSON file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise SphereBenchError(f"{path}: not valid JSON ({exc}); is the file truncated?") from None
 
 
+def is_dataset_dir(path: Path) -> bool:
+    """A folder that `generate` or `prepare` wrote (its dataset.json)."""
+    return (Path(path) / "dataset.json").is_file()
+
+
+_DATASET_FILES = {"dataset.json", "coco_gt.json", "scenes", OWNER_MARKER}
+_SCENE_FILES = {"depth.png", "intrinsics.json", "cloud.ply", "image.png", "gt.json", "image.json"}
+
+
+def replaceable_dataset(path: Path, labelme_carried: bool = False) -> bool:
+    """A dataset folder that may be replaced whole: ours (dataset.json) and holding nothing else than
+    what `generate` and `prepare` write. A file added by hand is never deleted, nor are LabelMe
+    annotations saved beside a scene's image (image.json) unless this run carries them over
+    (``labelme_carried``: `prepare --labelme` reads this very folder): a one-line error names it."""
+    path = Path(path)
+    if not is_dataset_dir(path):
+        return False
+    for entry in path.iterdir():
+        if entry.name not in _DATASET_FILES:
+            raise SphereBenchError(f"{entry} was not written by SphereBench: move it out of {path} before "
+                                   "replacing the dataset, or write elsewhere")
+    for scene in (path / "scenes").iterdir() if (path / "scenes").is_dir() else ():
+        for entry in scene.iterdir() if scene.is_dir() else (scene,):
+            name = entry.name
+            ours = name in _SCENE_FILES or (name.endswith(".png") and name.startswith(("mask_", "silhouette_")))
+            if not ours:
+                raise SphereBenchError(f"{entry} was not written by SphereBench: move it out of {path} before "
+                                       "replacing the dataset, or write elsewhere")
+            if name == "image.json" and not labelme_carried:
+                raise SphereBenchError(f"{entry} holds LabelMe annotations that replacing {path} would lose: "
+                                       f"pass --labelme {path} to carry them over, or write elsewhere")
+    return True
+
+
+def owned_by_kind(kind: str, legacy: str | None = None):
+    """A test for folders a command fills over time: its OWNER_MARKER names ``kind``, or (written before
+    the marker existed) it holds the file ``legacy``."""
+    def is_ours(path: Path) -> bool:
+        marker = Path(path) / OWNER_MARKER
+        if marker.is_file():
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                return json.loads(marker.read_text()).get("kind") == kind
+            return False
+        return legacy is not None and (Path(path) / legacy).is_file()
+    return is_ours
+
+
+def never_replace(path: Path) -> bool:
+    """For folders built inside a temporary one: an existing folder there is a clash, never replaced."""
+    return False
+
+
+def check_output_dir(path: str | Path, is_ours, what: str = "--out", inputs=()) -> Path:
+    """``path`` as an output folder, or a one-line SphereBenchError: refused are an empty path, the
+    current folder or one above it, a file, a symbolic link, an input or a folder above or inside an
+    input, and a non-empty folder that ``is_ours`` does not recognise (the tool never deletes or
+    overwrites what it did not write). Returns the path."""
+    text = str(path)
+    if not text.strip():
+        raise SphereBenchError(f"{what} is empty (an unset shell variable?): give the folder to write")
+    path = Path(path)
+    if path.is_symlink():
+        raise SphereBenchError(f"{what} {path} is a symbolic link (to {os.readlink(path)}): give a real folder")
+    resolved = path.resolve()
+    cwd = Path.cwd().resolve()
+    if resolved == cwd or resolved in cwd.parents:
+        raise SphereBenchError(f"{what} {text} is the current folder or one above it: give a new folder, "
+                               "e.g. data/mine")
+    for source in inputs:
+        src = Path(source).resolve()
+        if resolved == src or resolved in src.parents or src in resolved.parents:
+            raise SphereBenchError(f"{what} {text} is the input {source}, or a folder above or inside it: "
+                                   "write the output somewhere else")
+    if path.exists():
+        if not path.is_dir():
+            raise SphereBenchError(f"{what} {text} is a file, not a folder: give a folder to write")
+        if any(path.iterdir()) and not is_ours(path):
+            raise SphereBenchError(f"{what} {text} holds files SphereBench did not write; it is never "
+                                   "replaced: give a new or empty folder")
+    return path
+
+
+def claim_output_dir(path: str | Path, kind: str, legacy: str | None = None, what: str = "--out",
+                     inputs=()) -> Path:
+    """check_output_dir for a folder a command fills over time, then mark it as ours (OWNER_MARKER)."""
+    path = check_output_dir(path, owned_by_kind(kind, legacy), what, inputs)
+    path.mkdir(parents=True, exist_ok=True)
+    if not (path / OWNER_MARKER).is_file():
+        write_json(path / OWNER_MARKER, {"kind": kind, "written_by": "spherebench"})
+    return path
+
+
+def _stale_temporaries(final: Path):
+    """Temporary folders of ``final`` whose process on this machine has ended."""
+    for tmp in final.parent.glob(f".tmp-{glob.escape(final.name)}.*"):
+        owner = tmp / _TMP_OWNER
+        try:
+            info = json.loads(owner.read_text())
+            pid, host = int(info["pid"]), str(info["host"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # not ours, or not readable: leave it
+        if host != socket.gethostname() or pid == os.getpid():
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            yield tmp
+        except PermissionError:
+            pass  # alive, another user's
+
+
 @contextlib.contextmanager
-def atomic_directory(final: str | Path):
-    """Yield a temporary sibling folder; on success it replaces ``final``, on error it is removed."""
-    final = Path(final)
+def atomic_directory(final: str | Path, is_ours):
+    """Yield a temporary sibling folder; on success it replaces ``final``, on error (or a signal turned
+    into KeyboardInterrupt) it is removed. ``final`` is replaced only if it is empty or ``is_ours``
+    recognises it (see check_output_dir); stale temporaries of ``final`` from dead runs are removed."""
+    final = check_output_dir(final, is_ours)
     final.parent.mkdir(parents=True, exist_ok=True)
+    for stale in _stale_temporaries(final):
+        shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{final.name}.", dir=final.parent))
     try:
+        os.chmod(tmp, 0o777 & ~_umask())
+        (tmp / _TMP_OWNER).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
         yield tmp
+        (tmp / _TMP_OWNER).unlink()
         if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
+            # check again: something may have appeared there while the work ran
+            check_output_dir(final, is_ours)
+            old = final.with_name(f".tmp-{final.name}.old-{os.getpid()}")
+            os.replace(final, old)
+            (old / _TMP_OWNER).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+            os.replace(tmp, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -293,7 +440,7 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
     write_cloud=False leaves cloud.ply out (it is depth.png deprojected; the training split of
     learned 2D baselines has no use for it and it is most of a scene's size)."""
     final = Path(scenes_dir) / scene.scene_id
-    with atomic_directory(final) as tmp:
+    with atomic_directory(final, never_replace) as tmp:
         balls = []
         for k, ball in enumerate(scene.balls):
             entry = {

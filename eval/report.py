@@ -420,9 +420,24 @@ def provenance(repo: Path, seeds: dict, configs: dict, extra: dict | None = None
 
 # --------------------------------------------------------------------------- writing
 
+#: A results folder is ours if it has the owner marker or (written before the marker) provenance.json.
+RESULTS_KIND, RESULTS_LEGACY_FILE = "results", "provenance.json"
+is_results_dir = io.owned_by_kind(RESULTS_KIND, RESULTS_LEGACY_FILE)
+
+
+def claim_results_dir(out: str | Path) -> Path:
+    """``out`` as a results folder (new, empty or a previous one of ours), or a one-line error."""
+    return io.claim_output_dir(out, RESULTS_KIND, RESULTS_LEGACY_FILE)
+
+
+def _in_results_dir(folder: Path) -> bool:
+    """tables/ and figures/ are replaced whole, only inside a results folder of ours."""
+    return is_results_dir(folder.parent)
+
+
 def write_tables(folder: Path, tables: Sequence[Table]) -> None:
     """Every table as CSV and Markdown, into ``folder`` replaced as a whole (atomic)."""
-    with io.atomic_directory(folder) as tmp:
+    with io.atomic_directory(folder, _in_results_dir) as tmp:
         for t in tables:
             (tmp / f"{t.name}.csv").write_text(t.csv())
             (tmp / f"{t.name}.md").write_text(t.markdown())
@@ -577,7 +592,7 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
         tables.append(table2_table(t2))
     fig_paths: dict[str, str] = {}
     if figures:
-        with io.atomic_directory(out / "figures") as tmp:
+        with io.atomic_directory(out / "figures", _in_results_dir) as tmp:
             for label, (data_dir, coco, sets) in per_dataset.items():
                 if any(s.pr50 is not None for s in sets):
                     figs.pr_curves(label, sets, tmp / f"pr_{label}.png")

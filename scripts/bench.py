@@ -45,6 +45,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from spherebench import __version__  # noqa: E402
+from spherebench import options  # noqa: E402
 from spherebench.datasets import io  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
 from spherebench.eval.metrics3d import detection_counts, scene_counts  # noqa: E402
@@ -58,7 +59,7 @@ MIN_SCORES = (0.30, 0.325, 0.35, 0.375, 0.40)  # the operating points (improved'
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("datasets", nargs="*", default=["data/default", "data/hard"], help="dataset folders")
     p.add_argument("--out", default=None, help="write OUT.md and OUT.json (atomically)")
-    p.add_argument("--seed", type=int, default=0, help="detector seed")
+    p.add_argument("--seed", type=options.seed, default=0, help="detector seed")
     p.add_argument("--paper-subset", type=int, default=-1,
                    help="scenes per dataset for paper and paper-lstsq (evenly spaced; 0: none, -1: all)")
     p.add_argument("--peer-subset", type=int, default=12, help="scenes per dataset for pyransac3d (as above)")

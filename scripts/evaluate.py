@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+from spherebench import options
 from spherebench.errors import SphereBenchError
 
 
@@ -26,10 +27,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from spherebench.eval.runner import METHOD_ORDER
     p.add_argument("--data", action="append", required=True, metavar="DIR",
                    help="dataset folder (repeat for several)")
-    p.add_argument("--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("--out", type=options.out_path, required=True, metavar="OUT", help="output folder")
     p.add_argument("--methods", nargs="+", choices=METHOD_ORDER, default=None, metavar="METHOD",
                    help=f"methods to run (default: all available: {', '.join(METHOD_ORDER)})")
-    p.add_argument("--seed", type=int, default=0, help="run seed; scene k uses SeedSequence((seed, k))")
+    p.add_argument("--seed", type=options.seed, default=0, help="run seed; scene k uses SeedSequence((seed, k))")
     p.add_argument("--workers", type=int, default=2, help="worker processes (output identical for any number)")
     p.add_argument("--force", action="store_true", help="recompute predictions even when finished ones match")
     p.add_argument("--hough-config", metavar="FILE", default=None,
@@ -166,6 +167,8 @@ def run(args: argparse.Namespace) -> int:
         if not path.is_dir():
             raise SphereBenchError(f"{path}: dataset folder not found")
         datasets[_label(path, taken)] = path
+    from spherebench.eval.report import claim_results_dir  # deferred like the other eval imports: fast --help
+    claim_results_dir(out)  # before anything is written under it (Hough tuning included)
     progress = not args.quiet
     hough = resolve_hough(args.methods, args.hough_config, out, args.seed, args.workers, progress)
     metrics = evaluate(datasets, out, methods=args.methods, seed=args.seed, workers=args.workers, force=args.force,

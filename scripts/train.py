@@ -13,10 +13,12 @@ import shlex
 import sys
 from dataclasses import replace
 
+from spherebench import options
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--data", required=True, metavar="DIR", help="training dataset folder (the train preset)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="folder for checkpoints, curve, model.onnx, card")
+    parser.add_argument("--out", type=options.out_path, required=True, metavar="DIR", help="folder for checkpoints, curve, model.onnx, card")
     parser.add_argument("--backbone", choices=["resnet18", "hourglass"], default=None,
                         help="resnet18 (light, CPU; default) or hourglass (CircleNet-HG-like, for a GPU)")
     parser.add_argument("--resnet-width", type=int, default=None, metavar="N",
@@ -27,7 +29,7 @@ def add_arguments(parser) -> None:
                              "aspect ratio are scaled to it")
     parser.add_argument("--epochs", type=int, default=None, metavar="N", help="epochs (default 20)")
     parser.add_argument("--batch-size", type=int, default=None, metavar="N", help="images per batch (default 16)")
-    parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the split, init and augmentation")
+    parser.add_argument("--seed", type=options.seed, default=0, metavar="N", help="seed of the split, init and augmentation")
     parser.add_argument("--device", default=None, help="auto (default), cpu, cuda, cuda:1, ...")
     parser.add_argument("--workers", type=int, default=None, metavar="N", help="data-loading processes (default 0)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",

@@ -3,14 +3,19 @@
 Each subcommand is a thin driver in ``scripts/`` (import name ``spherebench.scripts``) with
 ``add_arguments(parser)`` and ``run(args) -> int``; it is imported only when chosen, so that
 ``spherebench detect`` never pays for importing torch. Bad input raises SphereBenchError, printed
-here as one line with a non-zero exit.
+here as one line with a non-zero exit (``run_guarded``: also failed writes, signals, closed pipes).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import importlib
+import os
+import signal
 import sys
+import threading
 
 from spherebench import __version__
 from spherebench.errors import SphereBenchError
@@ -36,14 +41,22 @@ def _load(module: str):
         raise
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="spherebench", description=__doc__.splitlines()[0])
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with a usage error on one line, like every other error of the tool (subcommands'
+    parsers are of the same class)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def build_parser(wanted: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; only ``wanted``'s driver is imported and given its arguments (start-up
+    stays fast: `spherebench detect` never imports torch)."""
+    parser = OneLineParser(prog="spherebench", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"spherebench {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    wanted = sys.argv[1] if len(sys.argv) > 1 else None
     for name, module, help_text in COMMANDS:
         p = sub.add_parser(name, help=help_text, description=help_text)
-        # only the chosen subcommand's driver is imported (keeps start-up fast)
         if name == wanted:
             driver = _load(module)
             if driver is None:
@@ -53,34 +66,107 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (timeout, kill, a batch scheduler, a closed terminal), raised like Ctrl-C so
+    that every cleanup that handles an interrupt (temporary folders, worker pools) runs for it too."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated(signum)
+
+
+@contextlib.contextmanager
+def _signals_as_interrupts():
+    """SIGTERM and SIGHUP handled as SIGINT for the duration (restored after: tests call main)."""
+    wanted = [s for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None]
+    if threading.current_thread() is not threading.main_thread():
+        yield  # only the main thread may set handlers
+        return
+    saved = {s: signal.signal(s, _raise_terminated) for s in wanted}
+    try:
+        yield
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)
+
+
+#: What to do about an OSError, by errno.
+_OS_ADVICE = {
+    errno.ENOSPC: "the disk is full: free space or write somewhere else",
+    errno.EDQUOT: "the disk quota is exceeded: free space or write somewhere else",
+    errno.EROFS: "the file system is read-only: write somewhere else",
+    errno.EACCES: "permission denied: choose a path you can write (or read)",
+    errno.EPERM: "operation not permitted: choose another path",
+    errno.EISDIR: "it is a folder: give a file name",
+    errno.ENOTDIR: "a part of the path is a file, not a folder: fix the path",
+    errno.ENOENT: "no such file or folder: check the path",
+    errno.ENAMETOOLONG: "the name is too long: use a shorter path",
+}
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line for a failed read or write: the path, what the system said, what to do."""
+    where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None) or "a file"
+    advice = _OS_ADVICE.get(exc.errno, exc.strerror or str(exc))
+    return f"{where}: {advice}"
+
+
+def run_guarded(prog: str, work) -> int:
+    """Run ``work()`` as a command: bad input (SphereBenchError) and failed reads or writes (OSError)
+    as one line on stderr with exit 2; Ctrl-C, SIGTERM and SIGHUP as one "interrupted" line with exit
+    128 + the signal (the work's own cleanup has removed its partial output); a closed pipe on stdout
+    (`| head`) quietly."""
+    with _signals_as_interrupts():
+        try:
+            status = int(work() or 0)
+            sys.stdout.flush()  # here, not at exit, so that a closed pipe is caught below
+            return status
+        except SphereBenchError as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt as exc:
+            signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+            what = "interrupted" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
+            print(f"{prog}: {what}; no partial output is left", file=sys.stderr)
+            return 128 + int(signum)
+        except BrokenPipeError:
+            # the reader has gone (e.g. `| head`): send what is still buffered nowhere, exit as by SIGPIPE
+            with contextlib.suppress(OSError):
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, sys.stdout.fileno())
+            return 128 + int(getattr(signal, "SIGPIPE", 13))
+        except OSError as exc:
+            print(f"{prog}: error: {os_error_message(exc)}", file=sys.stderr)
+            return 2
+
+
 def run_module(name: str, driver, argv: list[str] | None = None) -> int:
     """Run a driver module (its ``add_arguments`` and ``run``) on its own, as the benchmark scripts are
-    (``python -m spherebench.scripts.NAME``), with the same one-line errors and exit status 2."""
-    p = argparse.ArgumentParser(prog=f"spherebench-{name}", description=(driver.__doc__ or name).splitlines()[0])
+    (``python -m spherebench.scripts.NAME``), with the same one-line errors and exit statuses."""
+    p = OneLineParser(prog=f"spherebench-{name}", description=(driver.__doc__ or name).splitlines()[0])
     driver.add_arguments(p)
     try:
-        return int(driver.run(p.parse_args(argv)) or 0)
-    except SphereBenchError as exc:
-        print(f"{name}: error: {exc}", file=sys.stderr)
-        return 2
+        args = p.parse_args(argv)
+    except SystemExit as exc:  # --help, or a usage error already printed
+        return int(exc.code or 0)
+    return run_guarded(name, lambda: driver.run(args))
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is not None:
-        sys.argv = [sys.argv[0], *argv]
-    parser = build_parser()
-    args = parser.parse_args()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv[0] if argv else None)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error already printed
+        return int(exc.code or 0)
     if args.command is None:
         parser.print_help()
         return 2
-    try:
-        return int(args._driver.run(args) or 0)
-    except SphereBenchError as exc:
-        print(f"spherebench {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"spherebench {args.command}: interrupted", file=sys.stderr)
-        return 130
+    return run_guarded(f"spherebench {args.command}", lambda: args._driver.run(args))
 
 
 if __name__ == "__main__":
