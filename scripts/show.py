@@ -29,20 +29,28 @@ def run(args: argparse.Namespace) -> int:
     scene_dir = args.scene
     if not (scene_dir / "gt.json").is_file():
         raise SphereBenchError(f"{scene_dir}: not a scene folder (no gt.json); give DIR/scenes/<scene_id>")
+    if io.read_json(scene_dir / "gt.json").get("has_image", True) and not (scene_dir / "depth.png").is_file():
+        raise SphereBenchError(f"depth.png is missing in {scene_dir}: gt.json says the scene has an image, so the "
+                               "folder is damaged; rebuild the dataset with the command that wrote it")
     scene = io.read_scene(scene_dir)
     radius = io.read_json(scene_dir / "gt.json").get("ball_radius_m")
+    image = None if scene.depth is None else io.read_image(scene_dir)
+    if image is not None and image.shape[:2] != scene.depth.shape:  # the circles are in depth.png's pixels
+        raise SphereBenchError(f"{scene_dir}: image.png is {image.shape[1]}x{image.shape[0]} but depth.png and the "
+                               f"intrinsics are {scene.depth.shape[1]}x{scene.depth.shape[0]}: the circles would be "
+                               "drawn off the image; rebuild the dataset with the command that wrote it")
+    if image is None and args.out_png:
+        raise SphereBenchError(f"{scene_dir}: an image-less scene (a cloud without a camera) has no image; drop --out-png")
     status = "annotated" if scene.annotated else "unannotated (no ground truth)"
     print(f"scene {scene.scene_id}: {status}, {len(scene.balls)} ball(s)")
-    if scene.depth is not None:
+    if image is not None:
         out_png = args.out_png or Path(f"{scene.scene_id}_gt.png")
-        io.write_png(out_png, draw_ground_truth(io.read_image(scene_dir), scene))
+        io.write_png(out_png, draw_ground_truth(image, scene))
         for k, b in enumerate(scene.balls):
             if b.circle_px is not None:
                 print(f"  ball {k}: circle ({b.circle_px[0]:.1f}, {b.circle_px[1]:.1f}) r {b.circle_px[2]:.1f} px")
         print(f"wrote {out_png}")
     else:
-        if args.out_png:
-            raise SphereBenchError(f"{scene_dir}: an image-less scene (a cloud without a camera) has no image; drop --out-png")
         print("image-less scene: no image to draw on, writing the PLY only")
     points, colors, how = ball_point_colors(scene, radius, args.tolerance)
     out_ply = args.out_ply or Path(f"{scene.scene_id}_gt.ply")

@@ -26,6 +26,13 @@ D435_FOCAL_PER_WIDTH = 0.5025
 #: The D435's factory depth unit, metres per z16 count.
 D435_DEPTH_SCALE_M = 0.001
 
+#: Plausible focal lengths, as a multiple of the image's larger side: a field of view between about
+#: 170 deg (0.044) and 1 deg (57); outside it the numbers are not a depth camera's (a unit slip, a
+#: field of another stream).
+FOCAL_PER_SIZE_RANGE = (0.04, 60.0)
+#: The largest fx / fy (or fy / fx) accepted: pixels about square, as every depth camera's are.
+MAX_FOCAL_RATIO = 3.0
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -57,6 +64,8 @@ class Intrinsics:
                 problems.append(f"{name} is not a finite number")
         if not (float(self.fx) > 0 and float(self.fy) > 0):
             problems.append(f"focal lengths fx={self.fx}, fy={self.fy} must be > 0")
+        elif not problems:
+            problems += _implausible(self)
         if not float(self.depth_scale) > 0:
             problems.append(f"depth_scale={self.depth_scale} must be > 0 (0.001 for millimetre depth)")
         if self.model not in DISTORTION_MODELS:
@@ -107,6 +116,25 @@ class Intrinsics:
         return Intrinsics(width=width, height=height, ppx=(self.ppx + 0.5) * sx - 0.5,
                           ppy=(self.ppy + 0.5) * sy - 0.5, fx=self.fx * sx, fy=self.fy * sy,
                           model=self.model, coeffs=self.coeffs, depth_scale=self.depth_scale)
+
+
+def _implausible(intr: Intrinsics) -> list[str]:
+    """What makes finite, positive intrinsics impossible for a depth camera: the principal point
+    off the image (the image spans [-0.5, size - 0.5] px), a focal length beyond
+    FOCAL_PER_SIZE_RANGE, pixels far from square."""
+    w, h = int(intr.width), int(intr.height)
+    out = []
+    if not (-0.5 <= float(intr.ppx) <= w - 0.5 and -0.5 <= float(intr.ppy) <= h - 0.5):
+        out.append(f"the principal point (ppx, ppy) = ({float(intr.ppx):g}, {float(intr.ppy):g}) px lies outside the "
+                   f"{w}x{h} image: these intrinsics belong to another stream or resolution")
+    lo, hi = (k * max(w, h) for k in FOCAL_PER_SIZE_RANGE)
+    if not all(lo <= float(f) <= hi for f in (intr.fx, intr.fy)):
+        out.append(f"focal lengths fx={float(intr.fx):g}, fy={float(intr.fy):g} px are not a camera's for a {w}x{h} "
+                   f"image (expected {lo:.3g} to {hi:.3g} px, e.g. 0.5 x the width for a D435)")
+    elif max(intr.fx / intr.fy, intr.fy / intr.fx) > MAX_FOCAL_RATIO:
+        out.append(f"fx={float(intr.fx):g} and fy={float(intr.fy):g} px differ more than {MAX_FOCAL_RATIO:g}-fold "
+                   "(pixels are about square): check both values")
+    return out
 
 
 def _distort(intr: Intrinsics, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -51,6 +51,31 @@ class Cloud:
                      None if self.cols is None else self.cols[keep], self.intrinsics)
 
 
+#: An organised cloud with more than this share of its finite points at z <= 0 is refused rather than
+#: trimmed: most of it behind a depth camera means another frame's axes or a flipped sign.
+MAX_BEHIND_FRACTION = 0.5
+
+
+def in_front_of_camera(cloud: Cloud, name: str = "the cloud") -> tuple[Cloud, int]:
+    """An organised cloud (pixel rows and cols: a depth camera's) without its points at z <= 0, which
+    no depth camera sees, and how many were dropped. An unorganised cloud is returned as it is (a
+    LiDAR's 360 deg scan has points on every side). Raises SphereBenchError when most finite points
+    lie behind the camera."""
+    if cloud.rows is None:
+        return cloud, 0
+    z = cloud.points[:, 2]
+    finite = np.isfinite(cloud.points).all(axis=1)
+    behind = finite & (z <= 0)
+    n_behind, n_finite = int(np.count_nonzero(behind)), int(np.count_nonzero(finite))
+    if n_behind == 0:
+        return cloud, 0
+    if n_behind > MAX_BEHIND_FRACTION * n_finite:
+        raise SphereBenchError(f"{name}: {n_behind} of its {n_finite} points lie at z <= 0, behind the camera; a cloud "
+                               "with pixel rows and cols is a depth camera's, which sees only z > 0: give it in the "
+                               "camera frame (x right, y down, z forward, metres)")
+    return cloud.subset(~behind), n_behind
+
+
 def depth_to_metres(depth: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """Depth image in counts (uint16, 0 = invalid) -> float32 metres, NaN where invalid."""
     d = np.asarray(depth)

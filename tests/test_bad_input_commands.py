@@ -1,0 +1,174 @@
+"""Bad input to detect, show, evaluate and train: a one-line error before any work, or the right answer.
+
+Each test asserts the exit status, a single error line on stderr (no traceback), that nothing was
+printed or written before the error, and that nothing outside the command's own output changed.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import shutil
+
+import numpy as np
+import pytest
+
+from spherebench import cli
+from spherebench.camera import Intrinsics, image_rays
+from spherebench.cloud import Cloud, in_front_of_camera
+from spherebench.datasets import io
+from spherebench.errors import SphereBenchError
+
+CAM = Intrinsics(width=160, height=120, ppx=79.5, ppy=59.5, fx=140.0, fy=140.0)
+BALL_CENTRE_M = np.array([0.05, -0.03, 1.4])
+
+
+def _listing(root) -> dict:
+    """Every file under root with its bytes: what a failed command must leave as it was."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _fails(capsys, argv, *words) -> str:
+    """Run argv; it must exit 2 with one error line naming ``words`` and print nothing on stdout."""
+    status = cli.main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert status == 2, cap.err
+    assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in cap.err, cap.err
+    assert cap.out == "", cap.out
+    for w in words:
+        assert w in lines[0], lines[0]
+    return lines[0]
+
+
+def _ball_depth(radius_m: float, intr: Intrinsics = CAM, wall_m: float = 2.2) -> np.ndarray:
+    """uint16 depth (mm) of a ball of radius_m at BALL_CENTRE_M before a wall at wall_m."""
+    u = image_rays(intr)
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    tc = u @ BALL_CENTRE_M
+    m2 = BALL_CENTRE_M @ BALL_CENTRE_M - tc * tc
+    t = tc - np.sqrt(np.maximum(radius_m ** 2 - m2, 0.0))
+    z = np.where(m2 < radius_m ** 2, t * u[..., 2], wall_m)
+    return np.round(z * 1000).astype(np.uint16)
+
+
+@pytest.fixture(scope="module")
+def big_ball(tmp_path_factory):
+    """A dataset prepared with --radius 0.2 from one depth frame of a 0.2 m ball."""
+    root = tmp_path_factory.mktemp("bigball")
+    (root / "pngs").mkdir()
+    io.write_depth_png(root / "pngs" / "f.png", _ball_depth(0.2))
+    (root / "cam.json").write_text(json.dumps(CAM.to_dict()))
+    out = root / "ds"
+    assert cli.main(["prepare", str(root / "pngs"), "--intrinsics", str(root / "cam.json"), "--radius", "0.2",
+                     "--out", str(out)]) == 0
+    return out
+
+
+def _json_lines(text: str) -> list[dict]:
+    return [json.loads(x) for x in text.strip().splitlines()]
+
+
+# ---------------------------------------------------------------- detect: the radius
+
+def test_detect_takes_the_radius_of_the_dataset_and_says_so(big_ball, tmp_path, capsys):
+    scene = big_ball / "scenes" / "f"
+    capsys.readouterr()
+    assert cli.main(["detect", str(scene), "--json"]) == 0
+    rec = _json_lines(capsys.readouterr().out)[0]
+    assert rec["radius_m"] == 0.2 and rec["radius_source"] == "dataset"
+    assert np.linalg.norm(np.array(rec["spheres"][0]["center"]) - BALL_CENTRE_M) < 0.01
+    # a scene folder on its own: its gt.json; --radius wins over both; a bare cloud: 0.12
+    alone = tmp_path / "alone"
+    shutil.copytree(scene, alone)
+    np.savetxt(tmp_path / "bare.xyz", io.load_cloud(scene).points[::3])
+    assert cli.main(["detect", str(alone), str(scene), str(tmp_path / "bare.xyz"), "--json"]) == 0
+    recs = _json_lines(capsys.readouterr().out)
+    assert [(r["radius_m"], r["radius_source"]) for r in recs] == [(0.2, "scene"), (0.2, "dataset"), (0.12, "default")]
+    assert cli.main(["detect", str(scene), "--radius", "0.12"]) == 0
+    assert "radius 0.12 m (--radius)" in capsys.readouterr().out
+    assert cli.main(["detect", str(scene)]) == 0
+    assert "radius 0.2 m (the dataset's)" in capsys.readouterr().out
+
+
+def test_detect_refuses_a_dataset_folder_and_a_radius_below_the_tolerance(big_ball, capsys):
+    _fails(capsys, ["detect", big_ball], "is a dataset", "scenes/*")
+    # the tolerance the user never gave is named as the default, and the radius as the problem
+    _fails(capsys, ["detect", big_ball / "scenes" / "f", "--radius", "0.005"], "--radius 0.005", "smaller --eps")
+    _fails(capsys, ["detect", big_ball / "scenes" / "f", "--eps", "0.3"], "--eps 0.3", "0.2 m (from its dataset.json)")
+
+
+# ---------------------------------------------------------------- detect: everything checked first
+
+def test_detect_out_png_without_intrinsics_fails_before_any_result(big_ball, tmp_path, capsys):
+    cloud = tmp_path / "c.xyz"
+    np.savetxt(cloud, io.load_cloud(big_ball / "scenes" / "f").points[::5])
+    before = _listing(tmp_path)
+    _fails(capsys, ["detect", cloud, "--out-png", tmp_path / "x.png"], "--out-png needs an organised cloud")
+    _fails(capsys, ["detect", cloud, cloud, "--out-ply", tmp_path / "x.ply"], "one input")
+    _fails(capsys, ["detect", cloud, "--out-ply", tmp_path], "is a folder")
+    _fails(capsys, ["detect", cloud, "--out-ply", cloud], "is the input")
+    _fails(capsys, ["detect", cloud, "--out-ply", tmp_path / "x", "--out-png", tmp_path / "x"], "same file")
+    # a missing or unknown input among several: refused before the first is detected
+    _fails(capsys, ["detect", cloud, tmp_path / "missing.ply"], "missing.ply", "not found")
+    (tmp_path / "notes.txt.bak").write_text("x")
+    _fails(capsys, ["detect", cloud, tmp_path / "notes.txt.bak"], "unknown point-cloud format")
+    assert _listing(tmp_path) == {**before, "notes.txt.bak": b"x"}
+
+
+def test_detect_refuses_an_image_of_another_size_than_the_intrinsics(big_ball, tmp_path, capsys):
+    scene = tmp_path / "scene"
+    shutil.copytree(big_ball / "scenes" / "f", scene)
+    io.write_png(scene / "image.png", np.zeros((60, 80, 3), np.uint8))
+    before = _listing(tmp_path)
+    _fails(capsys, ["detect", scene, "--out-png", tmp_path / "x.png"], "image.png is 80x60", "160x120")
+    assert _listing(tmp_path) == before
+
+
+# ---------------------------------------------------------------- detect: what no depth camera gives
+
+def test_intrinsics_with_the_principal_point_off_the_image_or_absurd_focal_lengths_are_refused(tmp_path, capsys):
+    for bad, words in (({"ppx": 900.0}, ("principal point", "outside the 160x120 image")),
+                       ({"ppy": -3.0}, ("principal point",)),
+                       ({"fx": 0.5, "fy": 0.5}, ("focal lengths",)),
+                       ({"fx": 1e6, "fy": 1e6}, ("focal lengths",)),
+                       ({"fx": 140.0, "fy": 1400.0}, ("differ more than",))):
+        with pytest.raises(SphereBenchError, match=words[0]):
+            Intrinsics(**{**CAM.to_dict(), **bad})
+        (tmp_path / "cam.json").write_text(json.dumps({**CAM.to_dict(), **bad}))
+        np.savetxt(tmp_path / "c.xyz", [[0, 0, 1.0]] * 10)
+        _fails(capsys, ["detect", tmp_path / "c.xyz", "--intrinsics", tmp_path / "cam.json"], "cam.json", *words)
+    Intrinsics(**{**CAM.to_dict(), "ppx": -0.5, "ppy": 119.5})  # the image's edges are still on it
+
+
+def test_detect_leaves_out_points_behind_a_depth_camera_and_refuses_a_cloud_mostly_behind(big_ball, tmp_path, capsys):
+    scene = big_ball / "scenes" / "f"
+    cloud = io.load_cloud(scene)
+    pts = cloud.points.copy()
+    pts[:40] = [0.0, 0.0, -1.0]  # a clump behind the camera, where a sphere would otherwise be reported
+    io.write_cloud_ply(tmp_path / "some.ply", Cloud(pts, cloud.rows, cloud.cols))
+    capsys.readouterr()
+    assert cli.main(["detect", str(tmp_path / "some.ply"), "--intrinsics", str(scene), "--radius", "0.2",
+                     "--json"]) == 0
+    cap = capsys.readouterr()
+    assert cap.err.count("\n") == 1 and "40 points at z <= 0 left out" in cap.err
+    centres = [s["center"] for s in _json_lines(cap.out)[0]["spheres"]]
+    assert centres and all(c[2] > 0 for c in centres)
+    assert np.linalg.norm(np.array(centres[0]) - BALL_CENTRE_M) < 0.01
+    io.write_cloud_ply(tmp_path / "flipped.ply", Cloud(cloud.points * [1, 1, -1], cloud.rows, cloud.cols))
+    _fails(capsys, ["detect", tmp_path / "flipped.ply"], "behind the camera", "z > 0")
+    # an unorganised cloud (a LiDAR's) keeps its points on every side
+    lidar = Cloud(cloud.points * [1, 1, -1])
+    assert in_front_of_camera(lidar)[0] is lidar
+
+
+# ---------------------------------------------------------------- show
+
+def test_show_refuses_an_image_of_another_size_than_the_intrinsics(big_ball, tmp_path, capsys):
+    scene = tmp_path / "scene"
+    shutil.copytree(big_ball / "scenes" / "f", scene)
+    io.write_png(scene / "image.png", np.zeros((120, 200, 3), np.uint8))
+    before = _listing(tmp_path)
+    _fails(capsys, ["show", scene, "--out-png", tmp_path / "s.png", "--out-ply", tmp_path / "s.ply"],
+           "image.png is 200x120", "160x120")
+    assert _listing(tmp_path) == before
