@@ -33,6 +33,7 @@ from spherebench import __version__  # noqa: E402
 from spherebench.datasets import io  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
 from spherebench.eval.metrics3d import detection_counts, scene_counts  # noqa: E402
+from spherebench.parallel import ignore_interrupts  # noqa: E402
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -91,7 +92,7 @@ def sweep(datasets: list[str], seeds: list[int], method: str = "improved", overr
         scenes = [str(s) for s in io.list_scenes(ds)[:limit]]
         tasks = [(scenes[k::workers], seeds, method, overrides) for k in range(workers) if scenes[k::workers]]
         if workers > 1 and len(tasks) > 1:
-            with multiprocessing.get_context("spawn").Pool(len(tasks)) as pool:
+            with multiprocessing.get_context("spawn").Pool(len(tasks), initializer=ignore_interrupts) as pool:
                 rows = [r for part in pool.map(_work, tasks) for r in part]
         else:
             rows = [r for t in tasks for r in _work(t)]
