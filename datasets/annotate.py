@@ -9,9 +9,12 @@ after their source file or frame):
 - LabelMe JSON: ``<scene_id>.json``, or ``<scene_id>/image.json`` (where LabelMe saves when one
   opens ``scenes/<scene_id>/image.png``). ``circle`` shapes are [centre, point on the rim] and
   give the circle directly; ``polygon`` shapes are rasterised to a mask and reduced to its
-  smallest enclosing circle. A LabelMe file with no ball shape marks the scene as annotated with
-  no ball (a negative). LabelMe stores Qt image coordinates, in which pixel i covers [i, i + 1);
-  SphereBench puts pixel centres at integers, so LabelMe points are shifted by -0.5 px.
+  smallest enclosing circle. Other shapes (rectangle, ellipse, point, line, ...) and, with
+  ``--label``, shapes of other labels are ignored, and ``prepare`` says which. A LabelMe file with
+  no shape at all is a deliberate empty annotation: the scene is annotated with no ball (a
+  negative). A file whose shapes are all ignored says nothing about balls: its scene stays
+  unannotated (not a negative). LabelMe stores Qt image coordinates, in which pixel i covers
+  [i, i + 1); SphereBench puts pixel centres at integers, so LabelMe points are shifted by -0.5 px.
 
 Drawing: ``draw_ground_truth`` renders circles on the reprojected image; ``ball_point_colors``
 colours a scene's cloud (ball red, rest grey) for MeshLab.
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections import Counter
 from pathlib import Path
 
 import cv2
@@ -102,11 +106,14 @@ def _labelme_image_matches(path: Path, doc: dict, scene_id: str, image_names: tu
 
 
 def balls_from_labelme(path: Path, shape: tuple[int, int], radius_m: float, scene_id: str,
-                       image_names: tuple[str, ...] = ("image.png",), label: str | None = None) -> list[Ball]:
+                       image_names: tuple[str, ...] = ("image.png",),
+                       label: str | None = None) -> tuple[list[Ball], list[str]]:
     """Balls of a LabelMe file drawn on this scene's image: circles as drawn, polygons via their mask.
 
     image_names: file names the annotated image may have (the scene's image.png, its source file).
     label: keep only shapes with this label (None: every circle and polygon).
+    Returns (balls, ignored): ignored names each shape that is not a ball, as "rectangle" or
+    "circle labelled 'hand'".
     """
     doc = io.read_labelme(path)
     h, w = shape
@@ -116,10 +123,14 @@ def balls_from_labelme(path: Path, shape: tuple[int, int], radius_m: float, scen
     if not _labelme_image_matches(path, doc, scene_id, image_names):
         raise SphereBenchError(f"{path}: LabelMe file is for image '{doc.get('imagePath')}', not scene {scene_id}: "
                                "annotate scenes/<scene_id>/image.png and name the file after the scene")
-    balls = []
+    balls, ignored = [], []
     for i, s in enumerate(doc["shapes"]):
         kind = s.get("shape_type") or "polygon"
-        if kind not in BALL_SHAPE_TYPES or (label is not None and s.get("label") != label):
+        if kind not in BALL_SHAPE_TYPES:
+            ignored.append(str(kind))
+            continue
+        if label is not None and s.get("label") != label:
+            ignored.append(f"{kind} labelled '{s.get('label')}'")
             continue
         pts = np.asarray(s["points"], dtype=np.float64) + LABELME_OFFSET_PX
         if kind == "circle":
@@ -129,13 +140,17 @@ def balls_from_labelme(path: Path, shape: tuple[int, int], radius_m: float, scen
             if not r > 0:
                 raise SphereBenchError(f"{path}: LabelMe circle {i} has zero radius")
             circle = (float(pts[0, 0]), float(pts[0, 1]), r)
-            balls.append(Ball(radius_m=radius_m, mask=disc_mask(circle, shape), circle_px=circle))
+            mask = disc_mask(circle, shape)
+            if not mask.any():
+                raise SphereBenchError(f"{path}: LabelMe circle {i} covers no pixel centre of the {w}x{h} image: "
+                                       "was it drawn on another image?")
+            balls.append(Ball(radius_m=radius_m, mask=mask, circle_px=circle))
         else:
             mask = polygon_mask(pts, shape)
             if not mask.any():
                 raise SphereBenchError(f"{path}: LabelMe polygon {i} covers no pixel centre of the {w}x{h} image")
             balls.append(Ball(radius_m=radius_m, mask=mask))
-    return balls
+    return balls, ignored
 
 
 _INDEX_SUFFIX = re.compile(r"^(?P<stem>.+)_(?P<k>\d+)$")
@@ -145,7 +160,8 @@ class AnnotationIndex:
     """The annotation files of a mask folder and/or a LabelMe folder, looked up by scene id.
 
     masks_dir: PNGs named <scene_id>.png or <scene_id>_<k>.png. labelme_dir: <scene_id>.json or
-    <scene_id>/image.json. A scene may have masks or a LabelMe file, not both.
+    <scene_id>/image.json. A scene may have masks or a LabelMe file, not both. What LabelMe files
+    left out (shapes that are not balls, files with no ball shape) is summed up by ``notes``.
     """
 
     def __init__(self, masks_dir: str | Path | None = None, labelme_dir: str | Path | None = None,
@@ -154,6 +170,9 @@ class AnnotationIndex:
         self._masks: dict[str, list[Path]] = {}
         self._labelme: dict[str, Path] = {}
         self._used: dict[Path, str] = {}
+        self._ignored: Counter[str] = Counter()  # shape descriptions over every LabelMe file read
+        self._with_ignored: list[Path] = []  # files that held ignored shapes
+        self._no_ball_shape: list[Path] = []  # files whose shapes were all ignored
         for kind, folder in (("--masks", masks_dir), ("--labelme", labelme_dir)):
             if folder is not None and not Path(folder).is_dir():
                 raise SphereBenchError(f"{folder}: {kind} must be a folder of annotation files")
@@ -207,11 +226,32 @@ class AnnotationIndex:
         if masks:
             return balls_from_masks(masks, shape, radius_m)
         if labelme is not None:
-            return balls_from_labelme(labelme, shape, radius_m, scene_id, image_names, self.label)
+            balls, ignored = balls_from_labelme(labelme, shape, radius_m, scene_id, image_names, self.label)
+            self._ignored.update(ignored)
+            if ignored:
+                self._with_ignored.append(labelme)
+                if not balls:
+                    self._no_ball_shape.append(labelme)
+                    return None  # nothing was said about balls: not a negative
+            return balls
         return None
 
     def labelme_file(self, scene_id: str) -> Path | None:
         return self._labelme.get(scene_id)
+
+    def notes(self) -> list[str]:
+        """What the LabelMe files read so far left out, each said once for all files."""
+        if not self._ignored:
+            return []
+        what = ", ".join(f"{n} {kind}" for kind, n in sorted(self._ignored.items(), key=lambda kv: (-kv[1], kv[0])))
+        ball = f"a circle or polygon labelled '{self.label}'" if self.label is not None else "a circle or polygon"
+        notes = [f"LabelMe shapes that are not balls were ignored in {len(self._with_ignored)} file(s), e.g. "
+                 f"{self._with_ignored[0]}: {what} (a ball is {ball})"]
+        if self._no_ball_shape:
+            notes.append(f"{len(self._no_ball_shape)} LabelMe file(s) hold no ball shape, e.g. "
+                         f"{self._no_ball_shape[0]}: their scenes stay unannotated, not negatives (a file with "
+                         "no shape at all marks a negative)")
+        return notes
 
     def unused(self) -> list[Path]:
         """Annotation files that matched no scene (a typo in a name, or a frame not selected)."""

@@ -397,7 +397,8 @@ def read_xyz(path: str | Path) -> Cloud:
             data = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", usecols=(0, 1, 2))
     except (ValueError, IndexError) as exc:
         raise SphereBenchError(f"{path}: not an XYZ text file with three numbers per line ({exc})") from None
-    return Cloud(data.astype(np.float32))
+    with np.errstate(over="ignore"):  # beyond float32 becomes inf, a non-finite point like NaN: callers drop them
+        return Cloud(data.astype(np.float32))
 
 
 CLOUD_READERS = {".ply": read_ply, ".xyz": read_xyz, ".txt": read_xyz}
@@ -590,6 +591,10 @@ def read_raw_depth(path: str | Path, width: int, height: int, dtype: str = "uint
     expected = int(width) * int(height) * dt.itemsize
     size = path.stat().st_size
     if size != expected:
+        other = next(k for k in RAW_DTYPES if k != dtype)
+        if size == int(width) * int(height) * np.dtype(RAW_DTYPES[other]).itemsize:
+            raise SphereBenchError(f"{path}: {size} bytes, but a {width}x{height} {dtype} frame is {expected} bytes; "
+                                   f"it is exactly a {width}x{height} {other} frame: try --raw-dtype {other}")
         raise SphereBenchError(f"{path}: {size} bytes, but a {width}x{height} {dtype} frame is {expected} bytes: "
                                "the file is truncated, or --raw-size/--raw-dtype are wrong")
     data = np.fromfile(path, dtype=dt).reshape(int(height), int(width))

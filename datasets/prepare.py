@@ -10,15 +10,20 @@ Inputs (each becomes a stream of ``Frame``s, then one scene per frame):
 - point clouds (PLY, PCD, XYZ). An organised cloud (PLY with row/col, PCD with HEIGHT > 1)
   with intrinsics gives its depth image directly; an unorganised one with intrinsics is
   projected into one (nearest surface per pixel); without intrinsics it stays an image-less
-  scene (cloud.ply only: nothing that needs pixels).
+  scene (cloud.ply only: nothing that needs pixels). Points with a NaN or infinite coordinate
+  are dropped (a note says how many); a cloud with no finite point is refused.
 
 Depth units: depth.png keeps integer inputs' own counts (intrinsics.json's depth_scale says
 metres per count); float inputs (clouds, float32 raw) are stored in FLOAT_DEPTH_SCALE_M counts.
 Depth whose median is plainly not an indoor depth camera's (outside UNIT_CHECK_RANGE_M) is
-refused with the depth scale that would fix it.
+refused with what would fix it: the other byte order when that reading is plausible, else the
+depth scale (naming the unit it implies). A raw frame is also refused when another reading of
+its bytes (width and height swapped, the other byte order) is far more continuous than the one
+asked for: a misread frame is mostly jumps between neighbouring pixels.
 
 Ground truth comes from mask PNGs or LabelMe files (``spherebench.datasets.annotate``); a
-scene without annotation is kept and marked unannotated. To annotate a prepared dataset: open
+scene without annotation, or whose LabelMe file holds no ball shape, is kept and marked
+unannotated; a LabelMe file with no shape at all marks a negative. To annotate a prepared dataset: open
 ``DIR/scenes/<id>/image.png`` in LabelMe (it saves ``image.json`` beside it), then run the same
 ``prepare`` command again with ``--labelme DIR``: the files are read before DIR is replaced and
 each scene keeps its LabelMe file as ``image.json``.
@@ -29,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import sys
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -49,6 +55,20 @@ DEFAULT_BALL_RADIUS_M = 0.12
 FLOAT_DEPTH_SCALE_M = 0.001
 #: A median valid depth (m) outside this range is taken for a wrong unit (indoor depth camera).
 UNIT_CHECK_RANGE_M = (0.05, 20.0)
+#: A median (m) outside this range is no depth in any unit: bytes read as the wrong type.
+ABSURD_DEPTH_M = (1e-8, 1e8)
+#: Unit names of depth scales (metres per unit, as powers of ten) for the unit check's suggestion.
+UNIT_NAMES = {0: "metres", -2: "centimetres", -3: "millimetres", -4: "tenths of a millimetre", -6: "micrometres"}
+#: Neighbouring pixels jump when their depths differ by more than this fraction of the nearer,
+#: or when only one is valid. A recorded frame has ~3 % jumps, one read with its width and height
+#: swapped or in the wrong byte order 25-80 %.
+JUMP_FRACTION = 0.05
+#: A raw frame is refused when another reading of its bytes jumps RAW_READING_RATIO times less
+#: (and by RAW_READING_MARGIN of the pairs at least, so that a flat frame never decides).
+RAW_READING_RATIO = 2.5
+RAW_READING_MARGIN = 0.005
+#: Fewer neighbour pairs with valid depth than this tell nothing about a reading.
+MIN_JUMP_PAIRS = 100
 #: An organised cloud whose points land farther than this (px, median) from their own pixel
 #: under the given intrinsics was taken with another camera model.
 MAX_REPROJECTION_PX = 1.0
@@ -118,12 +138,14 @@ class RawFormat:
     byte_order: str = "little"
 
     @classmethod
-    def parse(cls, size: str | None, dtype: str = "uint16", byte_order: str = "little") -> "RawFormat":
+    def parse(cls, size: str | None, dtype: str = "uint16", byte_order: str = "little",
+              option: str = "--raw-size") -> "RawFormat":
+        """option: the command-line option the size came from, named in errors."""
         if not size:
             return cls(None, None, dtype, byte_order)
         m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", size)
         if not m or int(m.group(1)) == 0 or int(m.group(2)) == 0:
-            raise SphereBenchError(f"--raw-size must be WIDTHxHEIGHT in pixels, e.g. 640x480, got '{size}'")
+            raise SphereBenchError(f"{option} must be WIDTHxHEIGHT in pixels, e.g. 640x480, got '{size}'")
         return cls(int(m.group(1)), int(m.group(2)), dtype, byte_order)
 
 
@@ -155,7 +177,9 @@ class Frame:
     """One scene-to-be. depth: (H, W) uint16 counts of intrinsics.depth_scale, or None for an
     image-less frame, which has cloud (metres) instead. image_names: file names an annotator
     may have drawn on (LabelMe's imagePath is checked against them). unit_sample_m: the valid
-    depths (m) as read, before storage, for the unit check (default: from depth)."""
+    depths (m) as read, before storage, for the unit check (default: from depth).
+    unit_alternatives: (depths m, option) of other readings of the same bytes, which the unit
+    check suggests when they are plausible; garbage_hint: what to check when no unit fits."""
 
     scene_id: str
     source: str
@@ -165,6 +189,8 @@ class Frame:
     meta: dict = field(default_factory=dict)
     image_names: tuple[str, ...] = ("image.png",)
     unit_sample_m: np.ndarray | None = None
+    unit_alternatives: tuple[tuple[np.ndarray, str], ...] = ()
+    garbage_hint: str | None = None
 
 
 @dataclass
@@ -218,18 +244,51 @@ def _with_depth_scale(intr: Intrinsics, scale: float) -> Intrinsics:
     return dataclasses.replace(intr, depth_scale=float(scale))
 
 
-def check_units(depth_m_valid: np.ndarray, where: str, scale: float, what: str = "depth") -> None:
-    """Refuse a frame whose median valid depth (m) is plainly a wrong unit; suggest the scale."""
-    if depth_m_valid.size == 0:
+def check_units(depth_m_valid: np.ndarray, where: str, scale: float, what: str = "depth",
+                alternatives: tuple[tuple[np.ndarray, str], ...] = (), garbage_hint: str | None = None) -> None:
+    """Refuse a frame whose median valid depth (m; NaN and infinities are left out) is plainly a
+    wrong unit, saying what fixes it: the first of ``alternatives`` ((depths m, option): other
+    readings of the same bytes) whose median is plausible; else, for a median no unit makes a
+    depth (outside ABSURD_DEPTH_M), garbage_hint; else the depth scale and the unit it implies."""
+    sample = np.asarray(depth_m_valid, dtype=np.float64).ravel()
+    sample = sample[np.isfinite(sample)]
+    if sample.size == 0:
         return
-    med = float(np.median(depth_m_valid))
+    med = float(np.median(sample))
     lo, hi = UNIT_CHECK_RANGE_M
     if lo <= med <= hi:
         return
-    suggest = scale * 10.0 ** round(math.log10(2.0 / med))
-    raise SphereBenchError(f"{where}: median valid {what} is {med:.4g} m at {scale:g} m per unit, plainly the wrong "
-                           f"unit for a depth camera (expected {lo:g}-{hi:g} m); try --depth-scale {suggest:.3g} "
-                           "(or --skip-unit-check for a genuinely far scene)")
+    head = (f"{where}: median valid {what} is {med:.4g} m at {scale:g} m per unit, plainly the wrong unit "
+            f"for a depth camera (expected {lo:g}-{hi:g} m)")
+    for values, option in alternatives:
+        alt = np.asarray(values, dtype=np.float64).ravel()
+        alt = alt[np.isfinite(alt) & (alt > 0)]
+        if alt.size and lo <= float(np.median(alt)) <= hi:
+            raise SphereBenchError(f"{head}; with {option} it is {float(np.median(alt)):.3g} m: try {option}")
+    if med == 0:
+        raise SphereBenchError(f"{head}: most {what}s are 0, which sensors write for no return; remove those points")
+    if not ABSURD_DEPTH_M[0] < med < ABSURD_DEPTH_M[1]:
+        raise SphereBenchError(f"{head}, and no unit makes it a depth: "
+                               f"{garbage_hint or 'the values are not depths'}")
+    raise SphereBenchError(f"{head}; try {_scale_suggestion(med, scale)} (or --skip-unit-check for a "
+                           "genuinely far scene)")
+
+
+def _scale_suggestion(median_m: float, scale: float) -> str:
+    """The depth scale that puts the median at 1-10 m, with its unit's name; the next smaller unit
+    too when it puts the median at 0.3-1 m (500 units: centimetres at 5 m or millimetres at 0.5 m)."""
+    k = -math.floor(math.log10(median_m))
+    options = []
+    for step in (k, k - 1):
+        factor = 10.0 ** step
+        depth = median_m * factor
+        if step != k and depth < 0.3:
+            break
+        new = scale * factor
+        exponent = math.log10(new)
+        name = UNIT_NAMES.get(round(exponent)) if abs(exponent - round(exponent)) < 1e-9 else None
+        options.append(f"{new:.3g} ({name + ': ' if name else ''}median {depth:.3g} m)")
+    return "--depth-scale " + " or ".join(options)
 
 
 def float_depth_to_counts(depth_m: np.ndarray, scale: float = FLOAT_DEPTH_SCALE_M) -> tuple[np.ndarray, int]:
@@ -336,9 +395,58 @@ def depth_png_frames(paths: list[Path], intr: Intrinsics | None, selection: Fram
     return Plan(frames(), len(picked), {"kind": "depth-png", "files": [p.name for p in picked]})
 
 
+def jump_fraction(depth: np.ndarray) -> float | None:
+    """Of the up-down and left-right neighbour pairs with at least one valid pixel (finite, > 0),
+    the fraction that jump (see JUMP_FRACTION); None with fewer than MIN_JUMP_PAIRS pairs.
+    Unit-free: counts or metres alike."""
+    d = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    d = np.where(valid, d, 0.0)
+    jumps = pairs = 0
+    for a, b, va, vb in ((d[1:], d[:-1], valid[1:], valid[:-1]), (d[:, 1:], d[:, :-1], valid[:, 1:], valid[:, :-1])):
+        apart = np.abs(a - b) > JUMP_FRACTION * np.minimum(a, b)
+        jumps += np.count_nonzero(va != vb) + np.count_nonzero(va & vb & apart)
+        pairs += np.count_nonzero(va | vb)
+    return jumps / pairs if pairs >= MIN_JUMP_PAIRS else None
+
+
+def check_raw_reading(values: np.ndarray, where: str, readings: list[tuple[np.ndarray, str, str]]) -> None:
+    """Refuse a raw frame (H, W) that another reading of its bytes shows far more continuous.
+
+    readings: (values, how it was read, what to do), e.g. (the bytes as 480x640, "read as 480x640",
+    "give --raw-size 480x640"); the first that jumps RAW_READING_RATIO times less is named.
+    """
+    given = jump_fraction(values)
+    if given is None:
+        return
+    for other_values, how, fix in readings:
+        other = jump_fraction(other_values)
+        if other is not None and given > RAW_READING_RATIO * other + RAW_READING_MARGIN:
+            raise SphereBenchError(f"{where}: {given:.1%} of neighbouring pixels jump in depth as read, {other:.1%} "
+                                   f"{how}: {fix}")
+
+
+def _raw_readings(values: np.ndarray, swapped_values: np.ndarray, raw: RawFormat) -> list[tuple[np.ndarray, str, str]]:
+    """Other readings of a raw frame's bytes for check_raw_reading: width and height swapped (when
+    they differ), the other byte order (swapped_values: the values byte-swapped), and both."""
+    h, w = values.shape
+    other_order = "big" if raw.byte_order == "little" else "little"
+    if raw.width is not None:
+        size_fix = f"width and height are swapped, give --raw-size {h}x{w}"
+    else:
+        size_fix = f"width and height are swapped, give the intrinsics of a {h}x{w} image"
+    readings = [(swapped_values, f"read {other_order}-endian", f"try --raw-byte-order {other_order}")]
+    if h != w:
+        readings = [(values.reshape(w, h), f"read as {h}x{w}", size_fix), *readings,
+                    (swapped_values.reshape(w, h), f"read {other_order}-endian as {h}x{w}",
+                     f"try --raw-byte-order {other_order}, and {size_fix}")]
+    return readings
+
+
 def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selection: FrameSelection,
                depth_scale: float | None = None) -> Plan:
-    """Headerless frames; uint16 keep their counts, float32 are stored as FLOAT_DEPTH_SCALE_M counts."""
+    """Headerless frames; uint16 keep their counts, float32 are stored as FLOAT_DEPTH_SCALE_M counts.
+    Each frame is checked against other readings of its bytes (check_raw_reading)."""
     if intr is None:
         raise SphereBenchError(f"{paths[0]}: raw frames need intrinsics: give --intrinsics FILE or --fx --fy --ppx --ppy")
     if raw.width is not None and (raw.width, raw.height) != (intr.width, intr.height):
@@ -352,11 +460,18 @@ def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selec
         out_intr = _with_depth_scale(intr, FLOAT_DEPTH_SCALE_M)
     picked = [paths[i] for i in selection.pick(len(paths))]
 
+    other_order = "big" if raw.byte_order == "little" else "little"
+
     def frames():
         for p in picked:
             values = io.read_raw_depth(p, intr.width, intr.height, raw.dtype, raw.byte_order)
+            swapped_values = values.byteswap()
+            check_raw_reading(values, str(p), _raw_readings(values, swapped_values, raw))
             meta = {"source": p.name}
             sample = None
+            swapped = swapped_values.astype(np.float64) * in_scale
+            alternatives = ((swapped[swapped > 0], f"--raw-byte-order {other_order}"),)
+            garbage = None
             if raw.dtype == "uint16":
                 depth = values
             else:
@@ -364,8 +479,11 @@ def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selec
                 depth, too_far = float_depth_to_counts(metres, FLOAT_DEPTH_SCALE_M)
                 meta["pixels_beyond_depth_range"] = too_far
                 sample = metres[np.isfinite(metres) & (metres > 0)]
+                garbage = ("these bytes are not float32 depth; are they integers (--raw-dtype uint16, with the "
+                           "frame's own --raw-size)?")
             yield Frame(scene_id_from(p.stem), p.name, out_intr, depth=depth, meta=meta,
-                        image_names=("image.png", p.name), unit_sample_m=sample)
+                        image_names=("image.png", p.name), unit_sample_m=sample, unit_alternatives=alternatives,
+                        garbage_hint=garbage)
     return Plan(frames(), len(picked), {"kind": f"raw-{raw.dtype}-{raw.byte_order}-endian",
                                         "files": [p.name for p in picked], "input_depth_scale": in_scale})
 
@@ -400,11 +518,23 @@ def cloud_frames(paths: list[Path], intr: Intrinsics | None, selection: FrameSel
             cloud = read_cloud_file(p, intr)
             if len(cloud) == 0:
                 raise SphereBenchError(f"{p}: the cloud has no valid point")
-            pts = cloud.points.astype(np.float64) * scale
-            cloud = Cloud(pts.astype(np.float32), cloud.rows, cloud.cols, None)
+            with np.errstate(over="ignore"):  # a coordinate beyond float32 becomes inf, dropped below
+                pts = (cloud.points.astype(np.float64) * scale).astype(np.float32)
+            finite = np.isfinite(pts).all(axis=1)
+            dropped = int(len(pts) - np.count_nonzero(finite))
+            if dropped == len(pts):
+                raise SphereBenchError(f"{p}: none of the cloud's {len(pts)} points has finite coordinates "
+                                       "(all NaN, infinite or beyond float32)")
+            if dropped:
+                rows, cols = (None, None) if cloud.rows is None else (cloud.rows[finite], cloud.cols[finite])
+                cloud = Cloud(pts[finite], rows, cols, None)
+            else:
+                cloud = Cloud(pts, cloud.rows, cloud.cols, None)
             sid = scene_ids[i] if scene_ids else scene_id_from(p.stem)
             meta = {"source": p.name, **(metas[i] if metas else {})}
             meta["organised_file"] = cloud.rows is not None
+            if dropped:
+                meta["non_finite_points_dropped"] = dropped
             if out_intr is None:
                 yield Frame(sid, p.name, None, cloud=cloud, meta=meta, image_names=())
                 continue
@@ -439,8 +569,9 @@ def files_of(path: Path) -> tuple[str, list[Path]]:
 def camera_from_options(intrinsics_file: Path | None = None, fx: float | None = None, fy: float | None = None,
                         ppx: float | None = None, ppy: float | None = None, width: int | None = None,
                         height: int | None = None, model: str = "none",
-                        coeffs: tuple[float, ...] | None = None) -> Intrinsics | None:
-    """Intrinsics from a JSON file or from the four numbers (and the image size); None if neither."""
+                        coeffs: tuple[float, ...] | None = None, size_option: str = "--raw-size") -> Intrinsics | None:
+    """Intrinsics from a JSON file or from the four numbers (and the image size); None if neither.
+    size_option: the option the size came from (--raw-size or --size), named in errors."""
     numbers = {"--fx": fx, "--fy": fy, "--ppx": ppx, "--ppy": ppy}
     given = [k for k, v in numbers.items() if v is not None]
     if intrinsics_file is not None:
@@ -449,9 +580,11 @@ def camera_from_options(intrinsics_file: Path | None = None, fx: float | None = 
         intr = io.read_camera_json(intrinsics_file)
         if width is not None and (width, height) != (intr.width, intr.height):
             raise SphereBenchError(f"{intrinsics_file}: intrinsics are {intr.width}x{intr.height} but the frames "
-                                   f"are {width}x{height}: give the intrinsics of this stream")
+                                   f"are {width}x{height} ({size_option}): give the intrinsics of this stream")
         return intr
     if not given:
+        if size_option == "--size" and width is not None:
+            raise SphereBenchError("--size is the image size of --fx --fy --ppx --ppy; give those too, or drop --size")
         return None
     missing = [k for k, v in numbers.items() if v is None]
     if missing:
@@ -613,9 +746,15 @@ def _progress(frames: Iterable[Frame], total: int | None):
     return tqdm(frames, total=total, desc="prepare", unit="frame", leave=False, disable=None)
 
 
+def note_to_stderr(text: str) -> None:
+    """Notes and warnings go to stderr: stdout is for the result (the summary)."""
+    print(text, file=sys.stderr)
+
+
 def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: str = "recorded",
-            log=print) -> PrepareReport:
-    """Write the plan's frames as a dataset at out_dir, atomically (nothing is left on error)."""
+            log=note_to_stderr) -> PrepareReport:
+    """Write the plan's frames as a dataset at out_dir, atomically (nothing is left on error).
+    Notes (what was dropped or ignored, said once each) are passed to ``log``."""
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     annotations = AnnotationIndex(options.masks_dir, options.labelme_dir, options.label)
@@ -623,7 +762,8 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
     seen: set[str] = set()
     counts = {"annotated": 0, "balls": 0, "image_less": 0}
     valid_points, empty = [], []
-    with io.atomic_directory(out_dir) as tmp:
+    non_finite: dict[str, int] = {}  # source -> points with NaN/inf coordinates dropped
+    with io.atomic_directory(out_dir, io.is_dataset_dir) as tmp:
         for frame in _progress(plan.frames, plan.total):
             if frame.scene_id in seen:
                 raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "
@@ -637,7 +777,8 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                     sample = frame.unit_sample_m
                     if sample is None:
                         sample = frame.depth[valid].astype(np.float64) * frame.intrinsics.depth_scale
-                    check_units(sample, frame.source, _input_scale(frame, options))
+                    check_units(sample, frame.source, _input_scale(frame, options), "depth",
+                                frame.unit_alternatives, frame.garbage_hint)
                 balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m,
                                               frame.image_names)
             else:
@@ -646,6 +787,8 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 if options.unit_check:
                     check_units(np.linalg.norm(frame.cloud.points.astype(np.float64), axis=1), frame.source,
                                 _input_scale(frame, options), what="range")
+            if frame.meta.get("non_finite_points_dropped"):
+                non_finite[frame.source] = frame.meta["non_finite_points_dropped"]
             if n_valid == 0:
                 empty.append(frame.scene_id)
             valid_points.append(n_valid)
@@ -654,7 +797,8 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                           balls=balls or [], seed=None, annotated=balls is not None, cloud=frame.cloud,
                           meta=frame.meta)
             scene_dir = io.write_scene(tmp / "scenes", scene, options.ball_radius_m)
-            labelme = annotations.labelme_file(frame.scene_id) if balls is not None else None
+            # a LabelMe file is kept even when it held no ball shape: it is the user's work
+            labelme = annotations.labelme_file(frame.scene_id) if frame.depth is not None else None
             if labelme is not None:
                 # keep the annotation beside the image, where LabelMe looks when image.png is reopened
                 doc = io.read_labelme(labelme)
@@ -665,6 +809,11 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 counts["balls"] += len(balls)
         if not seen:
             raise SphereBenchError("no frame was selected: check --frames, --every and --time-range against the input")
+        if non_finite:
+            first = next(iter(non_finite))
+            notes.append(f"{sum(non_finite.values())} point(s) with NaN or infinite coordinates were dropped from "
+                         f"{len(non_finite)} cloud(s), e.g. {non_finite[first]} in {first}")
+        notes.extend(annotations.notes())
         if empty:
             notes.append(f"{len(empty)} scene(s) have no valid depth at all (e.g. {empty[0]}): kept, but nothing can be found there")
         if counts["image_less"] and not annotations.empty:
@@ -684,7 +833,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
 
 
 def prepare_preset_source(name: str, out_dir: str | Path, root: str | Path | None = None,
-                          options: PrepareOptions | None = None, log=print) -> PrepareReport:
+                          options: PrepareOptions | None = None, log=note_to_stderr) -> PrepareReport:
     """One command per real data set: ``name`` is a key of PRESET_SOURCES; root defaults to
     ../shared/realdata/<folder> beside the repository. options: frame selection, annotation
     folders, and a radius overriding the set's own (defaults: the set's radius and category)."""

@@ -22,7 +22,10 @@ from spherebench.errors import SphereBenchError
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = ("Annotate in LabelMe: open OUT/scenes/<id>/image.png, draw circles or polygons round each ball, "
-                "save, then rerun the same command with --labelme OUT.")
+                "save, then rerun the same command with --labelme OUT. Other shapes (rectangles, points, "
+                "lines, ...) and, with --label, other labels are ignored; a file holding only those leaves its "
+                "scene unannotated, while a file with no shape at all marks a negative (no ball). "
+                "The summary goes to stdout, notes to stderr.")
     p.add_argument("inputs", nargs="*", type=Path, help="recordings, files or folders (one kind per folder); "
                    "with --preset-source: the data folder (default ../shared/realdata/<set>)")
     p.add_argument("--out", type=Path, required=True, help="dataset folder to write (replaced atomically)")
@@ -79,10 +82,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         options = prep.PrepareOptions(ball_radius_m=args.radius if args.radius is not None else prep.DEFAULT_BALL_RADIUS_M,
                                       category=args.category or "basketball", **common)
+        if args.size and args.raw_size:
+            raise SphereBenchError("give the image size once: --raw-size (raw frames; it also sizes --fx...) "
+                                   "or --size, not both")
         raw = prep.RawFormat.parse(args.raw_size, args.raw_dtype, args.raw_byte_order)
-        size = prep.RawFormat.parse(args.size) if args.size else raw
+        size = prep.RawFormat.parse(args.size, option="--size") if args.size else raw
         intr = prep.camera_from_options(args.intrinsics, args.fx, args.fy, args.ppx, args.ppy, size.width,
-                                        size.height, args.model, args.coeffs)
+                                        size.height, args.model, args.coeffs,
+                                        size_option="--size" if args.size else "--raw-size")
         report = prep.prepare(prep.plan_inputs(args.inputs, options, intr, raw), args.out, options)
-    print(report.summary())
+    print(report.summary())  # the result, on stdout; notes went to stderr
     return 0

@@ -320,6 +320,7 @@ def test_xyz_image_less_and_units(tmp_path, capsys):
     assert_failed(capsys, run_cli(tmp_path / "mm.xyz", "--out", tmp_path / "x"), tmp_path / "x",
                   "mm.xyz", "--depth-scale 0.001")
     assert run_cli(tmp_path / "mm.xyz", "--out", tmp_path / "y", "--depth-scale", "0.001") == 0
+    assert "image-less" in capsys.readouterr().err  # the notes, on stderr
     np.testing.assert_allclose(io.read_ply(io.list_scenes(tmp_path / "y")[0] / "cloud.ply").points, pts, atol=1e-5)
     (tmp_path / "cut.xyz").write_text("1 2 3\n4 5\n")
     assert_failed(capsys, run_cli(tmp_path / "cut.xyz", "--out", tmp_path / "x"), tmp_path / "x", "cut.xyz")
@@ -391,6 +392,8 @@ def test_labelme_circle_and_polygon(tmp_path, capsys):
     assert len(g1["balls"]) == 1  # the rectangle and the other label are not balls
     assert g1["balls"][0]["circle"] == pytest.approx([cx, cy, r], abs=1.0)
     assert json.loads((out / "scenes" / "frame_1" / "image.json").read_text())["imagePath"] == "image.png"
+    err = capsys.readouterr().err  # the ignored shapes are named, once
+    assert err.count("not balls were ignored") == 1 and "1 rectangle" in err and "polygon labelled 'hand'" in err
     # another image's annotation: by name, and by size
     labelme(lm / "frame_1.json", [shape("circle", [[5, 5], [9, 5]])], image="../scenes/frame_7/image.png")
     assert_failed(capsys, run_cli(folder, "--intrinsics", cam, "--labelme", lm, "--out", tmp_path / "x"),

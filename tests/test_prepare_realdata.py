@@ -15,7 +15,7 @@ pytestmark = pytest.mark.skipif(not REALDATA.is_dir(), reason=f"{REALDATA} is ab
 def test_kinect_pochang_recipe(tmp_path, capsys):
     out = tmp_path / "kinect"
     assert cli.main(["prepare", "--preset-source", "kinect-pochang", "--out", str(out), "--frames", "8:10"]) == 0
-    assert "unannotated" in capsys.readouterr().out
+    assert "unannotated" in capsys.readouterr().err  # a note: stderr
     meta = io.read_dataset_meta(out)
     assert meta["ball_radius_m"] == 0.203 and meta["preset"] == "kinect-pochang"
     s24, s27 = io.list_scenes(out)
@@ -37,8 +37,8 @@ def test_kinect_pochang_recipe(tmp_path, capsys):
 def test_lidar_spherecalib_recipe(tmp_path, capsys):
     out = tmp_path / "lidar"
     assert cli.main(["prepare", "--preset-source", "lidar-spherecalib", "--out", str(out), "--frames", "8:10"]) == 0
-    printed = capsys.readouterr().out
-    assert "image-less" in printed and "skipped" in printed
+    printed = capsys.readouterr()
+    assert "image-less" in printed.out and "skipped" in printed.err  # the summary on stdout, notes on stderr
     assert io.read_dataset_meta(out)["ball_radius_m"] == 0.3
     scenes = io.list_scenes(out)
     assert [s.name for s in scenes] == ["example3_L1_S1", "example3_L1_S2"]
