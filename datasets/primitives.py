@@ -2,7 +2,7 @@
 
 Rays are (M, 3) with z = 1 (``spherebench.camera.pixel_rays``), so the ray parameter t of a hit
 is its depth z along the optical axis, in metres; ``intersect`` returns t, or inf where the ray
-misses. Everything is in the camera frame: x right, y down, z forward, metres.
+misses; ``planar_face`` says which planar face a surface point lies on (CURVED if none). Everything is in the camera frame: x right, y down, z forward, metres.
 """
 
 from __future__ import annotations
@@ -14,6 +14,9 @@ import numpy as np
 from spherebench.camera import Intrinsics, project
 
 _MISS = np.inf
+#: ``planar_face`` of a point on a curved surface; planar faces are 0 .. FACES_PER_OBJECT - 2.
+CURVED = -1
+FACES_PER_OBJECT = 7
 
 
 def _nearest(*ts: np.ndarray) -> np.ndarray:
@@ -42,6 +45,9 @@ class Plane:
     def corners(self) -> None:
         return None  # unbounded: every ray may hit it
 
+    def planar_face(self, points_m: np.ndarray) -> np.ndarray:
+        return np.zeros(len(points_m), np.int32)
+
 
 @dataclass
 class Sphere:
@@ -61,6 +67,9 @@ class Sphere:
 
     def corners(self) -> np.ndarray:
         return _box_corners(np.asarray(self.center_m, np.float64), np.eye(3), np.full(3, self.radius_m))
+
+    def planar_face(self, points_m: np.ndarray) -> np.ndarray:
+        return np.full(len(points_m), CURVED, np.int32)
 
 
 @dataclass
@@ -89,6 +98,14 @@ class Box:
     def corners(self) -> np.ndarray:
         return _box_corners(np.asarray(self.center_m, np.float64), np.asarray(self.rotation, np.float64),
                             np.asarray(self.half_size_m, np.float64))
+
+    def planar_face(self, points_m: np.ndarray) -> np.ndarray:
+        """Face 2 a + (side > 0) of the box axis a whose face each surface point lies on."""
+        local = (np.asarray(points_m, np.float64) - np.asarray(self.center_m, np.float64)) \
+            @ np.asarray(self.rotation, np.float64)
+        ratio = local / np.asarray(self.half_size_m, np.float64)
+        axis = np.argmax(np.abs(ratio), axis=1)
+        return (2 * axis + (ratio[np.arange(len(axis)), axis] > 0)).astype(np.int32)
 
 
 @dataclass
@@ -135,6 +152,13 @@ class Cylinder:
         u /= np.linalg.norm(u)
         return _box_corners(centre, np.stack([u, np.cross(a, u), a], axis=1), half)
 
+    def planar_face(self, points_m: np.ndarray) -> np.ndarray:
+        """0 on the base cap, 1 on the top cap, CURVED on the side (a point of the rim: a cap)."""
+        a = np.asarray(self.axis, np.float64) / np.linalg.norm(self.axis)
+        s = (np.asarray(points_m, np.float64) - np.asarray(self.base_m, np.float64)) @ a
+        tol = 1e-7 * max(1.0, self.height_m)  # a cap hit's axial coordinate is the cap's up to rounding
+        return np.where(np.abs(s) <= tol, 0, np.where(np.abs(s - self.height_m) <= tol, 1, CURVED)).astype(np.int32)
+
 
 def _box_corners(center: np.ndarray, rot: np.ndarray, half: np.ndarray) -> np.ndarray:
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
@@ -175,3 +199,26 @@ def raycast(objects: list, rays: np.ndarray, intr: Intrinsics) -> tuple[np.ndarr
         zs[closer] = t[closer]
         ls[closer] = k + 1
     return z, label
+
+
+def surface_map(objects: list, label: np.ndarray, z_m: np.ndarray, rays: np.ndarray, intr: Intrinsics,
+                include_curved: tuple[int, ...] = ()) -> np.ndarray:
+    """(H, W) int32: which surface each pixel sees, from ``raycast``'s label and depth.
+
+    1 + FACES_PER_OBJECT k + f where the pixel sees planar face f of object k; 0 where nothing is
+    hit or the surface is curved, except on the objects whose indices are in ``include_curved``,
+    whose curved surface counts as one more face (FACES_PER_OBJECT - 1)."""
+    out = np.zeros(intr.shape, np.int32)
+    for k, obj in enumerate(objects):
+        v0, v1, u0, u1 = pixel_box(intr, obj.corners())
+        if v0 >= v1 or u0 >= u1:
+            continue
+        hit = label[v0:v1, u0:u1] == k + 1
+        if not hit.any():
+            continue
+        points = rays[v0:v1, u0:u1][hit] * z_m[v0:v1, u0:u1][hit][:, None]
+        face = obj.planar_face(points)
+        if k in include_curved:
+            face = np.where(face == CURVED, FACES_PER_OBJECT - 1, face)
+        out[v0:v1, u0:u1][hit] = np.where(face == CURVED, 0, 1 + FACES_PER_OBJECT * k + face)
+    return out

@@ -8,14 +8,19 @@ full silhouette, and their circles (``spherebench.circles``).
 Each scene has its own seed, drawn from (preset, --seed, index) by numpy's SeedSequence, so a
 scene does not depend on the others (workers can build them in any order) and the presets'
 seed streams are disjoint: the train split never repeats an evaluation scene.
+
+A preset may draw each scene's sensor (``SensorRanges``: ranges, a grid of conditions), from a
+stream of the scene's seed of its own, and ``--sensor`` settings override any parameter; a
+scene's gt.json then records its sensor (and its grid cell), the dataset.json the ranges.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,14 +32,31 @@ from spherebench.circles import sphere_circle_amodal, sphere_silhouette_mask
 from spherebench.datasets import io
 from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_view, ball_partly_out, bookcase,
                                           chair, floor_box, room, table, tripod)
-from spherebench.datasets.primitives import Box, Cylinder, Sphere, raycast
+from spherebench.datasets.primitives import Box, Cylinder, Sphere, raycast, surface_map
 from spherebench.datasets.scene import Ball, Scene
-from spherebench.datasets.sensor import D435Sensor, apply_sensor
+from spherebench.datasets.sensor import D435Sensor, SensorRanges, apply_sensor, check_setting, draw_sensor
 from spherebench.errors import SphereBenchError
 
 BASKETBALL_RADIUS_M = 0.12
 RESOLUTIONS = {"424x240": (424, 240), "848x480": (848, 480), "1280x720": (1280, 720)}
 HARD_FAMILIES = ("distractor", "negative", "cylinder", "occluded", "out_of_frame", "far", "two")
+#: Enters the seed of a scene's sensor draws beside the scene seed (a stream apart from the scene's).
+SENSOR_STREAM = 0x5E4502
+
+#: The robust preset's grid: Intel's subpixel range x noise correlation x low-texture dropouts.
+ROBUST_SENSOR = SensorRanges(grid=(
+    ("subpixel", tuple((s, {"subpixel": s}) for s in (0.05, 0.08, 0.12, 0.16, 0.20))),
+    ("correlation", (("none", {"correlation_px": 0.0}), ("1px", {"correlation_px": 1.0}))),
+    ("dropouts", (("off", {"dropout_probability": 0.0}), ("on", {"dropout_probability": 0.5}))),
+))
+
+#: Per-scene sensor ranges meant for the train preset (not switched on yet: add
+#: ``sensor=TRAIN_SENSOR`` to its Preset; it changes every training scene).
+TRAIN_SENSOR = SensorRanges(values={
+    "subpixel": (0.04, 0.22), "correlation_px": (0.0, 1.5), "dropout_probability": (0.0, 0.6),
+    "dropout_fraction": (0.1, 0.5), "flying_probability": (0.15, 0.45),
+    "depth_scale_error": (-0.003, 0.003), "depth_bias_m": (-0.002, 0.002),
+})
 
 
 @dataclass(frozen=True)
@@ -46,6 +68,7 @@ class Preset:
     n_default: int
     families: tuple[tuple[str, float], ...]
     resolutions: tuple[tuple[str, float], ...] = (("424x240", 1.0),)
+    sensor: SensorRanges | None = None          # per-scene sensor draws; None: the given sensor for all
 
 
 PRESETS = {
@@ -60,6 +83,10 @@ PRESETS = {
     "train": Preset("train", 4, 2000, (("clean", 0.3), ("cluttered", 0.35))
                     + tuple((f, 0.35 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
                     (("424x240", 0.7), ("848x480", 0.15), ("1280x720", 0.15))),
+    # default's families over a grid of sensor conditions (ROBUST_SENSOR): 20 cells x 20 scenes,
+    # each cell half clean, half cluttered, 80 % at 424x240
+    "robust": Preset("robust", 5, 400, (("clean", 0.5), ("cluttered", 0.5)),
+                     (("424x240", 0.8), ("848x480", 0.2)), ROBUST_SENSOR),
 }
 
 
@@ -223,8 +250,13 @@ def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor, rng: np.random.
     """Ray-cast a layout and apply the sensor: depth (H, W) uint16, true z (H, W) m, target balls."""
     if rays is None:
         rays = image_rays(intr)
-    z_true, label = raycast([it.shape for it in layout.items], rays, intr)
-    depth = apply_sensor(z_true, intr, sensor, rng)
+    shapes = [it.shape for it in layout.items]
+    z_true, label = raycast(shapes, rays, intr)
+    surfaces = None
+    if sensor.dropouts:  # planar surfaces may be low-texture, the balls only if asked
+        balls_too = tuple(k for k, it in enumerate(layout.items) if it.kind == "target") if sensor.dropout_ball else ()
+        surfaces = surface_map(shapes, label, z_true, rays, intr, balls_too)
+    depth = apply_sensor(z_true, intr, sensor, rng, surfaces)
     balls = []
     for k, item in enumerate(layout.items):
         if item.kind != "target":
@@ -239,12 +271,34 @@ def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor, rng: np.random.
     return depth, z_true, balls
 
 
+def scene_sensor(preset_name: str, seed: int, index: int, sensor: D435Sensor = D435Sensor(),
+                 overrides: Mapping | None = None) -> tuple[D435Sensor, dict | None]:
+    """The sensor of one scene and its grid cell ({"cell": k, axis: level, ...} or None).
+
+    ``sensor`` with the preset's values applied, then the scene's grid cell's, then ``overrides``
+    (parameter -> value or (lo, hi)); ranges are drawn from the scene seed's own sensor stream."""
+    preset = PRESETS[preset_name]
+    spec = preset.sensor or SensorRanges()
+    settings = dict(spec.values)
+    cell = spec.cell(index)
+    if cell is not None:
+        settings.update(cell[2])
+    settings.update(overrides or {})
+    if not settings:
+        return sensor, None
+    rng = np.random.default_rng([scene_seed(preset, seed, index), SENSOR_STREAM])
+    return draw_sensor(sensor, settings, rng), None if cell is None else {"cell": cell[0], **cell[1]}
+
+
 def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolution: str,
-                   radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor()) -> Scene:
-    """One scene of a preset, fully determined by its arguments."""
+                   radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
+                   sensor_overrides: Mapping | None = None) -> Scene:
+    """One scene of a preset, fully determined by its arguments (``scene_sensor`` for the sensor)."""
     preset = PRESETS[preset_name]
     s = scene_seed(preset, seed, index)
     rng = np.random.default_rng(s)
+    varied = preset.sensor is not None or bool(sensor_overrides) or sensor != D435Sensor()
+    sensor, cell = scene_sensor(preset_name, seed, index, sensor, sensor_overrides)
     w, h = RESOLUTIONS[resolution]
     intr = Intrinsics.d435(w, h)
     intr = Intrinsics(**{**intr.to_dict(), "depth_scale": sensor.depth_scale_m})
@@ -277,9 +331,13 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
     cylinders = [{"base_m": [float(x) for x in it.shape.base_m], "radius_m": float(it.shape.radius_m),
                   "height_m": float(it.shape.height_m)} for it in layout.items if it.kind == "cylinder"]
     scene_id = family if preset_name == "paper" else f"{family}_{index:04d}"
-    return Scene(scene_id=scene_id, family=family, intrinsics=intr, depth=depth, balls=balls, seed=s,
-                 meta={"preset": preset_name, "index": index, "resolution": resolution,
-                       "distractors": distractors, "cylinders": cylinders})
+    meta = {"preset": preset_name, "index": index, "resolution": resolution,
+            "distractors": distractors, "cylinders": cylinders}
+    if varied:  # a nominal-sensor dataset's scenes read as before; dataset.json holds its sensor
+        meta["sensor"] = sensor.to_dict()
+    if cell is not None:
+        meta["sensor_cell"] = cell
+    return Scene(scene_id=scene_id, family=family, intrinsics=intr, depth=depth, balls=balls, seed=s, meta=meta)
 
 
 # --------------------------------------------------------------------------- datasets
@@ -295,36 +353,54 @@ def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[in
     if preset_name == "paper" and n != 3:
         raise SphereBenchError("the paper preset is its three fixed scenes E1-E3: leave --n out")
     families = _assign(preset.families, n)
-    res_rng = np.random.default_rng([preset.code, int(seed), 7])
-    names, shares = zip(*preset.resolutions)
-    resolutions = res_rng.choice(names, size=n, p=np.asarray(shares) / sum(shares))
+    if preset.sensor is not None and preset.sensor.grid:
+        # by shares within each (grid cell, family), so that every cell has the same mix
+        groups: dict[tuple[int, str], list[int]] = {}
+        for i, f in enumerate(families):
+            groups.setdefault((i % preset.sensor.n_cells, f), []).append(i)
+        resolutions = [""] * n
+        for members in groups.values():
+            for i, r in zip(members, _assign(preset.resolutions, len(members))):
+                resolutions[i] = r
+    else:
+        res_rng = np.random.default_rng([preset.code, int(seed), 7])
+        names, shares = zip(*preset.resolutions)
+        resolutions = res_rng.choice(names, size=n, p=np.asarray(shares) / sum(shares))
     return [(i, f, str(r)) for i, (f, r) in enumerate(zip(families, resolutions))]
 
 
 def _build_one(args) -> str:
-    preset_name, index, family, seed, resolution, radius_m, sensor, scenes_dir, clouds = args
-    scene = simulate_scene(preset_name, index, family, seed, resolution, radius_m, sensor)
+    preset_name, index, family, seed, resolution, radius_m, sensor, overrides, scenes_dir, clouds = args
+    scene = simulate_scene(preset_name, index, family, seed, resolution, radius_m, sensor, overrides)
     io.write_scene(scenes_dir, scene, radius_m, write_cloud=clouds)
     return scene.scene_id
 
 
 def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None, seed: int = 0,
                      radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
-                     workers: int = 1, progress: bool = True, clouds: bool | None = None) -> Path:
+                     workers: int = 1, progress: bool = True, clouds: bool | None = None,
+                     sensor_overrides: Mapping | None = None) -> Path:
     """Build a preset into ``out_dir`` (replaced atomically when complete); returns the path.
 
+    sensor: the base sensor (the preset's sensor values, grid cells and ``sensor_overrides``,
+    parameter -> value or (lo, hi), apply over it; see ``scene_sensor``).
     clouds: write each scene's cloud.ply (default: yes, except for the train preset, whose
     2D consumers read image.png only: 2,000 clouds would take several GB)."""
     if clouds is None:
         clouds = preset_name != "train"
     if not (0.01 <= radius_m <= 2.0):
         raise SphereBenchError(f"--radius {radius_m} m is not a ball radius (0.01-2 m); the basketball is 0.12")
+    overrides = dict(sensor_overrides or {})
+    for name, value in overrides.items():
+        check_setting(name, value)
     jobs = plan(preset_name, n, seed)
+    for i, _f, _r in jobs:  # every scene's sensor is valid (e.g. drawn depth limits in order) before any work
+        scene_sensor(preset_name, seed, i, sensor, overrides)
     out_dir = Path(out_dir)
-    with io.atomic_directory(out_dir) as tmp:
+    with io.atomic_directory(out_dir, io.replaceable_dataset) as tmp:
         scenes_dir = tmp / "scenes"
         scenes_dir.mkdir()
-        tasks = [(preset_name, i, f, seed, r, radius_m, sensor, scenes_dir, clouds) for i, f, r in jobs]
+        tasks = [(preset_name, i, f, seed, r, radius_m, sensor, overrides, scenes_dir, clouds) for i, f, r in jobs]
         bar = tqdm(total=len(tasks), desc=f"generate {preset_name}", unit="scene", disable=not progress)
         if workers > 1:
             with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -337,8 +413,13 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         bar.close()
         meta = {"name": out_dir.name, "preset": preset_name, "n": len(jobs), "seed": int(seed),
                 "ball_radius_m": radius_m, "category": "basketball", "source": "simulated", "clouds": clouds,
-                "sensor": asdict(sensor), "spherebench_version": __version__,
-                "numpy_version": np.__version__}
+                "sensor": sensor.to_dict(compact=True)}
+        spec = PRESETS[preset_name].sensor
+        if spec is not None:
+            meta["sensor_ranges"] = spec.to_dict()
+        if overrides:
+            meta["sensor_overrides"] = {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()}
+        meta.update({"spherebench_version": __version__, "numpy_version": np.__version__})
         io.finish_dataset(tmp, meta)
     return out_dir
 
