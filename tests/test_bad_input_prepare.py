@@ -147,9 +147,10 @@ def test_labelme_without_ball_shapes_leaves_the_scene_unannotated(tmp_path, caps
     assert sorted(im["scene_id"] for im in coco["images"]) == ["frame_2", "frame_3"]
     # the user's LabelMe files survive the rerun with --labelme OUT, usable or not
     assert (out / "scenes" / "frame_0" / "image.json").is_file()
-    assert prepared(capsys, folder, "--intrinsics", tmp_path / "cam.json", "--labelme", out, "--label", "basketball",
-                    "--out", out)
+    prepared(capsys, folder, "--intrinsics", tmp_path / "cam.json", "--labelme", out, "--label", "basketball",
+             "--out", out)
     assert not io.read_json(out / "scenes" / "frame_0" / "gt.json")["annotated"]
+    assert (out / "scenes" / "frame_0" / "image.json").is_file()
 
 
 # --------------------------------------------------------------------------- 3. width and height swapped
