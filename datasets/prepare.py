@@ -763,7 +763,9 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
     counts = {"annotated": 0, "balls": 0, "image_less": 0}
     valid_points, empty = [], []
     non_finite: dict[str, int] = {}  # source -> points with NaN/inf coordinates dropped
-    with io.atomic_directory(out_dir, io.is_dataset_dir) as tmp:
+    # annotations read from out_dir itself (the LabelMe round trip) are carried into the new dataset
+    carried = options.labelme_dir is not None and Path(options.labelme_dir).resolve() == out_dir.resolve()
+    with io.atomic_directory(out_dir, lambda d: io.replaceable_dataset(d, labelme_carried=carried)) as tmp:
         for frame in _progress(plan.frames, plan.total):
             if frame.scene_id in seen:
                 raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "

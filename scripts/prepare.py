@@ -15,8 +15,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from spherebench.datasets import io
 from spherebench.datasets import prepare as prep
 from spherebench.errors import SphereBenchError
+from spherebench.options import out_path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -28,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                 "The summary goes to stdout, notes to stderr.")
     p.add_argument("inputs", nargs="*", type=Path, help="recordings, files or folders (one kind per folder); "
                    "with --preset-source: the data folder (default ../shared/realdata/<set>)")
-    p.add_argument("--out", type=Path, required=True, help="dataset folder to write (replaced atomically)")
+    p.add_argument("--out", type=out_path, required=True, help="dataset folder to write (replaced atomically)")
     p.add_argument("--preset-source", choices=sorted(prep.PRESET_SOURCES),
                    help="prepare one of the real data sets of shared/realdata with its own settings")
     g = p.add_argument_group("dataset")
@@ -65,6 +67,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # the output never replaces, contains or lies inside what is read (--labelme OUT is the round trip)
+    sources = [*args.inputs, *(p for p in (args.masks, args.intrinsics) if p is not None)]
+    if args.preset_source and not args.inputs:
+        sources.append(prep.default_realdata_dir() / prep.PRESET_SOURCES[args.preset_source][1])
+    io.check_output_dir(args.out, io.is_dataset_dir, inputs=sources)
     selection = prep.FrameSelection.parse(args.every, args.frames, args.time_range)
     common = dict(depth_scale=args.depth_scale, unit_check=not args.skip_unit_check, selection=selection,
                   masks_dir=args.masks, labelme_dir=args.labelme, label=args.label, name=args.name)
