@@ -22,6 +22,7 @@ import datetime as _dt
 import io as _io
 import math
 import subprocess
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -136,10 +137,17 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
     unannotated = [r for r in records if not by_id[r["scene_id"]].annotated]
     if unannotated:
         m["unannotated"] = detection_stats(unannotated, [by_id[r["scene_id"]].reference_centre_m for r in unannotated])
-    errors = [r for r in records if r.get("error")]
+    errors = Counter(r["error"] for r in records if r.get("error"))
     if errors:
-        m["scenes_refused"] = len(errors)
+        m["scenes_refused"] = sum(errors.values())
+        m["refused_reason"] = errors.most_common(1)[0][0]
     return out
+
+
+def not_run(s: ScoredSet) -> str | None:
+    """Why a set has no result at all (the method refused every scene it was given), or None."""
+    n = s.metrics.get("n_scenes_run", 0)
+    return s.metrics.get("refused_reason") if n and s.metrics.get("scenes_refused") == n else None
 
 
 def _centres_known(scenes: Sequence[SceneInfo]) -> bool:
@@ -237,7 +245,9 @@ def table3(label: str, sets: Sequence[ScoredSet], with_paper: bool = True) -> Ta
     """Table 3: mAP, mAP.50, mAP.75 (and mAR) per prediction set, the paper's reported rows below."""
     rows = [[s.output, _rule_label(s), _fmt(s.metrics.get("mAP")), _fmt(s.metrics.get("mAP50")),
              _fmt(s.metrics.get("mAP75")), _fmt(s.metrics.get("mAR")), s.metrics.get("n_images", "–"),
-             s.note or ""] for s in sets if "mAP" in s.metrics]
+             s.note or ""] if not not_run(s) else
+            [s.output, _rule_label(s), "not run", "–", "–", "–", s.metrics.get("n_images", "–"),
+             f"not run ({not_run(s)})"] for s in sets if "mAP" in s.metrics]
     notes = ["COCO protocol with circle IoU (CircleNet's): AP over IoU 0.50:0.05:0.95 (mAP), at 0.50 and 0.75; "
              "101-point interpolation, maxDets 1000, circle area = pi r^2.",
              "3D methods give two rows from one detection run: the circle of the exact silhouette (the ground "
@@ -322,7 +332,7 @@ def timing_table(per_dataset: dict[str, Sequence[ScoredSet]]) -> Table:
     rows = []
     for label, sets in per_dataset.items():
         for s in sets:
-            if s.rule == "paper":  # same detection run as the exact-rule row
+            if s.rule == "paper" or not_run(s):  # same run as the exact-rule row; a refusal's time is none
                 continue
             for res, st in s.metrics.get("ms_by_resolution", {}).items():
                 rows.append([s.method, label, res, st["n"], _fmt(st["median"], 1), _fmt(st["p95"], 1)])
@@ -366,6 +376,9 @@ def detections_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
     for s in sets:
         u = s.metrics.get("unannotated")
         if not u or s.rule == "paper":
+            continue
+        if not_run(s):
+            rows.append([s.method, u["n_scenes"], f"not run ({not_run(s)})", *["–"] * 8])
             continue
         rows.append([s.method, u["n_scenes"], u["scenes_with_detection"], _fmt(u["detections_per_scene"], 2),
                      _fmt(u["top_score_median"], 3), _fmt(u["radius_m_median"], 4), _fmt(u["radius_m_p05"], 4),
@@ -462,14 +475,17 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
     for label, sets in per_dataset.items():
         if label in ("default", "hard"):
             continue
-        scored = [s for s in sets if s.metrics.get("mAP") is not None]
+        scored = [s for s in sets if s.metrics.get("mAP") is not None and not not_run(s)]
         if scored:
             best = max(scored, key=lambda s: s.metrics["mAP"])
             out.append(f"On `{label}` the best circle mAP is {best.output}'s, {best.metrics['mAP']:.3f} "
                        f"(mAP.50 {best.metrics['mAP50']:.3f}).")
         for s in sets:
             u = s.metrics.get("unannotated")
-            if u and s.rule != "paper":
+            if u and s.rule != "paper" and not_run(s):
+                out.append(f"`{label}` has no ground truth: {s.method} was not run: it refused "
+                           f"{u['n_scenes']}/{u['n_scenes']} scenes ({not_run(s)}).")
+            elif u and s.rule != "paper":
                 ref = ""
                 if u.get("n_reference"):
                     ref = (f"; its best detection lies within 5 cm of the recording's reference centre in "

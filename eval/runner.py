@@ -40,6 +40,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as _dt
+import functools
 import hashlib
 import json
 import math
@@ -120,7 +121,8 @@ def dataset_fingerprint(data_dir: str | Path) -> str:
     h.update(_hash_files(files, root).encode())
     gt = root / "coco_gt.json"
     if gt.is_file():
-        coco = json.loads(gt.read_text())
+        from spherebench.datasets import io  # deferred, as everywhere here: `evaluate --help` stays fast
+        coco = io.read_json(gt)  # a truncated file: one line, not a traceback
         h.update(json.dumps({k: coco.get(k) for k in ("images", "annotations", "categories")},
                             sort_keys=True).encode())
     return h.hexdigest()
@@ -250,25 +252,37 @@ def circlenet_model_path(name: str = "circlenet") -> Path:
 
 
 def circlenet_spec(model_path: str | Path, name: str = "circlenet") -> MethodSpec:
-    """CircleNet from an ONNX file, as method ``name``; raises SphereBenchError if the file is missing."""
+    """CircleNet from an ONNX file, as method ``name``; raises SphereBenchError if the file is missing or
+    is not a loadable SphereBench CircleNet model."""
     path = Path(model_path)
     if not path.is_file():
         shown = path.resolve().relative_to(REPO_ROOT) if path.resolve().is_relative_to(REPO_ROOT) else path
         how = CIRCLENET_MODELS.get(name, CIRCLENET_MODELS["circlenet"])[1]
         raise SphereBenchError(f"CircleNet model {shown} not found (train it with `{how}`)")
+    sha = file_sha256(path)
+    _check_model(str(path.resolve()), sha)
     card_path = path.with_name("model_card.json")
     budget = ""
     if card_path.is_file():  # the training budget belongs next to the numbers (fairness)
-        card = json.loads(card_path.read_text())
-        budget = "; " + card_budget(card)
+        from spherebench.datasets import io
+        card = io.read_json(card_path)
+        budget = "; " + card_budget(card if isinstance(card, dict) else {})
     return MethodSpec(name=name, kind="2d",
                       config={"engine": "circlenet", "model": path.name, "min_score": CIRCLENET_MIN_SCORE,
                               "top_k": CIRCLENET_TOP_K, "onnxruntime": _dist_version("onnxruntime")},
                       modules=_CORE_MODULES + ("spherebench.baselines.circlenet",),
-                      extra_fingerprint=file_sha256(path), resource=str(path.resolve()),
+                      extra_fingerprint=sha, resource=str(path.resolve()),
                       note="ONNX Runtime, CPU, 1 thread; an image of another size than the model's is scaled "
                            "uniformly to fit it (nearest neighbour, padded; the detector's own rule, as in training) "
                            "and the circles scaled back" + budget)
+
+
+@functools.lru_cache(maxsize=8)
+def _check_model(path: str, sha256: str) -> None:
+    """Load the ONNX model once (per content) before any method runs: a corrupt or foreign file is
+    refused here, not in a worker after the other methods have run."""
+    from spherebench.baselines.circlenet.infer import CircleNetDetector
+    CircleNetDetector(path, threads=1)
 
 
 def _dist_version(name: str) -> str | None:

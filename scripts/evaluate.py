@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 from typing import Sequence
@@ -79,6 +80,23 @@ def resolve_hough(methods, hough_file, out: Path, seed: int, workers: int, progr
                                      progress=progress, log=log)
 
 
+def check_dataset(data_dir: Path) -> float:
+    """A dataset's ball radius (m), once the files that say what it holds (dataset.json, coco_gt.json,
+    every gt.json) have been read: a damaged one is refused before any method runs."""
+    from spherebench.datasets import io
+    from spherebench.eval import runner
+    if not (data_dir / "scenes").is_dir():
+        raise SphereBenchError(f"{data_dir}: not a dataset (no scenes/ folder); build one with "
+                               "'spherebench generate' or 'spherebench prepare'")
+    meta = io.read_dataset_meta(data_dir) if (data_dir / "dataset.json").is_file() else {}
+    radius = meta.get("ball_radius_m", 0.12) if isinstance(meta, dict) else None
+    if not (isinstance(radius, (int, float)) and math.isfinite(radius) and radius > 0):
+        raise SphereBenchError(f"{data_dir / 'dataset.json'}: ball_radius_m must be the ball's radius in metres, "
+                               f"not {radius!r}; rebuild the dataset")
+    runner.dataset_scenes(data_dir)
+    return float(radius)
+
+
 def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None = None, seed: int = 0,
              workers: int = 2, force: bool = False, hough_config=None, model: str | Path | None = None,
              table2_dir: Path | None = None, table2_iterations: int | None = None, figures: bool = True,
@@ -95,17 +113,15 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
     configs: dict = {}
     fingerprints: dict = {}
     stage_s: dict = {}
-    for label, data_dir in datasets.items():
-        data_dir = Path(data_dir)
-        if not (data_dir / "scenes").is_dir():
-            raise SphereBenchError(f"{data_dir}: not a dataset (no scenes/ folder); build one with "
-                                   "'spherebench generate' or 'spherebench prepare'")
-        meta = io.read_dataset_meta(data_dir) if (data_dir / "dataset.json").is_file() else {}
-        radius = float(meta.get("ball_radius_m", 0.12))
+    plans = {}
+    for label, data_dir in datasets.items():  # every dataset and method checked before any runs
+        radius = check_dataset(Path(data_dir))
         specs = runner.build_methods(methods, hough_config=hough_config, circlenet_model=model,
                                      table_note=lambda n, why: skipped.setdefault(n, why), radius_m=radius)
         if not specs:
             raise SphereBenchError("no method can run: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
+        plans[label] = (Path(data_dir), specs)
+    for label, (data_dir, specs) in plans.items():
         for spec in specs:
             configs.setdefault(spec.name, {})[label] = {"config": spec.config, "note": spec.note}
         t0 = time.perf_counter()
@@ -144,6 +160,24 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
     return json.loads((out / "metrics.json").read_text())
 
 
+def console_line(method: str, m: dict | None) -> str | None:
+    """A prediction set's figures on one dataset, for the console (None: nothing to say)."""
+    if m is None:
+        return None
+    n, refused = m.get("n_scenes_run", 0), m.get("scenes_refused", 0)
+    if refused and refused == n:  # nothing ran: no score, no time
+        return None if method.endswith("+paper-circle") else f"refused {refused}/{n}: {m.get('refused_reason')}"
+    tail = f"  refused {refused}/{n}: {m.get('refused_reason')}" if refused else ""
+    if m.get("mAP") is not None:
+        return (f"mAP {m['mAP']:.3f}  mAP.50 {m['mAP50']:.3f}  mAP.75 {m['mAP75']:.3f}  {m['ms_median']:.1f} ms"
+                + tail)
+    if m.get("unannotated") and not method.endswith("+paper-circle"):
+        u = m["unannotated"]
+        return (f"detections in {u['scenes_with_detection']}/{u['n_scenes']} unannotated scenes  "
+                f"{m['ms_median']:.1f} ms" + tail)
+    return None
+
+
 def _label(path: Path, taken: set) -> str:
     from spherebench.datasets import io
     name = path.resolve().name
@@ -167,6 +201,11 @@ def run(args: argparse.Namespace) -> int:
         if not path.is_dir():
             raise SphereBenchError(f"{path}: dataset folder not found")
         datasets[_label(path, taken)] = path
+    for path in datasets.values():
+        check_dataset(path)
+    if args.model and (args.methods is None or "circlenet" in args.methods):
+        from spherebench.eval.runner import circlenet_spec
+        circlenet_spec(args.model)  # a corrupt model is refused now, not after the other methods have run
     from spherebench.eval.report import claim_results_dir  # deferred like the other eval imports: fast --help
     claim_results_dir(out)  # before anything is written under it (Hough tuning included)
     progress = not args.quiet
@@ -176,15 +215,8 @@ def run(args: argparse.Namespace) -> int:
                        title="SphereBench evaluation", paper_rows_for=())
     for label in datasets:
         for method, by in metrics.items():
-            m = by.get(label)
-            if m is None:
-                continue
-            if m.get("mAP") is not None:
-                print(f"{label:>20s}  {method:<28s} mAP {m['mAP']:.3f}  mAP.50 {m['mAP50']:.3f}  "
-                      f"mAP.75 {m['mAP75']:.3f}  {m['ms_median']:.1f} ms")
-            elif m.get("unannotated") and not method.endswith("+paper-circle"):
-                u = m["unannotated"]
-                print(f"{label:>20s}  {method:<28s} detections in {u['scenes_with_detection']}/{u['n_scenes']} "
-                      f"unannotated scenes  {m['ms_median']:.1f} ms")
-    print(f"wrote {out}/README.md, metrics.json, tables/, figures/")
+            line = console_line(method, by.get(label))
+            if line:
+                print(f"{label:>20s}  {method:<28s} {line}")
+    print(f"wrote {out}/README.md, metrics.json, tables/" + ("" if args.no_figures else ", figures/"))
     return 0

@@ -14,10 +14,12 @@ import numpy as np
 import pytest
 
 from spherebench import cli
+from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, in_front_of_camera
 from spherebench.datasets import io
 from spherebench.errors import SphereBenchError
+from spherebench.eval import runner
 
 CAM = Intrinsics(width=160, height=120, ppx=79.5, ppy=59.5, fx=140.0, fy=140.0)
 BALL_CENTRE_M = np.array([0.05, -0.03, 1.4])
@@ -172,3 +174,57 @@ def test_show_refuses_an_image_of_another_size_than_the_intrinsics(big_ball, tmp
     _fails(capsys, ["show", scene, "--out-png", tmp_path / "s.png", "--out-ply", tmp_path / "s.ply"],
            "image.png is 200x120", "160x120")
     assert _listing(tmp_path) == before
+
+
+# ---------------------------------------------------------------- evaluate
+
+def _shipped_model():
+    if not DEFAULT_MODEL.is_file():
+        pytest.skip("no shipped CircleNet model")
+    return DEFAULT_MODEL
+
+
+def _copy(src, dst):
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_evaluate_refuses_a_corrupt_model_before_any_method_runs(big_ball, tmp_path, capsys):
+    data = _copy(big_ball, tmp_path / "data")
+    model = tmp_path / "corrupt.onnx"
+    model.write_bytes(_shipped_model().read_bytes()[:4000])
+    before = _listing(tmp_path)
+    _fails(capsys, ["evaluate", "--data", data, "--out", tmp_path / "out", "--methods", "improved", "circlenet",
+                    "--model", model, "--workers", "1", "--quiet", "--no-figures"], "corrupt.onnx", "not a valid ONNX")
+    foreign = tmp_path / "foreign.onnx"
+    foreign.write_text("not a model")
+    _fails(capsys, ["evaluate", "--data", data, "--out", tmp_path / "out", "--model", foreign, "--workers", "1",
+                    "--quiet"], "foreign.onnx")
+    assert _listing(tmp_path) == {**before, "foreign.onnx": b"not a model"}
+
+
+def test_evaluate_refuses_a_truncated_coco_gt_of_any_dataset_before_running(big_ball, tmp_path, capsys):
+    good = _copy(big_ball, tmp_path / "good")
+    bad = _copy(big_ball, tmp_path / "bad")
+    (bad / "coco_gt.json").write_bytes((bad / "coco_gt.json").read_bytes()[:40])
+    before = _listing(tmp_path)
+    _fails(capsys, ["evaluate", "--data", good, "--data", bad, "--out", tmp_path / "out", "--methods", "improved",
+                    "--workers", "1", "--quiet", "--no-figures"], "coco_gt.json", "not valid JSON")
+    assert _listing(tmp_path) == before
+    with pytest.raises(SphereBenchError, match="truncated"):  # the path that read it with json.loads
+        runner.dataset_fingerprint(bad)
+
+
+def test_evaluate_says_a_method_that_refused_every_image_was_not_run(big_ball, tmp_path, capsys):
+    _shipped_model()
+    data = _copy(big_ball, tmp_path / "data")  # 160x120: not the shipped model's aspect ratio
+    capsys.readouterr()
+    assert cli.main(["evaluate", "--data", str(data), "--out", str(tmp_path / "out"), "--methods", "improved",
+                     "circlenet", "--workers", "1", "--quiet", "--no-figures"]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if " circlenet " in x)
+    assert "refused 1/1: the image is 160x120 px" in line and "detections in" not in line and " ms" not in line
+    assert "detections in 1/1" in next(x for x in out.splitlines() if " improved " in x)
+    readme = (tmp_path / "out" / "README.md").read_text()
+    assert "circlenet was not run: it refused 1/1 scenes" in readme
+    assert "| circlenet | 1 | not run (the image is 160x120 px" in readme
