@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +35,7 @@ from spherebench.datasets.primitives import Box, Cylinder, Sphere, raycast, surf
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.datasets.sensor import D435Sensor, SensorRanges, apply_sensor, check_setting, draw_sensor
 from spherebench.errors import SphereBenchError
+from spherebench.parallel import process_pool
 
 BASKETBALL_RADIUS_M = 0.12
 RESOLUTIONS = {"424x240": (424, 240), "848x480": (848, 480), "1280x720": (1280, 720)}
@@ -403,7 +403,7 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         tasks = [(preset_name, i, f, seed, r, radius_m, sensor, overrides, scenes_dir, clouds) for i, f, r in jobs]
         bar = tqdm(total=len(tasks), desc=f"generate {preset_name}", unit="scene", disable=not progress)
         if workers > 1:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            with process_pool(workers) as pool:
                 for _ in pool.map(_build_one, tasks, chunksize=4):
                     bar.update()
         else:
