@@ -17,7 +17,7 @@ from spherebench import cli
 from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, in_front_of_camera
-from spherebench.datasets import io
+from spherebench.datasets import io, simulate
 from spherebench.errors import SphereBenchError
 from spherebench.eval import runner
 
@@ -228,3 +228,31 @@ def test_evaluate_says_a_method_that_refused_every_image_was_not_run(big_ball, t
     readme = (tmp_path / "out" / "README.md").read_text()
     assert "circlenet was not run: it refused 1/1 scenes" in readme
     assert "| circlenet | 1 | not run (the image is 160x120 px" in readme
+
+
+# ---------------------------------------------------------------- train
+
+@pytest.fixture(scope="module")
+def train_data(tmp_path_factory):
+    return simulate.generate_dataset("train", tmp_path_factory.mktemp("train") / "train", n=3, progress=False)
+
+
+@pytest.mark.parametrize("option, words", [(["--device", "tpu7"], ("tpu7", "auto, cpu, cuda")),
+                                           (["--device", "cuda:x"], ("cuda:x",)),
+                                           (["--workers", "-1"], ("workers", "got -1"))])
+def test_train_refuses_a_bad_device_or_worker_count_before_creating_its_folder(train_data, tmp_path, capsys,
+                                                                               option, words):
+    before = _listing(train_data)
+    _fails(capsys, ["train", "--data", train_data, "--out", tmp_path / "run" / "model", "--quiet", *option], *words)
+    assert not (tmp_path / "run").exists() and _listing(train_data) == before
+
+
+def test_train_failing_in_its_first_steps_removes_the_folder_it_created(train_data, tmp_path, capsys, monkeypatch):
+    def refuse(*a, **k):
+        raise SphereBenchError("an image cannot be read")
+    monkeypatch.setattr("spherebench.baselines.circlenet.train.CircleDataset", refuse)
+    _fails(capsys, ["train", "--data", train_data, "--out", tmp_path / "run", "--quiet"], "cannot be read")
+    assert not (tmp_path / "run").exists()
+    (tmp_path / "mine").mkdir()  # a folder that was there before is left as it was
+    _fails(capsys, ["train", "--data", train_data, "--out", tmp_path / "mine", "--quiet"], "cannot be read")
+    assert (tmp_path / "mine").is_dir()

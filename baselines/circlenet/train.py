@@ -241,20 +241,59 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
         raise SphereBenchError(f"{out} already holds a training run; pass --resume to continue it "
                                "or choose another --out")
     config = config or TrainConfig()
-    if config.epochs < 1 or config.batch_size < 1:
-        raise SphereBenchError("epochs and batch size must be at least 1")
-    size = config.model.image_size
+    device = check_config(config)  # before the output folder exists: a refused run leaves nothing
     train_recs, val_recs = split_scenes(records, config.val_fraction, seed)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    train_set = CircleDataset(train_recs, size, config.augment, seed, config.max_objects)
-    val_set = CircleDataset(val_recs, size, None, seed, config.max_objects)
-    val_gt = {r.image_id: r.circles for r in val_recs}
+    try:
+        return _train(config, device, seed, out, ckpt_path, train_dir, records, train_recs, val_recs, state,
+                      progress, command)
+    except BaseException:
+        if created and not any(out.iterdir()):  # nothing to resume from: no empty folder left behind
+            out.rmdir()
+        raise
 
-    device = torch.device("cuda" if config.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if config.device == "auto" else config.device))
+
+def check_config(config: TrainConfig) -> torch.device:
+    """The torch device of a run, once every setting has been checked (SphereBenchError otherwise)."""
+    problems = [f"{name} must be at least 1 (got {getattr(config, name)})"
+                for name in ("epochs", "batch_size") if not getattr(config, name) >= 1]
+    if not config.workers >= 0:
+        problems.append(f"workers must be 0 (load in the main process) or more data-loading processes "
+                        f"(got {config.workers})")
+    if config.threads is not None and not config.threads >= 1:
+        problems.append(f"threads must be at least 1 (got {config.threads})")
+    if config.onnx_weights not in ("float32", "float16"):
+        problems.append(f"onnx_weights must be 'float32' or 'float16' (got {config.onnx_weights!r})")
+    if config.mixed_precision not in ("auto", "bf16", "off"):
+        problems.append(f"mixed_precision must be 'auto', 'bf16' or 'off' (got {config.mixed_precision!r})")
+    if problems:
+        raise SphereBenchError("; ".join(problems))
+    if config.device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(config.device)
+    except (RuntimeError, TypeError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise SphereBenchError(f"device {config.device!r} is not one torch trains on here: use auto, cpu, cuda "
+                               "or cuda:N")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SphereBenchError(f"device {config.device}: this machine has no CUDA device for torch {torch.__version__}; "
                                "train on a machine with a GPU (and a CUDA build of torch), or use --device cpu")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise SphereBenchError(f"device {config.device}: this machine has {torch.cuda.device_count()} CUDA device(s), "
+                               f"cuda:0 to cuda:{torch.cuda.device_count() - 1}")
+    return device
+
+
+def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt_path: Path, train_dir, records,
+           train_recs, val_recs, state, progress: bool, command: str | None) -> dict:
+    """The training loop of ``train``, in an output folder that exists."""
+    size = config.model.image_size
+    train_set = CircleDataset(train_recs, size, config.augment, seed, config.max_objects)
+    val_set = CircleDataset(val_recs, size, None, seed, config.max_objects)
+    val_gt = {r.image_id: r.circles for r in val_recs}
     amp = _precision(config, device)
     if config.threads:
         torch.set_num_threads(config.threads)  # OpenMP threads that wait on each other crawl on a busy machine
