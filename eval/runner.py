@@ -38,6 +38,7 @@ alone (no file reading), one thread per worker (numba, OpenMP/BLAS, OpenCV, ONNX
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import datetime as _dt
 import functools
@@ -153,8 +154,26 @@ def file_sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
+def blas_info() -> str | None:
+    """numpy's OpenBLAS and the kernel it chose for this CPU at start-up (its configuration line), or
+    None when numpy does not bundle one. The last bits of numpy's linear algebra follow that kernel,
+    and with them pyransac3d's near-degenerate sphere fits: another CPU can flip one of them."""
+    for lib_path in sorted((Path(np.__file__).resolve().parent.parent / "numpy.libs").glob("*openblas*")):
+        try:
+            lib = ctypes.CDLL(str(lib_path))  # already loaded by numpy: the same library, not a second copy
+        except OSError:
+            continue
+        for name in ("scipy_openblas_get_config64_", "scipy_openblas_get_config", "openblas_get_config64_",
+                     "openblas_get_config"):
+            get = getattr(lib, name, None)
+            if get is not None:
+                get.restype = ctypes.c_char_p
+                return " ".join(get().decode(errors="replace").split())
+    return None
+
+
 def machine_info() -> dict:
-    """CPU model, core count, OS and Python of this machine."""
+    """CPU model, core count, OS, Python and numpy's BLAS kernel (``blas_info``) of this machine."""
     cpu = platform.processor() or ""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -163,7 +182,8 @@ def machine_info() -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "system": platform.platform(), "python": platform.python_version()}
+    return {"cpu": cpu, "cores": os.cpu_count(), "system": platform.platform(), "python": platform.python_version(),
+            "blas": blas_info()}
 
 
 # --------------------------------------------------------------------------- methods

@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 
 from spherebench import cli
+from spherebench.baselines import pyransac3d_peer as peer
 from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, in_front_of_camera
 from spherebench.datasets import io, simulate
 from spherebench.errors import SphereBenchError
-from spherebench.eval import runner
+from spherebench.eval import report, runner
 
 CAM = Intrinsics(width=160, height=120, ppx=79.5, ppy=59.5, fx=140.0, fy=140.0)
 BALL_CENTRE_M = np.array([0.05, -0.03, 1.4])
@@ -215,19 +216,23 @@ def test_evaluate_refuses_a_truncated_coco_gt_of_any_dataset_before_running(big_
         runner.dataset_fingerprint(bad)
 
 
-def test_evaluate_says_a_method_that_refused_every_image_was_not_run(big_ball, tmp_path, capsys):
-    _shipped_model()
-    data = _copy(big_ball, tmp_path / "data")  # 160x120: not the shipped model's aspect ratio
+def test_evaluate_says_a_method_that_refused_every_image_was_not_run(big_ball, tmp_path, capsys, monkeypatch):
+    def refuse(self, image, seed):
+        raise SphereBenchError("the image is 160x120 px, not this method's")
+    monkeypatch.setattr(runner._HoughEngine, "detect", refuse)  # --workers 1: the engines run in this process
+    hough = tmp_path / "hough.json"
+    hough.write_text("{}")
     capsys.readouterr()
-    assert cli.main(["evaluate", "--data", str(data), "--out", str(tmp_path / "out"), "--methods", "improved",
-                     "circlenet", "--workers", "1", "--quiet", "--no-figures"]) == 0
+    assert cli.main(["evaluate", "--data", str(big_ball), "--out", str(tmp_path / "out"), "--methods", "improved",
+                     "hough", "--hough-config", str(hough), "--workers", "1", "--quiet", "--no-figures"]) == 0
     out = capsys.readouterr().out
-    line = next(x for x in out.splitlines() if " circlenet " in x)
+    line = next(x for x in out.splitlines() if " hough " in x)
     assert "refused 1/1: the image is 160x120 px" in line and "detections in" not in line and " ms" not in line
     assert "detections in 1/1" in next(x for x in out.splitlines() if " improved " in x)
     readme = (tmp_path / "out" / "README.md").read_text()
-    assert "circlenet was not run: it refused 1/1 scenes" in readme
-    assert "| circlenet | 1 | not run (the image is 160x120 px" in readme
+    assert "hough was not run: it refused 1/1 scenes" in readme
+    assert "| hough | 1 | not run (the image is 160x120 px" in readme
+    assert "| hough | ds |" not in readme  # no time for a method that did not run
 
 
 # ---------------------------------------------------------------- train
@@ -256,3 +261,31 @@ def test_train_failing_in_its_first_steps_removes_the_folder_it_created(train_da
     (tmp_path / "mine").mkdir()  # a folder that was there before is left as it was
     _fails(capsys, ["train", "--data", train_data, "--out", tmp_path / "mine", "--quiet"], "cannot be read")
     assert (tmp_path / "mine").is_dir()
+
+
+# ---------------------------------------------------------------- reproducible peers
+
+def test_pyransac3d_fits_depend_on_the_scene_seed_only(big_ball, small_default):
+    clouds = [io.load_cloud(s) for s in [big_ball / "scenes" / "f", *io.list_scenes(small_default)[:3]]]
+    seeds = [runner.scene_seed(0, k) for k in range(len(clouds))]
+
+    def fits(order, disturb):
+        out = {}
+        for k in order:
+            random.seed(disturb + k)  # whatever the caller (or the scene before) left in the global generator
+            np.random.seed(disturb + k)
+            state = random.getstate()
+            got = peer.detect(clouds[k], points=600, iterations=80, seed=seeds[k])
+            assert random.getstate() == state  # and the caller's generator is left as it was
+            out[k] = [(d["center_m"].tolist(), d["radius_m"], d["inliers"]) for d in got]
+        return out
+
+    assert fits(range(len(clouds)), 1) == fits(reversed(range(len(clouds))), 99)
+
+
+def test_provenance_names_what_the_peers_arithmetic_depends_on():
+    assert "onnxruntime" in report.PACKAGES and "pyransac3d" in report.PACKAGES
+    info = runner.machine_info()
+    assert "blas" in info
+    if info["blas"] is not None:  # numpy's bundled OpenBLAS: its version and the kernel chosen for this CPU
+        assert info["blas"].startswith("OpenBLAS")
