@@ -128,11 +128,14 @@ def _check_outputs(args: argparse.Namespace) -> None:
     outs = {name: Path(p) for name, p in (("--out-ply", args.out_ply), ("--out-png", args.out_png)) if p}
     if outs and len(args.paths) != 1:
         raise SphereBenchError("--out-ply and --out-png take one input: give one PATH")
+    source = Path(args.paths[0]).resolve()
     for name, out in outs.items():
         if out.is_dir():
             raise SphereBenchError(f"{name} {out} is a folder: give a file name")
-        if out.exists() and out.resolve() == Path(args.paths[0]).resolve():
+        if out.resolve() == source:
             raise SphereBenchError(f"{name} {out} is the input: give another file name")
+        if source.is_dir() and source in out.resolve().parents:  # a scene's own files are not ours to write
+            raise SphereBenchError(f"{name} {out} is inside the input scene folder: write it elsewhere")
     if len(outs) == 2 and outs["--out-ply"].resolve() == outs["--out-png"].resolve():
         raise SphereBenchError("--out-ply and --out-png name the same file: give two names")
 

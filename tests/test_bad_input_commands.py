@@ -125,6 +125,7 @@ def test_detect_refuses_an_image_of_another_size_than_the_intrinsics(big_ball, t
     io.write_png(scene / "image.png", np.zeros((60, 80, 3), np.uint8))
     before = _listing(tmp_path)
     _fails(capsys, ["detect", scene, "--out-png", tmp_path / "x.png"], "image.png is 80x60", "160x120")
+    _fails(capsys, ["detect", scene, "--out-ply", scene / "cloud.ply"], "inside the input scene folder")
     assert _listing(tmp_path) == before
 
 
