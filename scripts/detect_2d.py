@@ -1,16 +1,23 @@
 """`spherebench detect-2d`: run the CircleNet-style 2D detector on reprojected depth images.
 
-    spherebench detect-2d PATH... [--model FILE] [--json] [--min-score S] [--top-k K]
+    spherebench detect-2d PATH... [--model FILE] [--focal-px F] [--json] [--min-score S] [--top-k K]
 
 PATH: an image.png (the depth colourised, as the benchmark gives every 2D method) or a scene
-folder holding one. With --json, one line per input:
+folder holding one, of any size. The image is scaled to the model's training focal length
+(213 px: the D435 at 424x240), run, and the circles mapped back to its own pixels. Its focal
+length comes from --focal-px, else from the intrinsics.json beside the image (a scene folder);
+without either the camera is taken to have the D435's field of view (a note says so when the
+image is not 424x240). With --json, one line per input:
     {"input": PATH, "circles": [{"center": [cx, cy], "radius": r, "score": s}, ...], "ms": T}
-circles in pixels, best first; ms = inference time (padding, ONNX Runtime, decoding), not file reading.
+circles in the input's pixels, best first; ms = inference time (scaling, padding, ONNX Runtime,
+decoding), not file reading.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import sys
 import time
 from pathlib import Path
 
@@ -19,6 +26,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("paths", nargs="+", metavar="PATH", help="image.png files or scene folders")
     parser.add_argument("--model", default=None, metavar="FILE",
                         help="ONNX model (default: the shipped baselines/circlenet/model.onnx)")
+    parser.add_argument("--focal-px", type=float, default=None, metavar="F",
+                        help="the images' focal length in pixels (default: each scene's intrinsics.json; "
+                             "without one, the D435's field of view)")
     parser.add_argument("--json", action="store_true", help="one JSON line per input")
     parser.add_argument("--min-score", type=float, default=0.3, metavar="S",
                         help="drop circles scoring below S (default 0.3, CenterNet's display threshold; "
@@ -42,17 +52,23 @@ def _image_path(path: Path) -> Path:
 
 def run(args) -> int:
     from spherebench.baselines.circlenet.imaging import load_image
-    from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector
+    from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector, scene_focal_px
     from spherebench.errors import SphereBenchError
 
     if args.top_k < 1:
         raise SphereBenchError("--top-k must be at least 1")
+    if args.focal_px is not None and not (math.isfinite(args.focal_px) and args.focal_px > 0):
+        raise SphereBenchError(f"--focal-px must be a positive number of pixels, got {args.focal_px:g}")
     images = [_image_path(Path(p)) for p in args.paths]  # all checked before the model loads
+    focals = [args.focal_px if args.focal_px is not None else scene_focal_px(p.parent) for p in images]
     detector = CircleNetDetector(args.model or DEFAULT_MODEL, threads=args.threads)
-    for given, path in zip(args.paths, images):
-        image = load_image(path, detector.image_size)
+    assumed = []  # images of another size than the model's without a focal length
+    for given, path, focal in zip(args.paths, images, focals):
+        image = load_image(path)
+        if focal is None and image.shape[:2] != detector.image_size:
+            assumed.append(given)
         t0 = time.perf_counter()
-        circles = detector.detect(image, min_score=args.min_score, top_k=args.top_k)
+        circles = detector.detect(image, min_score=args.min_score, top_k=args.top_k, focal_px=focal)
         ms = 1000 * (time.perf_counter() - t0)
         if args.json:
             print(json.dumps({"input": given, "circles": [
@@ -61,4 +77,8 @@ def run(args) -> int:
         else:
             found = ", ".join(f"({cx:.1f}, {cy:.1f}) r {r:.1f} score {s:.2f}" for cx, cy, r, s in circles) or "none"
             print(f"{given}: {len(circles)} circle(s) {found} [{ms:.1f} ms]", flush=True)
+    if assumed:
+        h, w = detector.image_size
+        print(f"note: {len(assumed)} image(s) without intrinsics.json, e.g. {assumed[0]}, were scaled to {w} px wide "
+              "(the training camera's field of view); give --focal-px F for another camera", file=sys.stderr)
     return 0

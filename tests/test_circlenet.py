@@ -464,10 +464,14 @@ def test_bad_images_are_clear_errors(tmp_path, tiny_data, monkeypatch, capsys):
     cv2.imwrite(str(tmp_path / "depth.png"), np.zeros((48, 64), np.uint16))
     (tmp_path / "text.png").write_text("not an image")
     (tmp_path / "empty_scene").mkdir()
-    for name, match in (("big.png", "424x240 px but the model takes 64x48"), ("depth.png", "depth image"),
-                        ("text.png", "not a readable image"), ("missing.png", "not found"),
-                        ("empty_scene", "without image.png")):
+    for name, match in (("depth.png", "depth image"), ("text.png", "not a readable image"),
+                        ("missing.png", "not found"), ("empty_scene", "without image.png")):
         _one_line_error(monkeypatch, capsys, "detect-2d", str(tmp_path / name), "--model", str(model), match=match)
+    for focal in ("0", "nan", "-3"):  # any image size runs (tests/test_circlenet_sizes.py), a focal length must be one
+        _one_line_error(monkeypatch, capsys, "detect-2d", str(tmp_path / "big.png"), "--model", str(model),
+                        "--focal-px", focal, match="--focal-px must be a positive number")
+    _one_line_error(monkeypatch, capsys, "detect-2d", str(tmp_path / "big.png"), "--model", str(model),
+                    "--focal-px", "0.001", match="is the focal length in pixels?")
     det = CircleNetDetector(model)
     with pytest.raises(SphereBenchError, match="uint8"):
         det.detect(np.zeros((48, 64, 3), np.float32))

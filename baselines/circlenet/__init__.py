@@ -8,6 +8,7 @@ pays for torch):
     loss         penalty-reduced focal loss + L1 offset / radius
     data         dataset folder reading, validation split, augmentation, target rendering
     train        train(train_dir, out_dir, config, seed), COCO circle mAP for validation
-    onnx_export  export_onnx(model, path): opset 17, static H/W, config in the metadata
-    infer        CircleNetDetector(model.onnx): ONNX Runtime on the CPU, no torch
+    onnx_export  export_onnx(model, path): opset 17, free batch, height and width, config in the metadata
+    infer        CircleNetDetector(model.onnx): ONNX Runtime on the CPU; any image size, scaled to the
+                 training focal length
 """

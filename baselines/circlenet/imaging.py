@@ -1,8 +1,13 @@
 """The image contract of the CircleNet-style baseline, shared by training and inference (no torch).
 
 - Input: the benchmark's ``image.png`` (the depth colourised), 8-bit, 3 channels, read as RGB.
-  The model takes one size (424x240); the D435's other modes (848x480, 1280x720: the same
-  aspect ratio) are scaled to it by ``fit_image`` in training and inference alike.
+- Camera normalisation: the model was trained on D435 frames at 424x240 (fx = 213 px); the
+  D435's other modes (848x480, 1280x720: the same field of view) are scaled to that size by
+  ``fit_image`` in training. At inference an image of any size and camera is scaled by
+  training focal / its own focal (``focal_scale``, ``scale_image``), so that a ball at a given
+  distance covers as many pixels as in training, and runs at that scaled size: the network is
+  fully convolutional. Without the camera's focal length the image is assumed to have the
+  training camera's field of view (scaled to the model's width).
 - The network takes the image padded at the bottom and right to a multiple of ``SIZE_DIVISOR``
   (424x240 -> 448x256) with ``PAD_VALUE``: padding only there leaves pixel coordinates unchanged.
   Pixel values stay in [0, 255]; the normalisation lives inside the network (``model.py``), so the
@@ -22,6 +27,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import maximum_filter
 
+from spherebench.camera import D435_FOCAL_PER_WIDTH
 from spherebench.errors import SphereBenchError
 
 #: Output stride of the heads, pixels per grid cell.
@@ -32,25 +38,29 @@ SIZE_DIVISOR = 32
 PAD_VALUE = 0
 
 
-#: An image whose aspect ratio is within this fraction of the model's is scaled to fit it (the
-#: D435's 424x240, 848x480 and 1280x720 modes); any other size is refused.
+#: Training: an image whose aspect ratio is within this fraction of the model's is scaled to fit it
+#: (the D435's 424x240, 848x480 and 1280x720 modes); any other size is refused. Inference takes any size.
 ASPECT_TOLERANCE = 0.02
+#: Inference: the largest side (px) of the scaled network input; beyond it the run would need
+#: gigabytes (a focal length in the wrong unit, or a panorama).
+MAX_INPUT_SIDE_PX = 4096
 
 
 def check_size(shape: tuple[int, ...], image_size: tuple[int, int], what: str = "the image") -> None:
-    """Raise SphereBenchError unless an image of shape (h, w, ...) can go to a model taking (H, W) px:
-    the same size, or the same aspect ratio (then ``fit_image`` scales it)."""
+    """Training: raise SphereBenchError unless an image of shape (h, w, ...) can go to a model
+    trained at (H, W) px: the same size, or the same aspect ratio (then ``fit_image`` scales it)."""
     h, w = shape[:2]
     mh, mw = image_size
     if (h, w) != (mh, mw) and abs((w / h) / (mw / mh) - 1) > ASPECT_TOLERANCE:
-        raise SphereBenchError(f"{what} is {w}x{h} px but the model takes {mw}x{mh} px images (or that aspect "
-                               "ratio, scaled); use a model trained on this image size")
+        raise SphereBenchError(f"{what} is {w}x{h} px but the model is trained on {mw}x{mh} px images (or that "
+                               "aspect ratio, scaled); train on images of one camera")
 
 
 def load_image(path, expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """Read a colourised depth image (image.png) as RGB uint8 (h, w, 3).
 
-    expected_size: (H, W) px the model takes; an image of another aspect ratio is an error.
+    expected_size: (H, W) px of a model being trained; an image of another aspect ratio is an error
+    (inference takes any size: leave it None).
     """
     path = Path(path)
     if not path.is_file():
@@ -83,6 +93,51 @@ def fit_image(image: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarra
     hh, ww = min(small.shape[0], image_size[0]), min(small.shape[1], image_size[1])
     out[:hh, :ww] = small[:hh, :ww]
     return out, s
+
+
+def training_focal_px(image_size: tuple[int, int]) -> float:
+    """Focal length (px) of the training images: the D435's at the model's (H, W) size."""
+    return D435_FOCAL_PER_WIDTH * image_size[1]
+
+
+def focal_scale(shape: tuple[int, ...], image_size: tuple[int, int], focal_px: float | None = None,
+                model_focal_px: float | None = None) -> float:
+    """The factor that brings an image of shape (h, w, ...) to the training camera's focal length.
+
+    focal_px: the image's own focal length (px; sqrt(fx * fy) for non-square pixels). None: the
+    camera is taken to have the training camera's field of view, and the image is scaled to the
+    model's width (exact for every D435 mode). model_focal_px: the training images' focal length
+    (default ``training_focal_px(image_size)``).
+    """
+    if focal_px is None:
+        return image_size[1] / shape[1]
+    f = float(focal_px)
+    if not (math.isfinite(f) and f > 0):
+        raise SphereBenchError(f"the focal length must be a positive number of pixels, got {focal_px}")
+    return (model_focal_px or training_focal_px(image_size)) / f
+
+
+def scale_image(image: np.ndarray, scale: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """Scale an image (h, w, 3) by ``scale`` to (round(h s), round(w s)) px, nearest neighbour as
+    ``fit_image``; returns it and the exact per-axis scales (sx, sy) of that whole-pixel size."""
+    h, w = image.shape[:2]
+    hh, ww = max(1, round(h * scale)), max(1, round(w * scale))
+    if (hh, ww) == (h, w):
+        return image, (1.0, 1.0)
+    if max(hh, ww) > MAX_INPUT_SIDE_PX:
+        raise SphereBenchError(f"the {w}x{h} px image scaled by {scale:.3g} to the training focal length would be "
+                               f"{ww}x{hh} px (at most {MAX_INPUT_SIDE_PX}); is the focal length in pixels?")
+    out = cv2.resize(image, (ww, hh), interpolation=cv2.INTER_NEAREST_EXACT)
+    return out, (ww / w, hh / h)
+
+
+def unscale_circles(circles: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Circles (N, 3+) in an image scaled by (sx, sy) (``scale_image``) -> the original image's px."""
+    c = np.array(circles, dtype=np.float64, copy=True)
+    c[:, 0] = (c[:, 0] + 0.5) / sx - 0.5
+    c[:, 1] = (c[:, 1] + 0.5) / sy - 0.5
+    c[:, 2] /= math.sqrt(sx * sy)
+    return c
 
 
 def scale_circles(circles: np.ndarray, scale: float) -> np.ndarray:

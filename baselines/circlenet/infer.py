@@ -2,21 +2,30 @@
 
     detector = CircleNetDetector("baselines/circlenet/model.onnx")
     circles = detector.detect_file("data/bench/scenes/0001/image.png")   # (K, 4): cx, cy, r px, score
+    circles = detector.detect(image, focal_px=fx)                        # any size: px of that image
 
 The input is the benchmark's image.png, read by ``imaging.load_image`` exactly as in training.
+Any image size and camera: the image is scaled to the training focal length (``imaging``'s
+camera normalisation), run at that size (the network is fully convolutional: a model file
+exported with a fixed input size is given free height and width when it is loaded, in memory;
+its weights and its outputs at the training size are unchanged), and the circles are mapped back.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 
-from spherebench.baselines.circlenet.imaging import (check_size, decode_numpy, fit_image, input_size, load_image,
-                                                     pad_image, scale_circles, to_network_input)
+from spherebench.baselines.circlenet.imaging import (decode_numpy, focal_scale, input_size, load_image, pad_image,
+                                                     scale_image, to_network_input, training_focal_px,
+                                                     unscale_circles)
 from spherebench.baselines.circlenet.onnx_export import FORMAT_VERSION, INPUT_NAME, METADATA_KEY, OUTPUT_NAMES
+from spherebench.datasets import io
 from spherebench.errors import SphereBenchError
 
 #: The shipped model (committed by ``make train``).
@@ -40,8 +49,10 @@ class CircleNetDetector:
         if threads:
             opts.intra_op_num_threads = int(threads)
         try:
-            self.session = ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
-        except Exception as exc:  # ONNX Runtime raises its own types for corrupt files
+            proto = free_input_size(onnx.load(str(path)))
+            self.session = ort.InferenceSession(proto.SerializeToString(), sess_options=opts,
+                                                providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnx and ONNX Runtime raise their own types for corrupt files
             first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
             raise SphereBenchError(f"cannot load model {path}: not a valid ONNX file ({first})") from None
         raw = self.session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
@@ -59,16 +70,17 @@ class CircleNetDetector:
         self.image_size: tuple[int, int] = tuple(int(s) for s in cfg["image_size"])  # (H, W) px
         self.input_size = input_size(self.image_size)
         self.top_k = int(cfg.get("top_k", 100))
+        #: focal length (px) of the training images: every image is scaled to it
+        self.focal_px = float(self.metadata.get("focal_px") or training_focal_px(self.image_size))
 
     def check_image(self, image: np.ndarray, exact: bool = False) -> None:
-        """Raise SphereBenchError unless image is (h, w, 3) uint8 of the model's size (exact) or aspect ratio."""
+        """Raise SphereBenchError unless image is (h, w, 3) uint8 (of the model's size, when exact)."""
         if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
             desc = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
             raise SphereBenchError(f"the image is {desc}; the model takes (H, W, 3) uint8 RGB images")
         if exact and image.shape[:2] != self.image_size:
             h, w = self.image_size
             raise SphereBenchError(f"the image is {image.shape[1]}x{image.shape[0]} px; heads() takes {w}x{h} px")
-        check_size(image.shape, self.image_size)
 
     def heads(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Raw heads for RGB images (B, H, W, 3) uint8 of the model's size:
@@ -79,24 +91,60 @@ class CircleNetDetector:
         heat, offset, radius = self.session.run(list(OUTPUT_NAMES), {INPUT_NAME: x})
         return heat, offset, radius
 
-    def detect(self, image: np.ndarray, min_score: float = 0.0, top_k: int | None = None) -> np.ndarray:
-        """Circles in one RGB image (h, w, 3) uint8: (K, 4) (cx, cy, r, score), px of that image, best first.
+    def detect(self, image: np.ndarray, min_score: float = 0.0, top_k: int | None = None,
+               focal_px: float | None = None, scale: float | None = None) -> np.ndarray:
+        """Circles in one RGB image (h, w, 3) uint8 of any size: (K, 4) (cx, cy, r, score), px of that
+        image, best first.
 
-        An image of the model's aspect ratio but another size (848x480, 1280x720) is scaled to
-        the model's size first (``imaging.fit_image``, as in training) and the circles mapped back.
+        focal_px: the image's focal length (px; ``scene_focal_px``): the image is scaled by the
+        model's focal_px / focal_px. None: scaled to the model's width (the training camera's field
+        of view: exact for every D435 mode, 848x480 and 1280x720 alike). scale: a factor of one's
+        own instead (1.0: the image as it is).
         """
         self.check_image(image)
-        fitted, scale = fit_image(image, self.image_size)
-        heat, offset, radius = self.heads(fitted[None])
-        circles = decode_numpy(heat, offset, radius, top_k or self.top_k, min_score,
-                               _valid_size(image.shape, scale, self.image_size))[0]
-        return circles if scale == 1.0 else scale_circles(circles, 1.0 / scale)
+        s = float(scale) if scale is not None else focal_scale(image.shape, self.image_size, focal_px, self.focal_px)
+        if not (math.isfinite(s) and s > 0):
+            raise SphereBenchError(f"the scale must be a positive number, got {scale}")
+        scaled, (sx, sy) = scale_image(image, s)
+        x = to_network_input(pad_image(scaled, input_size(scaled.shape[:2]))[None])
+        heat, offset, radius = self.session.run(list(OUTPUT_NAMES), {INPUT_NAME: x})
+        circles = decode_numpy(heat, offset, radius, top_k or self.top_k, min_score, scaled.shape[:2])[0]
+        return circles if (sx, sy) == (1.0, 1.0) else unscale_circles(circles, sx, sy)
 
-    def detect_file(self, path, min_score: float = 0.0, top_k: int | None = None) -> np.ndarray:
-        """Circles in an image.png file: (K, 4) (cx, cy, r, score), px."""
-        return self.detect(load_image(path, self.image_size), min_score, top_k)
+    def detect_file(self, path, min_score: float = 0.0, top_k: int | None = None,
+                    focal_px: float | None = None) -> np.ndarray:
+        """Circles in an image.png file: (K, 4) (cx, cy, r, score), px. focal_px None: that of the
+        intrinsics.json beside the file, when there is one (a scene folder)."""
+        path = Path(path)
+        if focal_px is None:
+            focal_px = scene_focal_px(path.parent)
+        return self.detect(load_image(path), min_score, top_k, focal_px)
 
 
-def _valid_size(shape, scale: float, image_size: tuple[int, int]) -> tuple[int, int]:
-    """(H, W) px of the part of the model's input that the (scaled) image covers."""
-    return (min(image_size[0], round(shape[0] * scale)), min(image_size[1], round(shape[1] * scale)))
+def scene_focal_px(scene_dir) -> float | None:
+    """sqrt(fx * fy) px of a scene folder's intrinsics.json, or None when it has none."""
+    path = Path(scene_dir) / "intrinsics.json"
+    if not path.is_file():
+        return None
+    intr = io.read_intrinsics(path)
+    return math.sqrt(float(intr.fx) * float(intr.fy))
+
+
+def free_input_size(proto: onnx.ModelProto) -> onnx.ModelProto:
+    """Give an exported CircleNet graph free input height and width (in place; returns it).
+
+    The graph is convolutions, pooling and scale-2 resizes, so nothing in it depends on the size;
+    only the declared shapes of the input, the outputs and the intermediate values (from
+    ``make train`` exports before sizes were free) fix it, and ONNX Runtime enforces them. The
+    weights and every node stay as they are.
+    """
+    graph = proto.graph
+    for value, names in ((graph.input[0], ("height", "width")),
+                         *((o, ("grid_height", "grid_width")) for o in graph.output)):
+        dims = value.type.tensor_type.shape.dim
+        if len(dims) == 4:
+            for d, name in zip(dims[2:], names):
+                d.ClearField("dim_value")
+                d.dim_param = name
+    del graph.value_info[:]
+    return proto

@@ -1,12 +1,13 @@
 """Export a trained CircleNet to ONNX (opset 17) for ONNX Runtime inference.
 
 The graph is ``CircleNet.forward``: image (B, 3, Hp, Wp) float32 RGB in [0, 255] -> heat
-(B, 1, h, w) probabilities, offset (B, 2, h, w), radius (B, 1, h, w). The batch is dynamic;
-height and width are **static**: the benchmark gives every 2D method images of one size (424x240,
-padded to 448x256), a fixed shape lets ONNX Runtime plan its memory once, and an image of
-another size is refused with a message (``infer.py``) instead of being silently rescaled.
-The model's configuration (image size, stride, backbone, ...) and its training facts travel in
-the ONNX metadata under METADATA_KEY, so that the file alone is enough for inference.
+(B, 1, h, w) probabilities, offset (B, 2, h, w), radius (B, 1, h, w). Batch, height and width
+are free (any multiple of 32; h, w = Hp / 4, Wp / 4): the network is fully convolutional, and
+``infer.py`` runs an image of any size at the training focal length, so at a size of its own.
+(Files exported before sizes were free declare 256x448; ``infer.free_input_size`` frees them
+when they are loaded.) The model's configuration (image size, stride, backbone, ...), the
+training images' focal length and its training facts travel in the ONNX metadata under
+METADATA_KEY, so that the file alone is enough for inference.
 
 ``weights="float16"`` stores the weights in half precision (half the file: the full-width
 ResNet-18's 46 MB become 23 MB) and casts them back to float32 inside the graph: the arithmetic
@@ -28,7 +29,7 @@ import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from spherebench.baselines.circlenet.imaging import STRIDE
+from spherebench.baselines.circlenet.imaging import STRIDE, training_focal_px
 from spherebench.baselines.circlenet.model import CircleNet
 from spherebench.errors import SphereBenchError
 
@@ -58,12 +59,14 @@ def export_onnx(model: CircleNet, path, metadata: dict | None = None, weights: s
         warnings.simplefilter("ignore")
         torch.onnx.export(model, (dummy,), buf, opset_version=OPSET, dynamo=False, input_names=[INPUT_NAME],
                           output_names=list(OUTPUT_NAMES), do_constant_folding=True,
-                          dynamic_axes={n: {0: "batch"} for n in (INPUT_NAME, *OUTPUT_NAMES)})
+                          dynamic_axes={INPUT_NAME: {0: "batch", 2: "height", 3: "width"},
+                                        **{n: {0: "batch", 2: "grid_height", 3: "grid_width"} for n in OUTPUT_NAMES}})
     proto = onnx.load_from_string(buf.getvalue())
     if weights == "float16":
         store_weights_float16(proto)
     onnx.checker.check_model(proto)
     meta = {"format_version": FORMAT_VERSION, "stride": STRIDE, "config": model.config.to_dict(),
+            "focal_px": training_focal_px(model.config.image_size),
             **({"weights": weights} if weights != "float32" else {}), **(metadata or {})}
     entry = proto.metadata_props.add()
     entry.key, entry.value = METADATA_KEY, json.dumps(meta)

@@ -1,0 +1,108 @@
+"""How CircleNet should take images of other sizes: the measurement behind ``docs/baselines.md``.
+
+    .venv/bin/python -m spherebench.baselines.circlenet.size_study [--n 24] [--model FILE] [--cameras A,B] [--out FILE]
+
+The same simulated scenes (the hard preset's families and the default preset's clean and
+cluttered ones, seed 0) are rendered by each camera: the D435 at 424x240 (the training size),
+848x480 and 1280x720, and a Kinect-type 640x480 camera with fx = 525 px (a narrower field of
+view than the D435's, the recorded set's camera). Each image is given to the model
+- ``native``: as it is, at its own size (the graph's free input size);
+- ``focal``: scaled to the training focal length (213 px), then run at that size;
+- ``width``: scaled to the model's width (what the detector does without the camera's focal).
+Printed per camera and rule: circle mAP / mAP.50 (COCO protocol) against the scenes' ground
+truth, the best circle's centre and radius error against it (median, px of the model's 424 px
+width) and the time per image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from unittest import mock
+
+import numpy as np
+
+from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector
+from spherebench.baselines.circlenet.train import coco_circle_map
+from spherebench.camera import Intrinsics
+from spherebench.datasets import simulate
+from spherebench.datasets.reproject import colorize_depth
+
+#: The recorded set's camera (``datasets.prepare.POCHANG_INTRINSICS``), with the D435's depth unit.
+KINECT = Intrinsics(width=640, height=480, ppx=316.6, ppy=256.2, fx=524.6, fy=523.5, model="none", depth_scale=0.001)
+CAMERAS = ("424x240", "848x480", "1280x720", "kinect-640x480")
+RULES = ("native", "focal", "width")
+
+
+class _KinectCamera(Intrinsics):
+    """Stands in for ``Intrinsics`` inside ``simulate`` so that its scenes are seen by KINECT."""
+
+    @classmethod
+    def d435(cls, width: int = 424, height: int = 240) -> Intrinsics:
+        return KINECT
+
+
+def render(preset: str, index: int, family: str, camera: str):
+    """(RGB image, intrinsics, ground-truth circles (N, 3) px) of one scene seen by one camera."""
+    if camera.startswith("kinect"):
+        with mock.patch.object(simulate, "Intrinsics", _KinectCamera), \
+                mock.patch.dict(simulate.RESOLUTIONS, {camera: (KINECT.width, KINECT.height)}):
+            scene = simulate.simulate_scene(preset, index, family, 0, camera)
+    else:
+        scene = simulate.simulate_scene(preset, index, family, 0, camera)
+    rgb = colorize_depth(scene.depth_m())[:, :, ::-1].copy()
+    gt = np.asarray([b.circle_px for b in scene.balls if b.circle_px is not None], np.float64).reshape(-1, 3)
+    return rgb, scene.intrinsics, gt
+
+
+def study(n: int = 24, model=DEFAULT_MODEL, cameras=CAMERAS) -> dict:
+    detector = CircleNetDetector(model, threads=1)
+    scenes = [("hard", i, f) for i, f, _ in simulate.plan("hard", n=n)]
+    scenes += [("default", i, f) for i, f, _ in simulate.plan("default", n=max(2, n // 3))]
+    results = {}
+    for camera in cameras:
+        gt, dets = {}, {r: {} for r in RULES}
+        errors, times = {r: [] for r in RULES}, {r: [] for r in RULES}
+        for k, (preset, index, family) in enumerate(scenes):
+            rgb, intr, circles = render(preset, index, family, camera)
+            gt[k] = circles
+            to_model = detector.image_size[1] / intr.width  # errors in px of the model's width
+            for rule in RULES:
+                kw = {"scale": 1.0} if rule == "native" else (
+                    {"focal_px": float(np.sqrt(intr.fx * intr.fy))} if rule == "focal" else {})
+                t0 = time.perf_counter()
+                found = detector.detect(rgb, **kw)
+                times[rule].append(time.perf_counter() - t0)
+                dets[rule][k] = found
+                if len(circles) and len(found):
+                    g, best = circles[0], found[0]
+                    errors[rule].append([np.hypot(*(best[:2] - g[:2])) * to_model, abs(best[2] - g[2]) * to_model])
+        for rule in RULES:
+            m = coco_circle_map(gt, dets[rule])
+            e = np.median(np.asarray(errors[rule]), axis=0) if errors[rule] else [float("nan")] * 2
+            results[f"{camera} {rule}"] = {"mAP": m["mAP"], "mAP50": m["mAP50"], "centre_err_px424": float(e[0]),
+                                           "radius_err_px424": float(e[1]),
+                                           "ms": 1000 * float(np.median(times[rule])), "scenes": len(scenes)}
+    return results
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--n", type=int, default=24, help="scenes of the hard preset (and n/3 of default)")
+    ap.add_argument("--model", default=str(DEFAULT_MODEL))
+    ap.add_argument("--cameras", default=",".join(CAMERAS), help=f"comma-separated, of {', '.join(CAMERAS)}")
+    ap.add_argument("--out", default=None, help="also write the figures as JSON here")
+    args = ap.parse_args()
+    results = study(args.n, args.model, tuple(args.cameras.split(",")))
+    print(f"{'camera rule':28s} {'mAP':>6s} {'mAP50':>6s} {'centre':>7s} {'radius':>7s} {'ms':>6s}")
+    for name, r in results.items():
+        print(f"{name:28s} {r['mAP']:6.3f} {r['mAP50']:6.3f} {r['centre_err_px424']:7.2f} "
+              f"{r['radius_err_px424']:7.2f} {r['ms']:6.1f}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"model": args.model, "results": results}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
