@@ -403,6 +403,38 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
 
 
 @kernel
+def noise_samples(points, img, lag, row_step, col_step, z_min, out):
+    """Second differences of depth along image rows, as a frame's own noise sample.
+
+    For every row_step-th row and col_step-th column where the pixels u - lag, u and u + lag all
+    have depth, out receives |z(u - lag) - 2 z(u) + z(u + lag)| / (sqrt(6) z(u)^2) (1/m): on a smooth
+    surface a lag-apart second difference is noise alone (a plane's curvature over a few pixels is
+    a fraction of a millimetre), with variance 6 sigma_z^2 when the lag exceeds the noise's
+    correlation length (edges and flying pixels give the few large values, which the caller trims:
+    ``improved.frame_noise_a``). Pixels nearer than z_min metres are left
+    out (1 mm depth counts dominate their noise). Returns the number of samples written (at most
+    out.size).
+    """
+    height, width = img.shape
+    m = 0
+    inv = 1.0 / math.sqrt(6.0)
+    for r in range(0, height, row_step):
+        base = r * width
+        for c in range(lag, width - lag, col_step):
+            i0, i1, i2 = img.flat[base + c - lag], img.flat[base + c], img.flat[base + c + lag]
+            if i0 < 0 or i1 < 0 or i2 < 0:
+                continue
+            z = points[i1, 2]
+            if z < z_min:
+                continue
+            if m == out.shape[0]:
+                return m
+            out[m] = abs(points[i0, 2] - 2.0 * z + points[i2, 2]) * inv / (z * z)
+            m += 1
+    return m
+
+
+@kernel
 def box_sums(tab, v, u, h):
     """(depth sum in mm, valid count, area in cells) of the box of half-side h cells about cell (v, u),
     clipped to the grid (area 0 when it is wholly outside)."""

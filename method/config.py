@@ -85,6 +85,15 @@ class DetectorConfig:
             follow it. E.g. a first-generation Kinect quantises disparity to 1/8 pixel, a depth
             step of z^2 / (8 f b) = 0.0029 z^2 (f 580 px, b 7.5 cm): sigma about 0.0029 / sqrt(12)
             = 0.00083 plus noise (Khoshelham and Elberink, Sensors 2012, report about 0.0015).
+        noise_estimate: organised clouds: sigma_z = A z^2 with A measured on the frame itself
+            (``improved.frame_noise_a``: second differences of depth along rows) in place of the
+            stereo model, which describes one nominal unit; the model where too few pixels qualify.
+            ``noise_z2_per_m`` (``--depth-noise``) overrides both.
+        noise_estimate_lag_px: the second differences' lag, pixels at 424 px wide (scaled with the
+            width): beyond the stereo matcher's noise correlation (about 1-2 px).
+        noise_estimate_samples: at most this many pixels sampled, evenly spread.
+        noise_estimate_min_samples: fewer qualifying pixels: the model's A.
+        noise_estimate_min_depth_m: pixels nearer than this are left out (1 mm counts dominate there).
         noise_from_data: organised verification narrows the band to noise_sigmas times the robust
             spread (MAD) of the candidate's own ray residuals where that is below the model's: the
             model is the most noise expected; a quieter sensor keeps the outline's mixed pixels and
@@ -164,6 +173,11 @@ class DetectorConfig:
     noise_subpixel: float = 0.08
     noise_baseline_m: float = 0.050
     noise_z2_per_m: float | None = None
+    noise_estimate: bool = True
+    noise_estimate_lag_px: int = 3
+    noise_estimate_samples: int = 1024
+    noise_estimate_min_samples: int = 128
+    noise_estimate_min_depth_m: float = 0.6
     noise_from_data: bool = True
     noise_sigmas: float = 2.5
     max_eps_fraction: float = 1.0
@@ -227,7 +241,8 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append(f"{name}={getattr(c, name)!r} is not one of {', '.join(allowed)}")
     for name in ("iterations", "min_iterations", "sample_retries", "pretest_points", "score_max_points",
                  "refine_iterations", "min_inliers", "max_spheres", "max_points", "search_width_px",
-                 "verify_candidates", "verify_candidates_if_none", "fit_max_points", "search_candidates"):
+                 "verify_candidates", "verify_candidates_if_none", "fit_max_points", "search_candidates",
+                 "noise_estimate_lag_px", "noise_estimate_samples", "noise_estimate_min_samples"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int):
             out.append(f"{name}={v!r} must be an integer")
@@ -242,6 +257,10 @@ def _problems(c: DetectorConfig) -> list[str]:
                 or c.search_candidates < 1 or c.verify_candidates_if_none < 1):
             out.append("search_width_px must be >= 16, verify_candidates and verify_candidates_if_none >= 1, "
                        "fit_max_points >= 10, pretest_points >= 1, search_candidates >= 1")
+        if not (1 <= c.noise_estimate_lag_px <= 32 and 1 <= c.noise_estimate_min_samples <= c.noise_estimate_samples
+                <= 1_000_000):
+            out.append("noise_estimate_lag_px must be 1-32 and 1 <= noise_estimate_min_samples <= "
+                       "noise_estimate_samples <= 1,000,000")
     for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction", "max_eps_fraction",
                  "bound_visible_fraction", "size_tolerance_fraction"):
         if finite(name) and not 0.0 <= getattr(c, name) <= 1.0:
@@ -255,7 +274,8 @@ def _problems(c: DetectorConfig) -> list[str]:
         if finite(name) and getattr(c, name) <= 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")
     for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas",
-                 "noise_subpixel", "noise_baseline_m", "mm_check_median_m", "verify_score_margin", "rescore_band"):
+                 "noise_subpixel", "noise_baseline_m", "mm_check_median_m", "verify_score_margin", "rescore_band",
+                 "noise_estimate_min_depth_m"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
     if finite("zscore_threshold") and c.zscore_threshold == 0:

@@ -38,6 +38,7 @@ the threshold (``rescore``).
 from __future__ import annotations
 
 import math
+from statistics import NormalDist
 import threading
 from dataclasses import dataclass
 
@@ -76,6 +77,41 @@ def noise_a(config: DetectorConfig, fx: float | None) -> float:
     return config.noise_subpixel / (fx * config.noise_baseline_m)
 
 
+def _trimmed_second_moment(keep: float) -> float:
+    """E[X^2 | |X| < q] for X ~ N(0, 1), q the ``keep`` quantile of |X|: the share of sigma^2 that the
+    mean square of the smallest ``keep`` of a normal sample's absolute values estimates."""
+    q = NormalDist().inv_cdf(0.5 + keep / 2.0)
+    return 1.0 - 2.0 * q * NormalDist().pdf(q) / keep
+
+
+#: The noise estimate keeps the smallest NOISE_KEEP of its samples (edges, flying pixels and curved
+#: surfaces make the largest), then corrects the mean square for that trimming.
+NOISE_KEEP = 0.9
+_NOISE_KEEP_MOMENT = _trimmed_second_moment(NOISE_KEEP)
+
+
+def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorConfig, bin_px: int) -> float | None:
+    """The frame's own depth noise as sigma_z / z^2 (1/m), from second differences of depth along image
+    rows (``_kernels.noise_samples``) on about ``noise_estimate_samples`` evenly spread pixels, by their
+    trimmed mean square (NOISE_KEEP); None when fewer than ``noise_estimate_min_samples`` pixels
+    qualify (a frame too near, or mostly holes).
+
+    The lag, ``noise_estimate_lag_px`` at 424 px wide, scales with the stream's width as the stereo
+    matcher's noise correlation does, so that the second difference sees independent errors."""
+    h, w = index_image.shape
+    lag = max(1, config.noise_estimate_lag_px * bin_px)
+    step = max(1, int(math.sqrt(h * w / config.noise_estimate_samples)))
+    out = workspace("noise", (config.noise_estimate_samples,), np.float64)
+    m = K.noise_samples(points, index_image, lag, step, step, config.noise_estimate_min_depth_m, out)
+    if m < config.noise_estimate_min_samples:
+        return None
+    # a trimmed mean square, not the median: depth quantised in steps near sigma (a structured-light
+    # sensor at range) makes the median of the few values it takes a biased estimate
+    k = max(1, int(NOISE_KEEP * m))
+    kept = np.partition(out[:m], k - 1)[:k]
+    return math.sqrt(float(np.dot(kept, kept)) / k / _NOISE_KEEP_MOMENT)
+
+
 def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
     """The shell half-width at a centre depth (metres): eps widened by the depth noise model."""
     return float(K.noise_eps(depth_m, config.eps_m, noise_a(config, fx), config.noise_sigmas,
@@ -83,38 +119,40 @@ def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
 
 
 def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: int, grid_shape: tuple,
-               z_far_m: float) -> np.ndarray:
-    """The float64 parameter vector (``_kernels.N_PRM``,) of the organised kernels."""
+               z_far_m: float, a: float | None = None) -> np.ndarray:
+    """The float64 parameter vector (``_kernels.N_PRM``,) of the organised kernels; a: the frame's
+    sigma_z / z^2 (1/m), by default the configuration's (``noise_a``)."""
+    a = noise_a(config, float(intr.fx)) if a is None else a
     prm = np.zeros(K.N_PRM, np.float64)
     R = config.radius_m
     prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY] = intr.fx, intr.fy, intr.ppx, intr.ppy
     prm[K.P_R], prm[K.P_EPS] = R, config.eps_m
-    prm[K.P_NOISE_A], prm[K.P_NOISE_K] = noise_a(config, float(intr.fx)), config.noise_sigmas
+    prm[K.P_NOISE_A], prm[K.P_NOISE_K] = a, config.noise_sigmas
     prm[K.P_EPS_CAP] = config.max_eps_fraction * R
     prm[K.P_STRATUM_V], prm[K.P_STRATUM_U], prm[K.P_BIN] = stratum[0], stratum[1], bin_px
     prm[K.P_CELL_PX] = bin_px * cell_rows(bin_px)  # the pixels a cell's table entry sums
     # hypotheses whose ball would be beyond the range limit (with a margin), or larger than the grid
-    prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / range_limit_m(config, float(intr.fx))
+    prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / range_limit_m(config, float(intr.fx), a)
     prm[K.P_RR_MAX] = float(max(grid_shape))
     prm[K.P_SLACK] = config.pretest_slack
     prm[K.P_Z_FAR] = z_far_m
     return prm
 
 
-def range_limit_m(config: DetectorConfig, fx: float | None) -> float:
+def range_limit_m(config: DetectorConfig, fx: float | None, a: float | None = None) -> float:
     """The farthest centre depth the iteration bound provides for (metres): where the per-pixel
     depth noise reaches ``bound_noise_fraction`` R (3.5 m at 424x240, 4.9 m at 848x480, 6 m at
     1280x720 for the D435 model), or ``max_range_m`` when that is nearer."""
-    a = noise_a(config, fx)
+    a = noise_a(config, fx) if a is None else a
     lim = math.sqrt(config.bound_noise_fraction * config.radius_m / a) if a > 0 else math.inf
     return min(lim, config.max_range_m)
 
 
-def far_depth_m(config: DetectorConfig, intr, z_scene_m: float) -> float:
+def far_depth_m(config: DetectorConfig, intr, z_scene_m: float, a: float | None = None) -> float:
     """The farthest centre depth the search provides for (metres): the scene's depth ``z_scene_m``
     (its 98th percentile) plus R (a ball is in front of what is behind it) or ``range_limit_m``,
     whichever is nearer, and at least 2 R."""
-    z_far = range_limit_m(config, float(intr.fx))
+    z_far = range_limit_m(config, float(intr.fx), a)
     if math.isfinite(z_scene_m):
         z_far = min(z_far, z_scene_m + config.radius_m)
     return max(z_far, 2.0 * config.radius_m)
@@ -268,11 +306,17 @@ class Frame:
                                           np.float32(1.0 / HIST_STEP_M))
         self.n_ok, self.n_big = int(n_ok), int(n_big)
         self.n_valid = int(self.tab[-1, -1] >> np.uint64(K.COUNT_SHIFT))  # the table's total count
-        self.z_far_m = far_depth_m(config, intr, hist_percentile(self.hist, 98.0))
+        #: sigma_z / z^2 (1/m) the kernels use: noise_z2_per_m if set, else the frame's own, else the model's
+        self.noise_a_measured = None
+        if config.noise_z2_per_m is None and config.noise_estimate:
+            self.noise_a_measured = frame_noise_a(cloud.points, self.index_image, config, self.bin)
+        model_a = noise_a(config, float(intr.fx))
+        self.noise_a = model_a if self.noise_a_measured is None else self.noise_a_measured
+        self.z_far_m = far_depth_m(config, intr, hist_percentile(self.hist, 98.0), self.noise_a)
         self.stratum = strata(config, intr, self.z_far_m, self.bin, (hc, wc))
         #: first cells the search draws: one per stratum
         self.iterations = -(-hc // self.stratum[0]) * -(-wc // self.stratum[1])
-        self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m)
+        self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m, self.noise_a)
         # verification's size/score gate (``_kernels.verify_organised``) and its output buffers
         # (candidates within rescore_band below min_score get their whole evidence: ``rescore``)
         self.gate = np.array([size_tolerance(config) if config.size_check else math.inf, config.size_sigmas,

@@ -552,7 +552,8 @@ def test_kinect_like_ball_a_few_percent_off_nominal_is_found(seed):
     assert abs(spheres[0].free_radius_m - 0.211) < 0.004
     assert spheres[0].evidence["eps_m"] < eps_at(config, 2.3, cloud.intrinsics.fx)  # narrowed by the data
     # without them the band is the noise model's, wider, and the ball is refused (or kept on that wider band)
-    old = config_for("improved", radius_m=0.203, noise_from_data=False, size_tolerance_fraction=0.0)
+    old = config_for("improved", radius_m=0.203, noise_from_data=False, noise_estimate=False,
+                     size_tolerance_fraction=0.0)
     found_old = detect(cloud, old, seed=0)
     assert found_old == [] or found_old[0].evidence["eps_m"] > 1.2 * spheres[0].evidence["eps_m"]
 
