@@ -45,12 +45,10 @@ import functools
 import hashlib
 import json
 import math
-import multiprocessing
 import os
 import sys
 import platform
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
@@ -58,6 +56,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from spherebench.errors import SphereBenchError
+from spherebench.parallel import process_pool
 
 #: Format version of the predictions' meta files (part of the resume key).
 FORMAT_VERSION = 1
@@ -626,12 +625,11 @@ def _pool(workers: int):
     child_env = {k: v for k, v in SINGLE_THREAD_ENV.items() if k != "NUMBA_NUM_THREADS"}
     saved = {k: os.environ.get(k) for k in child_env}
     os.environ.update(child_env)
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_single_thread)
     try:
-        yield pool
+        # workers ignore Ctrl-C and are terminated when this run stops (spherebench.parallel)
+        with process_pool(workers, initializer=_single_thread, start_method="spawn") as pool:
+            yield pool
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)

@@ -236,3 +236,12 @@ def test_writing_onto_a_folder_is_one_line(small_default, tmp_path, capsys):
     assert cli.main(["detect", str(scene), "--out-ply", str(tmp_path / "out.ply")]) == 2
     _one_line_error(capsys, "out.ply")
     assert [p.name for p in tmp_path.iterdir()] == ["out.ply"]
+
+
+def test_train_never_writes_into_a_folder_of_user_files(small_default, tmp_path, capsys):
+    mine = tmp_path / "models"
+    mine.mkdir()
+    (mine / "model.onnx").write_bytes(b"my own model")
+    assert cli.main(["train", "--data", str(small_default), "--out", str(mine), "--epochs", "1", "--quiet"]) == 2
+    _one_line_error(capsys, "did not write")
+    assert _snapshot(mine) == {"model.onnx": b"my own model"}

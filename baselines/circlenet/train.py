@@ -34,7 +34,11 @@ from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, r
 from spherebench.baselines.circlenet.imaging import scale_circles
 from spherebench.baselines.circlenet.loss import circlenet_loss
 from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode
+from spherebench.datasets import io
 from spherebench.errors import SphereBenchError
+
+#: The owner-marker kind of a training run's folder (``io.claim_output_dir``).
+TRAINING_RUN_KIND = "training run"
 
 
 @dataclass
@@ -244,12 +248,14 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
     device = check_config(config)  # before the output folder exists: a refused run leaves nothing
     train_recs, val_recs = split_scenes(records, config.val_fraction, seed)
     created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    # a new, empty or earlier training folder only: a run never overwrites files it did not write
+    io.claim_output_dir(out, TRAINING_RUN_KIND, legacy="checkpoint.pt")
     try:
         return _train(config, device, seed, out, ckpt_path, train_dir, records, train_recs, val_recs, state,
                       progress, command)
     except BaseException:
-        if created and not any(out.iterdir()):  # nothing to resume from: no empty folder left behind
+        if created and {p.name for p in out.iterdir()} <= {io.OWNER_MARKER}:  # nothing to resume from
+            (out / io.OWNER_MARKER).unlink(missing_ok=True)
             out.rmdir()
         raise
 
