@@ -68,13 +68,19 @@ def _check_cloud(cloud: Cloud) -> None:
         raise SphereBenchError("the point cloud is empty: nothing to detect (check the file or the depth range)")
 
 
-def _check_counts(n: int, n_ok: int, n_big: int, config: DetectorConfig) -> None:
+def _check_counts(points: np.ndarray, n_ok: int, n_big: int, config: DetectorConfig) -> None:
+    n = len(points)
     if n_ok < 3:
         raise SphereBenchError(f"the cloud has {n_ok} finite points (of {n}): at least 3 are needed")
     # the median |z| exceeds the limit iff more than half of the points are beyond it
     if config.mm_check and n_big > n_ok // 2:
-        raise SphereBenchError(f"median |z| exceeds {config.mm_check_median_m:g}: the cloud looks like millimetres; "
-                               "divide the coordinates by 1000 (metres are expected)")
+        z = np.abs(points[:: max(1, n // 4096), 2].astype(np.float64))
+        med = float(np.median(z[np.isfinite(z)]))
+        units = [(name, f) for name, f in (("centimetres", 100.0), ("millimetres", 1000.0))
+                 if 0.1 <= med / f <= 2 * config.mm_check_median_m]  # what a depth camera could see
+        told = " or ".join(f"{name} ({med / f:.3g} m: divide by {f:g})" for name, f in units) or "not metres"
+        raise SphereBenchError(f"median |z| is {med:.4g}, beyond {config.mm_check_median_m:g} m: the cloud looks like "
+                               f"{told}; metres are expected")
 
 
 def prepare(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> tuple[Cloud, np.ndarray, bool]:
@@ -91,7 +97,7 @@ def prepare(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> t
     if n_ok >= 3 and config.mm_check:
         probe = cloud.points[(index if index is not None else np.arange(n))[:: max(1, n_ok // 4096)], 2]
         n_big = int(np.count_nonzero(np.abs(probe) > config.mm_check_median_m)) * n_ok // max(len(probe), 1)
-    _check_counts(n, n_ok, n_big, config)
+    _check_counts(cloud.points, n_ok, n_big, config)
     if n_ok > config.max_points:
         index = np.sort(rng.choice(index if index is not None else n, size=config.max_points, replace=False))
         return Cloud(cloud.points[index]), index, True
@@ -104,7 +110,7 @@ def prepare_frame(cloud: Cloud, config: DetectorConfig) -> Frame:
     """Validate an organised cloud and build what its kernels need (one pass over the points)."""
     _check_cloud(cloud)
     frame = Frame(cloud, config)
-    _check_counts(len(cloud.points), frame.n_ok, frame.n_big, config)
+    _check_counts(cloud.points, frame.n_ok, frame.n_big, config)
     return frame
 
 

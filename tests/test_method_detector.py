@@ -479,6 +479,9 @@ def test_bad_input_errors():
         detect(Cloud(np.array([[0, 0, 1.0], [np.nan, 0, 1], [0, np.inf, 1]])))
     with pytest.raises(SphereBenchError, match="millimetres"):
         detect(Cloud(scene().points * 1000))
+    # a scene at about 1.8 m, in centimetres: named as such (also read as millimetres: 0.18 m)
+    with pytest.raises(SphereBenchError, match=r"centimetres \(1.8 m: divide by 100\) or millimetres"):
+        detect(Cloud(scene().points * 100))
     for kw in ({"radius_m": 0.0}, {"radius_m": -1.0}, {"eps_m": 0.2}, {"iterations": 0}, {"iterations": 2.5},
                {"zscore_variable": "colour"}):
         with pytest.raises(SphereBenchError):
