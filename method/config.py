@@ -94,6 +94,9 @@ class DetectorConfig:
         noise_estimate_samples: at most this many pixels sampled, evenly spread.
         noise_estimate_min_samples: fewer qualifying pixels: the model's A.
         noise_estimate_min_depth_m: pixels nearer than this are left out (1 mm counts dominate there).
+        noise_model_tolerance: the measured A replaces the model's only when the two differ by more
+            than this fraction: the estimate scatters by about +/- 4 % (10th-90th percentile), so a
+            frame within it cannot tell its unit from the nominal one and keeps the model.
         noise_from_data: organised verification narrows the band to noise_sigmas times the robust
             spread (MAD) of the candidate's own ray residuals where that is below the model's: the
             model is the most noise expected; a quieter sensor keeps the outline's mixed pixels and
@@ -178,6 +181,7 @@ class DetectorConfig:
     noise_estimate_samples: int = 1024
     noise_estimate_min_samples: int = 128
     noise_estimate_min_depth_m: float = 0.6
+    noise_model_tolerance: float = 0.10
     noise_from_data: bool = True
     noise_sigmas: float = 2.5
     max_eps_fraction: float = 1.0
@@ -275,7 +279,7 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append(f"{name}={getattr(c, name)} must be > 0")
     for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas",
                  "noise_subpixel", "noise_baseline_m", "mm_check_median_m", "verify_score_margin", "rescore_band",
-                 "noise_estimate_min_depth_m"):
+                 "noise_estimate_min_depth_m", "noise_model_tolerance"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
     if finite("zscore_threshold") and c.zscore_threshold == 0:

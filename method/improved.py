@@ -306,12 +306,16 @@ class Frame:
                                           np.float32(1.0 / HIST_STEP_M))
         self.n_ok, self.n_big = int(n_ok), int(n_big)
         self.n_valid = int(self.tab[-1, -1] >> np.uint64(K.COUNT_SHIFT))  # the table's total count
-        #: sigma_z / z^2 (1/m) the kernels use: noise_z2_per_m if set, else the frame's own, else the model's
+        #: sigma_z / z^2 (1/m) the kernels use: noise_z2_per_m if set, else the frame's own where it
+        #: differs from the model's by more than noise_model_tolerance, else the model's
         self.noise_a_measured = None
         if config.noise_z2_per_m is None and config.noise_estimate:
             self.noise_a_measured = frame_noise_a(cloud.points, self.index_image, config, self.bin)
         model_a = noise_a(config, float(intr.fx))
-        self.noise_a = model_a if self.noise_a_measured is None else self.noise_a_measured
+        self.noise_a = model_a
+        if self.noise_a_measured is not None and not (
+                abs(self.noise_a_measured - model_a) <= config.noise_model_tolerance * model_a):
+            self.noise_a = self.noise_a_measured
         self.z_far_m = far_depth_m(config, intr, hist_percentile(self.hist, 98.0), self.noise_a)
         self.stratum = strata(config, intr, self.z_far_m, self.bin, (hc, wc))
         #: first cells the search draws: one per stratum
