@@ -16,20 +16,39 @@ after their source file or frame):
   unannotated (not a negative). LabelMe stores Qt image coordinates, in which pixel i covers
   [i, i + 1); SphereBench puts pixel centres at integers, so LabelMe points are shifted by -0.5 px.
 
+Colour-derived annotation (``spherebench annotate DATASET --from-colour``): for a recording
+whose colour frame is registered to depth (``colour.jpg`` in the scene folder), ``colour_mask``
+takes the ball's pixels from an HSV range (default: a saturated yellow), keeps the largest
+connected component whose size fits the ball's radius at its median depth, and fills its holes;
+a hand or stick in front is not of the ball's colour and stays out. ``labelme_from_mask`` writes
+its outline as a LabelMe polygon beside the colour frame (``colour.json``), for a person to
+review in LabelMe before ``prepare --labelme`` reads it.
+
+Reference centre (``mask_fit_centre``): a fixed-radius least-squares sphere fit to the depth
+pixels of a ball's mask, with its standard error: a recording's 3D reference, independent of
+any detector's search (``prepare`` stores it as the ball's center_m, center_source "mask-fit").
+
 Drawing: ``draw_ground_truth`` renders circles on the reprojected image; ``ball_point_colors``
-colours a scene's cloud (ball red, rest grey) for MeshLab.
+colours a scene's cloud (ball red, rest grey) for MeshLab; ``contact_sheet`` puts every scene's
+mask over its colour frame and its reprojected depth image, for review by eye.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from collections import Counter
 from pathlib import Path
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
+from spherebench.camera import Intrinsics, deproject, project
+from spherebench.circles import mask_circle, sphere_silhouette_mask
 from spherebench.datasets import io
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError
@@ -38,6 +57,8 @@ from spherebench.errors import SphereBenchError
 BALL_SHAPE_TYPES = ("circle", "polygon")
 #: Offset from LabelMe (Qt: pixel i spans [i, i + 1)) to SphereBench pixel coordinates (centres at i).
 LABELME_OFFSET_PX = -0.5
+#: Image names that every scene folder uses (the reprojected depth, the recorded colour frame).
+SCENE_IMAGE_NAMES = ("image.png", *io.COLOUR_FILES)
 
 
 # --------------------------------------------------------------------------- geometry
@@ -90,15 +111,15 @@ def balls_from_masks(paths: list[Path], shape: tuple[int, int], radius_m: float)
 def _labelme_image_matches(path: Path, doc: dict, scene_id: str, image_names: tuple[str, ...]) -> bool:
     """Does the LabelMe file's imagePath name this scene's image (or its source file)?
 
-    'image.png' is every scene's image, so the scene is then told by the folder in imagePath
-    (../<scene_id>/image.png) or, for a bare name, by where the JSON lies (<scene_id>/image.json)
-    or its name (<scene_id>.json).
+    'image.png' (and 'colour.jpg') is every scene's image, so the scene is then told by the folder
+    in imagePath (../<scene_id>/image.png) or, for a bare name, by where the JSON lies
+    (<scene_id>/image.json, <scene_id>/colour.json) or its name (<scene_id>.json).
     """
     image_path = str(doc.get("imagePath") or "").replace("\\", "/")
     if not image_path:
         return True  # nothing to check against; the size check still applies
     p = Path(image_path)
-    if p.name == "image.png":
+    if p.name in SCENE_IMAGE_NAMES:
         if p.parent.name not in ("", ".", ".."):
             return p.parent.name == scene_id
         return scene_id in (path.parent.name, path.stem)
@@ -159,8 +180,8 @@ _INDEX_SUFFIX = re.compile(r"^(?P<stem>.+)_(?P<k>\d+)$")
 class AnnotationIndex:
     """The annotation files of a mask folder and/or a LabelMe folder, looked up by scene id.
 
-    masks_dir: PNGs named <scene_id>.png or <scene_id>_<k>.png. labelme_dir: <scene_id>.json or
-    <scene_id>/image.json. A scene may have masks or a LabelMe file, not both. What LabelMe files
+    masks_dir: PNGs named <scene_id>.png or <scene_id>_<k>.png. labelme_dir: <scene_id>.json,
+    <scene_id>/image.json or <scene_id>/colour.json (drawn on the colour frame). A scene may have masks or a LabelMe file, not both. What LabelMe files
     left out (shapes that are not balls, files with no ball shape) is summed up by ``notes``.
     """
 
@@ -184,7 +205,8 @@ class AnnotationIndex:
             root = Path(labelme_dir)
             for p in sorted(root.glob("*.json")):
                 self._labelme[p.stem] = p
-            for p in sorted(root.glob("*/image.json")) + sorted(root.glob("scenes/*/image.json")):
+            beside = [p for name in io.LABELME_FILES for p in (*root.glob(f"*/{name}"), *root.glob(f"scenes/*/{name}"))]
+            for p in sorted(beside):
                 if p.parent.name in self._labelme and self._labelme[p.parent.name] != p:
                     raise SphereBenchError(f"{p}: scene {p.parent.name} has two LabelMe files "
                                            f"({self._labelme[p.parent.name]}); keep one")
@@ -256,6 +278,311 @@ class AnnotationIndex:
     def unused(self) -> list[Path]:
         """Annotation files that matched no scene (a typo in a name, or a frame not selected)."""
         return sorted(p for p in [*self._mask_files, *self._labelme.values()] if p not in self._used)
+
+
+# --------------------------------------------------------------------------- colour-derived masks
+
+#: HSV range (OpenCV's scale: H 0-179, S and V 0-255) of a saturated yellow ball under indoor
+#: light: hue 18-40 (the recorded ball's is 27-31), saturation and value from 100 and 80 (its
+#: specular top keeps S ~200, V 255; a hand, a stick, a grey carpet fall below).
+DEFAULT_HSV = ((18, 40), (100, 255), (80, 255))
+#: Grown into the chosen component: pixels of its hue that are a specular highlight (S, V at least
+#: these: the recorded ball's top is S 25-100 at V 250+) or its shaded side (S, V at least these: its
+#: underside is S 220+ at V 70-100, a brown carpet S < 170),
+#: connected to it and inside its enclosing circle enlarged by GROW_CIRCLE. A white wall (S < 20) or a
+#: hand (another hue) is neither.
+HIGHLIGHT_MIN_SV = (20, 230)
+SHADE_MIN_SV = (200, 50)
+GROW_CIRCLE = 1.05
+#: The final mask is opened with a disc of this side (px): spurs thinner than that are cut.
+SPUR_PX = 7
+#: A component is the ball when its enclosing-circle radius is within this factor of the radius
+#: expected at its median depth (below 1: a ball partly out of frame or hidden).
+SIZE_RANGE = (0.4, 1.5)
+#: Components smaller than this (px) are colour noise, never a ball.
+MIN_COMPONENT_PX = 30
+#: Polygon outline: vertices within this distance (px) of the mask's outline (approxPolyDP).
+OUTLINE_TOLERANCE_PX = 0.25
+LABELME_VERSION = "5.4.1"
+
+
+def parse_hsv(text: str) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
+    """'H0:H1,S0:S1,V0:V1' (inclusive; H 0-179, S and V 0-255, OpenCV's scale) -> the three ranges."""
+    parts = [p.split(":") for p in str(text).split(",")]
+    if len(parts) != 3 or any(len(p) != 2 for p in parts):
+        raise SphereBenchError(f"--hsv must be H0:H1,S0:S1,V0:V1 (e.g. 18:40,100:255,80:255), got '{text}'")
+    try:
+        ranges = tuple((int(a), int(b)) for a, b in parts)
+    except ValueError:
+        raise SphereBenchError(f"--hsv must be whole numbers H0:H1,S0:S1,V0:V1, got '{text}'") from None
+    for (lo, hi), name, top in zip(ranges, "HSV", (179, 255, 255)):
+        if not 0 <= lo <= top or not 0 <= hi <= top:
+            raise SphereBenchError(f"--hsv {name} range {lo}:{hi} is outside 0:{top} (OpenCV's HSV scale)")
+        if lo > hi:
+            raise SphereBenchError(f"--hsv {name} range {lo}:{hi} is inverted (empty); give the low end first")
+    return ranges
+
+
+def expected_radius_px(intr: Intrinsics, radius_m: float, surface_depth_m: float) -> float:
+    """Image radius (px) of a ball whose visible surface has this median depth (m): its centre is
+    about 2R/3 behind that (the mean depth of a hemisphere seen from afar)."""
+    z = surface_depth_m + 2.0 * radius_m / 3.0
+    f = math.sqrt(float(intr.fx) * float(intr.fy))
+    return f * radius_m / math.sqrt(max(z * z - radius_m * radius_m, 1e-12))
+
+
+def colour_mask(colour_bgr: np.ndarray, depth_m: np.ndarray, intr: Intrinsics, radius_m: float,
+                hsv=DEFAULT_HSV) -> np.ndarray | None:
+    """The ball's pixels (H, W) bool in a colour frame registered to depth, or None if none fits.
+
+    Pixels in the HSV range, opened (speckle) and closed (JPEG gaps); of the connected components
+    whose enclosing circle is SIZE_RANGE times the radius expected at the component's median
+    valid depth (m; ``depth_m`` NaN where invalid), the largest; grown by its highlight and shaded
+    side (HIGHLIGHT_MIN_SV, SHADE_MIN_SV: the hue range, other S and V) and by the bright pixels in
+    its convex hull (a highlight washed out to white); spurs cut (SPUR_PX); its holes filled.
+    """
+    hsv_image = cv2.cvtColor(colour_bgr, cv2.COLOR_BGR2HSV)
+    raw = cv2.inRange(hsv_image, tuple(int(r[0]) for r in hsv), tuple(int(r[1]) for r in hsv))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
+    m = cv2.morphologyEx(cv2.morphologyEx(raw, cv2.MORPH_OPEN, kernel), cv2.MORPH_CLOSE,
+                         cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))  # gaps up to ~4 px
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    best, best_area = None, 0
+    for k in range(1, n):
+        area = int(stats[k, cv2.CC_STAT_AREA])
+        if area < MIN_COMPONENT_PX or area <= best_area:
+            continue
+        comp = labels == k
+        z = depth_m[comp]
+        z = z[np.isfinite(z) & (z > 0)]
+        if z.size < MIN_COMPONENT_PX:
+            continue  # no depth under it: its size cannot be checked
+        ratio = mask_circle(comp)[2] / expected_radius_px(intr, radius_m, float(np.median(z)))
+        if SIZE_RANGE[0] <= ratio <= SIZE_RANGE[1]:
+            best, best_area = comp, area
+    if best is None:
+        return None
+    grown = _grow(best, hsv_image, hsv[0])
+    # a highlight washed out to white at the rim leaves a notch that colour cannot tell from a
+    # white wall; inside the mask's convex hull (within the ball) bright pixels are the ball's
+    hull = np.zeros(grown.shape, np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.argwhere(grown)[:, ::-1].astype(np.int32)), 1)
+    grown |= hull.astype(bool) & (hsv_image[..., 2] >= HIGHLIGHT_MIN_SV[1])
+    # the smallest enclosing circle follows any spur: cut those a pixel or two wide (carpet, a seam)
+    smooth = cv2.morphologyEx(grown.astype(np.uint8), cv2.MORPH_OPEN,
+                              cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (SPUR_PX, SPUR_PX)))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(smooth, connectivity=8)
+    if n < 2:
+        return None
+    main = labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    contours, _ = cv2.findContours(main.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    filled = np.zeros(main.shape, np.uint8)
+    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    return filled.astype(bool)
+
+
+def _grow(core: np.ndarray, hsv_image: np.ndarray, hue: tuple[int, int]) -> np.ndarray:
+    """The core with the pixels of its hue that are its highlight or shade, connected to it, in its circle."""
+    h, s, v = (hsv_image[..., k].astype(np.int32) for k in range(3))
+    loose = (h >= hue[0]) & (h <= hue[1]) & (((s >= HIGHLIGHT_MIN_SV[0]) & (v >= HIGHLIGHT_MIN_SV[1]))
+                                             | ((s >= SHADE_MIN_SV[0]) & (v >= SHADE_MIN_SV[1])))
+    cx, cy, r = mask_circle(core)
+    loose &= disc_mask((cx, cy, GROW_CIRCLE * r), core.shape)
+    n, labels = cv2.connectedComponents((loose | core).astype(np.uint8), connectivity=8)
+    keep = np.unique(labels[core])
+    return np.isin(labels, keep[keep > 0])
+
+
+def mask_outline(mask: np.ndarray) -> list[np.ndarray]:
+    """Polygons (N, 2) (u, v) px of a mask's outer outlines, 0.25 px outside its edge pixels'
+    centres, so that ``polygon_mask`` gives the mask back (the mask's holes are not kept)."""
+    # on the mask doubled, the outline runs through the outer quarter of each edge pixel
+    big = cv2.resize(np.asarray(mask, np.uint8), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
+    contours, _ = cv2.findContours(big, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    out = []
+    for c in contours:
+        poly = cv2.approxPolyDP(c, 2 * OUTLINE_TOLERANCE_PX, closed=True).reshape(-1, 2).astype(np.float64)
+        if len(poly) >= 3:
+            out.append((poly + 0.5) / 2.0 - 0.5)
+    return out
+
+
+def labelme_from_mask(mask: np.ndarray | None, image_name: str, label: str = "ball",
+                      description: str = "") -> dict:
+    """A LabelMe document (one polygon per outline of the mask; none for None) for an image."""
+    h, w = mask.shape if mask is not None else (0, 0)
+    shapes = [{"label": label, "points": [[round(float(x) - LABELME_OFFSET_PX, 2), round(float(y) - LABELME_OFFSET_PX, 2)]
+                                          for x, y in poly],
+               "group_id": None, "description": description, "shape_type": "polygon", "flags": {}}
+              for poly in (mask_outline(mask) if mask is not None else [])]
+    return {"version": LABELME_VERSION, "flags": {}, "shapes": shapes, "imagePath": image_name,
+            "imageData": None, "imageHeight": int(h), "imageWidth": int(w)}
+
+
+def labelme_text(doc: dict) -> str:
+    """A LabelMe document as JSON text, one [x, y] point per line (LabelMe reads any layout)."""
+    text = json.dumps(doc, indent=1)
+    return re.sub(r"\[\s+(-?[\d.]+),\s+(-?[\d.]+)\s+\]", r"[\1, \2]", text) + "\n"
+
+
+# --------------------------------------------------------------------------- reference centre
+
+#: Mask pixels within this many px of the mask's edge are left out of the fit: the colour-to-depth
+#: registration and mixed depth at the ball's rim put background depths there.
+FIT_ERODE_PX = 2
+#: Depths farther than this many radii from the mask's median depth are not the ball's surface.
+FIT_DEPTH_WINDOW_R = 1.5
+#: Points whose residual exceeds this many robust sigmas are left out of the final fit.
+FIT_INLIER_SIGMAS = 3.0
+#: Fewer points than this give no reference centre.
+FIT_MIN_POINTS = 30
+
+
+#: Block jackknife of the mask fit: blocks of about this fraction of the mask's diameter.
+FIT_BLOCK_FRACTION = 0.25
+
+
+@dataclass(frozen=True)
+class SphereFit:
+    """A fixed-radius sphere fit: center_m (3,) m; center_se_m (3,) m standard errors: the block
+    jackknife's when the points came in spatial blocks (it holds for depth noise correlated within
+    a block and for local misfit), else the Gauss-Newton covariance's (independent point errors
+    only: far smaller on real depth); rms_m the inliers' RMS residual; points used, points given."""
+
+    center_m: tuple[float, float, float]
+    center_se_m: tuple[float, float, float]
+    rms_m: float
+    inliers: int
+    points: int
+
+
+def fit_sphere_fixed_radius(points_m: np.ndarray, radius_m: float, blocks: np.ndarray | None = None) -> SphereFit | None:
+    """Least-squares centre of a sphere of known radius through surface points (N, 3) m seen from
+    the origin (a camera): residuals |p - c| - R, started R behind the points' median along its
+    ray; a robust (soft L1) fit, then a plain one on the inliers. Standard errors: with blocks
+    (N,) int (spatial blocks of the points, at least 4), the delete-one-block jackknife of the
+    inlier fit; else its Gauss-Newton covariance. None for fewer than FIT_MIN_POINTS points."""
+    pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    finite = np.isfinite(pts).all(axis=1)
+    pts = pts[finite]
+    blocks = None if blocks is None else np.asarray(blocks).reshape(-1)[finite]
+    if len(pts) < FIT_MIN_POINTS:
+        return None
+    med = np.median(pts, axis=0)
+    start = med + radius_m * med / max(np.linalg.norm(med), 1e-9)
+
+    def residuals(c, p):
+        return np.linalg.norm(p - c, axis=1) - radius_m
+
+    def jacobian(c, p):
+        d = c - p
+        return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+    scale = max(1.4826 * float(np.median(np.abs(residuals(start, pts)))), 1e-4)
+    robust = least_squares(residuals, start, jac=jacobian, args=(pts,), loss="soft_l1", f_scale=scale)
+    r = residuals(robust.x, pts)
+    sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-6)
+    keep = np.abs(r) <= FIT_INLIER_SIGMAS * sigma
+    if keep.sum() < FIT_MIN_POINTS:
+        return None
+    fit = least_squares(residuals, robust.x, jac=jacobian, args=(pts[keep],))
+    r = fit.fun
+    labels = np.unique(blocks[keep]) if blocks is not None else ()
+    if len(labels) >= 4:
+        ids = blocks[keep]
+        loo = np.array([least_squares(residuals, fit.x, jac=jacobian, args=(pts[keep][ids != b],)).x
+                        for b in labels])
+        k = len(labels)
+        se = np.sqrt((k - 1) / k * ((loo - loo.mean(axis=0)) ** 2).sum(axis=0))
+    else:
+        j = jacobian(fit.x, pts[keep])
+        se = np.sqrt(np.diag(float(r @ r) / max(len(r) - 3, 1) * np.linalg.pinv(j.T @ j)))
+    return SphereFit(tuple(float(x) for x in fit.x), tuple(float(x) for x in se),
+                     float(np.sqrt(np.mean(r * r))), int(keep.sum()), len(pts))
+
+
+def mask_fit_centre(depth_m: np.ndarray, intr: Intrinsics, mask: np.ndarray, radius_m: float) -> SphereFit | None:
+    """The reference centre of a ball from its mask's depth pixels (``fit_sphere_fixed_radius``).
+
+    depth_m: (H, W) metres, NaN where invalid. The mask is eroded by FIT_ERODE_PX and depths
+    beyond FIT_DEPTH_WINDOW_R radii of its median dropped first; the standard error is the block
+    jackknife's over square blocks of FIT_BLOCK_FRACTION of the mask's diameter (about 12-16
+    blocks). None when too few points remain.
+    """
+    k = 2 * FIT_ERODE_PX + 1
+    core = cv2.erode(np.asarray(mask, np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
+    if core.sum() < FIT_MIN_POINTS:  # a sliver of a ball: its own pixels, edge and all
+        core = np.asarray(mask, bool)
+    v, u = np.nonzero(core & np.isfinite(depth_m) & (depth_m > 0))
+    if len(u) < FIT_MIN_POINTS:
+        return None
+    z = depth_m[v, u].astype(np.float64)
+    near = np.abs(z - np.median(z)) <= FIT_DEPTH_WINDOW_R * radius_m
+    u, v, z = u[near], v[near], z[near]
+    side = max(4, round(FIT_BLOCK_FRACTION * 2.0 * math.sqrt(core.sum() / math.pi)))
+    blocks = (v // side) * (intr.width // side + 1) + u // side
+    return fit_sphere_fixed_radius(deproject(intr, u, v, z), radius_m, blocks)
+
+
+# --------------------------------------------------------------------------- review sheets
+
+def _outline_on(image_bgr: np.ndarray, mask: np.ndarray | None, tint: bool, colour=(255, 0, 255)) -> np.ndarray:
+    out = image_bgr.copy()
+    if mask is not None and tint:
+        tinted = out.copy()
+        tinted[mask] = colour
+        out = cv2.addWeighted(out, 0.65, tinted, 0.35, 0)
+    if mask is not None:
+        contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(out, contours, -1, colour, 1, cv2.LINE_AA)
+    return out
+
+
+def review_tile(colour_bgr: np.ndarray, depth_image_bgr: np.ndarray, mask: np.ndarray | None, title: str,
+                intr: Intrinsics | None = None, centre_m=None, radius_m: float | None = None,
+                crop_px: int = 0, scale: float = 1.0) -> np.ndarray:
+    """One scene for review: its colour frame and its reprojected depth image side by side, each
+    with the mask tinted and outlined (magenta) and its smallest enclosing circle (green); the
+    reference centre (when given) as a yellow cross with its sphere's projected outline (yellow).
+    crop_px > 0: a square of that side round the mask instead of the whole frame (a close-up,
+    the mask outlined only, so that the ball's own edge shows). scale: the panels' size factor
+    (the title stays legible)."""
+    panels = []
+    for base in (colour_bgr, depth_image_bgr):
+        im = _outline_on(base, mask, tint=not crop_px)
+        if mask is not None and mask.any():
+            cx, cy, r = mask_circle(mask)
+            cv2.circle(im, (round(cx * 16), round(cy * 16)), round(r * 16), (0, 255, 0), 1, cv2.LINE_AA, 4)
+        if centre_m is not None and intr is not None and radius_m is not None:
+            u, v = project(intr, np.asarray([centre_m]))[0]
+            silhouette = np.zeros(im.shape[:2], np.uint8)
+            silhouette[sphere_silhouette_mask(intr, centre_m, radius_m)] = 1
+            contours, _ = cv2.findContours(silhouette, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            cv2.drawContours(im, contours, -1, (0, 255, 255), 1, cv2.LINE_AA)
+            if np.isfinite(u) and np.isfinite(v):
+                cv2.drawMarker(im, (round(u), round(v)), (0, 255, 255), cv2.MARKER_CROSS, 10, 1)
+        if crop_px and mask is not None and mask.any():
+            cx, cy, _ = mask_circle(mask)
+            half = crop_px // 2
+            pad = cv2.copyMakeBorder(im, half, half, half, half, cv2.BORDER_CONSTANT, value=(40, 40, 40))
+            im = pad[round(cy):round(cy) + 2 * half, round(cx):round(cx) + 2 * half]
+        panels.append(im if scale == 1.0 else cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
+    tile = np.hstack(panels)
+    bar = np.full((18, tile.shape[1], 3), 255, np.uint8)
+    cv2.putText(bar, title, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([bar, tile])
+
+
+def contact_sheet(tiles: list[np.ndarray], columns: int = 3) -> np.ndarray:
+    """Tiles of one size in a grid, row by row (blank tiles pad the last row)."""
+    h, w = tiles[0].shape[:2]
+    rows = []
+    for i in range(0, len(tiles), columns):
+        row = list(tiles[i:i + columns])
+        row += [np.full((h, w, 3), 255, np.uint8)] * (columns - len(row))
+        rows.append(np.hstack([cv2.copyMakeBorder(t, 2, 2, 2, 2, cv2.BORDER_CONSTANT, value=(255, 255, 255))
+                               for t in row]))
+    return np.vstack(rows)
 
 
 # --------------------------------------------------------------------------- drawing

@@ -114,7 +114,11 @@ def is_dataset_dir(path: Path) -> bool:
 
 
 _DATASET_FILES = {"dataset.json", "coco_gt.json", "scenes", OWNER_MARKER}
-_SCENE_FILES = {"depth.png", "intrinsics.json", "cloud.ply", "image.png", "gt.json", "image.json"}
+#: colour.jpg / colour.png: a recording's colour frame registered to depth (kept as recorded);
+#: image.json / colour.json: LabelMe annotations saved beside image.png / the colour frame
+COLOUR_FILES = ("colour.jpg", "colour.png")
+LABELME_FILES = ("image.json", "colour.json")
+_SCENE_FILES = {"depth.png", "intrinsics.json", "cloud.ply", "image.png", "gt.json", *COLOUR_FILES, *LABELME_FILES}
 
 
 def replaceable_dataset(path: Path, labelme_carried: bool = False) -> bool:
@@ -136,7 +140,7 @@ def replaceable_dataset(path: Path, labelme_carried: bool = False) -> bool:
             if not ours:
                 raise SphereBenchError(f"{entry} was not written by SphereBench: move it out of {path} before "
                                        "replacing the dataset, or write elsewhere")
-            if name == "image.json" and not labelme_carried:
+            if name in LABELME_FILES and not labelme_carried:
                 raise SphereBenchError(f"{entry} holds LabelMe annotations that replacing {path} would lose: "
                                        f"pass --labelme {path} to carry them over, or write elsewhere")
     return True
@@ -435,11 +439,19 @@ def _circle(c) -> list[float] | None:
     return None if c is None else [float(x) for x in c]
 
 
-def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, write_cloud: bool = True) -> Path:
+def colour_file_name(source: str | Path) -> str:
+    """The name a scene keeps a colour frame under: colour.png for a PNG, else colour.jpg."""
+    return COLOUR_FILES[1] if Path(source).suffix.lower() == ".png" else COLOUR_FILES[0]
+
+
+def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, write_cloud: bool = True,
+                colour: Path | None = None) -> Path:
     """Write one scene folder atomically under ``scenes_dir``; returns its path.
 
     write_cloud=False leaves cloud.ply out (it is depth.png deprojected; the training split of
-    learned 2D baselines has no use for it and it is most of a scene's size)."""
+    learned 2D baselines has no use for it and it is most of a scene's size).
+    colour: a JPEG or PNG colour frame registered to the depth, copied byte for byte as colour.jpg
+    or colour.png (the caller checks its size)."""
     final = Path(scenes_dir) / scene.scene_id
     with atomic_directory(final, never_replace) as tmp:
         balls = []
@@ -453,6 +465,9 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
                 "mask": None,
                 "silhouette": None,
             }
+            if ball.center_source is not None:  # a recorded ball's centre: how it was obtained, its error
+                entry["center_source"] = ball.center_source
+                entry["center_se_m"] = None if ball.center_se_m is None else [float(x) for x in ball.center_se_m]
             if ball.mask is not None:
                 entry["mask"] = f"mask_{k}.png"
                 write_mask_png(tmp / entry["mask"], ball.mask)
@@ -470,6 +485,8 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
             write_intrinsics(tmp / "intrinsics.json", scene.intrinsics)
         if write_cloud or scene.depth is None:
             write_cloud_ply(tmp / "cloud.ply", scene.to_cloud())
+        if colour is not None:
+            shutil.copyfile(colour, tmp / colour_file_name(colour))
         write_json(tmp / "gt.json", gt)
     return final
 
@@ -495,7 +512,8 @@ def read_scene(scene_dir: str | Path, load_masks: bool = True) -> Scene:
                           center_m=None if b.get("center_m") is None else tuple(b["center_m"]),
                           circle_px=None if b.get("circle") is None else tuple(b["circle"]),
                           amodal_circle_px=None if b.get("amodal_circle") is None else tuple(b["amodal_circle"]),
-                          visible_fraction=b.get("visible_fraction")))
+                          visible_fraction=b.get("visible_fraction"), center_source=b.get("center_source"),
+                          center_se_m=None if b.get("center_se_m") is None else tuple(b["center_se_m"])))
     return Scene(scene_id=gt["scene_id"], family=gt["family"], intrinsics=intr, depth=depth, balls=balls,
                  seed=gt.get("seed"), annotated=gt.get("annotated", True), cloud=cloud, meta=gt.get("meta", {}))
 

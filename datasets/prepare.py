@@ -40,13 +40,14 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from spherebench import __version__
 from spherebench.camera import Intrinsics, project
-from spherebench.cloud import Cloud
+from spherebench.cloud import Cloud, depth_to_metres
 from spherebench.datasets import io
-from spherebench.datasets.annotate import AnnotationIndex
+from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
 from spherebench.datasets.scene import Scene
 from spherebench.errors import SphereBenchError
 
@@ -179,7 +180,9 @@ class Frame:
     may have drawn on (LabelMe's imagePath is checked against them). unit_sample_m: the valid
     depths (m) as read, before storage, for the unit check (default: from depth).
     unit_alternatives: (depths m, option) of other readings of the same bytes, which the unit
-    check suggests when they are plausible; garbage_hint: what to check when no unit fits."""
+    check suggests when they are plausible; garbage_hint: what to check when no unit fits.
+    colour: the recording's colour frame (JPEG or PNG) registered to depth, same size; the scene
+    keeps it as colour.jpg / colour.png, for annotation from colour (``spherebench annotate``)."""
 
     scene_id: str
     source: str
@@ -191,6 +194,7 @@ class Frame:
     unit_sample_m: np.ndarray | None = None
     unit_alternatives: tuple[tuple[np.ndarray, str], ...] = ()
     garbage_hint: str | None = None
+    colour: Path | None = None
 
 
 @dataclass
@@ -662,8 +666,10 @@ def _pochang_reference(root: Path) -> tuple[dict[int, list[float]], dict[int, fl
 def plan_kinect_pochang(root: Path, selection: FrameSelection) -> Plan:
     """Camera 1 of the Kinect-type RGB-D set: raw uint16 LE 640x480 depth in mm, 0.203 m ball.
 
-    No annotation: scenes are unannotated; the authors' tracking centre of the frame, when they
-    detected the ball, is kept in meta as reference_center_m (their fit, not ground truth).
+    Each scene keeps the frame's colour JPEG (kinect_1_rgb_NN.jpg, registered to depth) as
+    colour.jpg. Without annotation scenes are unannotated; the authors' tracking centre of the
+    frame, when they detected the ball, is kept in meta as reference_center_m (their fit, not
+    ground truth). The repository's reviewed colour-derived masks: datasets/annotations/kinect-pochang.
     """
     folder = root / "sensors" / "Kinect_1"
     files = sorted(folder.glob("kinect_1_dep_*.dat"), key=natural_key) if folder.is_dir() else []
@@ -684,13 +690,16 @@ def plan_kinect_pochang(root: Path, selection: FrameSelection) -> Plan:
                     frame.meta["reference_fit_radius_m"] = radii[idx]
                 frame.meta["reference_note"] = note
             frame.meta["source"] = f"sensors/Kinect_1/{frame.source}"
+            colour = folder / frame.source.replace("_dep_", "_rgb_").rsplit(".", 1)[0]
+            frame.colour = colour.with_name(colour.name + ".jpg")
             yield frame
     source = {"kind": "kinect-pochang", "repository": "PoChang007/RGBD_CameraNetwork_Calibration",
               "commit": "28693df8a03b89f89d632cd85a131b565a707177", "licence": "MIT",
               "camera": "Kinect_1 (Kinect-type structured light, depth registered to colour)",
               "files": plan.source["files"], "radius_source": "authors' stated 203 mm"}
-    notes = ["kinect-pochang: no annotation exists, so every scene is unannotated (kept, not scored); "
-             "reference_center_m in gt.json meta is the authors' own fit, not ground truth"]
+    notes = ["kinect-pochang: without --labelme (the reviewed colour-derived masks: datasets/annotations/"
+             "kinect-pochang) every scene is unannotated (kept, not scored); reference_center_m in gt.json meta is "
+             "the authors' own fit, not ground truth"]
     return Plan(frames(), plan.total, source, notes)
 
 
@@ -751,6 +760,16 @@ def note_to_stderr(text: str) -> None:
     print(text, file=sys.stderr)
 
 
+def _check_colour(path: Path, shape: tuple[int, int]) -> None:
+    """A colour frame must be a readable image of the depth's size (it is registered to it)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SphereBenchError(f"{path}: the colour image is not a readable JPEG or PNG")
+    if image.shape[:2] != tuple(shape):
+        raise SphereBenchError(f"{path}: the colour image is {image.shape[1]}x{image.shape[0]} but the depth is "
+                               f"{shape[1]}x{shape[0]}: give colour registered to the depth (the same pixel grid)")
+
+
 def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: str = "recorded",
             log=note_to_stderr) -> PrepareReport:
     """Write the plan's frames as a dataset at out_dir, atomically (nothing is left on error).
@@ -763,6 +782,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
     counts = {"annotated": 0, "balls": 0, "image_less": 0}
     valid_points, empty = [], []
     non_finite: dict[str, int] = {}  # source -> points with NaN/inf coordinates dropped
+    no_colour, fits, unfit = [], [], []  # frames without their colour image; mask-fit SEs (m); balls without
     # annotations read from out_dir itself (the LabelMe round trip) are carried into the new dataset
     carried = options.labelme_dir is not None and Path(options.labelme_dir).resolve() == out_dir.resolve()
     with io.atomic_directory(out_dir, lambda d: io.replaceable_dataset(d, labelme_carried=carried)) as tmp:
@@ -771,7 +791,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "
                                        "give inputs whose file names differ")
             seen.add(frame.scene_id)
-            balls = None
+            balls = colour = None
             if frame.depth is not None:
                 valid = frame.depth > 0
                 n_valid = int(np.count_nonzero(valid))
@@ -781,8 +801,24 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                         sample = frame.depth[valid].astype(np.float64) * frame.intrinsics.depth_scale
                     check_units(sample, frame.source, _input_scale(frame, options), "depth",
                                 frame.unit_alternatives, frame.garbage_hint)
-                balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m,
-                                              frame.image_names)
+                colour = frame.colour
+                if colour is not None and not colour.is_file():
+                    no_colour.append(str(colour))
+                    colour = None
+                elif colour is not None:
+                    _check_colour(colour, frame.depth.shape)
+                names = frame.image_names + ((colour.name,) if colour is not None else ())
+                balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m, names)
+                for ball in balls or ():
+                    fit = (mask_fit_centre(depth_to_metres(frame.depth, frame.intrinsics), frame.intrinsics,
+                                           ball.mask, options.ball_radius_m) if ball.mask is not None else None)
+                    if fit is None:
+                        unfit.append(frame.scene_id)
+                        continue
+                    ball.center_m, ball.center_se_m, ball.center_source = fit.center_m, fit.center_se_m, "mask-fit"
+                    frame.meta.setdefault("mask_fit", []).append({"rms_m": round(fit.rms_m, 6), "inliers": fit.inliers,
+                                                                  "points": fit.points})
+                    fits.append(float(np.linalg.norm(fit.center_se_m)))
             else:
                 n_valid = len(frame.cloud)
                 counts["image_less"] += 1
@@ -798,14 +834,18 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
             scene = Scene(scene_id=frame.scene_id, family="recorded", intrinsics=frame.intrinsics, depth=frame.depth,
                           balls=balls or [], seed=None, annotated=balls is not None, cloud=frame.cloud,
                           meta=frame.meta)
-            scene_dir = io.write_scene(tmp / "scenes", scene, options.ball_radius_m)
+            scene_dir = io.write_scene(tmp / "scenes", scene, options.ball_radius_m, colour=colour)
             # a LabelMe file is kept even when it held no ball shape: it is the user's work
             labelme = annotations.labelme_file(frame.scene_id) if frame.depth is not None else None
             if labelme is not None:
-                # keep the annotation beside the image, where LabelMe looks when image.png is reopened
+                # keep the annotation beside the image it was drawn on (image.png or the colour frame),
+                # where LabelMe looks when that image is reopened
                 doc = io.read_labelme(labelme)
-                doc["imagePath"] = "image.png"
-                io.write_json(scene_dir / "image.json", doc, indent=2)
+                drawn = Path(str(doc.get("imagePath") or "").replace("\\", "/")).name
+                on_colour = colour is not None and drawn in (*io.COLOUR_FILES, colour.name)
+                kept = io.colour_file_name(colour) if on_colour else "image.png"
+                doc["imagePath"] = kept
+                io.write_json(scene_dir / (Path(kept).stem + ".json"), doc, indent=2)
             if balls is not None:
                 counts["annotated"] += 1
                 counts["balls"] += len(balls)
@@ -816,6 +856,8 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
             notes.append(f"{sum(non_finite.values())} point(s) with NaN or infinite coordinates were dropped from "
                          f"{len(non_finite)} cloud(s), e.g. {non_finite[first]} in {first}")
         notes.extend(annotations.notes())
+        if no_colour:
+            notes.append(f"{len(no_colour)} frame(s) have no colour image (e.g. {no_colour[0]}): kept without one")
         if empty:
             notes.append(f"{len(empty)} scene(s) have no valid depth at all (e.g. {empty[0]}): kept, but nothing can be found there")
         if counts["image_less"] and not annotations.empty:
@@ -827,6 +869,11 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 "category": options.category, "seed": None, "source": plan.source,
                 "scenes": len(seen), "annotated_scenes": counts["annotated"], "image_less_scenes": counts["image_less"],
                 "notes": notes, "versions": {"spherebench": __version__, "format": 1}}
+        if fits or unfit:  # said in the dataset, not on the terminal: a 2D annotation needs no 3D centre
+            meta["reference_centres"] = {
+                "source": "mask-fit", "radius_m": float(options.ball_radius_m), "balls": len(fits),
+                "se_median_m": round(float(np.median(fits)), 6) if fits else None, "without_centre": len(unfit),
+                "rule": "fixed-radius least squares on the mask's depth pixels (eroded 2 px), block-jackknife SE"}
         io.finish_dataset(tmp, meta)
     for n in notes:
         log(f"note: {n}")

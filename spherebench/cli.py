@@ -25,6 +25,7 @@ COMMANDS = [
     ("generate", "generate", "build a simulated D435 dataset (a preset) with exact ground truth"),
     ("prepare", "prepare", "turn recorded depth data (.bag, PNG, PLY/PCD/XYZ, raw) into a dataset"),
     ("show", "show", "draw a scene's ground truth: a PNG with circles and a PLY with the ball in red"),
+    ("annotate", "annotate", "ball masks of recorded frames from their colour (LabelMe files to review)"),
     ("detect", "detect", "find spheres of known radius in point clouds or scene folders"),
     ("detect-2d", "detect_2d", "run the CircleNet-style 2D detector on reprojected images"),
     ("train", "train", "train the CircleNet-style 2D baseline on the train preset"),
