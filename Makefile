@@ -29,8 +29,11 @@ $(DATA)/%/coco_gt.json: | venv
 
 # ---- recorded data: the real sensor sets of ../shared/realdata, in the scene format
 realdata: $(DATA)/real/kinect-pochang/dataset.json $(DATA)/real/lidar-spherecalib/dataset.json
-$(DATA)/real/kinect-pochang/dataset.json: | venv
-	$(SB) prepare --preset-source kinect-pochang $(REALDATA)/pochang_rgbd_sphere --out $(DATA)/real/kinect-pochang
+# the Kinect set with its reviewed colour-derived ball masks (datasets/annotations/kinect-pochang/README.md)
+KINECT_LABELME := datasets/annotations/kinect-pochang
+$(DATA)/real/kinect-pochang/dataset.json: $(wildcard $(KINECT_LABELME)/*.json) | venv
+	$(SB) prepare --preset-source kinect-pochang $(REALDATA)/pochang_rgbd_sphere --labelme $(KINECT_LABELME) \
+		--out $(DATA)/real/kinect-pochang
 $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 	$(SB) prepare --preset-source lidar-spherecalib $(REALDATA)/spherecalib_lidar --out $(DATA)/real/lidar-spherecalib
 
