@@ -39,17 +39,14 @@ ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM, ST_RING_SPRE
     ST_SECTOR_ATTACHED + N_SECTORS, ST_SECTOR_ATTACHED + N_SECTORS + 7)
 N_STATS = ST_RING_SPREAD + 1
 
-#: The relief profile: inner zone (rays passing the centre within sqrt(PROFILE_INNER) R) and outer
-#: zone (up to sqrt(PROFILE_OUTER) R, short of the outline, where flying pixels mix in the background).
-PROFILE_INNER, PROFILE_OUTER = 0.3, 0.8
-
-#: The outline ring: rays passing the centre at R to RING_FACTOR * R.
-RING_FACTOR = 1.3
-#: A ring pixel whose point is RING_FRONT_MIN R to RING_FRONT_MAX R in front of where its ray passes the
-#: centre is an attached surface in front (RING_FRONT): a cylinder's body, a corner's faces, a bigger
-#: object the sphere was fitted into. A free ball's ring sees what is behind it; a floor or a holder
-#: fills a small part of it; an occluder is usually farther in front.
-RING_FRONT_MIN, RING_FRONT_MAX = 0.3, 1.2
+# The zones of a candidate's window (``window_stats``), all from ``DetectorConfig`` through the
+# parameter vector: the relief profile's inner zone (rays passing the centre within
+# sqrt(prm[P_PROFILE_INNER]) R) and outer zone (up to sqrt(prm[P_PROFILE_OUTER]) R, short of the
+# outline, where flying pixels mix in the background); the outline ring (rays passing the centre at
+# R to prm[P_RING_FACTOR] R), whose pixels prm[P_RING_FRONT_MIN] R to prm[P_RING_FRONT_MAX] R in front
+# of where their ray passes the centre are an attached surface in front (a cylinder's body, a
+# corner's faces, a bigger object the sphere was fitted into; a free ball's ring sees what is behind
+# it, a floor or a holder fills a small part of it, an occluder is usually farther in front).
 
 
 @kernel
@@ -187,42 +184,46 @@ def ring_spread(out):
 
 
 @kernel
-def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy, ppx, ppy, stride, out):
+def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, out):
     """Classify the pixels of a candidate's silhouette; out (N_STATS,) float64 gets the counts.
 
     For a pixel whose ray meets the sphere (the silhouette, undistorted pinhole) with point p and
     ray residual dt = |p| - t_near: INLIER if |dt| <= eps (SSE sums dt^2), else FRONT (an occluder,
     dt < 0; FRONT_NEAR if also dt >= -R/2: a surface hugging the sphere, as a cylinder of the same
     radius does) or BEHIND (dt > 0: seen through the ball, evidence against it). Silhouette pixels
-    without a point count as INVALID_DISC. Rays passing the centre at R to RING_FACTOR R form the
+    without a point count as INVALID_DISC. Rays passing the centre at R to ring_factor R form the
     outline RING; RING_CONT counts those whose point is within ring_band of the depth where the ray
     passes the centre (a surface continuing beyond the outline: a wall, a plane, a bigger object;
     a band of one sigma of the depth noise rather than eps: at 3 m eps is +/- R, and a background
-    20 cm behind a ball would count as continuing it), RING_FRONT those RING_FRONT_MIN R to
-    RING_FRONT_MAX R in front of it (an attached surface in front: a cylinder's body); the same by
+    20 cm behind a ball would count as continuing it), RING_FRONT those ring_front_min R to
+    ring_front_max R in front of it (an attached surface in front: a cylinder's body); the same by
     angular sector (``ring_sector``: ST_SECTOR_RING, ST_SECTOR_ATTACHED), and RING_SPREAD
     (``ring_spread``).
     VALID_INNER and BEHIND_INNER count the valid and the BEHIND pixels whose rays pass the centre
-    within sqrt(PROFILE_OUTER) R (short of the outline, where mixed pixels see past a real ball);
+    within sqrt(profile_outer) R (short of the outline, where mixed pixels see past a real ball);
     EDGE_N and EDGE_BEHIND the pixels beyond that, up to the outline, that are INLIER or BEHIND, and
     the BEHIND ones (a smaller ball leaves this band to the background; an occluder's FRONT pixels
     tell nothing of the size and are left out).
     The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
-    the centre within sqrt(PROFILE_INNER) R; OUTH_* and OUTV_*
-    those between that and sqrt(PROFILE_OUTER) R, left or right of the centre (OUTH) or above or
+    the centre within sqrt(profile_inner) R; OUTH_* and OUTV_*
+    those between that and sqrt(profile_outer) R, left or right of the centre (OUTH) or above or
     below it (OUTV). ``stride`` visits every stride-th pixel (counts
-    scaled by stride^2, except the profile's, which stay the visited ones).
+    scaled by stride^2, except the profile's, which stay the visited ones). The camera, R and the
+    zones' sizes come from prm (see the zones' comment above).
     """
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    ring_factor, p_in, p_out = prm[P_RING_FACTOR], prm[P_PROFILE_INNER], prm[P_PROFILE_OUTER]
+    front_min, front_max = prm[P_RING_FRONT_MIN], prm[P_RING_FRONT_MAX]
     for k in range(N_STATS):
         out[k] = 0.0
     h, w = index_image.shape
     dist = math.sqrt(cx * cx + cy * cy + cz * cz)
     if cz <= radius or dist <= radius:
         return
-    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * RING_FACTOR * 1.05 + 2.0
+    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * ring_factor * 1.05 + 2.0
     u0 = fx * cx / cz + ppx
     v0 = fy * cy / cz + ppy
-    ring2 = (RING_FACTOR * radius) ** 2
+    ring2 = (ring_factor * radius) ** 2
     c0 = max(0, int(math.floor(u0 - rpx)))
     c1 = min(w - 1, int(math.ceil(u0 + rpx)))
     r0 = max(0, int(math.floor(v0 - rpx)))
@@ -249,7 +250,7 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
                     if abs(pn - tc) <= ring_band:
                         out[ST_RING_CONT] += 1.0
                         out[ST_SECTOR_ATTACHED + sector] += 1.0
-                    elif -RING_FRONT_MAX * radius <= pn - tc <= -RING_FRONT_MIN * radius:
+                    elif -front_max * radius <= pn - tc <= -front_min * radius:
                         out[ST_RING_FRONT] += 1.0
                         out[ST_SECTOR_ATTACHED + sector] += 1.0
                 continue
@@ -258,7 +259,7 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
             # surface fitted by the sphere sits in front of it in the outer zone; occluders, such as
             # a tripod's cup, are not inliers and do not bias it)
             m2 = dist * dist - ((px * cx + py * cy + pz * cz) / pn) ** 2
-            if m2 <= PROFILE_OUTER * radius * radius:  # short of the outline's mixed pixels
+            if m2 <= p_out * radius * radius:  # short of the outline's mixed pixels
                 out[ST_VALID_INNER] += 1.0
                 if dt > eps:
                     out[ST_BEHIND_INNER] += 1.0
@@ -268,10 +269,10 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
                     out[ST_EDGE_BEHIND] += 1.0
             if abs(dt) > eps:
                 pass
-            elif m2 <= PROFILE_INNER * radius * radius:
+            elif m2 <= p_in * radius * radius:
                 out[ST_IN_N] += 1.0
                 out[ST_IN_SUM] += dt
-            elif m2 <= PROFILE_OUTER * radius * radius:
+            elif m2 <= p_out * radius * radius:
                 # left and right of the centre, or above and below: a cylinder or an edge is
                 # curved along one image axis only
                 if abs(c - u0) >= abs(r - v0):
@@ -311,19 +312,15 @@ def window_stats(points, index_image, cx, cy, cz, radius, eps, ring_band, fx, fy
 
 P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_STRATUM_V, P_BIN, P_RR_MIN, P_RR_MAX, \
     P_SLACK, P_Z_FAR, P_STRATUM_U, P_CELL_PX = range(17)
-N_PRM = 17
-
-#: The search's box geometry, as fractions of the disc radius r (cells) of the ball at the box's depth:
-#: box half-side, offset of the four side boxes of the stencil, offset and half-side of the 8 ring boxes.
-H_FRAC, D_FRAC, RING_FRAC, RING_H_FRAC = 0.25, 0.5, 1.5, 0.25
-#: A box with fewer valid pixels than this share of its area counts as invalid (a hole, the shadow band).
-MIN_VALID = 0.3
-#: Prefilter: boxes at this many disc radii from the first cell (off the ball wherever it starts).
-PREFILTER_FRAC = 2.0
-#: Descent steps from the first pixel toward the local minimum of the range (the ball's front point).
-DESCENT_STEPS = 3
-#: Pretest: at most this many ring boxes may continue the surface at the ball's depth (a table, a tripod).
-MAX_CONTINUED = 3
+# ... and the constants that decide outcomes, each a ``DetectorConfig`` field (``improved.parameters``):
+# the search's box geometry (fractions of the ball's disc radius r in cells at the box's depth: box
+# half-side, side-box offset, ring-box offset and half-side, prefilter offset), the descent's steps,
+# a box's least valid share, the pretest's most continued ring boxes; the window's zones (above);
+# the refinement's bands and steps, the size check's limit, the radius SE's floor of s.
+P_H_FRAC, P_D_FRAC, P_RING_FRAC, P_RING_H_FRAC, P_PREFILTER_FRAC, P_DESCENT_STEPS, P_MIN_VALID, P_MAX_CONTINUED, \
+    P_RING_FACTOR, P_PROFILE_INNER, P_PROFILE_OUTER, P_RING_FRONT_MIN, P_RING_FRONT_MAX, P_FIRST_BAND, \
+    P_FIRST_STEPS, P_COARSE_BAND, P_SIZE_LIMIT, P_SE_S_MIN = range(17, 35)
+N_PRM = 35
 #: The packed table's count field starts at this bit; the depth sum (mm) takes the bits below.
 COUNT_SHIFT = 40
 _DEPTH_MASK = (1 << COUNT_SHIFT) - 1
@@ -450,7 +447,7 @@ def box_sums(tab, v, u, h):
 @kernel
 def box_range(tab, prm, v, u, h):
     """(mean range m, valid count) of the box of half-side h cells about cell (v, u); the mean is nan
-    when under MIN_VALID of the box's pixels are valid (a hole, the shadow band, off the image)."""
+    when under prm[P_MIN_VALID] of the box's pixels are valid (a hole, the shadow band, off the image)."""
     s, n, a = box_sums(tab, v, u, h)
     return sums_range(prm, v, u, s, n, a), n
 
@@ -458,7 +455,7 @@ def box_range(tab, prm, v, u, h):
 @kernel
 def sums_range(prm, v, u, s, n, a):
     """``box_range``'s mean range from the box's sums (``box_sums``)."""
-    if n == 0 or n < MIN_VALID * a * prm[P_CELL_PX]:
+    if n == 0 or n < prm[P_MIN_VALID] * a * prm[P_CELL_PX]:
         return math.nan
     b = prm[P_BIN]
     rx = (u * b + 0.5 * (b - 1.0) - prm[P_PPX]) / prm[P_FX]
@@ -498,16 +495,16 @@ def cap_relief(s):
 def plane_free(tab, prm, v, u, m0, s0, n0):
     """False if the inverse depth about cell (v, u) is affine within noise along every available axis
     (horizontal, vertical, then the diagonals while an axis is missing, two at most): the second
-    difference of 1 / (box mean z) over boxes at +/- PREFILTER_FRAC r (half-side H_FRAC r; the centre
+    difference of 1 / (box mean z) over boxes at +/- prefilter_offset r (half-side box_half r; the centre
     box has half-side 1), within 3 sigma (inverse depth has per-pixel noise noise_a at any depth:
     sigma_z = noise_a z^2) plus slack. A box off the image or without depth makes its axis missing;
     no axis at all, or a curved one, keeps the cell. m0, s0, n0: the centre box's mean range and sums
     (``box_sums``; the caller has them)."""
     R = prm[P_R]
     rr = prm[P_FX] / prm[P_BIN] * R / m0
-    hp = max(1, int(H_FRAC * rr + 0.5))
-    dp = int(PREFILTER_FRAC * rr + 0.5)
-    dg = int(PREFILTER_FRAC * rr * 0.7071067811865476 + 0.5)
+    hp = max(1, int(prm[P_H_FRAC] * rr + 0.5))
+    dp = int(prm[P_PREFILTER_FRAC] * rr + 0.5)
+    dg = int(prm[P_PREFILTER_FRAC] * rr * 0.7071067811865476 + 0.5)
     bb = prm[P_CELL_PX]
     if n0 == 0:
         return True
@@ -518,7 +515,7 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
         dv = 0 if axis == 0 else (dp if axis == 1 else (dg if axis == 2 else -dg))
         sa, na_, aa = box_sums(tab, v + dv, u + du, hp)
         sb, nb_, ab = box_sums(tab, v - dv, u - du, hp)
-        if na_ == 0 or nb_ == 0 or na_ < MIN_VALID * aa * bb or nb_ < MIN_VALID * ab * bb:
+        if na_ == 0 or nb_ == 0 or na_ < prm[P_MIN_VALID] * aa * bb or nb_ < prm[P_MIN_VALID] * ab * bb:
             continue
         q = 1000.0 * na_ / sa + 1000.0 * nb_ / sb - 2.0 * i0
         tol = 3.0 * prm[P_NOISE_A] * math.sqrt(1.0 / na_ + 1.0 / nb_ + 4.0 / n0) + prm[P_SLACK] * R / (m0 * m0)
@@ -533,17 +530,17 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
 @kernel
 def ring_boxes(tab, prm, v, u, front, sig):
     """The eight boxes around the outline of the sphere whose front point (range ``front`` m) is on
-    the ray through cell (v, u): at RING_FRAC r in the 4 axis and 4 diagonal directions, half-side
-    RING_H_FRAC r (r: the disc radius in cells). Each is background (farther than the centre, or
+    the ray through cell (v, u): at ring_offset r in the 4 axis and 4 diagonal directions, half-side
+    ring_half r (r: the disc radius in cells). Each is background (farther than the centre, or
     invalid: the shadow band, nothing), an occluder (nearer than the front by 3 sigma / sqrt(n) +
     slack, sig: one pixel's noise) or continues the surface at the ball's depth (a wall, a floor, a
     bigger object). Returns (r, background count, continued count); stops counting past
-    MAX_CONTINUED continued."""
+    prm[P_MAX_CONTINUED] continued."""
     R = prm[P_R]
     dist = front + R
     rr = prm[P_FX] / prm[P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
-    hr = max(1, int(RING_H_FRAC * rr + 0.5))
-    dr = RING_FRAC * rr
+    hr = max(1, int(prm[P_RING_H_FRAC] * rr + 0.5))
+    dr = prm[P_RING_FRAC] * rr
     dd = dr * 0.7071067811865476
     slack = prm[P_SLACK] * R
     cont = 0
@@ -560,7 +557,7 @@ def ring_boxes(tab, prm, v, u, front, sig):
             bg += 1
         elif m >= front - (3.0 * sig / math.sqrt(n) + slack):
             cont += 1
-            if cont > MAX_CONTINUED:
+            if cont > prm[P_MAX_CONTINUED]:
                 break
     return rr, bg, cont
 
@@ -570,10 +567,10 @@ def front_hypothesis(tab, prm, v, u, out):
     """A hypothesis from the first cell (v, u), and its O(1) pretest; returns its score (-inf: rejected).
 
     Descent: the ball's front point is the local minimum of the range |p| (it lies on the ray through
-    the centre). A stencil of five box means (centre, left, right, up, down; half-side H_FRAC r,
-    offset D_FRAC r, r the ball's disc radius in cells at the centre box's range) and the sphere's
+    the centre). A stencil of five box means (centre, left, right, up, down; half-side box_half r,
+    offset box_offset r, r the ball's disc radius in cells at the centre box's range) and the sphere's
     known curvature give the step to the front point (``descent_step``), at most r / 2, up to
-    DESCENT_STEPS times. The means average sigma / sqrt(n) of the per-pixel noise, which is what
+    descent_steps times. The means average sigma / sqrt(n) of the per-pixel noise, which is what
     makes a hypothesis possible at 3 m, where one pixel's depth is +/- 7 cm and the relief between
     two pixels 1-2 cm.
     Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
@@ -582,7 +579,7 @@ def front_hypothesis(tab, prm, v, u, out):
     third well in front (more than R past the tolerance: an occluder hides that side of the ball;
     out[4] flags such a hypothesis, which ``improved`` verifies only while no sphere has been
     accepted), at most one *behind* it (a surface seen through the ball; one box may straddle the
-    outline); of the eight ``ring_boxes`` at most MAX_CONTINUED may continue the surface at the
+    outline); of the eight ``ring_boxes`` at most pretest_max_continued may continue the surface at the
     ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded flag); the score
     is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of the agreeing ones
     (at most 16).
@@ -606,12 +603,13 @@ def front_hypothesis(tab, prm, v, u, out):
     rr = 1.0
     mL = mR = mU = mD = 0.0
     nL = nR = nU = nD = 0
-    for step in range(DESCENT_STEPS + 1):
+    steps = int(prm[P_DESCENT_STEPS])
+    for step in range(steps + 1):
         rr = fc * R / m0
         if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
             return -np.inf
-        h = max(1, int(H_FRAC * rr + 0.5))
-        d = max(h + 1, int(D_FRAC * rr + 0.5))
+        h = max(1, int(prm[P_H_FRAC] * rr + 0.5))
+        d = max(h + 1, int(prm[P_D_FRAC] * rr + 0.5))
         m0, n0 = box_range(tab, prm, v, u, h)
         if math.isnan(m0):
             return -np.inf
@@ -619,7 +617,7 @@ def front_hypothesis(tab, prm, v, u, out):
         mR, nR = box_range(tab, prm, v, u + d, h)
         mU, nU = box_range(tab, prm, v - d, u, h)
         mD, nD = box_range(tab, prm, v + d, u, h)
-        if step == DESCENT_STEPS:
+        if step == steps:
             break
         k = 0.5 * R / (rr * rr)
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
@@ -659,7 +657,7 @@ def front_hypothesis(tab, prm, v, u, out):
         return -np.inf
     # pretest: the ring around the outline
     rr, bg, cont = ring_boxes(tab, prm, v, u, front, sig)
-    if cont > MAX_CONTINUED:
+    if cont > prm[P_MAX_CONTINUED]:
         return -np.inf
     out[0], out[1], out[2], out[3], out[4] = v, u, front, rr, 1.0 if agree < 3 else 0.0
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi
@@ -793,14 +791,6 @@ def required_iterations(support, n_points, window_px, confidence):
 
 V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE, V_SIGMA = range(12)
 
-#: Refinement bands: the first round takes inliers within FIRST_BAND_FRACTION R of the start (a
-#: hypothesis from box means can be 4-5 cm off) and makes FIRST_STEPS 3D Gauss-Newton steps; later
-#: rounds keep the band at least twice the last move, at most COARSE_BAND_FRACTION R.
-FIRST_BAND_FRACTION = 0.5
-FIRST_STEPS = 3
-COARSE_BAND_FRACTION = 0.25
-#: The size check never accepts a free radius further than this fraction of R from R.
-SIZE_LIMIT_FRACTION = 0.25
 N_VOUT = 12
 #: MAD of a normal sample times this is its standard deviation.
 MAD_TO_SIGMA = 1.482602218505602
@@ -849,9 +839,9 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
 
     Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
-    current depth (``gather_window``; in the first round at least FIRST_BAND_FRACTION R, later at
-    least twice the last move, up to COARSE_BAND_FRACTION R), then Gauss-Newton with R fixed: in the
-    first round FIRST_STEPS steps on the 3D residuals (``refine_fixed_radius``), later one step on
+    current depth (``gather_window``; in the first round at least prm[P_FIRST_BAND] R, later at
+    least twice the last move, up to prm[P_COARSE_BAND] R), then Gauss-Newton with R fixed: in the
+    first round prm[P_FIRST_STEPS] steps on the 3D residuals (``refine_fixed_radius``), later one step on
     the ray residuals (``ray_step``), until the centre moves less than its standard error (or
     0.1 mm). Every window is visited with the stride that keeps it to about 4 ``max_fit_points``
     pixels (a ball at 0.4 m covers 15,000 pixels at
@@ -876,16 +866,17 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     c = c0.copy()
     out[:] = math.nan
     out[V_N] = 0.0
-    moved = COARSE_BAND_FRACTION * radius
+    first_band, coarse_band = prm[P_FIRST_BAND] * radius, prm[P_COARSE_BAND] * radius
+    moved = coarse_band
     for it in range(refine_iterations):
         if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
             return
         e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
         # a hypothesis from box means can be a few cm off, and the sphere's own points then lie up
         # to that far from the current one: near the camera eps is 1 cm, and inliers within it would
-        # hold the fit where it started. So the band starts at COARSE_BAND_FRACTION R and stays wider
+        # hold the fit where it started. So the band starts wide (first_band) and stays wider
         # than twice the last move while the centre travels
-        e = max(e, FIRST_BAND_FRACTION * radius if it == 0 else min(COARSE_BAND_FRACTION * radius, 2.0 * moved))
+        e = max(e, first_band if it == 0 else min(coarse_band, 2.0 * moved))
         stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
         n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
         if n < 3:
@@ -896,7 +887,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
             # offset per round); ||p - c|| - R pulls from anywhere, and its bias (depth noise along
             # the rays, a few mm at 2 m) is left to the ray steps that follow
             c_new = refine_fixed_radius(points, _strided(idx, n, max_fit_points), c[0], c[1], c[2], radius,
-                                        FIRST_STEPS)
+                                        int(prm[P_FIRST_STEPS]))
             moved = math.sqrt((c_new[0] - c[0]) ** 2 + (c_new[1] - c[1]) ** 2 + (c_new[2] - c[2]) ** 2)
             c[0], c[1], c[2] = c_new[0], c_new[1], c_new[2]
             continue
@@ -932,13 +923,13 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
                 if n < 3:
                     return
                 rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
-    c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min)
-    fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min)
+    c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
+    fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
     out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
     if math.isfinite(size_gate[0]):
         se = fse if math.isfinite(fse) else radius
         d = abs(fr - radius)
-        if not (d <= size_gate[0] + size_gate[1] * se and d <= SIZE_LIMIT_FRACTION * radius):  # nan fails
+        if not (d <= size_gate[0] + size_gate[1] * se and d <= prm[P_SIZE_LIMIT] * radius):  # nan fails
             out[V_N] = -1.0
             return
         # the confidence's support and size factors bound it (the others are at most 1)
@@ -948,8 +939,8 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
             out[V_N] = -1.0
             return
     ring_band = min(e, max(prm[P_EPS], sigma))
-    window_stats(points, index_image, c[0], c[1], c[2], radius, e, ring_band, fx, fy, ppx, ppy,
-                 window_stride(c[0], c[1], c[2], radius * RING_FACTOR, max(fx, fy), budget), stats)
+    window_stats(points, index_image, c[0], c[1], c[2], e, ring_band, prm,
+                 window_stride(c[0], c[1], c[2], radius * prm[P_RING_FACTOR], max(fx, fy), budget), stats)
     out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
     out[V_RMSE] = rms
     out[V_SIGMA] = sigma
@@ -1118,10 +1109,6 @@ def fit_free_radius(points, idx, cx, cy, cz, radius, iterations):
     return x[:3].copy(), x[3], se, math.sqrt(sse / max(n, 1))
 
 
-#: The radius's standard error floors s = sqrt(r^2 - m^2) at this fraction of r (see ``fit_ray``).
-SE_S_MIN = 0.3
-
-
 @kernel
 def cholesky_solve(A, g, npar, x):
     """Solve A x = g for the leading npar x npar block of a symmetric A (4, 4) by Cholesky, in place
@@ -1234,14 +1221,15 @@ def ray_step(rays, c, radius, s_min):
 
 
 @kernel
-def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min):
+def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min, se_s_min):
     """Gauss-Newton on the ray residuals |p| - t_near(c, r) of the points on rays (K, 4)
     (``unit_rays``; depth noise model).
 
     t_near = u.c - s, s = sqrt(r^2 - |c|^2 + (u.c)^2), u = p / |p| (s = 0 for rays that miss: the
     residual is then the depth past the point of closest approach). Near the outline s -> 0 and
     the derivative explodes: s is floored at ``s_min * r`` in the derivative only
-    (``ray_normal_equations``). free_radius: fit r too, else r = radius.
+    (``ray_normal_equations``); the radius's standard error floors it at ``se_s_min * r``.
+    free_radius: fit r too, else r = radius.
     Returns (centre (3,), r, standard error of r (nan if fixed), RMS residual).
     """
     x = np.array([cx, cy, cz, radius])
@@ -1258,9 +1246,9 @@ def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min):
         if math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2 + (step[3] ** 2 if free_radius else 0.0)) < 1e-9:
             break
     # the residuals at the solution, and for the radius's standard error a normal matrix whose
-    # derivatives floor s at SE_S_MIN r: the floor of the fit (s_min) lets the few pixels at the
+    # derivatives floor s at se_s_min r: the floor of the fit (s_min) lets the few pixels at the
     # outline, where the residual has no derivative, claim a radius known to a fraction of a mm
-    s_floor = max(max(s_min, SE_S_MIN) * abs(x[3]), 1e-12)
+    s_floor = max(max(s_min, se_s_min) * abs(x[3]), 1e-12)
     A, g, sse = ray_normal_equations(rays, x[0], x[1], x[2], x[3], s_floor, free_radius)
     se = math.nan
     if free_radius:

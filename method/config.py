@@ -118,7 +118,7 @@ class DetectorConfig:
             The second of two balls scores at most 3.6 below the first on the train preset;
             6 is three agreeing sides: cluttered frames verify 3.3 hypotheses instead of 5.6.
         rescore_band: organised clouds: a candidate scoring within this of min_score is verified
-            again from ``improved.RESCORE_STARTS`` starts about its refined centre and takes the
+            again from ``improved.rescore_starts`` about its refined centre and takes the
             mean score (the size check: the majority). At 2-3 m the refinement's inlier selection
             has several optima a cm apart, whose scores differ by 0.1 or more: one start's score is
             a noisy draw. On the train preset, the top 10 candidates of each frame re-scored: false
@@ -149,6 +149,52 @@ class DetectorConfig:
         max_points: clouds larger than this are randomly subsampled for the search (final inliers
             still come from the whole cloud), bounding time and memory.
         mm_check: refuse clouds whose median |z| exceeds ``mm_check_median_m`` (millimetres).
+        noise_estimate_keep: ``improved.frame_noise_a`` averages the smallest this share of the
+            squared second differences (edges and flying pixels are the rest), rescaled to a normal's.
+    Search geometry (organised clouds; fractions of the ball's disc radius r at the box's depth):
+        box_half_fraction: half-side of the stencil's boxes.
+        box_offset_fraction: offset of the four side boxes from the centre box.
+        ring_offset_fraction, ring_half_fraction: offset and half-side of the 8 outline-ring boxes.
+        prefilter_offset_fraction: the plane prefilter's boxes lie this far from the first cell.
+        descent_steps: steps from the first cell toward the range's local minimum (the front point).
+        box_min_valid: a box with fewer valid pixels than this share of its area is invalid.
+        pretest_max_continued: at most this many ring boxes may continue the surface at the ball's depth.
+    Refinement (organised):
+        first_band_fraction: the first round's inlier band (fraction of R; a box-mean start can be
+            4-5 cm off) ...
+        first_steps: ... and its 3D Gauss-Newton steps.
+        coarse_band_fraction: later rounds' band: at least twice the last move, at most this * R.
+        ray_s_min_fraction: ray fits floor s = sqrt(r^2 - m^2) at this fraction of r.
+        radius_se_s_min_fraction: the free radius's standard error floors s at this fraction of r.
+        size_limit_fraction: the size check never accepts a free radius further than this * R from R.
+        rescore_offset_xy, rescore_offset_z: ``improved.rescore``'s six starts about a refined centre,
+            in units of R across the line of sight and along it.
+        verify_quality_fraction: unorganised clouds: candidates below this share of the best one's
+            search quality are not verified.
+        interior_bands: unorganised clouds: the interior counted against a ball is its inner half and
+            at least this many shell half-widths under its surface.
+    Evidence (``improved.confidence``; each factor in [0, 1], see docs/detector.md for calibration):
+        ring_factor: the outline ring spans rays passing the centre at R to ring_factor * R.
+        ring_front_min_fraction, ring_front_max_fraction: a ring pixel this far (fractions of R) in
+            front of where its ray passes the centre is a surface attached in front of the ball.
+        profile_inner_sq, profile_outer_sq: the relief profile's inner zone holds rays passing the
+            centre within sqrt(profile_inner_sq) R, its outer zone those up to sqrt(profile_outer_sq) R
+            (short of the outline's mixed pixels; beyond it lies the edge band).
+        behind_power, hug_power, ring_continued_power: exponents of (1 - share) for the silhouette's
+            pixels behind the sphere, those hugging it just in front, and the outline ring continued
+            at the ball's depth.
+        ring_front_free, ring_front_power: the ring's share attached in front of the ball that costs
+            nothing (a floor, a holder, a hand), and the exponent of (1 - excess) beyond it.
+        see_through_free, see_through_power, see_through_sigmas: ``improved.see_through_excess``'s
+            allowance beyond the noise's share (flying pixels), its exponent, and the binomial
+            standard errors allowed beside.
+        edge_behind_free, edge_behind_power, edge_behind_sigmas: ``improved.edge_behind_excess``'s
+            allowed share of the edge band seen behind the sphere, its exponent, its standard errors.
+        relief_floor_fraction: the relief test's tolerated zone-mean difference (fraction of R) ...
+        relief_free_sigmas: ... and standard errors without penalty (``improved.relief_agreement``).
+        ring_spread_free, ring_spread_power: the ring spread (attached outside the half ring holding
+            most of it) that costs nothing, and the exponent of (1 - excess) beyond it.
+        interior_density_power: unorganised clouds: exponent of (1 - inner / shell density).
     """
 
     radius_m: float = 0.12
@@ -205,6 +251,49 @@ class DetectorConfig:
     max_points: int = 2_000_000
     mm_check: bool = True
     mm_check_median_m: float = 50.0
+    noise_estimate_keep: float = 0.9
+    # search geometry (organised)
+    box_half_fraction: float = 0.25
+    box_offset_fraction: float = 0.5
+    ring_offset_fraction: float = 1.5
+    ring_half_fraction: float = 0.25
+    prefilter_offset_fraction: float = 2.0
+    descent_steps: int = 3
+    box_min_valid: float = 0.3
+    pretest_max_continued: int = 3
+    # refinement
+    first_band_fraction: float = 0.5
+    first_steps: int = 3
+    coarse_band_fraction: float = 0.25
+    ray_s_min_fraction: float = 0.03
+    radius_se_s_min_fraction: float = 0.3
+    size_limit_fraction: float = 0.25
+    rescore_offset_xy: float = 0.2
+    rescore_offset_z: float = 0.33
+    verify_quality_fraction: float = 0.15
+    interior_bands: float = 3.0
+    # evidence
+    ring_factor: float = 1.3
+    ring_front_min_fraction: float = 0.3
+    ring_front_max_fraction: float = 1.2
+    profile_inner_sq: float = 0.3
+    profile_outer_sq: float = 0.8
+    behind_power: float = 2.0
+    hug_power: float = 2.0
+    ring_continued_power: float = 2.0
+    ring_front_free: float = 0.15
+    ring_front_power: float = 4.0
+    see_through_free: float = 0.03
+    see_through_power: float = 4.0
+    see_through_sigmas: float = 3.0
+    edge_behind_free: float = 0.4
+    edge_behind_power: float = 4.0
+    edge_behind_sigmas: float = 2.0
+    relief_floor_fraction: float = 0.03
+    relief_free_sigmas: float = 1.0
+    ring_spread_free: float = 0.04
+    ring_spread_power: float = 16.0
+    interior_density_power: float = 2.0
 
     def __post_init__(self) -> None:
         bad = _problems(self)
@@ -246,7 +335,8 @@ def _problems(c: DetectorConfig) -> list[str]:
     for name in ("iterations", "min_iterations", "sample_retries", "pretest_points", "score_max_points",
                  "refine_iterations", "min_inliers", "max_spheres", "max_points", "search_width_px",
                  "verify_candidates", "verify_candidates_if_none", "fit_max_points", "search_candidates",
-                 "noise_estimate_lag_px", "noise_estimate_samples", "noise_estimate_min_samples"):
+                 "noise_estimate_lag_px", "noise_estimate_samples", "noise_estimate_min_samples", "descent_steps",
+                 "pretest_max_continued", "first_steps"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int):
             out.append(f"{name}={v!r} must be an integer")
@@ -265,8 +355,12 @@ def _problems(c: DetectorConfig) -> list[str]:
                 <= 1_000_000):
             out.append("noise_estimate_lag_px must be 1-32 and 1 <= noise_estimate_min_samples <= "
                        "noise_estimate_samples <= 1,000,000")
+        if not (0 <= c.descent_steps <= 20 and 0 <= c.pretest_max_continued <= 8 and 1 <= c.first_steps <= 20):
+            out.append("descent_steps must be 0-20, pretest_max_continued 0-8 (of the 8 ring boxes), first_steps 1-20")
     for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction", "max_eps_fraction",
-                 "bound_visible_fraction", "size_tolerance_fraction"):
+                 "bound_visible_fraction", "size_tolerance_fraction", "box_min_valid", "ring_front_free",
+                 "see_through_free", "edge_behind_free", "ring_spread_free", "verify_quality_fraction",
+                 "ray_s_min_fraction"):
         if finite(name) and not 0.0 <= getattr(c, name) <= 1.0:
             out.append(f"{name}={getattr(c, name)} must be within [0, 1]")
     for name in ("confidence", "sample_success"):
@@ -279,9 +373,29 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append(f"{name}={getattr(c, name)} must be > 0")
     for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas",
                  "noise_subpixel", "noise_baseline_m", "mm_check_median_m", "verify_score_margin", "rescore_band",
-                 "noise_estimate_min_depth_m", "noise_model_tolerance"):
+                 "noise_estimate_min_depth_m", "noise_model_tolerance", "behind_power", "hug_power",
+                 "ring_continued_power", "ring_front_power", "see_through_power", "edge_behind_power",
+                 "ring_spread_power", "interior_density_power", "relief_floor_fraction", "relief_free_sigmas",
+                 "rescore_offset_xy", "rescore_offset_z", "interior_bands", "see_through_sigmas",
+                 "edge_behind_sigmas"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
+    for name in ("box_half_fraction", "box_offset_fraction", "ring_offset_fraction", "ring_half_fraction",
+                 "prefilter_offset_fraction", "first_band_fraction", "coarse_band_fraction", "size_limit_fraction",
+                 "noise_estimate_keep", "radius_se_s_min_fraction"):
+        if finite(name) and not 0.0 < getattr(c, name) <= 4.0:
+            out.append(f"{name}={getattr(c, name)} must be within (0, 4] (a fraction of the radius)")
+    if finite("noise_estimate_keep") and c.noise_estimate_keep > 1.0:
+        out.append(f"noise_estimate_keep={c.noise_estimate_keep} must be within (0, 1]")
+    if all(finite(n) for n in ("profile_inner_sq", "profile_outer_sq")) and not (
+            0.0 < c.profile_inner_sq < c.profile_outer_sq < 1.0):
+        out.append(f"profile_inner_sq={c.profile_inner_sq}, profile_outer_sq={c.profile_outer_sq}: need "
+                   "0 < inner < outer < 1 (squared fractions of R)")
+    if all(finite(n) for n in ("ring_front_min_fraction", "ring_front_max_fraction")) and not (
+            0.0 <= c.ring_front_min_fraction < c.ring_front_max_fraction):
+        out.append("ring_front_min_fraction must be >= 0 and below ring_front_max_fraction")
+    if finite("ring_factor") and not 1.0 < c.ring_factor <= 3.0:
+        out.append(f"ring_factor={c.ring_factor} must be within (1, 3] (the outline ring's outer radius / R)")
     if finite("zscore_threshold") and c.zscore_threshold == 0:
         out.append("zscore_threshold must be > 0 (the paper uses 1.5)")
     if c.pipeline == "paper" and c.sampling != "global":

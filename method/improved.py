@@ -37,6 +37,7 @@ the threshold (``rescore``).
 
 from __future__ import annotations
 
+import functools
 import math
 from statistics import NormalDist
 import threading
@@ -77,6 +78,7 @@ def noise_a(config: DetectorConfig, fx: float | None) -> float:
     return config.noise_subpixel / (fx * config.noise_baseline_m)
 
 
+@functools.lru_cache(maxsize=8)
 def _trimmed_second_moment(keep: float) -> float:
     """E[X^2 | |X| < q] for X ~ N(0, 1), q the ``keep`` quantile of |X|: the share of sigma^2 that the
     mean square of the smallest ``keep`` of a normal sample's absolute values estimates."""
@@ -84,17 +86,12 @@ def _trimmed_second_moment(keep: float) -> float:
     return 1.0 - 2.0 * q * NormalDist().pdf(q) / keep
 
 
-#: The noise estimate keeps the smallest NOISE_KEEP of its samples (edges, flying pixels and curved
-#: surfaces make the largest), then corrects the mean square for that trimming.
-NOISE_KEEP = 0.9
-_NOISE_KEEP_MOMENT = _trimmed_second_moment(NOISE_KEEP)
-
-
 def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorConfig, bin_px: int) -> float | None:
     """The frame's own depth noise as sigma_z / z^2 (1/m), from second differences of depth along image
     rows (``_kernels.noise_samples``) on about ``noise_estimate_samples`` evenly spread pixels, by their
-    trimmed mean square (NOISE_KEEP); None when fewer than ``noise_estimate_min_samples`` pixels
-    qualify (a frame too near, or mostly holes).
+    trimmed mean square (the smallest ``noise_estimate_keep`` of them: edges, flying pixels and curved
+    surfaces make the largest; rescaled to a normal's second moment); None when fewer than
+    ``noise_estimate_min_samples`` pixels qualify (a frame too near, or mostly holes).
 
     The lag, ``noise_estimate_lag_px`` at 424 px wide, scales with the stream's width as the stereo
     matcher's noise correlation does, so that the second difference sees independent errors."""
@@ -107,9 +104,9 @@ def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorC
         return None
     # a trimmed mean square, not the median: depth quantised in steps near sigma (a structured-light
     # sensor at range) makes the median of the few values it takes a biased estimate
-    k = max(1, int(NOISE_KEEP * m))
+    k = max(1, int(config.noise_estimate_keep * m))
     kept = np.partition(out[:m], k - 1)[:k]
-    return math.sqrt(float(np.dot(kept, kept)) / k / _NOISE_KEEP_MOMENT)
+    return math.sqrt(float(np.dot(kept, kept)) / k / _trimmed_second_moment(config.noise_estimate_keep))
 
 
 def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
@@ -136,6 +133,17 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     prm[K.P_RR_MAX] = float(max(grid_shape))
     prm[K.P_SLACK] = config.pretest_slack
     prm[K.P_Z_FAR] = z_far_m
+    c = config
+    prm[K.P_H_FRAC], prm[K.P_D_FRAC] = c.box_half_fraction, c.box_offset_fraction
+    prm[K.P_RING_FRAC], prm[K.P_RING_H_FRAC] = c.ring_offset_fraction, c.ring_half_fraction
+    prm[K.P_PREFILTER_FRAC], prm[K.P_DESCENT_STEPS] = c.prefilter_offset_fraction, c.descent_steps
+    prm[K.P_MIN_VALID], prm[K.P_MAX_CONTINUED] = c.box_min_valid, c.pretest_max_continued
+    prm[K.P_RING_FACTOR], prm[K.P_PROFILE_INNER], prm[K.P_PROFILE_OUTER] = (c.ring_factor, c.profile_inner_sq,
+                                                                         c.profile_outer_sq)
+    prm[K.P_RING_FRONT_MIN], prm[K.P_RING_FRONT_MAX] = c.ring_front_min_fraction, c.ring_front_max_fraction
+    prm[K.P_FIRST_BAND], prm[K.P_FIRST_STEPS] = c.first_band_fraction, c.first_steps
+    prm[K.P_COARSE_BAND], prm[K.P_SIZE_LIMIT] = c.coarse_band_fraction, c.size_limit_fraction
+    prm[K.P_SE_S_MIN] = c.radius_se_s_min_fraction
     return prm
 
 
@@ -371,14 +379,6 @@ def build_grid(points: np.ndarray, cell_m: float) -> dict:
     return {"order": order, "keys": keys[order], "origin": lo, "cell": float(cell_m), "dims": dims}
 
 
-#: Unorganised: candidates whose search quality is below this fraction of the best one's are not verified
-#: (organised: the best ``verify_candidates`` hypotheses are, down to ``verify_score_margin`` below the
-#: best accepted one's search score).
-VERIFY_QUALITY_FRACTION = 0.15
-
-#: Ray fits floor s = sqrt(r^2 - m^2) at this fraction of r (see ``_kernels.fit_ray``).
-RAY_S_MIN = 0.03
-
 _STAT_NAMES = {"valid_disc": K.ST_VALID_DISC, "inlier": K.ST_INLIER, "front": K.ST_FRONT,
                "front_near": K.ST_FRONT_NEAR, "behind": K.ST_BEHIND, "invalid_disc": K.ST_INVALID_DISC,
                "ring": K.ST_RING, "ring_continued": K.ST_RING_CONT, "ring_front": K.ST_RING_FRONT,
@@ -389,16 +389,10 @@ _STAT_NAMES = {"valid_disc": K.ST_VALID_DISC, "inlier": K.ST_INLIER, "front": K.
                "outer_v_sum": K.ST_OUTV_SUM}
 
 
-#: The relief test tolerates this much mean residual difference between the zones (a fraction of R:
-#: flying pixels and quantisation, which no noise model covers) before counting standard errors.
-RELIEF_FLOOR_FRACTION = 0.03
-#: ... and this many standard errors without penalty.
-RELIEF_FREE_SIGMAS = 1.0
-
-
-def relief_agreement(stats: dict, radius_m: float) -> float:
-    """exp(-max(0, t - RELIEF_FREE_SIGMAS)^2 / 2), t the worse of the horizontal and vertical outer zones' test:
-    t = (inner mean - outer mean - floor) / its standard error, with the inliers' mean ray
+def relief_agreement(stats: dict, config: DetectorConfig) -> float:
+    """exp(-max(0, t - relief_free_sigmas)^2 / 2), t the worse of the horizontal and vertical outer zones' test:
+    t = (inner mean - outer mean - floor) / its standard error, floor = relief_floor_fraction R (flying
+    pixels and quantisation, which no noise model covers), with the inliers' mean ray
     residuals (range minus the sphere's, along the ray) of the disc's inner zone and of its outer
     zone left and right of the centre, or above and below it (``_kernels.window_stats``). 1 for a
     sphere; small for a flatter surface the sphere was fitted to, or one curved along one axis only
@@ -418,35 +412,32 @@ def relief_agreement(stats: dict, radius_m: float) -> float:
         n = stats[side + "_n"]
         if n >= 3:
             flatter = m_in - stats[side + "_sum"] / n
-            t = max(t, (flatter - RELIEF_FLOOR_FRACTION * radius_m) / (sigma * math.sqrt(1.0 / n_in + 1.0 / n)))
-    return math.exp(-0.5 * max(0.0, t - RELIEF_FREE_SIGMAS) ** 2)
+            t = max(t, (flatter - config.relief_floor_fraction * config.radius_m)
+                    / (sigma * math.sqrt(1.0 / n_in + 1.0 / n)))
+    return math.exp(-0.5 * max(0.0, t - config.relief_free_sigmas) ** 2)
 
 
-def see_through_excess(stats: dict) -> float:
+def see_through_excess(stats: dict, free: float, sigmas: float = 3.0) -> float:
     """The share of the inner disc's valid pixels seen *behind* the sphere (``_kernels.window_stats``:
-    rays passing the centre within sqrt(PROFILE_OUTER) R) beyond what the depth noise explains: a
+    rays passing the centre within sqrt(profile_outer_sq) R) beyond what the depth noise explains: a
     real ball hides what is behind it, and short of its outline no mixed pixels see past it. The
     noise explains a share q = P(residual > band) of a normal error (``sigma_m``, band ``eps_m``)
-    plus 3 binomial standard errors plus SEE_THROUGH_FREE (flying pixels, a band narrowed to the
-    data)."""
+    plus ``sigmas`` binomial standard errors (``see_through_sigmas``) plus ``free``
+    (``see_through_free``: flying pixels, a band narrowed to the data)."""
     n = stats.get("valid_inner", 0.0)
     sigma = stats.get("sigma_m", 0.0)
     if n < 1:
         return 0.0
     q = 0.5 * math.erfc(stats["eps_m"] / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
-    allowed = q + 3.0 * math.sqrt(q * (1.0 - q) / n) + SEE_THROUGH_FREE
+    allowed = q + sigmas * math.sqrt(q * (1.0 - q) / n) + free
     return max(0.0, stats["behind_inner"] / n - allowed)
 
 
-#: See ``see_through_excess``.
-SEE_THROUGH_FREE = 0.03
-
-
-def edge_behind_excess(stats: dict) -> float:
-    """The share of the silhouette's edge band (rays passing the centre beyond sqrt(PROFILE_OUTER) R,
-    0.89 R, up to R; ``_kernels.window_stats``) seen behind the sphere, beyond EDGE_BEHIND_FREE plus
-    2 binomial standard errors; occluded (front) pixels are left out. A ball of the right size fills
-    the band but for its outline's mixed pixels and the noise's tail (simulated D435 balls: a share
+def edge_behind_excess(stats: dict, free: float, sigmas: float = 2.0) -> float:
+    """The share of the silhouette's edge band (rays passing the centre beyond sqrt(profile_outer_sq) R,
+    0.89 R, up to R; ``_kernels.window_stats``) seen behind the sphere, beyond ``free``
+    (``edge_behind_free``) plus ``sigmas`` (``edge_behind_sigmas``) binomial standard errors;
+    occluded (front) pixels are left out. A ball of the right size fills the band but for its outline's mixed pixels and the noise's tail (simulated D435 balls: a share
     of 0.07 at 1 m, 0.32 at 2.5-3 m, at most 0.50); a smaller one leaves it to the background: a
     0.11 m soccer ball fitted with R = 0.12 m shows 0.8-0.95 at 0.6-2 m, where its free radius's
     error is small, but also where its outline is a pixel or more inside the basketball's (its
@@ -454,34 +445,8 @@ def edge_behind_excess(stats: dict) -> float:
     n = stats.get("edge_n", 0.0)
     if n < 1:
         return 0.0
-    allowed = EDGE_BEHIND_FREE + 2.0 * math.sqrt(EDGE_BEHIND_FREE * (1.0 - EDGE_BEHIND_FREE) / n)
+    allowed = free + sigmas * math.sqrt(free * (1.0 - free) / n)
     return max(0.0, stats["edge_behind"] / n - allowed)
-
-
-#: See ``edge_behind_excess``.
-EDGE_BEHIND_FREE = 0.4
-
-#: The share of the outline ring that may show a surface attached in front of the ball without
-#: penalty: a floor under it, a holder, a hand (simulated free balls: at most 13 % at seed 7, as did
-#: a hand-held real one; clutter that passed the other tests: a median of 25 %).
-RING_FRONT_FREE = 0.15
-#: ... and beyond it the confidence gets (1 - excess)^RING_FRONT_POWER. 4 rather than 8 since the
-#: rescoring (``rescore``) and the ring spread: on the train preset, 9-10 more balls (on stands, or
-#: on a floor seen from above) at every score threshold for the same false detections.
-RING_FRONT_POWER = 4
-
-
-#: The ring spread (``_kernels.ring_spread``): the share of the outline ring attached to a surface
-#: (continuing at the ball's depth or just in front of it) outside the half ring that holds most of
-#: it. A ball touches what supports it on one side (a floor, a table, a holder, a hand: within half
-#: its outline, whatever the camera's roll); clutter that looks like a ball's cap (a jar in a shelf,
-#: a box's corner, a cylinder's top) is embedded on several sides. Tolerated without penalty up to
-#: RING_SPREAD_FREE (simulated balls found in the 2,000 `train` scenes: 99 % below 0.034; clutter
-#: that passed the other tests: a median of 0.05-0.07), beyond it the factor
-#: (1 - (spread - RING_SPREAD_FREE))^RING_SPREAD_POWER (chosen on `train`: false detections of the
-#: verified candidates there 8 -> 1, balls found unchanged; 0.03-0.05 and 8-24 did nearly as well).
-RING_SPREAD_FREE = 0.04
-RING_SPREAD_POWER = 16
 
 
 def size_tolerance(config: DetectorConfig) -> float:
@@ -498,16 +463,19 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     silhouette's valid pixels that are inliers (coverage: occlusion lowers it), (1 - behind share)^2
     (the ball would hide what is seen through it) and (1 - share hugging the sphere just in front
     of it)^2 (a cylinder or another non-spherical surface), (1 - share of the outline ring where
-    the surface continues at the ball's depth)^2 (a wall or a plane) and (1 - a)^RING_FRONT_POWER, a
+    the surface continues at the ball's depth)^2 (a wall or a plane) and (1 - a)^ring_front_power, a
     the share where a surface attached in front of it continues (a cylinder's body, a corner) beyond
-    RING_FRONT_FREE, (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat
+    ring_front_free, (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat
     top, a smaller ball), (1 - ``edge_behind_excess``)^4 (seen through the silhouette's edge band: a smaller
     ball), the ``relief_agreement`` of the inner and outer zones (a surface flatter than the
-    ball), (1 - (ring spread - RING_SPREAD_FREE))^RING_SPREAD_POWER beyond the free share
-    (attached on several sides: embedded clutter); for unorganised clouds (1 - min(1, q))^2, q the
+    ball), (1 - (ring spread - ring_spread_free))^ring_spread_power beyond the free share (the
+    ring spread, ``_kernels.ring_spread``: the share of the outline ring attached outside the half
+    ring that holds most of it; a ball touches its support on one side, embedded clutter on several);
+    for unorganised clouds (1 - min(1, q))^2, q the
     density of points in the ball's inner half over that in its shell (a wall it cuts, volumetric
     noise: a real ball hides its interior); the size agreement exp(-d^2 / 2) with d the free
-    radius's deviation from R in units of (``size_tolerance`` + its standard error).
+    radius's deviation from R in units of (``size_tolerance`` + its standard error). Every exponent
+    and allowance is a ``DetectorConfig`` field (Evidence).
     """
     R = config.radius_m
     score = n_inliers / (n_inliers + config.min_inliers)
@@ -517,14 +485,17 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         behind = min(1.0, stats["behind"] / vd)
         hug = min(1.0, stats["front_near"] / vd)
         ring = stats["ring_continued"] / max(stats["ring"], 1.0)
-        attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - RING_FRONT_FREE)
-        score *= (coverage * (1.0 - behind) ** 2 * (1.0 - hug) ** 2 * (1.0 - ring) ** 2
-                  * (1.0 - attached) ** RING_FRONT_POWER)
-        score *= (1.0 - see_through_excess(stats)) ** 4 * (1.0 - edge_behind_excess(stats)) ** 4
-        score *= relief_agreement(stats, R)
-        score *= (1.0 - max(0.0, stats.get("ring_spread", 0.0) - RING_SPREAD_FREE)) ** RING_SPREAD_POWER
+        attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - config.ring_front_free)
+        score *= (coverage * (1.0 - behind) ** config.behind_power * (1.0 - hug) ** config.hug_power
+                  * (1.0 - ring) ** config.ring_continued_power * (1.0 - attached) ** config.ring_front_power)
+        seen = see_through_excess(stats, config.see_through_free, config.see_through_sigmas)
+        edge = edge_behind_excess(stats, config.edge_behind_free, config.edge_behind_sigmas)
+        score *= (1.0 - seen) ** config.see_through_power * (1.0 - edge) ** config.edge_behind_power
+        score *= relief_agreement(stats, config)
+        spread = max(0.0, stats.get("ring_spread", 0.0) - config.ring_spread_free)
+        score *= (1.0 - spread) ** config.ring_spread_power
     elif "interior_density_ratio" in stats:  # unorganised: a ball's interior holds no points
-        score *= (1.0 - min(1.0, stats["interior_density_ratio"])) ** 2
+        score *= (1.0 - min(1.0, stats["interior_density_ratio"])) ** config.interior_density_power
     size_ok = True
     if config.size_check:
         se = free_se if math.isfinite(free_se) else R
@@ -533,7 +504,7 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
         score *= math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
         # consistent with R given the noise, and never beyond a quarter of R whatever the error says
         size_ok = (math.isfinite(free_r) and abs(free_r - R) <= tol + config.size_sigmas * se
-                   and abs(free_r - R) <= K.SIZE_LIMIT_FRACTION * R)
+                   and abs(free_r - R) <= config.size_limit_fraction * R)
     return float(min(max(score, 0.0), 1.0)), size_ok
 
 
@@ -543,7 +514,8 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
     gate: the kernel's early stop (default ``frame.gate``)."""
     out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refine_iterations, config.fit_max_points, RAY_S_MIN, config.noise_from_data,
+                       config.refine_iterations, config.fit_max_points, config.ray_s_min_fraction,
+                       config.noise_from_data,
                        frame.gate if gate is None else gate, buf, out, st)
     n = int(out[K.V_N])
     if n < config.min_inliers:  # too few, or failed the size check (-1)
@@ -563,21 +535,22 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
                      size_ok=size_ok)
 
 
-#: ``rescore``'s starts about a refined centre, in units of R: across the line of sight (camera x and y)
-#: and along it (z), where the refinement's optima lie a cm or two apart at 2-3 m.
-RESCORE_STARTS = ((0.2, 0.0, 0.0), (-0.2, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, -0.2, 0.0), (0.0, 0.0, 0.33),
-                  (0.0, 0.0, -0.33))
+def rescore_starts(config: DetectorConfig) -> tuple[tuple[float, float, float], ...]:
+    """``rescore``'s six starts about a refined centre (units of R): across the line of sight (camera x
+    and y) and along it (z), where the refinement's optima lie a cm or two apart at 2-3 m."""
+    a, b = config.rescore_offset_xy, config.rescore_offset_z
+    return ((a, 0.0, 0.0), (-a, 0.0, 0.0), (0.0, a, 0.0), (0.0, -a, 0.0), (0.0, 0.0, b), (0.0, 0.0, -b))
 
 
 def rescore(frame: Frame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
-    """A candidate near the score threshold, verified again from each of RESCORE_STARTS about its centre
+    """A candidate near the score threshold, verified again from each of ``rescore_starts`` about its centre
     (without the kernel's early stop, so that each start's whole score and size verdict count): its
     score becomes the mean of all (a start left with too few inliers counts 0) and its size check
     the majority's. The centre, evidence and fits stay the first verification's; stats gets
     "score_single", the first score (see ``DetectorConfig.rescore_band``)."""
     scores = [cand.score]
     size_ok = [cand.size_ok]
-    for off in RESCORE_STARTS:
+    for off in rescore_starts(config):
         v = verify_organised(frame, cand.center_m + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
         scores.append(0.0 if v is None else v.score)
         size_ok.append(v is not None and v.size_ok)
@@ -611,10 +584,10 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     free_c, free_r, free_se, _ = K.fit_free_radius(points, idx, c[0], c[1], c[2], R, 8)
     res = np.linalg.norm(points[idx].astype(np.float64) - c, axis=1) - R
     rmse = float(np.sqrt(np.mean(res * res)))
-    # a ball hides its interior: points in its inner half (and INTERIOR_BANDS shell half-widths under
+    # a ball hides its interior: points in its inner half (and ``interior_bands`` shell half-widths under
     # its surface) are another surface the sphere cuts (a wall, clutter) or volumetric noise; a noisy
     # sensor's returns off the ball itself do not reach that deep (a 16-beam LiDAR's do 3 cm deep)
-    r_in = min(R - INTERIOR_BANDS * e, 0.5 * R)
+    r_in = min(R - config.interior_bands * e, 0.5 * R)
     inside = float(K.inside_count(points, c[0], c[1], c[2], r_in)) if r_in > 0 else 0.0
     v_shell = (R + e) ** 3 - max(R - e, 0.0) ** 3  # volumes / (4 pi / 3)
     stats = {"inside": inside, "shell": float(n),
@@ -622,11 +595,6 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     score, size_ok = confidence(stats, n, float(free_r), float(free_se), config, False)
     return Candidate(center_m=c, inliers=idx, eps_m=e, free_center_m=np.asarray(free_c), free_radius_m=float(free_r),
                      free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
-
-
-#: Unorganised clouds: the interior whose points count against a ball is its inner half, and at least
-#: INTERIOR_BANDS eps under its surface.
-INTERIOR_BANDS = 3.0
 
 
 def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig,
@@ -659,7 +627,7 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
         if frame is not None and q < q_accepted - config.verify_score_margin:
             break
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
-        if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
+        if frame is None and q < config.verify_quality_fraction * quals[0]:
             break
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
         if any(math.dist(c0, v.center_m) < config.radius_m for v in found):

@@ -72,7 +72,7 @@ class Grid:
         """(mean range m or nan, valid count): mean depth times the ray length at the box's centre."""
         prm = self.prm
         s, n, a = self.box_sums(v, u, h)
-        if n == 0 or n < K.MIN_VALID * a * prm[K.P_CELL_PX]:
+        if n == 0 or n < prm[K.P_MIN_VALID] * a * prm[K.P_CELL_PX]:
             return math.nan, n
         b = prm[K.P_BIN]
         rx = (u * b + 0.5 * (b - 1.0) - prm[K.P_PPX]) / prm[K.P_FX]
@@ -89,9 +89,9 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     prm = g.prm
     R = prm[K.P_R]
     rr = prm[K.P_FX] / prm[K.P_BIN] * R / m0
-    hp = max(1, int(K.H_FRAC * rr + 0.5))
-    dp = int(K.PREFILTER_FRAC * rr + 0.5)
-    dg = int(K.PREFILTER_FRAC * rr * 0.7071067811865476 + 0.5)
+    hp = max(1, int(prm[K.P_H_FRAC] * rr + 0.5))
+    dp = int(prm[K.P_PREFILTER_FRAC] * rr + 0.5)
+    dg = int(prm[K.P_PREFILTER_FRAC] * rr * 0.7071067811865476 + 0.5)
     bb = prm[K.P_CELL_PX]
     s0, n0, _ = g.box_sums(v, u, 1)
     if n0 == 0:
@@ -101,7 +101,7 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     for du, dv in ((dp, 0), (0, dp), (dg, dg), (dg, -dg)):
         sa, na, aa = g.box_sums(v + dv, u + du, hp)
         sb, nb, ab = g.box_sums(v - dv, u - du, hp)
-        if na == 0 or nb == 0 or na < K.MIN_VALID * aa * bb or nb < K.MIN_VALID * ab * bb:
+        if na == 0 or nb == 0 or na < prm[K.P_MIN_VALID] * aa * bb or nb < prm[K.P_MIN_VALID] * ab * bb:
             continue
         q = 1000.0 * na / sa + 1000.0 * nb / sb - 2.0 * i0
         tol = 3.0 * prm[K.P_NOISE_A] * math.sqrt(1.0 / na + 1.0 / nb + 4.0 / n0) + prm[K.P_SLACK] * R / (m0 * m0)
@@ -134,8 +134,8 @@ def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float
     R = prm[K.P_R]
     dist = front + R
     rr = prm[K.P_FX] / prm[K.P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
-    hr = max(1, int(K.RING_H_FRAC * rr + 0.5))
-    dr = K.RING_FRAC * rr
+    hr = max(1, int(prm[K.P_RING_H_FRAC] * rr + 0.5))
+    dr = prm[K.P_RING_FRAC] * rr
     dd = dr * 0.7071067811865476
     bg = cont = 0
     for ou, ov in ((dr, 0.0), (-dr, 0.0), (0.0, dr), (0.0, -dr), (dd, dd), (-dd, dd), (dd, -dd), (-dd, -dd)):
@@ -144,7 +144,7 @@ def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float
             bg += 1
         elif m >= front - (3.0 * sig / math.sqrt(n) + prm[K.P_SLACK] * R):
             cont += 1
-            if cont > K.MAX_CONTINUED:
+            if cont > prm[K.P_MAX_CONTINUED]:
                 break
     return rr, bg, cont
 
@@ -159,17 +159,17 @@ def front_hypothesis(g: Grid, v: int, u: int):
     m0, _ = g.box_range(v, u, 1)
     if math.isnan(m0) or not plane_free(g, v, u, m0):
         return -math.inf, None
-    for step in range(K.DESCENT_STEPS + 1):
+    for step in range(int(prm[K.P_DESCENT_STEPS]) + 1):
         rr = fc * R / m0
         if rr < prm[K.P_RR_MIN] or rr > prm[K.P_RR_MAX]:
             return -math.inf, None
-        h = max(1, int(K.H_FRAC * rr + 0.5))
-        d = max(h + 1, int(K.D_FRAC * rr + 0.5))
+        h = max(1, int(prm[K.P_H_FRAC] * rr + 0.5))
+        d = max(h + 1, int(prm[K.P_D_FRAC] * rr + 0.5))
         m0, n0 = g.box_range(v, u, h)
         if math.isnan(m0):
             return -math.inf, None
         sides = [g.box_range(v, u - d, h), g.box_range(v, u + d, h), g.box_range(v - d, u, h), g.box_range(v + d, u, h)]
-        if step == K.DESCENT_STEPS:
+        if step == int(prm[K.P_DESCENT_STEPS]):
             break
         k = 0.5 * R / (rr * rr)
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
@@ -202,7 +202,7 @@ def front_hypothesis(g: Grid, v: int, u: int):
     if behind > 1 or agree + min(occluded, 1) < 3:
         return -math.inf, None
     rr, bg, cont = ring_boxes(g, v, u, front, sig)
-    if cont > K.MAX_CONTINUED:
+    if cont > prm[K.P_MAX_CONTINUED]:
         return -math.inf, None
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi, (v, u, front, rr, float(agree < 3))
 
@@ -258,7 +258,7 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     cx, cy, cz = centre
     dist = math.sqrt(float(centre @ centre))
     rpx = fx * radius / math.sqrt(max(dist * dist - radius * radius, 1e-12)) * dist / cz
-    rpx = rpx * K.RING_FACTOR * 1.05 + 2.0
+    rpx = rpx * prm[K.P_RING_FACTOR] * 1.05 + 2.0
     u0, v0 = fx * cx / cz + ppx, fy * cy / cz + ppy
     r = np.arange(max(0, int(math.floor(v0 - rpx))), min(h - 1, int(math.ceil(v0 + rpx))) + 1, stride)
     c = np.arange(max(0, int(math.floor(u0 - rpx))), min(w - 1, int(math.ceil(u0 + rpx))) + 1, stride)
@@ -285,15 +285,15 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     out[K.ST_FRONT] = front.sum()
     out[K.ST_FRONT_NEAR] = np.count_nonzero(front & (dt >= -0.5 * radius))
     out[K.ST_BEHIND] = np.count_nonzero(~inl & (dt >= 0))
-    inner_disc = m2[hit] <= K.PROFILE_OUTER * radius * radius
+    inner_disc = m2[hit] <= prm[K.P_PROFILE_OUTER] * radius * radius
     out[K.ST_VALID_INNER] = inner_disc.sum()
     out[K.ST_BEHIND_INNER] = np.count_nonzero(inner_disc & (dt > e))
     out[K.ST_EDGE_N] = np.count_nonzero(~inner_disc & (dt >= -e))
     out[K.ST_EDGE_BEHIND] = np.count_nonzero(~inner_disc & (dt > e))
-    ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (K.RING_FACTOR * radius) ** 2)
+    ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (prm[K.P_RING_FACTOR] * radius) ** 2)
     out[K.ST_RING] = ring.sum()
     out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
-    attached = (pn - tc >= -K.RING_FRONT_MAX * radius) & (pn - tc <= -K.RING_FRONT_MIN * radius)
+    attached = (pn - tc >= -prm[K.P_RING_FRONT_MAX] * radius) & (pn - tc <= -prm[K.P_RING_FRONT_MIN] * radius)
     out[K.ST_RING_FRONT] = np.count_nonzero(ring & (np.abs(pn - tc) > ring_band) & attached)
     sector = ring_sectors(cc[ok] - u0, rr[ok] - v0)
     joined = ring & ((np.abs(pn - tc) <= ring_band) | attached)
@@ -304,8 +304,8 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     mz = m2[hit][inl]
     d_in = dt[inl]
     horiz = (np.abs(du[hit]) >= np.abs(dv[hit]))[inl]
-    inner = mz <= K.PROFILE_INNER * radius * radius
-    outer = ~inner & (mz <= K.PROFILE_OUTER * radius * radius)
+    inner = mz <= prm[K.P_PROFILE_INNER] * radius * radius
+    outer = ~inner & (mz <= prm[K.P_PROFILE_OUTER] * radius * radius)
     out[K.ST_IN_N], out[K.ST_IN_SUM] = inner.sum(), d_in[inner].sum()
     out[K.ST_OUTH_N], out[K.ST_OUTH_SUM] = (outer & horiz).sum(), d_in[outer & horiz].sum()
     out[K.ST_OUTV_N], out[K.ST_OUTV_SUM] = (outer & ~horiz).sum(), d_in[outer & ~horiz].sum()

@@ -12,7 +12,7 @@ from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import sphere_circle_paper
 from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench.errors import SphereBenchError
-from spherebench.method import PAPER, config_for, detect
+from spherebench.method import IMPROVED, PAPER, config_for, detect
 from spherebench.method import _kernels as K
 from spherebench.method import sphere_model as sm
 
@@ -27,6 +27,12 @@ def cap_points(c, r, n, rng, visible=True):
     if visible:
         p = p[np.einsum("ij,ij->i", p - c, p) < 0]
     return p[:n]
+
+
+def kernel_parameters(intr: Intrinsics, config=IMPROVED) -> np.ndarray:
+    """The organised kernels' parameter vector for a full-resolution search of ``intr``'s image."""
+    from spherebench.method import improved as I
+    return I.parameters(config, intr, (1, 1), 1, (intr.height, intr.width), 10.0)
 
 
 def scene(ball_c=(0.1, -0.05, 1.0), ball_r=R, wall_z=1.8, noise=0.002, seed=0, width=160, height=120, box=False):
@@ -109,9 +115,9 @@ def test_refinement_exact_on_noiseless_cap():
     # the ray fit (noise along rays) is exact on noiseless data too, fixed and free radius
     rays = K.unit_rays(p, idx, np.empty((len(idx), 4)))
     assert np.allclose(rays[:, :3] * rays[:, 3:], p, atol=1e-6)
-    cc, r, _, rms = K.fit_ray(rays, *(c + 0.005), R, False, 60, 0.03)
+    cc, r, _, rms = K.fit_ray(rays, *(c + 0.005), R, False, 60, 0.03, 0.3)
     assert np.linalg.norm(cc - c) < 1e-7 and rms < 1e-7
-    cc, r, se, _ = K.fit_ray(rays, *(c + 0.005), R + 0.005, True, 60, 0.03)
+    cc, r, se, _ = K.fit_ray(rays, *(c + 0.005), R + 0.005, True, 60, 0.03, 0.3)
     assert np.linalg.norm(cc - c) < 1e-6 and abs(r - R) < 1e-6
 
 
@@ -132,10 +138,10 @@ def test_window_stats_classifies_pixels():
     img = K.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
     out = np.zeros(K.N_STATS)
     c = np.array([0.1, -0.05, 1.0])
-    K.window_stats(cloud.points, img, *c, R, 0.005, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+    K.window_stats(cloud.points, img, *c, 0.005, 0.005, kernel_parameters(intr), 1, out)
     assert out[K.ST_INLIER] > 100 and out[K.ST_BEHIND] <= 0.02 * out[K.ST_VALID_DISC]
     # a sphere 3 cm smaller at the same place: its disc sees the ball in front of it (occluded)
-    K.window_stats(cloud.points, img, *(c + [0, 0, 0.05]), R, 0.005, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+    K.window_stats(cloud.points, img, *(c + [0, 0, 0.05]), 0.005, 0.005, kernel_parameters(intr), 1, out)
     assert out[K.ST_FRONT] > out[K.ST_INLIER]
 
 
@@ -152,10 +158,11 @@ def test_edge_band_tells_a_smaller_ball():
         img = K.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
         centre = c * (1.0 + (R - r) / np.linalg.norm(c))
         out = np.zeros(K.N_STATS)
-        K.window_stats(cloud.points, img, *centre, R, 0.005, 0.005, intr.fx, intr.fy, intr.ppx, intr.ppy, 1, out)
+        K.window_stats(cloud.points, img, *centre, 0.005, 0.005, kernel_parameters(intr), 1, out)
         share = out[K.ST_EDGE_BEHIND] / out[K.ST_EDGE_N]
         assert out[K.ST_EDGE_N] > 50 and (share < 0.05 if r == R else share > 0.5), (r, share)
-        excess[r] = I.edge_behind_excess({"edge_n": out[K.ST_EDGE_N], "edge_behind": out[K.ST_EDGE_BEHIND]})
+        excess[r] = I.edge_behind_excess({"edge_n": out[K.ST_EDGE_N], "edge_behind": out[K.ST_EDGE_BEHIND]},
+                                         IMPROVED.edge_behind_free)
     assert excess[R] == 0.0 and excess[0.11] > 0.1
 
 
@@ -195,7 +202,7 @@ def test_ring_spread_tells_support_from_embedding():
                                 ("embedded", embedded, c)):
         v = I.verify_organised(prepare_frame(cloud, cfg), centre, cfg, buf)
         spread[name] = v.stats["ring_spread"]
-    assert max(spread["floor"], spread["rolled"]) < I.RING_SPREAD_FREE < 0.2 < spread["embedded"], spread
+    assert max(spread["floor"], spread["rolled"]) < IMPROVED.ring_spread_free < 0.2 < spread["embedded"], spread
 
 
 # ------------------------------------------------------------------------------------ detection
@@ -419,13 +426,14 @@ def test_cylinder_of_the_ball_radius_is_not_a_ball(top_y):
 def test_see_through_excess_follows_noise():
     from spherebench.method import improved as imp
     stats = {"valid_inner": 400.0, "behind_inner": 4.0, "sigma_m": 0.01, "eps_m": 0.025}
-    assert imp.see_through_excess(stats) == 0.0  # 1 %: the noise's tail
+    assert imp.see_through_excess(stats, IMPROVED.see_through_free) == 0.0  # 1 %: the noise's tail
     stats["behind_inner"] = 80.0  # 20 %: seen through
     q = 0.5 * math.erfc(2.5 / math.sqrt(2.0))
-    assert imp.see_through_excess(stats) == pytest.approx(0.2 - q - 3 * math.sqrt(q * (1 - q) / 400) - imp.SEE_THROUGH_FREE)
+    want = 0.2 - q - 3 * math.sqrt(q * (1 - q) / 400) - IMPROVED.see_through_free
+    assert imp.see_through_excess(stats, IMPROVED.see_through_free) == pytest.approx(want)
     # a band capped below the noise lets more through without penalty
     stats["eps_m"] = 0.01
-    assert imp.see_through_excess(stats) == 0.0
+    assert imp.see_through_excess(stats, IMPROVED.see_through_free) == 0.0
 
 
 def test_relief_test_is_one_sided():
@@ -434,17 +442,17 @@ def test_relief_test_is_one_sided():
     def stats(inner_m, outer_h_m, outer_v_m=0.0):
         return {"inner_n": 100.0, "inner_sum": 100.0 * inner_m, "outer_h_n": 80.0, "outer_h_sum": 80.0 * outer_h_m,
                 "outer_v_n": 80.0, "outer_v_sum": 80.0 * outer_v_m, "sigma_m": 0.01}
-    assert imp.relief_agreement(stats(0.0, 0.0), R) == 1.0  # a sphere
+    assert imp.relief_agreement(stats(0.0, 0.0), IMPROVED) == 1.0  # a sphere
     se = 0.01 * math.sqrt(1 / 100 + 1 / 80)
-    floor = imp.RELIEF_FLOOR_FRACTION * R
+    floor = IMPROVED.relief_floor_fraction * R
     # flatter than the sphere along x (a cylinder's top, a box's edge): behind it inside, in front outside
     t = (0.02 - floor) / se
-    want = math.exp(-0.5 * (t - imp.RELIEF_FREE_SIGMAS) ** 2)
-    assert imp.relief_agreement(stats(0.01, -0.01), R) == pytest.approx(want)
-    assert imp.relief_agreement(stats(0.0, 0.0, -0.02), R) == pytest.approx(want)  # or along y
+    want = math.exp(-0.5 * (t - IMPROVED.relief_free_sigmas) ** 2)
+    assert imp.relief_agreement(stats(0.01, -0.01), IMPROVED) == pytest.approx(want)
+    assert imp.relief_agreement(stats(0.0, 0.0, -0.02), IMPROVED) == pytest.approx(want)  # or along y
     assert want < 0.01
     # more curved (a smaller ball): left to the size check and the edge band
-    assert imp.relief_agreement(stats(-0.01, 0.01, 0.01), R) == 1.0
+    assert imp.relief_agreement(stats(-0.01, 0.01, 0.01), IMPROVED) == 1.0
 
 
 def test_same_seed_same_output():
@@ -570,4 +578,44 @@ def test_sensor_noise_and_size_tolerance_settings():
     assert size_tolerance(config_for("improved", radius_m=0.05)) == 0.004
     for bad in ({"noise_z2_per_m": -1.0}, {"noise_z2_per_m": float("nan")}, {"size_tolerance_fraction": 2.0}):
         with pytest.raises(SphereBenchError):
+            config_for("improved", **bad)
+
+
+def test_outcome_constants_are_configuration_fields():
+    """The search's geometry, the refinement's bands and the evidence's allowances reach the kernels
+    from DetectorConfig (so that `sweep --set` can vary each), and each one changes the outcome."""
+    from spherebench.method import improved as I
+
+    intr = Intrinsics.d435(424, 240)
+    fields = {K.P_H_FRAC: "box_half_fraction", K.P_D_FRAC: "box_offset_fraction", K.P_RING_FRAC: "ring_offset_fraction",
+              K.P_RING_H_FRAC: "ring_half_fraction", K.P_PREFILTER_FRAC: "prefilter_offset_fraction",
+              K.P_DESCENT_STEPS: "descent_steps", K.P_MIN_VALID: "box_min_valid",
+              K.P_MAX_CONTINUED: "pretest_max_continued", K.P_RING_FACTOR: "ring_factor",
+              K.P_PROFILE_INNER: "profile_inner_sq", K.P_PROFILE_OUTER: "profile_outer_sq",
+              K.P_RING_FRONT_MIN: "ring_front_min_fraction", K.P_RING_FRONT_MAX: "ring_front_max_fraction",
+              K.P_FIRST_BAND: "first_band_fraction", K.P_FIRST_STEPS: "first_steps",
+              K.P_COARSE_BAND: "coarse_band_fraction", K.P_SIZE_LIMIT: "size_limit_fraction",
+              K.P_SE_S_MIN: "radius_se_s_min_fraction"}
+    assert len(fields) == K.N_PRM - 17
+    base = kernel_parameters(intr)
+    for index, name in fields.items():
+        value = getattr(IMPROVED, name)
+        assert base[index] == value, name
+        other = value + 1 if isinstance(value, int) else value * 0.9  # within every field's valid range
+        changed = kernel_parameters(intr, dataclasses.replace(IMPROVED, **{name: other}))
+        assert changed[index] == other and np.count_nonzero(changed != base) == 1, name
+    ball = scene()
+    assert len(detect(ball, seed=0)) == 1
+    # a size limit below the free radius's error loses the ball; so does a floor under it priced out of reach
+    assert detect(ball, config_for("improved", size_limit_fraction=1e-4), seed=0) == []
+    on_floor = scene(ball_c=(0.1, 0.13, 1.0), box=True, noise=0.002, width=424, height=240)
+    assert len(detect(on_floor, seed=0)) == 1
+    assert detect(on_floor, config_for("improved", ring_front_free=0.0, ring_front_power=1e4), seed=0) == []
+
+
+def test_outcome_constants_refuse_absurd_values():
+    for bad in ({"ring_factor": 0.9}, {"profile_inner_sq": 0.9}, {"box_min_valid": 1.5}, {"descent_steps": -1},
+                {"pretest_max_continued": 9}, {"ring_front_min_fraction": 2.0}, {"ring_spread_power": -1.0},
+                {"noise_estimate_keep": 1.5}, {"first_steps": 0}):
+        with pytest.raises(SphereBenchError, match=next(iter(bad))):
             config_for("improved", **bad)

@@ -72,8 +72,7 @@ def test_window_stats_compiled_equals_reference():
     c = np.array([0.102, -0.049, 1.003])
     for stride in (1, 2):
         got = np.zeros(K.N_STATS)
-        K.window_stats(cloud.points, frame.index_image, *c, R, 0.006, 0.004, *(frame.prm[k] for k in
-                       (K.P_FX, K.P_FY, K.P_PPX, K.P_PPY)), stride, got)
+        K.window_stats(cloud.points, frame.index_image, *c, 0.006, 0.004, frame.prm, stride, got)
         want = ref.window_stats(cloud.points, frame.index_image, c, 0.006, 0.004, frame.prm, stride)
         assert np.allclose(got, want, rtol=1e-5, atol=2e-5)  # residual sums: the kernel rounds differently
         assert got[K.ST_INLIER] > 0.7 * got[K.ST_VALID_DISC] and got[K.ST_IN_N] > 10 and got[K.ST_OUTV_N] > 10
