@@ -8,7 +8,7 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: eval test venv data data-hard data-train realdata bench sweep sweep-train train train-full train-hg eval-real clean distclean
+.PHONY: eval test venv data data-hard data-robust data-train realdata bench sweep sweep-train train train-full train-hg eval-real clean distclean
 
 # ---- environment: the virtual environment, created when missing
 venv: .venv/.installed
@@ -22,6 +22,7 @@ venv: .venv/.installed
 # ---- data: simulated presets, built once and cached (delete data/ to rebuild)
 data: $(DATA)/default/coco_gt.json $(DATA)/paper/coco_gt.json
 data-hard: $(DATA)/hard/coco_gt.json
+data-robust: $(DATA)/robust/coco_gt.json
 data-train: $(DATA)/train/coco_gt.json
 
 $(DATA)/%/coco_gt.json: | venv
@@ -38,9 +39,9 @@ $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 	$(SB) prepare --preset-source lidar-spherecalib $(REALDATA)/spherecalib_lidar --out $(DATA)/real/lidar-spherecalib
 
 # ---- the benchmark
-# every method on data/default and data/hard, Table 2 on data/paper -> results/ (resumable;
-# FORCE=1 recomputes every prediction set)
-eval: venv data data-hard
+# every method on data/default, data/hard and data/robust (the sensor grid), Table 2 on data/paper
+# -> results/ (resumable; FORCE=1 recomputes every prediction set)
+eval: venv data data-hard data-robust
 	$(PY) scripts/run_eval.py --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
 
 # the recorded data sets (data/real/*) -> results/real/

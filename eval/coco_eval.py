@@ -35,6 +35,7 @@ import io
 import json
 import math
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from pycocotools.coco import COCO
@@ -159,14 +160,29 @@ def load_results(coco_gt: COCO, results: list[dict], verbose: bool = False) -> C
 
 
 class CircleCOCOeval(COCOeval):
-    """pycocotools' COCOeval with circle IoU and CircleNet's parameters (maxDets 1, 10, 1000)."""
+    """pycocotools' COCOeval with circle IoU and CircleNet's parameters (maxDets 1, 10, 1000).
 
-    def __init__(self, coco_gt: COCO, coco_dt: COCO):
+    keep_gt: None, or a predicate on a ground-truth annotation: the annotations it rejects become
+    COCO's ignored ground truth (as those outside an area range): a detection matched to one
+    counts neither as a true nor as a false positive, and an unmatched detection stays a false
+    positive.
+    """
+
+    def __init__(self, coco_gt: COCO, coco_dt: COCO, keep_gt: Callable[[dict], bool] | None = None):
         super().__init__(coco_gt, coco_dt, iouType="bbox")  # 'bbox' selects the detection params
         self.params.iouThrs = IOU_THRESHOLDS.copy()
         self.params.maxDets = list(MAX_DETS)
         self.params.areaRng = [list(v) for v in AREA_RANGES.values()]
         self.params.areaRngLbl = list(AREA_RANGES)
+        self.keep_gt = keep_gt
+
+    def _prepare(self):
+        super()._prepare()  # sets every annotation's 'ignore' to its iscrowd, each evaluation anew
+        if self.keep_gt is not None:
+            for gts in self._gts.values():
+                for g in gts:
+                    if not self.keep_gt(g):
+                        g["ignore"] = 1
 
     def computeIoU(self, imgId, catId):  # noqa: N802 (pycocotools' name)
         """Circle IoU (D, G) of one image's detections (score order, top maxDets) and ground truths."""
@@ -198,12 +214,15 @@ def _mean_valid(values: np.ndarray) -> float:
 
 
 def evaluate_circles(gt: dict | str | Path | COCO, results: list[dict], image_ids=None,
-                     verbose: bool = False) -> dict:
+                     verbose: bool = False, keep_gt: Callable[[dict], bool] | None = None) -> dict:
     """COCO metrics with circle IoU of ``results`` against ``gt``, optionally on a subset of images.
 
     gt: a COCO dict, a JSON file, or a COCO object from ``load_ground_truth``.
     results: [{image_id, category_id, circle_center [x, y], circle_radius, score}], pixels.
     image_ids: the images to score (detections elsewhere are ignored); None = all.
+    keep_gt: score only the ground truth this predicate accepts (an annotation dict, with its own
+    fields such as center_m); the rest is ignored ground truth (``CircleCOCOeval``), e.g. the
+    balls outside a range band. None = all.
     Returns floats (NaN where no ground truth is in scope):
       mAP (AP at IoU .50:.95, maxDets 1000), mAP50, mAP75, mAP_small/medium/large,
       mAR (AR at IoU .50:.95, maxDets 1000), mAR1, mAR10, mAR_small/medium/large,
@@ -215,7 +234,7 @@ def evaluate_circles(gt: dict | str | Path | COCO, results: list[dict], image_id
     """
     coco_gt = gt if isinstance(gt, COCO) else load_ground_truth(gt, verbose=verbose)
     coco_dt = load_results(coco_gt, results, verbose=verbose)
-    ev = CircleCOCOeval(coco_gt, coco_dt)
+    ev = CircleCOCOeval(coco_gt, coco_dt, keep_gt=keep_gt)
     all_ids = sorted(coco_gt.getImgIds())
     if image_ids is not None:
         subset = sorted(set(image_ids))
@@ -247,7 +266,8 @@ def evaluate_circles(gt: dict | str | Path | COCO, results: list[dict], image_id
         out[f"mAR_{lbl}"] = _mean_valid(recall[:, :, a, m_max])
     scope = set(p.imgIds)
     out["n_images"] = len(scope)
-    out["n_gt"] = sum(1 for a in coco_gt.dataset["annotations"] if a["image_id"] in scope and not a["iscrowd"])
+    out["n_gt"] = sum(1 for a in coco_gt.dataset["annotations"] if a["image_id"] in scope and not a["iscrowd"]
+                      and (keep_gt is None or keep_gt(a)))
     out["n_detections"] = sum(1 for a in coco_dt.dataset["annotations"] if a["image_id"] in scope)
     pr = precision[:, :, :, a_all, m_max].astype(np.float64)  # (T, R, K)
     valid = pr > -1

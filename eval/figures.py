@@ -1,7 +1,9 @@
 """The benchmark's figures (matplotlib, Agg): precision-recall curves, centre error against
-distance, latency per method, and a grid of example scenes with true and predicted circles.
+distance, latency per method, a grid of example scenes with true and predicted circles, and the
+robustness figure of a grid preset (rates per sensor condition and range band).
 
-Each function draws from scored prediction sets (``eval.report.ScoredSet``) and writes one PNG.
+Each function draws from scored prediction sets (``eval.report.ScoredSet``), or ``robustness`` from
+the per-cell rows that metrics.json holds, and writes one PNG.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from spherebench.eval.circle_iou import circle_iou_matrix  # noqa: E402
+from spherebench.eval.sensor_grid import ceiling_key, level_label  # noqa: E402
 
 RECALL = np.linspace(0.0, 1.0, 101)
 #: Methods drawn on the example scenes, with their colours (matplotlib names).
@@ -171,4 +174,77 @@ def examples(label: str, data_dir: Path, sets: Sequence, coco_gt: dict, path: Pa
         plt.Line2D([], [], color=col, ls="--", label=name) for name, col in EXAMPLE_METHODS if name in by_name]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8)
     fig.suptitle(f"`{label}`: examples for {primary.output} (top: best matches; bottom: failures)", fontsize=10)
+    _save(fig, path)
+
+
+#: The robustness figure's lines: (correlation, dropouts) -> (line style, marker), in the grid's order.
+ROBUST_LINES = {("none", "off"): ("-", "o"), ("none", "on"): ("--", "o"),
+                ("1px", "off"): ("-", "^"), ("1px", "on"): ("--", "^")}
+
+
+def robustness(label: str, rows_by_method: dict, path: Path, ceiling: dict | None = None,
+               ceiling_method: str = "improved") -> None:
+    """The 3D detection rate (within 2 cm) and the 2D mAP.50 against subpixel, per range band: one
+    row of panels per method (its colour), three bands of each metric side by side; correlation
+    and dropouts as line styles (``ROBUST_LINES``: solid dropouts off, dashed on; circles
+    correlation none, triangles 1 px), the four lines nudged apart in x.
+
+    rows_by_method: {method: its ``sensor_cells`` rows (``eval.sensor_grid.grid_rows``, as in
+    metrics.json)}, in drawing order. A method without 3D centres leaves its 3D panels blank.
+    ceiling: the hook for an oracle's per-cell ceiling of the detection rate, {(subpixel,
+    correlation, dropouts, band label e.g. "0-1 m"): rate in 0-1} (``sensor_grid.ceiling_key``),
+    drawn as a grey marker beside ``ceiling_method``'s rate in its 3D panels; None: none drawn.
+    """
+    methods = [m for m, rows in rows_by_method.items() if rows]
+    bands = list(dict.fromkeys(r["band"] for m in methods for r in rows_by_method[m]))
+    levels = sorted({r["subpixel"] for m in methods for r in rows_by_method[m]})
+    n_rows, n_cols = max(1, len(methods)), 2 * max(1, len(bands))
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.55 * n_cols, 1.9 * n_rows + 1.2), sharex=True, sharey=True,
+                             squeeze=False, layout="constrained")
+    span = (levels[-1] - levels[0]) if len(levels) > 1 else 0.1
+    nudge = {k: (i - 1.5) * 0.02 * span for i, k in enumerate(ROBUST_LINES)}
+    colours = _colours(max(len(methods), 1))
+    for j, name in enumerate(("3D found within 2 cm", "2D mAP.50")):
+        for b, band in enumerate(bands):
+            n = [r["n_balls"] for r in rows_by_method[methods[0]] if r["band"] == band
+                 and r.get("n_balls") is not None] if methods else []
+            count = "" if not n else f"\n{min(n)}-{max(n)} balls per cell" if min(n) != max(n) else \
+                f"\n{n[0]} balls per cell"
+            axes[0, j * len(bands) + b].set_title(f"{name}, {band}{count}", fontsize=9)
+    for i, method in enumerate(methods):
+        rows = rows_by_method[method]
+        axes[i, 0].set_ylabel(method, fontsize=9)
+        for j, metric in enumerate(("within_2cm", "mAP50")):
+            for b, band in enumerate(bands):
+                ax = axes[i, j * len(bands) + b]
+                ax.grid(alpha=0.3)
+                in_band = [r for r in rows if r["band"] == band]
+                if all(r.get(metric) is None for r in in_band):
+                    ax.text(0.5, 0.5, "no 3D centre" if metric == "within_2cm" else "no 2D score",
+                            transform=ax.transAxes, ha="center", va="center", fontsize=8, color="grey")
+                    continue
+                for line, (ls, marker) in ROBUST_LINES.items():
+                    pts = sorted((r["subpixel"], r[metric]) for r in in_band
+                                 if (r["correlation"], r["dropouts"]) == line and r.get(metric) is not None)
+                    if pts:
+                        x, y = np.asarray(pts, np.float64).T
+                        ax.plot(x + nudge[line], y, ls=ls, marker=marker, color=colours[i], lw=1.2, ms=4,
+                                mfc="white" if line[1] == "on" else colours[i])
+                    if ceiling and method == ceiling_method and metric == "within_2cm":
+                        keys = [ceiling_key(r) for r in in_band if (r["correlation"], r["dropouts"]) == line]
+                        cx = [(k[0], ceiling[k]) for k in keys if ceiling.get(k) is not None]
+                        if cx:
+                            x, y = np.asarray(cx, np.float64).T
+                            ax.scatter(x + nudge[line] + 0.01 * span, y, marker=marker, s=22, color="grey", zorder=1.5)
+    for ax in axes[-1]:
+        ax.set_xlabel("subpixel (px)", fontsize=8)
+        ax.set_xticks(levels, [level_label(v) for v in levels], fontsize=7)
+    axes[0, 0].set_ylim(-0.03, 1.05)
+    handles = [plt.Line2D([], [], color="black", ls=ls, marker=mk, mfc="white" if line[1] == "on" else "black",
+                          label=f"correlation {line[0]}, dropouts {line[1]}") for line, (ls, mk) in ROBUST_LINES.items()]
+    if ceiling:
+        handles.append(plt.Line2D([], [], color="grey", ls="", marker="o", label=f"ceiling of {ceiling_method}"))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8)
+    fig.suptitle(f"`{label}`: detection rate and mAP.50 against the sensor's subpixel noise, per range band "
+                 "(true distance to the ball's surface)", fontsize=10)
     _save(fig, path)

@@ -32,6 +32,8 @@ import numpy as np
 from spherebench.datasets import io
 from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
 from spherebench.eval.metrics3d import match_scene, summarize_3d
+from spherebench.eval.sensor_grid import (GRID_AXES, band_of, detection_rates, grid_key, grid_rows, level_label,
+                                          map50_by_group, surface_distance_m)
 from spherebench.eval.runner import PAPER_CIRCLE, SceneInfo, _json_safe, machine_info, read_predictions
 
 #: The paper's Table 3 (Roman-Rivera et al. 2023), on its own 200 hand-masked images.
@@ -88,7 +90,9 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
     methods: ``summarize_3d`` over the scenes with known centres, gate one ball radius; radius
     error only where the method estimates a radius); "ms" (median, p95, mean) and
     "ms_by_resolution"; ms_median / ms_p95; n_scenes_run; "unannotated" detection statistics for
-    scenes without ground truth.
+    scenes without ground truth; on a grid preset (scenes with a sensor cell) "sensor_cells", the
+    3D detection rate within 2 cm and mAP.50 per cell and range band, and "sensor_levels", the same
+    per subpixel pooled over the other axes (``sensor_rows``).
     """
     results, meta = read_predictions(pred_path)
     by_id = {s.scene_id: s for s in scenes}
@@ -98,6 +102,7 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
     m: dict = {"n_scenes_run": len(records), "note": meta.get("note", "")}
     out = ScoredSet(output=meta["output"], method=meta["method"], kind=meta["kind"], rule=meta.get("rule"),
                     note=meta.get("note", ""), metrics=m, ms=ms, scenes=records, results=results)
+    gt = None
     if run_images and coco_gt.get("annotations") is not None:
         gt = load_ground_truth(coco_gt)
         ev = evaluate_circles(gt, results, image_ids=run_images)
@@ -113,8 +118,9 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
             f = scalar_metrics(evaluate_circles(gt, results, image_ids=families[fam]))
             m["families"][fam] = {k: f.get(k) for k in ("mAP", "mAP50", "mAP75", "mAR", "n_images", "n_gt",
                                                         "n_detections")}
+    ball_errors = None
     if meta["kind"] == "3d" and _centres_known(scenes):
-        matches = []
+        matches, ball_errors = [], []
         for r in records:
             s = by_id.get(r["scene_id"])
             if s is None or not s.annotated:
@@ -124,10 +130,15 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
             ps = np.asarray([d["score"] for d in dets], np.float64)
             pr = np.asarray([np.nan if d.get("radius_m") is None else d["radius_m"] for d in dets], np.float64)
             matches.append(match_scene(pc, ps, s.gt_centres_m, pred_radii_m=pr, gt_radii_m=s.gt_radii_m))
+            ball_errors.append((s, matches[-1].centre_error_m))
         if matches:
             m["3d"] = _json_safe(summarize_3d(matches))
             out.distance_m = np.concatenate([mm.gt_distance_m for mm in matches])
             out.centre_error_m = np.concatenate([mm.centre_error_m for mm in matches])
+    cells = {r["scene_id"]: r.get("sensor_cell") or by_id[r["scene_id"]].sensor_cell for r in records}
+    if any(cells.values()):
+        for key, axes in (("sensor_cells", GRID_AXES), ("sensor_levels", ("subpixel",))):
+            m[key] = _json_safe(sensor_rows(cells, by_id, gt, results, ball_errors, axes))
     m["ms"] = _stats_ms(ms)
     m["ms_median"], m["ms_p95"] = m["ms"]["median"], m["ms"]["p95"]
     res_groups: dict[str, list[float]] = {}
@@ -142,6 +153,39 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
         m["scenes_refused"] = sum(errors.values())
         m["refused_reason"] = errors.most_common(1)[0][0]
     return out
+
+
+def sensor_rows(cells: dict, by_id: dict, gt, results: list, ball_errors: list | None,
+                axes: Sequence[str] = GRID_AXES) -> list[dict]:
+    """``sensor_grid.grid_rows`` of one prediction set: groups by the levels of ``axes`` of each
+    scene's sensor cell (cells: scene id -> cell, in record order) and range band.
+
+    ball_errors: [(SceneInfo, its balls' centre errors (m), NaN = missed)] of a 3D method, else None;
+    gt: the ground truth as a COCO object (None: no mAP); results: the COCO results."""
+    scene_keys = [grid_key(cell, axes) for cell in cells.values()]
+    rates = None
+    if ball_errors is not None:
+        keys, errors = [], []
+        for scene, errs in ball_errors:
+            key = grid_key(cells.get(scene.scene_id), axes)
+            for centre, radius, err in zip(scene.gt_centres_m, scene.gt_radii_m, errs):
+                band = band_of(surface_distance_m(centre, radius))
+                keys.append(None if key is None or band is None else key + (band,))
+                errors.append(err)
+        rates = detection_rates(keys, errors)
+    maps = None
+    if gt is not None:
+        image_keys = {by_id[sid].image_id: grid_key(cell, axes) for sid, cell in cells.items()
+                      if by_id[sid].image_id is not None}
+        radius = {s.image_id: s.gt_radii_m[0] for s in by_id.values() if s.gt_radii_m}
+
+        def ann_band(a: dict) -> str | None:
+            c, r = a.get("center_m"), radius.get(a["image_id"])
+            return None if c is None or r is None else band_of(surface_distance_m(c, r))
+
+        if image_keys:
+            maps = map50_by_group(gt, results, image_keys, ann_band)
+    return grid_rows(scene_keys, rates, maps, axes)
 
 
 def not_run(s: ScoredSet) -> str | None:
@@ -285,6 +329,41 @@ def family_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
                  notes=["Each cell: mAP.50 / mAP (.50:.95). A family without any basketball (negatives) has no AP "
                         "('–'): its false positives lower the other families' precision only in the overall figure.",
                         "; ".join(counts) + "."])
+
+
+def _found(r: dict) -> str:
+    """'0.984 (63/64)' of a sensor row's 3D detection rate, '–' without one."""
+    if r.get("within_2cm") is None:
+        return "–"
+    return f"{_fmt(r['within_2cm'])} ({r['found_2cm']}/{r['n_balls']})"
+
+
+def sensor_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
+    """Per subpixel and range band, pooled over the grid's other axes: each method's 3D detection rate
+    within 2 cm (found / balls) and mAP.50 (``sensor_levels``; the figure splits the other axes)."""
+    rows, bands = [], []
+    for s in sets:
+        levels = s.metrics.get("sensor_levels")
+        if not levels or s.rule == "paper" or not_run(s):
+            continue
+        bands = bands or list(dict.fromkeys(r["band"] for r in levels))
+        for sub in dict.fromkeys(r["subpixel"] for r in levels):
+            by_band = {r["band"]: r for r in levels if r["subpixel"] == sub}
+            rows.append([s.method, level_label(sub)] + [_found(by_band.get(b, {})) for b in bands]
+                        + [_fmt(by_band.get(b, {}).get("mAP50")) for b in bands])
+    if not rows:
+        return None
+    return Table(name=f"sensor_{label}", title=f"Per sensor noise level and range band on `{label}`",
+                 columns=["method", "subpixel (px)"] + [f"found <= 2 cm, {b}" for b in bands]
+                 + [f"mAP.50, {b}" for b in bands], rows=rows,
+                 notes=["Each subpixel level pools its cells over noise correlation (none, 1 px) and low-texture "
+                        "dropouts (off, on); the robustness figure shows the cells apart. Bands: the ball's true "
+                        "distance to its nearest surface.",
+                        "Found: balls whose matched detection is within 2 cm of the true centre, over the band's "
+                        "balls. mAP.50: COCO AP at circle IoU 0.50 over the level's images, the balls of other bands "
+                        "being COCO's ignored ground truth (a detection matched to one counts nowhere); a detection "
+                        "matched to no ball is a false positive in every band.",
+                        "Per-cell figures (all three axes) are in metrics.json under `sensor_cells`."])
 
 
 def _estimates_radius(s: ScoredSet) -> bool:
@@ -469,11 +548,60 @@ def _get(sets: Sequence[ScoredSet], output: str) -> ScoredSet | None:
     return next((s for s in sets if s.output == output), None)
 
 
+def _level_rate(levels: Sequence[dict], subpixel, bands: Sequence[str]) -> str:
+    """'98.4' (% found within 2 cm) over a subpixel level's rows in ``bands``, '–' without balls."""
+    rows = [r for r in levels if r["subpixel"] == subpixel and r["band"] in bands and r.get("found_2cm") is not None]
+    n = sum(r["n_balls"] for r in rows)
+    return f"{100 * sum(r['found_2cm'] for r in rows) / n:.1f}" if n else "–"
+
+
+def robust_reading(label: str, sets: Sequence[ScoredSet], default: Sequence[ScoredSet] | None) -> list[str]:
+    """The reading of a grid preset (``robust``): the best mAP, and the improved detector's rate and the
+    best 2D method's mAP.50 per subpixel level (pooled over the other axes), as the figure shows them."""
+    from spherebench.eval.sensor_grid import RANGE_BANDS_M, band_label
+    out = []
+    scored = [s for s in sets if s.metrics.get("mAP") is not None and not not_run(s)]
+    if scored:
+        best = max(scored, key=lambda s: s.metrics["mAP"])
+        out.append(f"On `{label}` (`default`'s scenes over a grid of sensor conditions: subpixel noise, its "
+                   f"correlation, low-texture dropouts) the best circle mAP is {best.output}'s, "
+                   f"{best.metrics['mAP']:.3f} (mAP.50 {best.metrics['mAP50']:.3f}).")
+    near = [band_label(b) for b in RANGE_BANDS_M if b[1] <= 2.0]
+    far = [band_label(b) for b in RANGE_BANDS_M if b[0] >= 2.0]
+    i = _get(sets, "improved")
+    if i is not None and i.metrics.get("3d") and i.metrics.get("sensor_levels"):
+        levels = i.metrics["sensor_levels"]
+        subs = list(dict.fromkeys(r["subpixel"] for r in levels))
+        d = i.metrics["3d"]
+        ref = _get(default or [], "improved")
+        ref_txt = (f" ({100 * ref.metrics['3d']['within_2cm']:.1f} % on `default`)"
+                   if ref is not None and ref.metrics.get("3d") else "")
+        out.append(f"On `{label}`, `improved` finds {100 * d['within_2cm']:.1f} % of the balls within 2 cm{ref_txt}, "
+                   f"with {d['false_detections']} false detections in {d['n_scenes']} scenes. By subpixel "
+                   f"{' / '.join(level_label(v) for v in subs)} px (pooled over correlation and dropouts): "
+                   f"{' / '.join(_level_rate(levels, v, near) for v in subs)} % of the balls within 2 m of the camera, "
+                   f"{' / '.join(_level_rate(levels, v, far) for v in subs)} % at 2-3 m; the robustness figure splits "
+                   "the cells.")
+    nets = [s for s in scored if s.kind == "2d" and s.metrics.get("sensor_levels")]
+    if nets:
+        best2d = max(nets, key=lambda s: s.metrics["mAP50"])
+        levels = best2d.metrics["sensor_levels"]
+        subs = list(dict.fromkeys(r["subpixel"] for r in levels))
+        per = {b: " / ".join(_fmt(next((r["mAP50"] for r in levels if r["subpixel"] == v and r["band"] == b), None))
+                             for v in subs) for b in (near + far)}
+        out.append(f"The best 2D method on `{label}` at IoU 0.50, {best2d.output} (mAP.50 "
+                   f"{best2d.metrics['mAP50']:.3f}), scores mAP.50 " + "; ".join(f"{v} at {b}" for b, v in per.items())
+                   + " over the same subpixel levels.")
+    return out
+
+
 def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | None, skipped: dict[str, str]) -> list[str]:
     """A short reading of the results, computed from them (no number here is typed in by hand)."""
     out = []
     for label, sets in per_dataset.items():
         if label in ("default", "hard"):
+            continue
+        if any(s.metrics.get("sensor_levels") for s in sets):  # a grid preset: read after default and hard
             continue
         scored = [s for s in sets if s.metrics.get("mAP") is not None and not not_run(s)]
         if scored:
@@ -549,6 +677,9 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
             best = max(scored, key=lambda s: s.metrics["mAP"])
             out.append(f"The best `hard` mAP is {best.output}'s, {best.metrics['mAP']:.3f}; see the per-family table "
                        "for where each method fails.")
+    for label, sets in per_dataset.items():
+        if label not in ("default", "hard") and any(s.metrics.get("sensor_levels") for s in sets):
+            out += robust_reading(label, sets, default)
     if t2:
         e1 = [r for r in t2 if r["scene"] == "E1" and r.get("rmse_barycentre") is not None]
         if e1:
@@ -581,17 +712,36 @@ def readme(title: str, intro: list[str], per_dataset: dict[str, Sequence[ScoredS
         lines += [t.markdown(), f"(`tables/{t.name}.csv`, `tables/{t.name}.md`)", ""]
     if figures:
         lines += ["## Figures", ""]
-        for caption, rel in figures.items():
-            lines += [f"**{caption}**", "", f"![{caption}]({rel})", ""]
+        for caption, rel in figures.items():  # a long caption's first clause is the image's alt text
+            lines += [f"**{caption}**", "", f"![{caption.split(': ')[0]}]({rel})", ""]
     return "\n".join(lines)
+
+
+def sensor_rows_by_method(metrics: dict, label: str) -> dict[str, list[dict]]:
+    """{method: its per-cell rows on ``label``} from metrics.json's content (``metrics_json``): the
+    exact-rule sets (a 3D method's paper-circle set repeats its 3D figures), in the file's order."""
+    return {name: by[label]["sensor_cells"] for name, by in metrics.items()
+            if not name.endswith(PAPER_CIRCLE) and (by.get(label) or {}).get("sensor_cells")
+            and not (by[label].get("scenes_refused") and by[label]["scenes_refused"] == by[label].get("n_scenes_run"))}
+
+
+ROBUSTNESS_CAPTION = ("Robustness on `{label}`: the 3D detection rate (matched centre within 2 cm) and the 2D mAP.50 "
+                      "against the sensor's subpixel noise, one panel per range band of the ball's true distance; "
+                      "line styles for noise correlation and dropouts; each point one cell of the grid (20 scenes, a "
+                      "few balls per band: coarse). mAP.50 per cell and band scores the band's balls, those of other "
+                      "bands ignored (COCO's rule); a detection matched to no ball is a false positive in every band")
 
 
 def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[ScoredSet]]], t2: Sequence[dict] | None,
                   skipped: dict[str, str], prov: dict, title: str, intro: list[str],
-                  paper_rows_for: Sequence[str] = ("default", "hard"), figures: bool = True) -> dict[str, Path]:
+                  paper_rows_for: Sequence[str] = ("default", "hard"), figures: bool = True,
+                  ceilings: dict[str, dict] | None = None) -> dict[str, Path]:
     """Tables, figures, metrics.json, README.md and provenance.json under ``out`` (all atomic).
 
     per_dataset: {label: (dataset folder, its coco_gt dict, scored sets)}. Returns the paths written.
+    ceilings: {label: a per-cell ceiling of the improved detector's 3D rate, {(subpixel,
+    correlation, dropouts, band label): rate}}, drawn in the robustness figure
+    (``figures.robustness``), e.g. an oracle's; None: none.
     """
     from spherebench.eval import figures as figs
     out = Path(out)
@@ -600,12 +750,14 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     for label, (_, _, sets) in per_dataset.items():
         if any("mAP" in s.metrics for s in sets):
             tables.append(table3(label, sets, with_paper=label in paper_rows_for))
-        for t in (family_table(label, sets), metrics3d_table(label, sets), detections_table(label, sets)):
+        for t in (family_table(label, sets), metrics3d_table(label, sets), sensor_table(label, sets),
+                  detections_table(label, sets)):
             if t is not None:
                 tables.append(t)
     tables.append(timing_table(sets_by))
     if t2:
         tables.append(table2_table(t2))
+    metrics = metrics_json(sets_by)
     fig_paths: dict[str, str] = {}
     if figures:
         with io.atomic_directory(out / "figures", _in_results_dir) as tmp:
@@ -619,10 +771,18 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
                 if coco.get("images") and any(s.pr50 is not None for s in sets):
                     figs.examples(label, data_dir, sets, coco, tmp / f"examples_{label}.png")
                     fig_paths[f"Examples on `{label}`"] = f"figures/examples_{label}.png"
+            for label in per_dataset:  # drawn from metrics.json's content: a function of the stage files
+                rows = sensor_rows_by_method(metrics, label)
+                if rows:
+                    ceiling = (ceilings or {}).get(label)
+                    figs.robustness(label, rows, tmp / f"robustness_{label}.png", ceiling=ceiling)
+                    caption = ROBUSTNESS_CAPTION.format(label=label) + (
+                        "; grey markers beside `improved`'s 3D rate: its ceiling (an oracle's)" if ceiling else "")
+                    fig_paths[caption] = f"figures/robustness_{label}.png"
             figs.latency(sets_by, tmp / "latency.png")
             fig_paths["Latency per method"] = "figures/latency.png"
     write_tables(out / "tables", tables)
-    io.write_json(out / "metrics.json", metrics_json(sets_by))
+    io.write_json(out / "metrics.json", metrics)
     if t2:
         io.write_json(out / "table2.json", _json_safe(list(t2)))
     io.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped).encode())

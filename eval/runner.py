@@ -14,7 +14,8 @@ Methods (``build_methods``):
 - ``hough``: OpenCV's Hough circle transform (``spherebench.baselines.hough``) on image.png,
   with a configuration tuned on the training split (``tuned_hough_config``);
 - ``circlenet``: the CircleNet-style ONNX model (``spherebench.baselines.circlenet.infer``)
-  on image.png, when a model file exists; ``circlenet-full`` (ResNet-18 at its own widths) and
+  on image.png scaled to its training focal length by the scene's intrinsics, when a model file
+  exists; ``circlenet-full`` (ResNet-18 at its own widths) and
   ``circlenet-hg`` (the stacked hourglass) the same with the GPU-trained models
   (``CIRCLENET_MODELS``).
 
@@ -288,12 +289,13 @@ def circlenet_spec(model_path: str | Path, name: str = "circlenet") -> MethodSpe
         budget = "; " + card_budget(card if isinstance(card, dict) else {})
     return MethodSpec(name=name, kind="2d",
                       config={"engine": "circlenet", "model": path.name, "min_score": CIRCLENET_MIN_SCORE,
-                              "top_k": CIRCLENET_TOP_K, "onnxruntime": _dist_version("onnxruntime")},
+                              "top_k": CIRCLENET_TOP_K, "scale": "focal_px",
+                              "onnxruntime": _dist_version("onnxruntime")},
                       modules=_CORE_MODULES + ("spherebench.baselines.circlenet",),
                       extra_fingerprint=sha, resource=str(path.resolve()),
-                      note="ONNX Runtime, CPU, 1 thread; an image of another size than the model's is scaled "
-                           "uniformly to fit it (nearest neighbour, padded; the detector's own rule, as in training) "
-                           "and the circles scaled back" + budget)
+                      note="ONNX Runtime, CPU, 1 thread; each image is scaled uniformly to the training focal "
+                           "length (the scene's sqrt(fx fy) from intrinsics.json; nearest neighbour, padded to the "
+                           "stride, as in training) and the circles scaled back" + budget)
 
 
 @functools.lru_cache(maxsize=8)
@@ -426,6 +428,10 @@ class _HoughEngine:
 
 
 class _CircleNetEngine:
+    """CircleNet on a scene's image.png, scaled by the detector to its training focal length from the
+    scene's own intrinsics (``scene_focal_px``; a scene without intrinsics.json: to the model's
+    width, exact for every D435 mode)."""
+
     kind = "2d"
 
     def __init__(self, config: dict, model_path: Path):
@@ -435,11 +441,15 @@ class _CircleNetEngine:
 
     def load(self, scene_dir: Path):
         from spherebench.baselines.circlenet.imaging import load_image
-        return load_image(scene_dir / "image.png")  # RGB, as in training
+        from spherebench.baselines.circlenet.infer import scene_focal_px
+        return load_image(scene_dir / "image.png"), scene_focal_px(scene_dir)  # RGB, as in training
 
-    def detect(self, image, seed: int) -> list[dict]:
-        # an image of another size is fitted to the model's by the detector itself, as in training
-        circles = self.detector.detect(image, min_score=self.config["min_score"], top_k=self.config["top_k"])
+    def detect(self, inputs, seed: int) -> list[dict]:
+        image, focal_px = inputs
+        if self.config.get("scale") != "focal_px":  # a configuration of before the rule: the model's width
+            focal_px = None
+        circles = self.detector.detect(image, min_score=self.config["min_score"], top_k=self.config["top_k"],
+                                       focal_px=focal_px)
         return [{"score": float(sc), "circle": (float(cx), float(cy), float(r))} for cx, cy, r, sc in circles]
 
 
@@ -524,6 +534,7 @@ class SceneInfo:
     gt_radii_m: list
     n_balls: int                  # visible balls (in 2D: with a circle), whether or not their centre is known
     reference_centre_m: list | None = None  # a recording's reference fit (not ground truth), if any
+    sensor_cell: dict | None = None         # a grid preset's sensor condition (gt.json meta.sensor_cell)
 
 
 def dataset_scenes(data_dir: str | Path) -> list[SceneInfo]:
@@ -547,7 +558,8 @@ def dataset_scenes(data_dir: str | Path) -> list[SceneInfo]:
                              has_cloud=(scene / "cloud.ply").is_file(), has_image=(scene / "image.png").is_file(),
                              gt_centres_m=[b["center_m"] for b in balls], gt_radii_m=[b["radius_m"] for b in balls],
                              n_balls=len(visible),
-                             reference_centre_m=(gt.get("meta") or {}).get("reference_center_m")))
+                             reference_centre_m=(gt.get("meta") or {}).get("reference_center_m"),
+                             sensor_cell=(gt.get("meta") or {}).get("sensor_cell")))
     if not out:
         raise SphereBenchError(f"{root}: the dataset has no scenes")
     return out
@@ -608,7 +620,8 @@ def _results_and_records(spec: MethodSpec, output: str, scenes: list[SceneInfo],
                 results.append(r)
         scene_records.append({"scene_id": scene.scene_id, "image_id": scene.image_id, "index": scene.index,
                               "seed": rec["seed"], "resolution": scene.resolution, "ms": round(rec["ms"], 4),
-                              "detections": dets3d, **({"error": rec["error"]} if rec.get("error") else {})})
+                              "detections": dets3d, **({"error": rec["error"]} if rec.get("error") else {}),
+                              **({"sensor_cell": scene.sensor_cell} if scene.sensor_cell else {})})
     return results, scene_records
 
 
@@ -850,6 +863,75 @@ def _json_safe(obj):
     if isinstance(obj, np.ndarray):
         return _json_safe(obj.tolist())
     return obj
+
+
+# --------------------------------------------------------------------------- the oracle's ceiling (grid presets)
+
+#: The modules whose source defines the oracle's rows (with the detector's configuration and the data).
+ORACLE_MODULES = ("spherebench.eval.oracle", "spherebench.method", "spherebench.eval.sensor_grid",
+                  "spherebench.datasets.io", "spherebench.cloud")
+
+
+def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, workers: int = 2,
+                 log: Callable[[str], None] = print) -> list[dict] | None:
+    """Per true ball of a dataset with known centres: the improved detector's ceiling there
+    (``eval.oracle.ceiling``: its verification started from the true centre), cached.
+
+    Rows {scene_id, ball (index in gt.json), cell (the scene's sensor_cell or None), band
+    (``sensor_grid.band_of``), within, separable, score}; scene k's clutter search uses the seed
+    ``scene_seed(seed, k)``. The cache (JSON at ``cache_path``) is reused while its key (the
+    dataset's fingerprint, the configuration, the seed and ``ORACLE_MODULES``' code) is unchanged.
+    None when this installation has no ``spherebench.eval.oracle``.
+    """
+    import importlib.util
+    from spherebench.datasets import io
+    from spherebench.method import config_for
+    if importlib.util.find_spec("spherebench.eval.oracle") is None:
+        log("oracle: spherebench.eval.oracle is not installed; no ceiling drawn")
+        return None
+    data_dir, cache_path = Path(data_dir), Path(cache_path)
+    radius = float((io.read_dataset_meta(data_dir) or {}).get("ball_radius_m", 0.12))
+    config = dataclasses.asdict(config_for("improved", radius_m=radius))
+    key = hashlib.sha256(json.dumps({"dataset": dataset_fingerprint(data_dir), "config": config, "seed": int(seed),
+                                     "code": code_version(ORACLE_MODULES)}, sort_keys=True).encode()).hexdigest()
+    if cache_path.is_file():
+        try:
+            cached = json.loads(cache_path.read_text())
+            if cached.get("key") == key:
+                log(f"oracle: ceiling rows reused from {cache_path}")
+                return cached["balls"]
+        except (OSError, json.JSONDecodeError, TypeError, KeyError):
+            pass
+    t0 = time.perf_counter()
+    scenes = dataset_scenes(data_dir)
+    log(f"oracle: the improved detector's verification from the true centres of {len(scenes)} scenes")
+    tasks = [(json.dumps(config), str(s.path), scene_seed(seed, s.index)) for s in scenes if s.has_cloud]
+    with _pool(workers) as pool:
+        parts = list(pool.map(_oracle_scene, tasks, chunksize=4) if pool is not None else map(_oracle_scene, tasks))
+    balls = [b for part in parts for b in part]
+    io.write_json(cache_path, _json_safe({"key": key, "dataset": str(data_dir), "seed": int(seed), "balls": balls,
+                                          "seconds": round(time.perf_counter() - t0, 1)}))
+    return balls
+
+
+def _oracle_scene(task: tuple) -> list[dict]:
+    """``oracle_balls``' rows of one scene (in a worker)."""
+    from spherebench.datasets import io
+    from spherebench.eval.oracle import ceiling
+    from spherebench.eval.sensor_grid import band_of, surface_distance_m
+    from spherebench.method import DetectorConfig
+    config_json, scene_dir, seed = task
+    config = DetectorConfig(**json.loads(config_json))
+    gt = io.read_json(Path(scene_dir) / "gt.json")
+    balls = [(k, b) for k, b in enumerate(gt.get("balls", [])) if b.get("center_m") is not None]
+    if not balls:
+        return []
+    found = ceiling(io.load_cloud(scene_dir), [b["center_m"] for _, b in balls], config, seed=seed)
+    cell = (gt.get("meta") or {}).get("sensor_cell")
+    return [{"scene_id": str(gt.get("scene_id", Path(scene_dir).name)), "ball": k, "cell": cell,
+             "band": band_of(surface_distance_m(b["center_m"], b.get("radius_m", config.radius_m))),
+             "within": bool(o["within"]), "separable": o.get("separable"), "score": o.get("score")}
+            for (k, b), o in zip(balls, found)]
 
 
 # --------------------------------------------------------------------------- Table 2 (paper preset)

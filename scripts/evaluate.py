@@ -102,8 +102,11 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
              table2_dir: Path | None = None, table2_iterations: int | None = None, figures: bool = True,
              progress: bool = True, title: str = "SphereBench results", intro: list[str] | None = None,
              paper_rows_for: Sequence[str] = ("default", "hard"), extra_provenance: dict | None = None,
-             log=print) -> dict:
-    """Run, score and report ``datasets`` ({label: folder}) into ``out``. Returns metrics.json's content."""
+             ceilings: dict[str, dict] | None = None, log=print) -> dict:
+    """Run, score and report ``datasets`` ({label: folder}) into ``out``. Returns metrics.json's content.
+
+    ceilings: per-cell ceilings of the improved detector's 3D rate on a grid preset, {label:
+    {(subpixel, correlation, dropouts, band label): rate}}, drawn in its robustness figure."""
     from spherebench.datasets import io
     from spherebench.eval import report, runner
 
@@ -155,7 +158,7 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
         "predictions (COCO results with CircleNet's fields) in `predictions/`."]
     t0 = time.perf_counter()
     report.write_results(out, per_dataset, t2, skipped, prov, title, intro, paper_rows_for=paper_rows_for,
-                         figures=figures)
+                         figures=figures, ceilings=ceilings)
     stage_s["report"] = round(time.perf_counter() - t0, 1)
     return json.loads((out / "metrics.json").read_text())
 
