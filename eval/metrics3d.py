@@ -209,29 +209,33 @@ def scene_counts(det_centres_m, gt: dict) -> dict:
 
     det_centres_m: (D, 3) or a list of centres, metres. Returns errs (per basketball, the nearest
     detection's centre error in metres, inf without one), z (their depths, m), false (detections
-    farther than FOUND_M from every basketball) and distractors ([{radius_m, z_m, accepted}] for the
+    farther than FOUND_M from every basketball), clutter (those farther than DEFAULT_GATE_M, one radius,
+    from every basketball: not a ball's detection 2-5 cm off, a detection of something else) and distractors ([{radius_m, z_m, accepted}] for the
     distractor balls listed in gt["meta"]).
     """
     dets = [np.asarray(c, float) for c in det_centres_m]
     balls = [np.asarray(b["center_m"], float) for b in gt["balls"] if b.get("center_m") is not None]
     errs = [min((float(np.linalg.norm(d - b)) for d in dets), default=float("inf")) for b in balls]
     false = sum(1 for d in dets if all(np.linalg.norm(d - b) > FOUND_M for b in balls))
+    clutter = sum(1 for d in dets if all(np.linalg.norm(d - b) > DEFAULT_GATE_M for b in balls))
     distractors = []
     for dd in gt.get("meta", {}).get("distractors", []) or []:
         c = np.asarray(dd["center_m"], float)
         hit = any(np.linalg.norm(d - c) <= DISTRACTOR_HIT_M for d in dets)
         distractors.append({"radius_m": dd["radius_m"], "z_m": float(c[2]), "accepted": hit})
-    return {"errs": errs, "z": [float(b[2]) for b in balls], "false": false, "distractors": distractors}
+    return {"errs": errs, "z": [float(b[2]) for b in balls], "false": false, "clutter": clutter,
+            "distractors": distractors}
 
 
 def detection_counts(rows: Sequence[dict]) -> dict:
     """Totals over ``scene_counts`` rows that also carry their scene's "family": balls, found (within
-    FOUND_M), false_detections, detections_on_negatives and negative_scenes (family "negative"),
+    FOUND_M), false_detections, clutter_detections (``scene_counts``' clutter), detections_on_negatives and negative_scenes (family "negative"),
     distractors and distractors_rejected."""
     errs = [e for r in rows for e in r["errs"]]
     dist = [d for r in rows for d in r["distractors"]]
     return {"balls": len(errs), "found": int(sum(e <= FOUND_M for e in errs)),
             "false_detections": int(sum(r["false"] for r in rows)),
+            "clutter_detections": int(sum(r.get("clutter", r["false"]) for r in rows)),
             "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative")),
             "negative_scenes": int(sum(1 for r in rows if r["family"] == "negative")),
             "distractors": len(dist), "distractors_rejected": int(sum(not d["accepted"] for d in dist))}

@@ -113,26 +113,28 @@ def markdown(result: dict) -> str:
     seeds = result["seeds"]
     head = f"{result['method']}" + (f" with {result['overrides']}" if result["overrides"] else "")
     lines = [f"### {head}: detections per seed (one seed for all scenes; centre within 2 cm)", "",
-             "| dataset | seed | balls found | false det. | det. on negatives | distractors rejected |",
-             "|---|---|---|---|---|---|"]
+             "| dataset | seed | balls found | false det. | of them clutter (> R off) | det. on negatives | "
+             "distractors rejected |", "|---|---|---|---|---|---|---|"]
     for name, d in result["datasets"].items():
         for seed in seeds:
             t = d["per_seed"][seed]["total"]
             neg = f"{t['detections_on_negatives']} in {t['negative_scenes']}" if t["negative_scenes"] else "-"
             dist = f"{t['distractors_rejected']}/{t['distractors']}" if t["distractors"] else "-"
-            lines.append(f"| {name} | {seed} | {t['found']}/{t['balls']} | {t['false_detections']} | {neg} | {dist} |")
+            lines.append(f"| {name} | {seed} | {t['found']}/{t['balls']} | {t['false_detections']} | "
+                         f"{t['clutter_detections']} | {neg} | {dist} |")
         found = [d["per_seed"][s]["total"]["found"] for s in seeds]
         false = [d["per_seed"][s]["total"]["false_detections"] for s in seeds]
+        clutter = [d["per_seed"][s]["total"]["clutter_detections"] for s in seeds]
         lines.append(f"| {name} | mean | {np.mean(found):.2f} (min {min(found)}, max {max(found)}) | "
-                     f"{np.mean(false):.2f} | | |")
+                     f"{np.mean(false):.2f} | {np.mean(clutter):.2f} | | |")
     for name, d in result["datasets"].items():
-        lines += ["", f"{name}, balls found (false detections) per family and seed:", "",
+        lines += ["", f"{name}, balls found (false detections; of them clutter) per family and seed:", "",
                   "| family | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|" + "---|" * len(seeds)]
         for f in d["families"]:
             cells = []
             for s in seeds:
                 c = d["per_seed"][s]["families"][f]
-                cells.append(f"{c['found']}/{c['balls']} ({c['false_detections']})")
+                cells.append(f"{c['found']}/{c['balls']} ({c['false_detections']}; {c['clutter_detections']})")
             lines.append(f"| {f} | " + " | ".join(cells) + " |")
     lines += ["", f"- spherebench {__version__}; numpy {np.__version__}"]
     return "\n".join(lines) + "\n"

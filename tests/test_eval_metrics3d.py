@@ -83,9 +83,13 @@ def test_scene_counts_and_their_totals():
     row = scene_counts([[0.015, 0.0, 2.0], [-0.5, 0.01, 1.0]], gt)
     assert row["errs"][0] == pytest.approx(0.015) and row["errs"][1] > FOUND_M
     assert row["false"] == 1 and row["distractors"] == [{"radius_m": 0.11, "z_m": 1.0, "accepted": True}]
+    assert row["clutter"] == 1  # the distractor is far from both balls
     empty = scene_counts([], {"balls": []})
-    assert empty == {"errs": [], "z": [], "false": 0, "distractors": []}
+    assert empty == {"errs": [], "z": [], "false": 0, "clutter": 0, "distractors": []}
+    # a ball's detection 4 cm off: a false detection of the 2 cm rate, but no clutter
+    off = scene_counts([[0.04, 0.0, 2.0]], gt)
+    assert off["false"] == 1 and off["clutter"] == 0 and off["errs"][0] == pytest.approx(0.04)
     neg = {**scene_counts([[1.0, 1.0, 1.0]], {"balls": []}), "family": "negative"}
-    tot = detection_counts([{**row, "family": "clean"}, neg])
-    assert tot == {"balls": 2, "found": 1, "false_detections": 2, "detections_on_negatives": 1, "negative_scenes": 1,
-                   "distractors": 1, "distractors_rejected": 0}
+    tot = detection_counts([{**row, "family": "clean"}, neg, {**off, "family": "clean"}])
+    assert tot == {"balls": 4, "found": 1, "false_detections": 3, "clutter_detections": 2, "detections_on_negatives": 1,
+                   "negative_scenes": 1, "distractors": 2, "distractors_rejected": 1}
