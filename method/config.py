@@ -59,6 +59,9 @@ class DetectorConfig:
         bound_noise_fraction: the bound provides for balls up to the depth where one pixel's depth
             noise reaches this fraction of R (3.5 m at 424x240 for the D435 model)...
         max_range_m: ... or up to this depth, whichever is nearer.
+        hypothesis_noise_fraction: the search keeps hypotheses of balls up to the depth where one
+            pixel's depth noise reaches this fraction of R (or ``max_range_m``), with a 25 % margin;
+            beyond the bound's depth they are not provided for, only kept when drawn.
         bound_visible_fraction: ... of which at least this fraction is visible.
         search_width_px: organised search: streams wider than this are searched on cells of
             width // search_width_px pixels (binned sums), so that the search costs the same at
@@ -97,6 +100,14 @@ class DetectorConfig:
         noise_model_tolerance: the measured A replaces the model's only when the two differ by more
             than this fraction: the estimate scatters by about +/- 4 % (10th-90th percentile), so a
             frame within it cannot tell its unit from the nominal one and keeps the model.
+        noise_correlation: organised clouds: measure the depth noise's correlation length on the
+            frame (``improved.frame_noise_correlation_px``: second differences at lag 1 against the
+            estimate's lag), and count the evidence tests' pixels as effective samples
+            (``improved.mean_variance_inflation``: a stereo matcher's window correlates neighbours'
+            errors, and zone means then vary as over fewer pixels).
+        noise_correlation_min_px, noise_correlation_max_px: the shortest correlation length it takes
+            for one (pixels at 424 wide; shorter reads 0: on simulated independent noise the
+            estimate reads up to 0.75, surfaces' curvature adding to the long lag) and the longest.
         noise_from_data: organised verification narrows the band to noise_sigmas times the robust
             spread (MAD) of the candidate's own ray residuals where that is below the model's: the
             model is the most noise expected; a quieter sensor keeps the outline's mixed pixels and
@@ -195,6 +206,9 @@ class DetectorConfig:
         ring_spread_free, ring_spread_power: the ring spread (attached outside the half ring holding
             most of it) that costs nothing, and the exponent of (1 - excess) beyond it.
         interior_density_power: unorganised clouds: exponent of (1 - inner / shell density).
+        calibrate_evidence: take the coverage and the share seen behind against what the band's cap
+            costs a true ball (``improved.noise_shares``): where the noise nears R the band (capped
+            at ``max_eps_fraction`` R) holds only part of a ball's pixels.
     """
 
     radius_m: float = 0.12
@@ -209,6 +223,7 @@ class DetectorConfig:
     min_iterations: int = 300
     sample_success: float = 0.8
     bound_noise_fraction: float = 0.75
+    hypothesis_noise_fraction: float = 1.25
     max_range_m: float = 6.0
     bound_visible_fraction: float = 1.0
     search_width_px: int = 424
@@ -228,9 +243,12 @@ class DetectorConfig:
     noise_estimate_min_samples: int = 128
     noise_estimate_min_depth_m: float = 0.6
     noise_model_tolerance: float = 0.10
+    noise_correlation: bool = True
+    noise_correlation_min_px: float = 0.8
+    noise_correlation_max_px: float = 3.0
     noise_from_data: bool = True
     noise_sigmas: float = 2.5
-    max_eps_fraction: float = 1.0
+    max_eps_fraction: float = 1.5
     pretest_points: int = 12
     pretest_min_fraction: float = 0.5
     verify_candidates: int = 6
@@ -294,6 +312,7 @@ class DetectorConfig:
     ring_spread_free: float = 0.04
     ring_spread_power: float = 16.0
     interior_density_power: float = 2.0
+    calibrate_evidence: bool = True
 
     def __post_init__(self) -> None:
         bad = _problems(self)
@@ -357,7 +376,9 @@ def _problems(c: DetectorConfig) -> list[str]:
                        "noise_estimate_samples <= 1,000,000")
         if not (0 <= c.descent_steps <= 20 and 0 <= c.pretest_max_continued <= 8 and 1 <= c.first_steps <= 20):
             out.append("descent_steps must be 0-20, pretest_max_continued 0-8 (of the 8 ring boxes), first_steps 1-20")
-    for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction", "max_eps_fraction",
+    if finite("max_eps_fraction") and not 0.0 < c.max_eps_fraction <= 2.0:
+        out.append(f"max_eps_fraction={c.max_eps_fraction} must be within (0, 2] (the band's cap over R)")
+    for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction",
                  "bound_visible_fraction", "size_tolerance_fraction", "box_min_valid", "ring_front_free",
                  "see_through_free", "edge_behind_free", "ring_spread_free", "verify_quality_fraction",
                  "ray_s_min_fraction"):
@@ -368,12 +389,14 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append(f"{name}={getattr(c, name)} must be within (0, 1)")
     if finite("bound_visible_fraction") and c.bound_visible_fraction <= 0:
         out.append("bound_visible_fraction must be > 0")
-    for name in ("max_range_m", "bound_noise_fraction"):
+    for name in ("max_range_m", "bound_noise_fraction", "hypothesis_noise_fraction"):
         if finite(name) and getattr(c, name) <= 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")
     for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas",
                  "noise_subpixel", "noise_baseline_m", "mm_check_median_m", "verify_score_margin", "rescore_band",
-                 "noise_estimate_min_depth_m", "noise_model_tolerance", "behind_power", "hug_power",
+                 "noise_estimate_min_depth_m", "noise_model_tolerance", "noise_correlation_min_px",
+                 "noise_correlation_max_px",
+                 "behind_power", "hug_power",
                  "ring_continued_power", "ring_front_power", "see_through_power", "edge_behind_power",
                  "ring_spread_power", "interior_density_power", "relief_floor_fraction", "relief_free_sigmas",
                  "rescore_offset_xy", "rescore_offset_z", "interior_bands", "see_through_sigmas",

@@ -86,17 +86,10 @@ def _trimmed_second_moment(keep: float) -> float:
     return 1.0 - 2.0 * q * NormalDist().pdf(q) / keep
 
 
-def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorConfig, bin_px: int) -> float | None:
-    """The frame's own depth noise as sigma_z / z^2 (1/m), from second differences of depth along image
-    rows (``_kernels.noise_samples``) on about ``noise_estimate_samples`` evenly spread pixels, by their
-    trimmed mean square (the smallest ``noise_estimate_keep`` of them: edges, flying pixels and curved
-    surfaces make the largest; rescaled to a normal's second moment); None when fewer than
-    ``noise_estimate_min_samples`` pixels qualify (a frame too near, or mostly holes).
-
-    The lag, ``noise_estimate_lag_px`` at 424 px wide, scales with the stream's width as the stereo
-    matcher's noise correlation does, so that the second difference sees independent errors."""
+def _noise_mean_square(points: np.ndarray, index_image: np.ndarray, config: DetectorConfig, lag: int) -> float | None:
+    """The trimmed mean square of ``_kernels.noise_samples`` at a lag (pixels): sigma_z^2 / z^4 (1/m^2)
+    for a lag beyond the noise's correlation; None with too few samples (see ``frame_noise_a``)."""
     h, w = index_image.shape
-    lag = max(1, config.noise_estimate_lag_px * bin_px)
     step = max(1, int(math.sqrt(h * w / config.noise_estimate_samples)))
     out = workspace("noise", (config.noise_estimate_samples,), np.float64)
     m = K.noise_samples(points, index_image, lag, step, step, config.noise_estimate_min_depth_m, out)
@@ -106,7 +99,79 @@ def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorC
     # sensor at range) makes the median of the few values it takes a biased estimate
     k = max(1, int(config.noise_estimate_keep * m))
     kept = np.partition(out[:m], k - 1)[:k]
-    return math.sqrt(float(np.dot(kept, kept)) / k / _trimmed_second_moment(config.noise_estimate_keep))
+    return float(np.dot(kept, kept)) / k / _trimmed_second_moment(config.noise_estimate_keep)
+
+
+def _second_difference_ratio(length_px: float, lag_px: int) -> float:
+    """E[D_1^2] / E[D_L^2] for second differences at lags 1 and L of a noise whose autocorrelation
+    at lag d is exp(-(d / length)^2): E[D_l^2] = sigma^2 (6 - 8 rho(l) + 2 rho(2 l))."""
+    if length_px <= 0.0:
+        return 1.0
+
+    def msq(lag: float) -> float:
+        return 6.0 - 8.0 * math.exp(-(lag / length_px) ** 2) + 2.0 * math.exp(-(2.0 * lag / length_px) ** 2)
+
+    return msq(1.0) / msq(float(lag_px))
+
+
+def correlation_from_ratio(ratio: float, lag_px: int, max_px: float) -> float:
+    """The correlation length (pixels) whose ``_second_difference_ratio`` is ``ratio``, by bisection
+    (the ratio falls from 1 with the length); 0 for a ratio near 1, ``max_px`` at most."""
+    if not ratio < 0.97:  # white noise reads 1 within the estimates' scatter
+        return 0.0
+    lo, hi = 0.0, float(max_px)
+    if _second_difference_ratio(hi, lag_px) >= ratio:
+        return hi
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if _second_difference_ratio(mid, lag_px) > ratio:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def frame_noise_correlation_px(points: np.ndarray, index_image: np.ndarray, config: DetectorConfig,
+                               bin_px: int, lag_ms: float | None = None) -> float:
+    """The depth noise's correlation length on this frame (pixels of the stream, the lag where its
+    autocorrelation is 1/e, taken as Gaussian): from the ratio of the mean squares of second
+    differences at lag 1 and at the noise estimate's lag (``_second_difference_ratio``), which falls
+    from 1 (independent pixels) as neighbours' errors correlate. 0 where it cannot be measured, or
+    below ``noise_correlation_min_px``.
+    lag_ms: the mean square at the long lag, when already measured."""
+    lag = max(1, config.noise_estimate_lag_px * bin_px)
+    long_ms = _noise_mean_square(points, index_image, config, lag) if lag_ms is None else lag_ms
+    short_ms = _noise_mean_square(points, index_image, config, 1)
+    if long_ms is None or short_ms is None or not long_ms > 0:
+        return 0.0
+    length = correlation_from_ratio(short_ms / long_ms, lag, config.noise_correlation_max_px * bin_px)
+    return length if length >= config.noise_correlation_min_px * bin_px else 0.0
+
+
+def mean_variance_inflation(length_px: float, stride: int = 1) -> float:
+    """How much more a mean over a large patch of pixels (every stride-th in both directions) varies
+    than one over as many independent ones, for noise of correlation length ``length_px``: the sum
+    of the autocorrelation over the lattice, (sum_k exp(-(k stride / length)^2))^2. 1 for
+    independent pixels; pi length^2 / stride^2 for long lengths. Pixels over this count as one
+    effective sample in the evidence tests."""
+    if length_px <= 0.0:
+        return 1.0
+    t = max(int(stride), 1) / length_px
+    one_axis = 1.0 + 2.0 * sum(math.exp(-(k * t) ** 2) for k in range(1, int(4.0 / t) + 2))
+    return one_axis * one_axis
+
+
+def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorConfig, bin_px: int) -> float | None:
+    """The frame's own depth noise as sigma_z / z^2 (1/m), from second differences of depth along image
+    rows (``_kernels.noise_samples``) on about ``noise_estimate_samples`` evenly spread pixels, by their
+    trimmed mean square (the smallest ``noise_estimate_keep`` of them: edges, flying pixels and curved
+    surfaces make the largest; rescaled to a normal's second moment); None when fewer than
+    ``noise_estimate_min_samples`` pixels qualify (a frame too near, or mostly holes).
+
+    The lag, ``noise_estimate_lag_px`` at 424 px wide, scales with the stream's width as the stereo
+    matcher's noise correlation does, so that the second difference sees independent errors."""
+    ms = _noise_mean_square(points, index_image, config, max(1, config.noise_estimate_lag_px * bin_px))
+    return None if ms is None else math.sqrt(ms)
 
 
 def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
@@ -128,8 +193,9 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     prm[K.P_EPS_CAP] = config.max_eps_fraction * R
     prm[K.P_STRATUM_V], prm[K.P_STRATUM_U], prm[K.P_BIN] = stratum[0], stratum[1], bin_px
     prm[K.P_CELL_PX] = bin_px * cell_rows(bin_px)  # the pixels a cell's table entry sums
-    # hypotheses whose ball would be beyond the range limit (with a margin), or larger than the grid
-    prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / range_limit_m(config, float(intr.fx), a)
+    # hypotheses whose ball would be beyond the hypotheses' range limit (with a margin), or larger than the grid
+    far_m = range_limit_m(config, float(intr.fx), a, config.hypothesis_noise_fraction)
+    prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / far_m
     prm[K.P_RR_MAX] = float(max(grid_shape))
     prm[K.P_SLACK] = config.pretest_slack
     prm[K.P_Z_FAR] = z_far_m
@@ -147,12 +213,15 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     return prm
 
 
-def range_limit_m(config: DetectorConfig, fx: float | None, a: float | None = None) -> float:
+def range_limit_m(config: DetectorConfig, fx: float | None, a: float | None = None,
+                  noise_fraction: float | None = None) -> float:
     """The farthest centre depth the iteration bound provides for (metres): where the per-pixel
     depth noise reaches ``bound_noise_fraction`` R (3.5 m at 424x240, 4.9 m at 848x480, 6 m at
-    1280x720 for the D435 model), or ``max_range_m`` when that is nearer."""
+    1280x720 for the D435 model), or ``max_range_m`` when that is nearer. noise_fraction: another
+    fraction in place of ``bound_noise_fraction`` (the hypotheses' limit)."""
     a = noise_a(config, fx) if a is None else a
-    lim = math.sqrt(config.bound_noise_fraction * config.radius_m / a) if a > 0 else math.inf
+    f = config.bound_noise_fraction if noise_fraction is None else noise_fraction
+    lim = math.sqrt(f * config.radius_m / a) if a > 0 else math.inf
     return min(lim, config.max_range_m)
 
 
@@ -317,8 +386,14 @@ class Frame:
         #: sigma_z / z^2 (1/m) the kernels use: noise_z2_per_m if set, else the frame's own where it
         #: differs from the model's by more than noise_model_tolerance, else the model's
         self.noise_a_measured = None
+        lag_ms = None
         if config.noise_z2_per_m is None and config.noise_estimate:
-            self.noise_a_measured = frame_noise_a(cloud.points, self.index_image, config, self.bin)
+            lag_ms = _noise_mean_square(cloud.points, self.index_image, config,
+                                        max(1, config.noise_estimate_lag_px * self.bin))
+            self.noise_a_measured = None if lag_ms is None else math.sqrt(lag_ms)
+        #: the depth noise's correlation length (stream pixels; 0: independent pixels or not measured)
+        self.noise_corr_px = (frame_noise_correlation_px(cloud.points, self.index_image, config, self.bin, lag_ms)
+                              if config.noise_correlation else 0.0)
         model_a = noise_a(config, float(intr.fx))
         self.noise_a = model_a
         if self.noise_a_measured is not None and not (
@@ -404,6 +479,7 @@ def relief_agreement(stats: dict, config: DetectorConfig) -> float:
     no clutter but 2 balls (the test is calibrated: t of the balls found has mean 0, sd 0.9-1.1)."""
     n_in = stats.get("inner_n", 0.0)
     sigma = stats.get("sigma_m", 0.0)
+    per = stats.get("pixels_per_sample", 1.0)  # correlated noise: zone means vary as over fewer pixels
     if n_in < 3 or not sigma > 0:
         return 1.0
     m_in = stats["inner_sum"] / n_in
@@ -413,7 +489,7 @@ def relief_agreement(stats: dict, config: DetectorConfig) -> float:
         if n >= 3:
             flatter = m_in - stats[side + "_sum"] / n
             t = max(t, (flatter - config.relief_floor_fraction * config.radius_m)
-                    / (sigma * math.sqrt(1.0 / n_in + 1.0 / n)))
+                    / (sigma * math.sqrt(per * (1.0 / n_in + 1.0 / n))))
     return math.exp(-0.5 * max(0.0, t - config.relief_free_sigmas) ** 2)
 
 
@@ -429,7 +505,7 @@ def see_through_excess(stats: dict, free: float, sigmas: float = 3.0) -> float:
     if n < 1:
         return 0.0
     q = 0.5 * math.erfc(stats["eps_m"] / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
-    allowed = q + sigmas * math.sqrt(q * (1.0 - q) / n) + free
+    allowed = q + sigmas * math.sqrt(q * (1.0 - q) * stats.get("pixels_per_sample", 1.0) / n) + free
     return max(0.0, stats["behind_inner"] / n - allowed)
 
 
@@ -445,7 +521,7 @@ def edge_behind_excess(stats: dict, free: float, sigmas: float = 2.0) -> float:
     n = stats.get("edge_n", 0.0)
     if n < 1:
         return 0.0
-    allowed = free + sigmas * math.sqrt(free * (1.0 - free) / n)
+    allowed = free + sigmas * math.sqrt(free * (1.0 - free) * stats.get("pixels_per_sample", 1.0) / n)
     return max(0.0, stats["edge_behind"] / n - allowed)
 
 
@@ -455,13 +531,34 @@ def size_tolerance(config: DetectorConfig) -> float:
     return max(config.size_tolerance_m, config.size_tolerance_fraction * config.radius_m)
 
 
+def noise_shares(stats: dict, config: DetectorConfig) -> tuple[float, float]:
+    """(p_in, q_behind): the share of a true ball's silhouette pixels that the band's cap
+    (``max_eps_fraction`` R) costs the inliers, and the share it adds behind the sphere. The band is
+    max(eps, noise_sigmas sigma_z), the frame's noise at the ball's depth (``sigma_m``); where the
+    noise nears R the cap binds, and a normal error then falls within it with a probability
+    erf(cap / (sigma sqrt 2)) instead of erf(band / (sigma sqrt 2)). The coverage and behind factors
+    are taken against these, so that a far ball on a noisy unit is not read as occluded or seen
+    through, while every frame whose band the cap does not bind (all of the nominal sensor's
+    within 3.5 m at 424x240) scores exactly as without. (1, 0) without ``calibrate_evidence``."""
+    sigma = stats.get("sigma_m", 0.0)
+    if not config.calibrate_evidence or not sigma > 0:
+        return 1.0, 0.0
+    band = max(config.eps_m, config.noise_sigmas * sigma)
+    capped = min(band, config.max_eps_fraction * config.radius_m)
+    if capped >= band:
+        return 1.0, 0.0
+    z, z_full = capped / (sigma * math.sqrt(2.0)), band / (sigma * math.sqrt(2.0))
+    return max(math.erf(z) / math.erf(z_full), 1e-6), 0.5 * (math.erfc(z) - math.erfc(z_full))
+
+
 def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
                organised: bool) -> tuple[float, bool]:
     """A confidence in [0, 1] and the size check's verdict.
 
     Factors (each in [0, 1]): support n / (n + min_inliers); for organised clouds the share of the
-    silhouette's valid pixels that are inliers (coverage: occlusion lowers it), (1 - behind share)^2
-    (the ball would hide what is seen through it) and (1 - share hugging the sphere just in front
+    silhouette's valid pixels that are inliers (coverage: occlusion lowers it) over the share the
+    noise leaves a ball (``noise_shares``), (1 - behind share beyond the noise's)^2 (the ball
+    would hide what is seen through it) and (1 - share hugging the sphere just in front
     of it)^2 (a cylinder or another non-spherical surface), (1 - share of the outline ring where
     the surface continues at the ball's depth)^2 (a wall or a plane) and (1 - a)^ring_front_power, a
     the share where a surface attached in front of it continues (a cylinder's body, a corner) beyond
@@ -481,8 +578,9 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     score = n_inliers / (n_inliers + config.min_inliers)
     if organised:
         vd = max(stats["valid_disc"], 1.0)
-        coverage = min(1.0, stats["inlier"] / vd)
-        behind = min(1.0, stats["behind"] / vd)
+        p_in, q_behind = noise_shares(stats, config)
+        coverage = min(1.0, stats["inlier"] / vd / p_in)
+        behind = max(0.0, min(1.0, stats["behind"] / vd) - q_behind)
         hug = min(1.0, stats["front_near"] / vd)
         ring = stats["ring_continued"] / max(stats["ring"], 1.0)
         attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - config.ring_front_free)
@@ -521,6 +619,12 @@ def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: 
     if n < config.min_inliers:  # too few, or failed the size check (-1)
         return None
     stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
+    # pixels per effective sample of the evidence's counts and zone means: the window's stride
+    # (``_kernels.window_stride``, as the kernel took it) against the noise's correlation length
+    cz = float(out[K.V_CZ])
+    stride = K.window_stride(float(out[K.V_CX]), float(out[K.V_CY]), cz, config.radius_m * config.ring_factor,
+                             max(frame.prm[K.P_FX], frame.prm[K.P_FY]), 4.0 * config.fit_max_points)
+    stats["pixels_per_sample"] = mean_variance_inflation(frame.noise_corr_px, int(stride))
     # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
     # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
     # quantisation steps) would otherwise fail a real ball's zone means by a few mm

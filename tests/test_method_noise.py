@@ -57,3 +57,52 @@ def test_the_override_and_a_frame_without_samples_use_the_configured_noise():
     assert frame.noise_a_measured is None and frame.noise_a == noise_a(cfg, near.intrinsics.fx)
     off = Frame(cloud, config_for("improved", noise_estimate=False))
     assert off.noise_a_measured is None and off.noise_a == noise_a(cfg, cloud.intrinsics.fx)
+
+
+@pytest.mark.parametrize("width,height,subpixel,corr_px", [
+    (424, 240, 0.08, 0.0), (424, 240, 0.16, 1.0), (424, 240, 0.08, 1.5), (848, 480, 0.12, 1.0),
+    (1280, 720, 0.08, 1.0)])
+def test_measured_noise_correlation_matches_the_sensor_within_10_percent(width, height, subpixel, corr_px):
+    """The correlation length read off second differences at lags 1 and 3 (in the stream's pixels:
+    the sensor's correlation_px is given at 424 wide); independent noise reads 0."""
+    cloud, _ = _wall_cloud(width, height, subpixel, corr_px)
+    frame = Frame(cloud, config_for("improved"))
+    true_px = corr_px * width / 424
+    if corr_px == 0:
+        assert frame.noise_corr_px == 0.0
+    else:
+        assert frame.noise_corr_px == pytest.approx(true_px, rel=0.10)
+    assert Frame(cloud, config_for("improved", noise_correlation=False)).noise_corr_px == 0.0
+
+
+def test_effective_samples_of_correlated_noise():
+    from spherebench.datasets.sensor import correlated_noise
+    from spherebench.method.improved import correlation_from_ratio, _second_difference_ratio, mean_variance_inflation
+    assert mean_variance_inflation(0.0) == 1.0 and mean_variance_inflation(0.3) == pytest.approx(1.0, abs=1e-4)
+    assert mean_variance_inflation(4.0) == pytest.approx(np.pi * 16.0, rel=1e-3)  # pi length^2 when long
+    assert mean_variance_inflation(2.0, stride=4) < mean_variance_inflation(2.0, stride=2) < mean_variance_inflation(2.0)
+    for length in (0.8, 1.0, 1.7, 2.5):
+        assert correlation_from_ratio(_second_difference_ratio(length, 3), 3, 6.0) == pytest.approx(length, rel=1e-6)
+    # patch means of such noise vary as the lattice sum says: 16 x 16 means of a length-1.5 field (a
+    # finite patch: each lag k weighted by (16 - |k|) / 16), which the large-patch figure bounds
+    rng = np.random.default_rng(0)
+    field = correlated_noise(rng.standard_normal((512, 512)), 1.5)
+    means = field.reshape(32, 16, 32, 16).mean(axis=(1, 3))
+    k = np.arange(-15, 16)
+    finite = np.sum((16 - np.abs(k)) / 16 * np.exp(-(k / 1.5) ** 2)) ** 2
+    assert means.var() * 256 == pytest.approx(finite, rel=0.12) and finite < mean_variance_inflation(1.5)
+
+
+def test_evidence_counts_effective_samples_and_the_noise_share():
+    from spherebench.method import improved as imp
+    cfg = config_for("improved")
+    # relief: the same zone means are a smaller t when pixels are correlated
+    stats = {"inner_n": 100.0, "inner_sum": 100.0 * 0.01, "outer_h_n": 80.0, "outer_h_sum": -80.0 * 0.01,
+             "outer_v_n": 80.0, "outer_v_sum": 0.0, "sigma_m": 0.02}
+    assert imp.relief_agreement(stats, cfg) < imp.relief_agreement({**stats, "pixels_per_sample": 4.0}, cfg)
+    # a band the cap does not bind (2.5 sigma, or eps near the camera): nothing changes
+    assert imp.noise_shares({"sigma_m": 0.01}, cfg) == (1.0, 0.0) and imp.noise_shares({"sigma_m": 0.001}, cfg) == (1.0, 0.0)
+    # sigma 0.12 m: the band 2.5 sigma is capped at 1.5 R = 1.5 sigma: 87 % of 98.8 % of the pixels, 6 % more behind
+    p_in, q = imp.noise_shares({"sigma_m": 0.12}, cfg)
+    assert p_in == pytest.approx(0.8664 / 0.9876, abs=1e-4) and q == pytest.approx(0.0668 - 0.0062, abs=1e-4)
+    assert imp.noise_shares({"sigma_m": 0.12}, config_for("improved", calibrate_evidence=False)) == (1.0, 0.0)
