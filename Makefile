@@ -8,7 +8,7 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: eval test venv data data-hard data-robust data-train realdata bench sweep sweep-train train train-full train-hg eval-real clean distclean
+.PHONY: eval test venv data data-hard data-robust data-train realdata bench robustness sweep sweep-train train train-full train-hg eval-real clean distclean
 
 # ---- environment: the virtual environment, created when missing
 venv: .venv/.installed
@@ -85,6 +85,12 @@ train-hg: venv data-train
 
 bench: venv data data-hard
 	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench
+
+# the improved detector across sensor conditions (robust) over seeds 0-3, against issue 16's targets,
+# with the oracle's ceilings, default's and hard's figures and the time against paper-lstsq
+robustness: venv data data-hard data-robust
+	$(PY) -m spherebench.scripts.robustness $(DATA)/robust --default $(DATA)/default --hard $(DATA)/hard \
+		--seeds 0-3 --workers $(WORKERS) --out results/robustness
 
 # the 3D detector's detections over seeds 0-7 (default, hard) and 0-3 (train): how much they move with it
 sweep: venv data data-hard

@@ -1,0 +1,67 @@
+"""The ceiling of the improved detector on a scene with known ball centres: verification started
+from the truth, so that the search cannot lose the ball.
+
+For each true ball, the detector's own verification (``improved.verify_organised``: refinement,
+evidence, free-radius size check; ``improved.rescore`` near the threshold) runs on the same
+prepared frame (the frame's measured noise included) from the true centre and from the six
+starts about it that ``rescore`` uses (``improved.rescore_starts``): where the noise is a good
+part of R, the refinement's optima lie a cm or two apart and one start's end is a draw. The ball
+is within the **ceiling** when one of them accepts it as the detector would (size check passed,
+score at least ``min_score``) with its refined centre within 2 cm of the truth: a detector whose
+search always started there would find it (the best score of those is the ball's score). The **separable** ceiling drops the score threshold: the ball's
+score from the truth beats every clutter sphere the detector verifies in the frame (run with
+``min_score`` 0), so that some threshold would take it and no false detection of that frame.
+Both are upper bounds of what the detector can reach on the data, not of what the data allow:
+the verification's evidence is the detector's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Sequence
+
+import numpy as np
+
+from spherebench.cloud import Cloud
+from spherebench.method import detect
+from spherebench.method import improved
+from spherebench.method.config import DetectorConfig
+from spherebench.method.detector import prepare_frame
+
+#: A ball is within the ceiling when its verification from the truth ends within this (m).
+CEILING_M = 0.02
+
+
+def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int = 0,
+            separable: bool = True) -> list[dict]:
+    """Per true ball (``centres_m``: (B, 3) metres): {score, size_ok, error_m, within (the ceiling),
+    separable (None unless asked)}. The cloud must be organised (a depth frame)."""
+    frame = prepare_frame(cloud, config)
+    buf = improved.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+    out = []
+    offsets = ((0.0, 0.0, 0.0),) + improved.rescore_starts(config)
+    for c in centres_m:
+        c = np.asarray(c, np.float64)
+        best = {"score": 0.0, "size_ok": False, "error_m": math.inf, "within": False, "separable": None}
+        for off in offsets:
+            v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
+            if v is not None and abs(v.score - config.min_score) < config.rescore_band:
+                v = improved.rescore(frame, v, config, buf)
+            if v is None:
+                continue
+            err = float(np.linalg.norm(v.center_m - c))
+            there = err <= CEILING_M and v.size_ok
+            # the best sphere that ends near the truth; failing that, the nearest one (diagnostics)
+            if (there and (not best["size_ok"] or best["error_m"] > CEILING_M or v.score > best["score"])) or (
+                    not (best["size_ok"] and best["error_m"] <= CEILING_M) and err < best["error_m"]):
+                best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
+                        "within": bool(there and v.score >= config.min_score), "separable": None}
+        out.append(best)
+    if separable and out:
+        clutter = [s for s in detect(cloud, dataclasses.replace(config, min_score=0.0), seed=seed)
+                   if all(np.linalg.norm(s.center_m - np.asarray(c)) > CEILING_M for c in centres_m)]
+        best_clutter = max((s.score for s in clutter), default=0.0)
+        for r in out:
+            r["separable"] = bool(r["size_ok"] and r["error_m"] <= CEILING_M and r["score"] > best_clutter)
+    return out
