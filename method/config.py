@@ -135,6 +135,11 @@ class DetectorConfig:
             a noisy draw. On the train preset, the top 10 candidates of each frame re-scored: false
             detections 9 -> 1 at the same balls found; the detector: 1,886 -> 1,887 balls, 5 -> 3
             false detections. 0 disables it.
+        multistart_noise_fraction: organised clouds, while no sphere is accepted: a hypothesis whose
+            depth noise (one pixel's sigma_z) exceeds this fraction of R is verified from its centre
+            and the six ``rescore_starts`` about it, the best kept and its score then taken as the
+            mean (``improved.verify_multistart``): where the noise nears R the refinement's end
+            depends on its start by a few cm. inf: never.
         fit_max_points: organised verification: every fit uses at most about this many inliers
             (evenly strided), and every window visit about 4 times as many pixels (strided); the
             reported spheres' inliers are then collected from every pixel.
@@ -255,6 +260,7 @@ class DetectorConfig:
     verify_candidates_if_none: int = 16
     verify_score_margin: float = 6.0
     rescore_band: float = 0.15
+    multistart_noise_fraction: float = 0.5
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 4
@@ -419,6 +425,9 @@ def _problems(c: DetectorConfig) -> list[str]:
         out.append("ring_front_min_fraction must be >= 0 and below ring_front_max_fraction")
     if finite("ring_factor") and not 1.0 < c.ring_factor <= 3.0:
         out.append(f"ring_factor={c.ring_factor} must be within (1, 3] (the outline ring's outer radius / R)")
+    v = c.multistart_noise_fraction
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:  # inf: never
+        out.append(f"multistart_noise_fraction={v!r} must be > 0 (a fraction of R; inf for never)")
     if finite("zscore_threshold") and c.zscore_threshold == 0:
         out.append("zscore_threshold must be > 0 (the paper uses 1.5)")
     if c.pipeline == "paper" and c.sampling != "global":

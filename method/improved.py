@@ -646,6 +646,19 @@ def rescore_starts(config: DetectorConfig) -> tuple[tuple[float, float, float], 
     return ((a, 0.0, 0.0), (-a, 0.0, 0.0), (0.0, a, 0.0), (0.0, -a, 0.0), (0.0, 0.0, b), (0.0, 0.0, -b))
 
 
+def verify_multistart(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray) -> Candidate | None:
+    """A hypothesis whose depth noise is a good part of R (``multistart_noise_fraction``), verified from
+    its centre and from each of ``rescore_starts`` about it: where one pixel's noise nears R, the
+    refinement's end depends on its start by a few cm, and a hypothesis a few cm off converges
+    off the ball's optimum. The best-scoring verification that passes the size check is kept."""
+    best = None
+    for off in ((0.0, 0.0, 0.0),) + rescore_starts(config):
+        v = verify_organised(frame, c0 + config.radius_m * np.asarray(off), config, buf)
+        if v is not None and v.size_ok and (best is None or v.score > best.score):
+            best = v
+    return best
+
+
 def rescore(frame: Frame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
     """A candidate near the score threshold, verified again from each of ``rescore_starts`` about its centre
     (without the kernel's early stop, so that each start's whole score and size verdict count): its
@@ -736,9 +749,17 @@ def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
         if any(math.dist(c0, v.center_m) < config.radius_m for v in found):
             continue
-        v = verify_organised(frame, c0, config, buf) if frame is not None else verify_unorganised(points, c0, config)
-        if frame is not None and v is not None and abs(v.score - config.min_score) < config.rescore_band:
-            v = rescore(frame, v, config, buf)
+        if frame is None:
+            v = verify_unorganised(points, c0, config)
+        elif not found and frame.prm[K.P_NOISE_A] * c0[2] ** 2 > config.multistart_noise_fraction * config.radius_m:
+            # while none is accepted (a frame with a ball pays nothing, and gets no second sphere this
+            # way); the best of several starts is a biased draw: its score is always re-taken as the mean
+            v = verify_multistart(frame, np.asarray(c0, np.float64), config, buf)
+            v = rescore(frame, v, config, buf) if v is not None else None
+        else:
+            v = verify_organised(frame, c0, config, buf)
+            if v is not None and abs(v.score - config.min_score) < config.rescore_band:
+                v = rescore(frame, v, config, buf)
         if v is None or not v.size_ok or v.score < config.min_score:
             continue
         found.append(v)

@@ -106,3 +106,29 @@ def test_evidence_counts_effective_samples_and_the_noise_share():
     p_in, q = imp.noise_shares({"sigma_m": 0.12}, cfg)
     assert p_in == pytest.approx(0.8664 / 0.9876, abs=1e-4) and q == pytest.approx(0.0668 - 0.0062, abs=1e-4)
     assert imp.noise_shares({"sigma_m": 0.12}, config_for("improved", calibrate_evidence=False)) == (1.0, 0.0)
+
+
+def test_multistart_verification_only_where_noise_nears_the_radius():
+    """A far ball on a noisy unit is verified from several starts and kept only through the mean of
+    the starts about the best; a near ball, or the same frame with multistart off, goes the plain way."""
+    from spherebench.method import detect, improved as imp
+    calls = []
+    real = imp.verify_multistart
+
+    def counting(*args, **kw):
+        calls.append(1)
+        return real(*args, **kw)
+
+    cloud, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=2.0, tilt_deg=0.0)
+    cfg = config_for("improved")
+    imp.verify_multistart = counting
+    try:
+        detect(cloud, cfg, seed=0)  # sigma at 2 m: 3 cm, a quarter of R
+        assert not calls
+        detect(cloud, config_for("improved", multistart_noise_fraction=0.1), seed=0)
+        assert calls
+    finally:
+        imp.verify_multistart = real
+    with pytest.raises(Exception, match="multistart_noise_fraction"):
+        config_for("improved", multistart_noise_fraction=0.0)
+    assert config_for("improved", multistart_noise_fraction=float("inf")).multistart_noise_fraction == float("inf")
