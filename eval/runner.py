@@ -88,6 +88,15 @@ CIRCLENET_MODELS = {
     "circlenet-hg": ("hg/model.onnx", "make train-hg, on a CUDA machine"),
 }
 
+#: Shipped models trained on an earlier `train` preset, by the sha256 of their ONNX file: their rows
+#: say so (the full-size model needs a CUDA machine to retrain, and none was at hand when `train`
+#: began drawing each scene's sensor, bf6a801).
+EARLIER_TRAIN = {
+    "3b72295ef7ff02b8fd1f939613db8828eb10db18006e57b50997ff17d2236862":
+        "trained on the earlier train preset (nominal sensor, before bf6a801); `make train-full` on a CUDA "
+        "machine retrains it on the current one",
+}
+
 METHOD_ORDER = ("improved", "paper", "paper-lstsq", "pyransac3d", "hough", *CIRCLENET_MODELS)
 
 
@@ -295,7 +304,8 @@ def circlenet_spec(model_path: str | Path, name: str = "circlenet") -> MethodSpe
                       extra_fingerprint=sha, resource=str(path.resolve()),
                       note="ONNX Runtime, CPU, 1 thread; each image is scaled uniformly to the training focal "
                            "length (the scene's sqrt(fx fy) from intrinsics.json; nearest neighbour, padded to the "
-                           "stride, as in training) and the circles scaled back" + budget)
+                           "stride, as in training) and the circles scaled back" + budget
+                           + (f"; {EARLIER_TRAIN[sha]}" if sha in EARLIER_TRAIN else ""))
 
 
 @functools.lru_cache(maxsize=8)

@@ -166,3 +166,13 @@ def test_detect_2d_runs_on_any_size_with_the_scene_camera(tmp_path, monkeypatch,
     note = [s for s in cap.err.splitlines() if s.startswith("note:")]
     assert len(note) == 1 and "4 image(s) without intrinsics.json" in note[0], cap.err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+def test_a_model_trained_on_the_earlier_train_preset_says_so():
+    from spherebench.eval import runner
+    full = runner.circlenet_model_path("circlenet-full")
+    if not full.is_file():
+        pytest.skip("the full-size CircleNet is not shipped in this checkout")
+    spec = runner.circlenet_spec(full, "circlenet-full")
+    assert (runner.file_sha256(full) in runner.EARLIER_TRAIN) == ("earlier train preset" in spec.note)
+    assert "earlier train preset" not in runner.circlenet_spec(runner.circlenet_model_path(), "circlenet").note
