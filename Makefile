@@ -44,10 +44,12 @@ $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 eval: venv data data-hard data-robust
 	$(PY) scripts/run_eval.py --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
 
-# the recorded data sets (data/real/*) -> results/real/
+# the recorded data sets (data/real/*) -> results/real/, each Table 3 beside the simulated `default`
+# of results/metrics.json (make eval) where that file exists
 eval-real: venv realdata
 	$(SB) evaluate $$(for d in $(DATA)/real/*/; do printf -- '--data %s ' "$${d%/}"; done) \
-		--out results/real --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
+		--out results/real --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force) \
+		$(if $(wildcard results/metrics.json),--beside results/metrics.json)
 
 # ---- the learned 2D baseline: train the shipped CircleNet (ResNet-18) on the train preset (CPU,
 # about an hour on 2 cores), then install its ONNX model and card where `make eval` looks

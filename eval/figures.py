@@ -61,8 +61,9 @@ def pr_curves(label: str, sets: Sequence, path: Path) -> None:
     _save(fig, path)
 
 
-def error_vs_distance(label: str, sets: Sequence, path: Path) -> None:
-    """Centre error (mm, log scale) against the ball centre's distance from the camera; misses at the top."""
+def error_vs_distance(label: str, sets: Sequence, path: Path, reference: bool = False) -> None:
+    """Centre error (mm, log scale) against the ball centre's distance from the camera; misses at the top.
+    reference: the centres are a recording's reference fits, not true centres (said on the axis)."""
     sets = [s for s in sets if s.distance_m is not None and s.rule != "paper"]
     fig, ax = plt.subplots(figsize=(8, 4.8))
     cols = _colours(len(sets))
@@ -77,8 +78,9 @@ def error_vs_distance(label: str, sets: Sequence, path: Path) -> None:
     ax.set_yscale("log")
     ax.axhline(20, color="grey", lw=0.8, ls=":")
     ax.set_xlabel("distance of the ball centre from the camera (m)")
-    ax.set_ylabel("centre error (mm); x at the top: missed")
-    ax.set_title(f"`{label}`: centre error against distance")
+    ax.set_ylabel(("distance to the reference centre" if reference else "centre error") + " (mm); x at the top: missed")
+    ax.set_title(f"`{label}`: centre error against distance" + (" (reference: mask fit, not ground truth)"
+                                                                 if reference else ""))
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     _save(fig, path)
@@ -110,12 +112,24 @@ def _top_circles(s, scene_id: str, k: int) -> list[tuple[float, float, float, fl
     return [(*r["circle_center"], r["circle_radius"], r["score"]) for r in dets[:k]]
 
 
+def _background(data_dir: Path, img: dict) -> np.ndarray:
+    """An example's picture (RGB): the scene's colour frame where it has one (a recording registered
+    to depth), else the image the 2D methods are given."""
+    import cv2
+    path = Path(data_dir) / img["file_name"]
+    for name in ("colour.jpg", "colour.png"):
+        if (path.parent / name).is_file():
+            path = path.parent / name
+            break
+    return cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
 def examples(label: str, data_dir: Path, sets: Sequence, coco_gt: dict, path: Path, n_each: int = 4) -> None:
     """A grid of scenes: the top row where the primary method (``improved``, else the first set)
     matches the truth best, the bottom row its failures (a miss, or a detection on a negative
     scene). Green: ground truth; each method's k best circles (k = the number of true balls, at
-    least 1) in its colour."""
-    import cv2
+    least 1) in its colour, their scores listed in the corner. A scene with a colour frame is shown
+    in colour (the masks were drawn there), others as the image the 2D methods see."""
     by_name = {s.output: s for s in sets}
     primary = by_name.get("improved") or (sets[0] if sets else None)
     if primary is None:
@@ -158,17 +172,23 @@ def examples(label: str, data_dir: Path, sets: Sequence, coco_gt: dict, path: Pa
             if c >= len(ids):
                 continue
             img = images[ids[c]]
-            im = cv2.imread(str(Path(data_dir) / img["file_name"]), cv2.IMREAD_COLOR)
-            ax.imshow(cv2.cvtColor(im, cv2.COLOR_BGR2RGB))
+            ax.imshow(_background(data_dir, img))
             g = gts[ids[c]]
             for cx, cy, rr in g:
                 ax.add_patch(plt.Circle((cx, cy), rr, fill=False, color="lime", lw=2.0))
+            scores = []
             for name, colour in EXAMPLE_METHODS:
                 s = by_name.get(name)
                 if s is None:
                     continue
-                for cx, cy, rr, _ in _top_circles(s, img["scene_id"], max(1, len(g))):
+                top = _top_circles(s, img["scene_id"], max(1, len(g)))
+                for cx, cy, rr, _ in top:
                     ax.add_patch(plt.Circle((cx, cy), rr, fill=False, color=colour, lw=1.2, ls="--"))
+                scores.append((f"{name} " + (" ".join(f"{sc:.2f}" for *_, sc in top) if top else "none"), colour))
+            for k, (text, colour) in enumerate(scores):  # each method's best scores, in its colour
+                ax.text(0.01, 0.99 - 0.09 * k, text, transform=ax.transAxes, ha="left", va="top", fontsize=6.5,
+                        color="white" if colour == "black" else colour,
+                        bbox={"facecolor": "black", "alpha": 0.55, "pad": 0.6, "lw": 0})
             ax.set_title(f"{kind}: {img['scene_id']} ({img['width']}x{img['height']})", fontsize=8)
     handles = [plt.Line2D([], [], color="lime", lw=2, label="ground truth")] + [
         plt.Line2D([], [], color=col, ls="--", label=name) for name, col in EXAMPLE_METHODS if name in by_name]

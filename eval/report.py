@@ -5,7 +5,8 @@ metrics with circle IoU (overall and per scene family), 3D metrics for methods w
 and the time per frame. ``write_results`` writes, under an output folder:
 
     metrics.json          {method: {dataset: {...}}}, every figure of the tables
-    tables/*.csv, *.md    Table 3 per dataset (beside the paper's reported numbers), per-family
+    tables/*.csv, *.md    Table 3 per dataset (beside the paper's reported numbers; beside another
+                          evaluation's with ``beside``, ``eval.recorded``), per-family
                           mAP, 3D metrics, timings, Table 2, detection statistics of unannotated data
     figures/*.png         (``eval.figures``)
     README.md             the tables, the figures, and a reading of them
@@ -31,7 +32,7 @@ import numpy as np
 
 from spherebench.datasets import io
 from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
-from spherebench.eval.metrics3d import match_scene, summarize_3d
+from spherebench.eval.metrics3d import DEFAULT_GATE_M, match_scene, summarize_3d
 from spherebench.eval.sensor_grid import (GRID_AXES, band_of, detection_rates, grid_key, grid_rows, level_label,
                                           map50_by_group, surface_distance_m)
 from spherebench.eval.runner import PAPER_CIRCLE, SceneInfo, _json_safe, machine_info, read_predictions
@@ -57,7 +58,8 @@ class ScoredSet:
     metrics: JSON-ready figures (see ``score_set``). pr50, pr75: (101,) interpolated precision at
     recall 0:0.01:1 (NaN = undefined) at IoU .50 and .75. distance_m, centre_error_m: (G,) per
     ground-truth ball (NaN error = missed), 3D methods only. ms: (S,) time per frame.
-    scenes: the meta file's per-scene records. results: the COCO results list.
+    scenes: the meta file's per-scene records. results: the COCO results list. config,
+    extra_fingerprint: the method's settings and model file hash, as the meta file holds them.
     """
 
     output: str
@@ -73,6 +75,8 @@ class ScoredSet:
     ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     scenes: list = field(default_factory=list)
     results: list = field(default_factory=list)
+    config: dict | None = None
+    extra_fingerprint: str = ""
 
 
 def _stats_ms(ms: np.ndarray) -> dict:
@@ -101,7 +105,8 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
     ms = np.asarray([r["ms"] for r in records], dtype=np.float64)
     m: dict = {"n_scenes_run": len(records), "note": meta.get("note", "")}
     out = ScoredSet(output=meta["output"], method=meta["method"], kind=meta["kind"], rule=meta.get("rule"),
-                    note=meta.get("note", ""), metrics=m, ms=ms, scenes=records, results=results)
+                    note=meta.get("note", ""), metrics=m, ms=ms, scenes=records, results=results,
+                    config=meta.get("config"), extra_fingerprint=meta.get("extra_fingerprint") or "")
     gt = None
     if run_images and coco_gt.get("annotations") is not None:
         gt = load_ground_truth(coco_gt)
@@ -120,19 +125,24 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
                                                         "n_detections")}
     ball_errors = None
     if meta["kind"] == "3d" and _centres_known(scenes):
-        matches, ball_errors = [], []
+        matches, ball_errors, gates = [], [], []
         for r in records:
             s = by_id.get(r["scene_id"])
-            if s is None or not s.annotated:
+            if s is None or not s.annotated or len(s.gt_centres_m) != s.n_balls:
                 continue
             dets = r["detections"]
             pc = np.asarray([d["center_m"] for d in dets], np.float64).reshape(-1, 3)
             ps = np.asarray([d["score"] for d in dets], np.float64)
             pr = np.asarray([np.nan if d.get("radius_m") is None else d["radius_m"] for d in dets], np.float64)
-            matches.append(match_scene(pc, ps, s.gt_centres_m, pred_radii_m=pr, gt_radii_m=s.gt_radii_m))
+            gate = max(s.gt_radii_m) if s.gt_radii_m else DEFAULT_GATE_M  # one radius of the scene's ball
+            gates.append(gate)
+            matches.append(match_scene(pc, ps, s.gt_centres_m, gate_m=gate, pred_radii_m=pr,
+                                       gt_radii_m=s.gt_radii_m))
             ball_errors.append((s, matches[-1].centre_error_m))
         if matches:
             m["3d"] = _json_safe(summarize_3d(matches))
+            m["3d"]["gate_m"] = float(max(gates))
+            m["3d"]["scenes_without_centre"] = sum(1 for s in scenes if s.annotated and len(s.gt_centres_m) != s.n_balls)
             out.distance_m = np.concatenate([mm.gt_distance_m for mm in matches])
             out.centre_error_m = np.concatenate([mm.centre_error_m for mm in matches])
     cells = {r["scene_id"]: r.get("sensor_cell") or by_id[r["scene_id"]].sensor_cell for r in records}
@@ -195,9 +205,12 @@ def not_run(s: ScoredSet) -> str | None:
 
 
 def _centres_known(scenes: Sequence[SceneInfo]) -> bool:
-    """3D metrics need the true centres: every annotated scene's visible balls have one (simulated data)."""
+    """3D metrics need known centres: simulated data's true ones, a recording's mask-fit references. They
+    are scored when some annotated ball has one, over the annotated scenes whose visible balls all have
+    one (a recorded ball whose fit failed leaves its scene out; a negative scene is always in)."""
     annotated = [s for s in scenes if s.annotated]
-    return bool(annotated) and all(len(s.gt_centres_m) == s.n_balls for s in annotated)
+    return bool(annotated) and (all(len(s.gt_centres_m) == s.n_balls for s in annotated)
+                                or any(s.gt_centres_m for s in annotated))
 
 
 def _res_order(item) -> tuple:
@@ -375,7 +388,9 @@ def _median_radius(s: ScoredSet) -> float | None:
     return float(np.median(radii)) if radii else None
 
 
-def metrics3d_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
+def metrics3d_table(label: str, sets: Sequence[ScoredSet], reference: str | None = None) -> Table | None:
+    """The 3D metrics of every 3D method (one row per detection run). reference: a note on what the
+    centres are when they are not a simulator's true centres (a recording's mask fits), or None."""
     rows = []
     for s in sets:
         d = s.metrics.get("3d")
@@ -394,14 +409,18 @@ def metrics3d_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
                      s.note or ""])
     if not rows:
         return None
-    return Table(name=f"metrics3d_{label}", title=f"3D metrics on `{label}`",
+    gate = next((s.metrics["3d"].get("gate_m") for s in sets if s.metrics.get("3d")), None) or DEFAULT_GATE_M
+    true = "reference" if reference else "true"
+    return Table(name=f"metrics3d_{label}", title=f"3D metrics on `{label}`" + (
+                     " against its reference centres" if reference else ""),
                  columns=["method", "balls", "found <= 1 cm", "<= 2 cm", "<= 5 cm", "centre error median (mm)",
                           "RMSE (mm)", "p95 (mm)", "radius error median (mm)", "radius |error| median (mm)",
                           "median radius of all detections (m)", "false detections",
                           "detections on negative scenes", "note"], rows=rows,
-                 notes=["A prediction matches the nearest unmatched true ball within one radius (0.12 m), best "
-                        "score first; centre-error statistics over the matched balls; detection rates over all "
-                        "balls (missed balls count as failures).",
+                 notes=([reference] if reference else []) + [
+                        f"A prediction matches the nearest unmatched {true} ball centre within one radius "
+                        f"({gate:g} m), best score first; centre-error statistics over the matched balls; detection "
+                        "rates over all balls (missed balls count as failures).",
                         "Radius error: the method's own radius estimate minus R over the matched balls (improved: "
                         "its free-radius size check; pyransac3d: its fitted radius; '–' when none matched); the "
                         "paper's pipeline has R fixed. The median radius is over every detection, matched or not."])
@@ -527,6 +546,20 @@ def _in_results_dir(folder: Path) -> bool:
     return is_results_dir(folder.parent)
 
 
+def _keep_subfolders(old: Path, tmp: Path) -> list[str]:
+    """Copy the sub-folders of an existing figures folder into its replacement ``tmp`` (the report
+    writes files only; a sub-folder is another tool's, e.g. `annotate --sheet`); their names."""
+    import shutil
+    if not old.is_dir():
+        return []
+    kept = []
+    for d in sorted(old.iterdir()):
+        if d.is_dir() and not d.is_symlink() and not d.name.startswith("."):
+            shutil.copytree(d, tmp / d.name, symlinks=True)
+            kept.append(d.name)
+    return kept
+
+
 def write_tables(folder: Path, tables: Sequence[Table]) -> None:
     """Every table as CSV and Markdown, into ``folder`` replaced as a whole (atomic)."""
     with io.atomic_directory(folder, _in_results_dir) as tmp:
@@ -595,19 +628,34 @@ def robust_reading(label: str, sets: Sequence[ScoredSet], default: Sequence[Scor
     return out
 
 
-def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | None, skipped: dict[str, str]) -> list[str]:
-    """A short reading of the results, computed from them (no number here is typed in by hand)."""
+def _best_map(label: str, scored: Sequence[ScoredSet]) -> str:
+    """'On `label` the best circle mAP is X's, 0.660 (mAP.50 0.943)', naming every set that ties it
+    to three decimals."""
+    best = max(scored, key=lambda s: s.metrics["mAP"])
+    ties = [s for s in scored if s is not best and f"{s.metrics['mAP']:.3f}" == f"{best.metrics['mAP']:.3f}"]
+    text = (f"On `{label}` the best circle mAP is {best.output}'s, {best.metrics['mAP']:.3f} "
+            f"(mAP.50 {best.metrics['mAP50']:.3f})")
+    if ties:
+        text += "; " + ", ".join(f"{s.output}'s is the same to three decimals (mAP.50 {s.metrics['mAP50']:.3f})"
+                                 for s in ties)
+    return text + "."
+
+
+def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | None, skipped: dict[str, str],
+            about: dict[str, list[str]] | None = None) -> list[str]:
+    """A short reading of the results, computed from them (no number here is typed in by hand).
+
+    about: {dataset label: sentences said first about it} (what a recorded dataset is, ``eval.recorded``)."""
     out = []
     for label, sets in per_dataset.items():
+        out += (about or {}).get(label, [])
         if label in ("default", "hard"):
             continue
         if any(s.metrics.get("sensor_levels") for s in sets):  # a grid preset: read after default and hard
             continue
         scored = [s for s in sets if s.metrics.get("mAP") is not None and not not_run(s)]
         if scored:
-            best = max(scored, key=lambda s: s.metrics["mAP"])
-            out.append(f"On `{label}` the best circle mAP is {best.output}'s, {best.metrics['mAP']:.3f} "
-                       f"(mAP.50 {best.metrics['mAP50']:.3f}).")
+            out.append(_best_map(label, scored))
         for s in sets:
             u = s.metrics.get("unannotated")
             if u and s.rule != "paper" and not_run(s):
@@ -704,16 +752,19 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
 
 
 def readme(title: str, intro: list[str], per_dataset: dict[str, Sequence[ScoredSet]], tables: Sequence[Table],
-           figures: dict[str, str], t2: Sequence[dict] | None, skipped: dict[str, str]) -> str:
-    """The results README: intro, the reading, every table, the figures embedded."""
+           figures: dict[str, str], t2: Sequence[dict] | None, skipped: dict[str, str],
+           about: dict[str, list[str]] | None = None) -> str:
+    """The results README: intro, the reading (``about``: sentences on a dataset, said first), every
+    table, the figures embedded."""
     lines = [f"# {title}", ""] + intro + ["", "## Reading", ""]
-    lines += [f"- {s}" for s in reading(per_dataset, t2, skipped)] + ["", "## Tables", ""]
+    lines += [f"- {s}" for s in reading(per_dataset, t2, skipped, about)] + ["", "## Tables", ""]
     for t in tables:
         lines += [t.markdown(), f"(`tables/{t.name}.csv`, `tables/{t.name}.md`)", ""]
     if figures:
         lines += ["## Figures", ""]
         for caption, rel in figures.items():  # a long caption's first clause is the image's alt text
-            lines += [f"**{caption}**", "", f"![{caption.split(': ')[0]}]({rel})", ""]
+            lines += ([f"**{caption}**", "", f"![{caption.split(': ')[0]}]({rel})", ""] if rel is not None
+                      else [f"- {caption}", ""])  # None: a folder of other figures, named only
     return "\n".join(lines)
 
 
@@ -735,42 +786,66 @@ ROBUSTNESS_CAPTION = ("Robustness on `{label}`: the 3D detection rate (matched c
 def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[ScoredSet]]], t2: Sequence[dict] | None,
                   skipped: dict[str, str], prov: dict, title: str, intro: list[str],
                   paper_rows_for: Sequence[str] = ("default", "hard"), figures: bool = True,
-                  ceilings: dict[str, dict] | None = None) -> dict[str, Path]:
+                  ceilings: dict[str, dict] | None = None,
+                  beside=None) -> dict[str, Path]:
     """Tables, figures, metrics.json, README.md and provenance.json under ``out`` (all atomic).
 
     per_dataset: {label: (dataset folder, its coco_gt dict, scored sets)}. Returns the paths written.
     ceilings: {label: a per-cell ceiling of the improved detector's 3D rate, {(subpixel,
     correlation, dropouts, band label): rate}}, drawn in the robustness figure
     (``figures.robustness``), e.g. an oracle's; None: none.
+    beside: another evaluation (``recorded.Beside``): each dataset's Table 3 is also set beside the
+    same methods' on its dataset (``recorded.beside_table``).
+    A recorded dataset (``recorded.facts``) gets sentences on what its ground truth is, and its
+    3D table and figures say that its centres are references. Sub-folders of figures/ that other
+    tools wrote (the annotation review sheets) are kept when figures/ is replaced.
     """
     from spherebench.eval import figures as figs
+    from spherebench.eval import recorded
     out = Path(out)
     sets_by = {k: v[2] for k, v in per_dataset.items()}
+    facts = {label: recorded.facts(data_dir) for label, (data_dir, _, _) in per_dataset.items()}
+    about = {label: recorded.reading(label, f, per_dataset[label][2]) for label, f in facts.items() if f is not None}
     tables: list[Table] = []
     for label, (_, _, sets) in per_dataset.items():
         if any("mAP" in s.metrics for s in sets):
             tables.append(table3(label, sets, with_paper=label in paper_rows_for))
-        for t in (family_table(label, sets), metrics3d_table(label, sets), sensor_table(label, sets),
-                  detections_table(label, sets)):
+            if beside is not None and beside.label != label:
+                t = recorded.beside_table(label, sets, beside)
+                if t is not None:
+                    tables.append(t)
+                    about.setdefault(label, []).extend(recorded.beside_reading(label, sets, beside))
+        reference = recorded.reference_note(facts[label]) if facts[label] is not None else None
+        for t in (family_table(label, sets), metrics3d_table(label, sets, reference=reference),
+                  sensor_table(label, sets), detections_table(label, sets)):
             if t is not None:
                 tables.append(t)
     tables.append(timing_table(sets_by))
     if t2:
         tables.append(table2_table(t2))
     metrics = metrics_json(sets_by)
-    fig_paths: dict[str, str] = {}
+    fig_paths: dict[str, str | None] = {}
     if figures:
         with io.atomic_directory(out / "figures", _in_results_dir) as tmp:
+            kept = _keep_subfolders(out / "figures", tmp)
             for label, (data_dir, coco, sets) in per_dataset.items():
+                f = facts[label]
                 if any(s.pr50 is not None for s in sets):
                     figs.pr_curves(label, sets, tmp / f"pr_{label}.png")
                     fig_paths[f"Precision-recall on `{label}`"] = f"figures/pr_{label}.png"
                 if any(s.distance_m is not None for s in sets):
-                    figs.error_vs_distance(label, sets, tmp / f"error_vs_distance_{label}.png")
-                    fig_paths[f"Centre error against distance on `{label}`"] = f"figures/error_vs_distance_{label}.png"
+                    figs.error_vs_distance(label, sets, tmp / f"error_vs_distance_{label}.png",
+                                           reference=f is not None)
+                    fig_paths[f"Centre error against distance on `{label}`" + (
+                        ": against the mask-fit reference centres, not a ground truth" if f is not None else "")] = \
+                        f"figures/error_vs_distance_{label}.png"
                 if coco.get("images") and any(s.pr50 is not None for s in sets):
                     figs.examples(label, data_dir, sets, coco, tmp / f"examples_{label}.png")
-                    fig_paths[f"Examples on `{label}`"] = f"figures/examples_{label}.png"
+                    colour = f is not None and f["colour"] == f["n_scenes"]
+                    fig_paths[f"Examples on `{label}`" + (
+                        ": each frame's colour image with its mask's circle (green) and each method's best circle "
+                        "with its score; the 2D methods were given the reprojected depth image, not the colour"
+                        if colour else "")] = f"figures/examples_{label}.png"
             for label in per_dataset:  # drawn from metrics.json's content: a function of the stage files
                 rows = sensor_rows_by_method(metrics, label)
                 if rows:
@@ -781,11 +856,14 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
                     fig_paths[caption] = f"figures/robustness_{label}.png"
             figs.latency(sets_by, tmp / "latency.png")
             fig_paths["Latency per method"] = "figures/latency.png"
+            for name in kept:
+                fig_paths[f"[`figures/{name}/`](figures/{name}/): kept from another tool (not drawn by `evaluate`)"] = None
     write_tables(out / "tables", tables)
     io.write_json(out / "metrics.json", metrics)
     if t2:
         io.write_json(out / "table2.json", _json_safe(list(t2)))
-    io.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped).encode())
+    io.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
+                                                    about).encode())
     io.write_json(out / "provenance.json", prov)
     return {"metrics": out / "metrics.json", "tables": out / "tables", "figures": out / "figures",
             "readme": out / "README.md", "provenance": out / "provenance.json"}

@@ -2,13 +2,17 @@
 
     spherebench evaluate --data DIR [--data DIR2 ...] --out OUT [--methods improved paper ...] [--seed N]
                          [--workers 2] [--force] [--hough-config FILE] [--model FILE] [--no-figures]
+                         [--beside METRICS [--beside-label default]]
 
 DIR: a dataset of `spherebench generate` or `spherebench prepare`. Writes under OUT:
 predictions/<dataset>/<method>.json (COCO results with CircleNet's fields) and .meta.json
 (provenance, per-scene times), metrics.json, tables/, figures/, README.md, provenance.json.
 Scenes with ground truth are scored (COCO circle mAP; 3D metrics where true centres are known);
 unannotated scenes (annotated = false) get detection and radius statistics instead. An
-interrupted run resumes: finished prediction sets with the same inputs are reused.
+interrupted run resumes: finished prediction sets with the same inputs are reused. A recorded
+dataset's README says what its ground truth is (``eval.recorded``); --beside sets every Table 3
+beside the same methods' on a dataset of another evaluation (its metrics.json), e.g. the
+simulated `default` of results/ beside a recording's.
 """
 
 from __future__ import annotations
@@ -40,6 +44,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", metavar="FILE", default=None,
                    help="the `circlenet` method's ONNX model (default: baselines/circlenet/model.onnx; skipped if "
                         "missing); circlenet-full and circlenet-hg use theirs under baselines/circlenet/")
+    p.add_argument("--beside", metavar="METRICS", default=None,
+                   help="another evaluation's metrics.json (e.g. results/metrics.json): each Table 3 is also set "
+                        "beside the same methods' figures on its --beside-label dataset")
+    p.add_argument("--beside-label", metavar="LABEL", default="default",
+                   help="the dataset of --beside to compare with (default: default)")
     p.add_argument("--no-figures", action="store_true", help="write no figures")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -102,11 +111,13 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
              table2_dir: Path | None = None, table2_iterations: int | None = None, figures: bool = True,
              progress: bool = True, title: str = "SphereBench results", intro: list[str] | None = None,
              paper_rows_for: Sequence[str] = ("default", "hard"), extra_provenance: dict | None = None,
-             ceilings: dict[str, dict] | None = None, log=print) -> dict:
+             ceilings: dict[str, dict] | None = None, beside=None, log=print) -> dict:
     """Run, score and report ``datasets`` ({label: folder}) into ``out``. Returns metrics.json's content.
 
     ceilings: per-cell ceilings of the improved detector's 3D rate on a grid preset, {label:
-    {(subpixel, correlation, dropouts, band label): rate}}, drawn in its robustness figure."""
+    {(subpixel, correlation, dropouts, band label): rate}}, drawn in its robustness figure.
+    beside: another evaluation (``recorded.Beside``, from ``recorded.load_beside``): each Table 3 is
+    set beside that one's dataset."""
     from spherebench.datasets import io
     from spherebench.eval import report, runner
 
@@ -158,7 +169,7 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
         "predictions (COCO results with CircleNet's fields) in `predictions/`."]
     t0 = time.perf_counter()
     report.write_results(out, per_dataset, t2, skipped, prov, title, intro, paper_rows_for=paper_rows_for,
-                         figures=figures, ceilings=ceilings)
+                         figures=figures, ceilings=ceilings, beside=beside)
     stage_s["report"] = round(time.perf_counter() - t0, 1)
     return json.loads((out / "metrics.json").read_text())
 
@@ -209,13 +220,19 @@ def run(args: argparse.Namespace) -> int:
     if args.model and (args.methods is None or "circlenet" in args.methods):
         from spherebench.eval.runner import circlenet_spec
         circlenet_spec(args.model)  # a corrupt model is refused now, not after the other methods have run
+    if args.beside:
+        from spherebench.eval.recorded import load_beside
+        beside, beside_record = load_beside(args.beside, args.beside_label)
+    else:
+        beside, beside_record = None, None
     from spherebench.eval.report import claim_results_dir  # deferred like the other eval imports: fast --help
     claim_results_dir(out)  # before anything is written under it (Hough tuning included)
     progress = not args.quiet
     hough = resolve_hough(args.methods, args.hough_config, out, args.seed, args.workers, progress)
     metrics = evaluate(datasets, out, methods=args.methods, seed=args.seed, workers=args.workers, force=args.force,
                        hough_config=hough, model=args.model, figures=not args.no_figures, progress=progress,
-                       title="SphereBench evaluation", paper_rows_for=())
+                       title="SphereBench evaluation", paper_rows_for=(), beside=beside,
+                       extra_provenance={"beside": beside_record} if beside else None)
     for label in datasets:
         for method, by in metrics.items():
             line = console_line(method, by.get(label))
