@@ -59,9 +59,9 @@ class DetectorConfig:
         bound_noise_fraction: the bound provides for balls up to the depth where one pixel's depth
             noise reaches this fraction of R (3.5 m at 424x240 for the D435 model)...
         max_range_m: ... or up to this depth, whichever is nearer.
-        hypothesis_noise_fraction: the search keeps hypotheses of balls up to the depth where one
-            pixel's depth noise reaches this fraction of R (or ``max_range_m``), with a 25 % margin;
-            beyond the bound's depth they are not provided for, only kept when drawn.
+        hypothesis_min_range_m: the search keeps hypotheses of balls up to the bound's depth with a
+            25 % margin, and on a noisy unit (whose bound is nearer) never short of this depth: there
+            they are not provided for, only kept when drawn (the nominal unit's bound at 424x240).
         bound_visible_fraction: ... of which at least this fraction is visible.
         search_width_px: organised search: streams wider than this are searched on cells of
             width // search_width_px pixels (binned sums), so that the search costs the same at
@@ -228,7 +228,7 @@ class DetectorConfig:
     min_iterations: int = 300
     sample_success: float = 0.8
     bound_noise_fraction: float = 0.75
-    hypothesis_noise_fraction: float = 1.25
+    hypothesis_min_range_m: float = 3.5
     max_range_m: float = 6.0
     bound_visible_fraction: float = 1.0
     search_width_px: int = 424
@@ -395,7 +395,7 @@ def _problems(c: DetectorConfig) -> list[str]:
             out.append(f"{name}={getattr(c, name)} must be within (0, 1)")
     if finite("bound_visible_fraction") and c.bound_visible_fraction <= 0:
         out.append("bound_visible_fraction must be > 0")
-    for name in ("max_range_m", "bound_noise_fraction", "hypothesis_noise_fraction"):
+    for name in ("max_range_m", "bound_noise_fraction", "hypothesis_min_range_m"):
         if finite(name) and getattr(c, name) <= 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")
     for name in ("zscore_threshold", "noise_sigmas", "pretest_slack", "size_tolerance_m", "size_sigmas",

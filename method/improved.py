@@ -193,8 +193,9 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     prm[K.P_EPS_CAP] = config.max_eps_fraction * R
     prm[K.P_STRATUM_V], prm[K.P_STRATUM_U], prm[K.P_BIN] = stratum[0], stratum[1], bin_px
     prm[K.P_CELL_PX] = bin_px * cell_rows(bin_px)  # the pixels a cell's table entry sums
-    # hypotheses whose ball would be beyond the hypotheses' range limit (with a margin), or larger than the grid
-    far_m = range_limit_m(config, float(intr.fx), a, config.hypothesis_noise_fraction)
+    # hypotheses whose ball would be beyond the range limit (with a margin; on a noisy unit never nearer than
+    # hypothesis_min_range_m), or larger than the grid
+    far_m = max(range_limit_m(config, float(intr.fx), a), min(config.hypothesis_min_range_m, config.max_range_m))
     prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / far_m
     prm[K.P_RR_MAX] = float(max(grid_shape))
     prm[K.P_SLACK] = config.pretest_slack
@@ -213,15 +214,12 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     return prm
 
 
-def range_limit_m(config: DetectorConfig, fx: float | None, a: float | None = None,
-                  noise_fraction: float | None = None) -> float:
+def range_limit_m(config: DetectorConfig, fx: float | None, a: float | None = None) -> float:
     """The farthest centre depth the iteration bound provides for (metres): where the per-pixel
     depth noise reaches ``bound_noise_fraction`` R (3.5 m at 424x240, 4.9 m at 848x480, 6 m at
-    1280x720 for the D435 model), or ``max_range_m`` when that is nearer. noise_fraction: another
-    fraction in place of ``bound_noise_fraction`` (the hypotheses' limit)."""
+    1280x720 for the D435 model), or ``max_range_m`` when that is nearer."""
     a = noise_a(config, fx) if a is None else a
-    f = config.bound_noise_fraction if noise_fraction is None else noise_fraction
-    lim = math.sqrt(f * config.radius_m / a) if a > 0 else math.inf
+    lim = math.sqrt(config.bound_noise_fraction * config.radius_m / a) if a > 0 else math.inf
     return min(lim, config.max_range_m)
 
 
