@@ -320,7 +320,10 @@ P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_STRATUM
 P_H_FRAC, P_D_FRAC, P_RING_FRAC, P_RING_H_FRAC, P_PREFILTER_FRAC, P_DESCENT_STEPS, P_MIN_VALID, P_MAX_CONTINUED, \
     P_RING_FACTOR, P_PROFILE_INNER, P_PROFILE_OUTER, P_RING_FRONT_MIN, P_RING_FRONT_MAX, P_FIRST_BAND, \
     P_FIRST_STEPS, P_COARSE_BAND, P_SIZE_LIMIT, P_SE_S_MIN = range(17, 35)
-N_PRM = 35
+# box means' noise over the independent-pixel figure sigma / sqrt(n): the noise's correlation
+# (``improved.mean_variance_inflation``), square-rooted
+P_MEAN_NOISE = 35
+N_PRM = 36
 #: The packed table's count field starts at this bit; the depth sum (mm) takes the bits below.
 COUNT_SHIFT = 40
 _DEPTH_MASK = (1 << COUNT_SHIFT) - 1
@@ -518,7 +521,8 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
         if na_ == 0 or nb_ == 0 or na_ < prm[P_MIN_VALID] * aa * bb or nb_ < prm[P_MIN_VALID] * ab * bb:
             continue
         q = 1000.0 * na_ / sa + 1000.0 * nb_ / sb - 2.0 * i0
-        tol = 3.0 * prm[P_NOISE_A] * math.sqrt(1.0 / na_ + 1.0 / nb_ + 4.0 / n0) + prm[P_SLACK] * R / (m0 * m0)
+        tol = (3.0 * prm[P_NOISE_A] * prm[P_MEAN_NOISE] * math.sqrt(1.0 / na_ + 1.0 / nb_ + 4.0 / n0)
+               + prm[P_SLACK] * R / (m0 * m0))
         if abs(q) > tol:
             return True
         planar += 1
@@ -586,7 +590,7 @@ def front_hypothesis(tab, prm, v, u, out):
     """
     R = prm[P_R]
     fc = prm[P_FX] / prm[P_BIN]
-    na = prm[P_NOISE_A]
+    na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]  # box means: correlated pixels count as fewer
     slack = prm[P_SLACK] * R
     hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
     s0, n0, a0 = box_sums(tab, v, u, 1)

@@ -181,9 +181,10 @@ def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
 
 
 def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: int, grid_shape: tuple,
-               z_far_m: float, a: float | None = None) -> np.ndarray:
+               z_far_m: float, a: float | None = None, corr_px: float = 0.0) -> np.ndarray:
     """The float64 parameter vector (``_kernels.N_PRM``,) of the organised kernels; a: the frame's
-    sigma_z / z^2 (1/m), by default the configuration's (``noise_a``)."""
+    sigma_z / z^2 (1/m), by default the configuration's (``noise_a``); corr_px: the noise's correlation
+    length (stream pixels), which widens the search's box-mean tolerances."""
     a = noise_a(config, float(intr.fx)) if a is None else a
     prm = np.zeros(K.N_PRM, np.float64)
     R = config.radius_m
@@ -211,6 +212,8 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     prm[K.P_FIRST_BAND], prm[K.P_FIRST_STEPS] = c.first_band_fraction, c.first_steps
     prm[K.P_COARSE_BAND], prm[K.P_SIZE_LIMIT] = c.coarse_band_fraction, c.size_limit_fraction
     prm[K.P_SE_S_MIN] = c.radius_se_s_min_fraction
+    # a box of cells each bin_px wide: the correlation length in cells
+    prm[K.P_MEAN_NOISE] = math.sqrt(mean_variance_inflation(corr_px / bin_px))
     return prm
 
 
@@ -401,7 +404,8 @@ class Frame:
         self.stratum = strata(config, intr, self.z_far_m, self.bin, (hc, wc))
         #: first cells the search draws: one per stratum
         self.iterations = -(-hc // self.stratum[0]) * -(-wc // self.stratum[1])
-        self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m, self.noise_a)
+        self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m, self.noise_a,
+                              self.noise_corr_px)
         # verification's size/score gate (``_kernels.verify_organised``) and its output buffers
         # (candidates within rescore_band below min_score get their whole evidence: ``rescore``)
         self.gate = np.array([size_tolerance(config) if config.size_check else math.inf, config.size_sigmas,

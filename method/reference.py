@@ -104,7 +104,8 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
         if na == 0 or nb == 0 or na < prm[K.P_MIN_VALID] * aa * bb or nb < prm[K.P_MIN_VALID] * ab * bb:
             continue
         q = 1000.0 * na / sa + 1000.0 * nb / sb - 2.0 * i0
-        tol = 3.0 * prm[K.P_NOISE_A] * math.sqrt(1.0 / na + 1.0 / nb + 4.0 / n0) + prm[K.P_SLACK] * R / (m0 * m0)
+        tol = (3.0 * prm[K.P_NOISE_A] * prm[K.P_MEAN_NOISE] * math.sqrt(1.0 / na + 1.0 / nb + 4.0 / n0)
+               + prm[K.P_SLACK] * R / (m0 * m0))
         if abs(q) > tol:
             return True
         planar += 1
@@ -154,7 +155,7 @@ def front_hypothesis(g: Grid, v: int, u: int):
     prm = g.prm
     R = prm[K.P_R]
     fc = prm[K.P_FX] / prm[K.P_BIN]
-    na = prm[K.P_NOISE_A]
+    na = prm[K.P_NOISE_A] * prm[K.P_MEAN_NOISE]
     slack = prm[K.P_SLACK] * R
     m0, _ = g.box_range(v, u, 1)
     if math.isnan(m0) or not plane_free(g, v, u, m0):

@@ -596,8 +596,9 @@ def test_outcome_constants_are_configuration_fields():
               K.P_FIRST_BAND: "first_band_fraction", K.P_FIRST_STEPS: "first_steps",
               K.P_COARSE_BAND: "coarse_band_fraction", K.P_SIZE_LIMIT: "size_limit_fraction",
               K.P_SE_S_MIN: "radius_se_s_min_fraction"}
-    assert len(fields) == K.N_PRM - 17
+    assert len(fields) == K.N_PRM - 18  # and P_MEAN_NOISE, from the frame's noise correlation
     base = kernel_parameters(intr)
+    assert base[K.P_MEAN_NOISE] == 1.0
     for index, name in fields.items():
         value = getattr(IMPROVED, name)
         assert base[index] == value, name
