@@ -1,9 +1,9 @@
 """Compiled hot loops of the detector (numba, single thread, cached on disk).
 
 Each kernel has a readable counterpart that the tests compare it with: the minimal solver and the
-fits in ``sphere_model``, the search loops and the window statistics in ``reference``.
-Random numbers come from splitmix64 (``next_u01``), which ``reference`` replays exactly in pure
-Python, so the compiled and the reference search draw the same samples.
+fits in ``sphere_model``, the search loops and the window statistics in ``tests/search_reference.py``
+(test code, not shipped). Random numbers come from splitmix64 (``next_u01``), which the reference
+replays exactly in pure Python, so the compiled and the reference search draw the same samples.
 
 Conventions: points (N, 3) float32 metres in the camera frame; an organised cloud comes with
 ``index_image`` (H, W) int32, the point index of each pixel or -1 where depth is invalid.

@@ -170,7 +170,7 @@ def test_ring_spread_tells_support_from_embedding():
     """A ball on a floor is attached below only (within half its outline: no spread); a cap sticking
     out of a wall is attached all round."""
     from spherebench.method import improved as I
-    from spherebench.method import reference as ref
+    import search_reference as ref
     from spherebench.method.detector import prepare_frame
 
     assert ref.ring_spread(np.full(8, 10.0), np.array([0, 0, 0, 4, 6, 6, 4, 0.0])) == 0.0

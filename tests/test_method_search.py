@@ -16,7 +16,7 @@ from spherebench.method import config_for, detect
 from spherebench.method import _kernels as K
 from spherebench.method import detector as det
 from spherebench.method import improved as imp
-from spherebench.method import reference as ref
+import search_reference as ref  # noqa: E402  (tests/ is on sys.path under pytest)
 
 from test_method_detector import cap_points, scene
 
