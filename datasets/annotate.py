@@ -17,12 +17,12 @@ after their source file or frame):
   [i, i + 1); SphereBench puts pixel centres at integers, so LabelMe points are shifted by -0.5 px.
 
 Colour-derived annotation (``spherebench annotate DATASET --from-colour``): for a recording
-whose colour frame is registered to depth (``colour.jpg`` in the scene folder), ``colour_mask``
-takes the ball's pixels from an HSV range (default: a saturated yellow), keeps the largest
-connected component whose size fits the ball's radius at its median depth, and fills its holes;
-a hand or stick in front is not of the ball's colour and stays out. ``labelme_from_mask`` writes
-its outline as a LabelMe polygon beside the colour frame (``colour.json``), for a person to
-review in LabelMe before ``prepare --labelme`` reads it.
+whose colour frame is registered to depth (``colour.jpg`` or ``colour.png`` in the scene
+folder), ``colour_mask`` takes the ball's pixels from an HSV range (default: a saturated
+yellow), keeps the largest connected component whose size fits the ball's radius at its median
+depth, and fills its holes; a hand or stick in front is not of the ball's colour and stays out.
+``labelme_from_mask`` writes its outline as a LabelMe polygon beside the colour frame
+(``colour.json``), for a person to review in LabelMe before ``prepare --labelme`` reads it.
 
 Reference centre (``mask_fit_centre``): a fixed-radius least-squares sphere fit to the depth
 pixels of a ball's mask, with its standard error: a recording's 3D reference, independent of

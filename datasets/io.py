@@ -29,6 +29,7 @@ import shutil
 import socket
 import tempfile
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -114,7 +115,8 @@ def is_dataset_dir(path: Path) -> bool:
 
 
 _DATASET_FILES = {"dataset.json", "coco_gt.json", "scenes", OWNER_MARKER}
-#: colour.jpg / colour.png: a recording's colour frame registered to depth (kept as recorded);
+#: colour.jpg / colour.png: a recording's colour frame registered to depth (a file kept as recorded,
+#: or a RealSense colour frame aligned to the depth, colour.png);
 #: image.json / colour.json: LabelMe annotations saved beside image.png / the colour frame
 COLOUR_FILES = ("colour.jpg", "colour.png")
 LABELME_FILES = ("image.json", "colour.json")
@@ -439,19 +441,23 @@ def _circle(c) -> list[float] | None:
     return None if c is None else [float(x) for x in c]
 
 
-def colour_file_name(source: str | Path) -> str:
-    """The name a scene keeps a colour frame under: colour.png for a PNG, else colour.jpg."""
+def colour_file_name(source: str | Path | np.ndarray) -> str:
+    """The name a scene keeps a colour frame under: colour.png for a PNG or an image (an array),
+    else colour.jpg."""
+    if isinstance(source, np.ndarray):
+        return COLOUR_FILES[1]
     return COLOUR_FILES[1] if Path(source).suffix.lower() == ".png" else COLOUR_FILES[0]
 
 
 def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, write_cloud: bool = True,
-                colour: Path | None = None) -> Path:
+                colour: Path | np.ndarray | None = None) -> Path:
     """Write one scene folder atomically under ``scenes_dir``; returns its path.
 
     write_cloud=False leaves cloud.ply out (it is depth.png deprojected; the training split of
     learned 2D baselines has no use for it and it is most of a scene's size).
     colour: a JPEG or PNG colour frame registered to the depth, copied byte for byte as colour.jpg
-    or colour.png (the caller checks its size)."""
+    or colour.png, or an image (H, W, 3) uint8 BGR, written as colour.png (the caller checks its
+    size)."""
     final = Path(scenes_dir) / scene.scene_id
     with atomic_directory(final, never_replace) as tmp:
         balls = []
@@ -485,7 +491,9 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
             write_intrinsics(tmp / "intrinsics.json", scene.intrinsics)
         if write_cloud or scene.depth is None:
             write_cloud_ply(tmp / "cloud.ply", scene.to_cloud())
-        if colour is not None:
+        if isinstance(colour, np.ndarray):
+            write_png(tmp / colour_file_name(colour), colour)
+        elif colour is not None:
             shutil.copyfile(colour, tmp / colour_file_name(colour))
         write_json(tmp / "gt.json", gt)
     return final
@@ -841,81 +849,256 @@ def _rs_intrinsics(rs_intr, depth_scale: float) -> Intrinsics:
                       coeffs=tuple(_f32(c) for c in rs_intr.coeffs), depth_scale=_f32(depth_scale))
 
 
-def read_bag_depth(path: str | Path, stop_after: int | None = None, stall_timeout_s: float = 10.0):
-    """Depth frames of a RealSense recording (.bag, ROS1; .db3, ROS2), by pyrealsense2 playback.
+#: Colour formats of a recording's colour stream that prepare keeps (pyrealsense2's rs.format
+#: names) -> OpenCV's conversion to BGR (None: already BGR) and bytes per pixel.
+BAG_COLOUR_FORMATS = {"rgb8": (cv2.COLOR_RGB2BGR, 3), "bgr8": (None, 3), "rgba8": (cv2.COLOR_RGBA2BGR, 4),
+                      "bgra8": (cv2.COLOR_BGRA2BGR, 4), "yuyv": (cv2.COLOR_YUV2BGR_YUY2, 2),
+                      "uyvy": (cv2.COLOR_YUV2BGR_UYVY, 2)}
+#: Depth frames held back while the colour frame after them has not arrived yet; beyond this many
+#: the oldest is paired with the colour frames seen so far (a colour stream that stops early).
+BAG_PENDING_DEPTH_FRAMES = 8
+#: Colour frames kept for pairing (the latest ones).
+BAG_COLOUR_HISTORY = 8
+#: Timestamp jitter (ms) allowed beyond half a colour frame period when pairing colour with depth.
+BAG_COLOUR_SLACK_MS = 1.0
 
-    Yields (index, frame_number, timestamp_ms, depth (H, W) uint16, Intrinsics) in recording
-    order, index counting depth frames from 0; the intrinsics are the depth stream's with the
-    depth sensor's depth scale. stop_after: stop once this many frames have been yielded.
 
-    The depth sensor is started directly (not through rs.pipeline, which drops frames when the
-    consumer is slower than the file) with non-real-time playback and a small blocking queue:
-    the playback thread waits for each frame to be taken, so none is lost and memory stays bounded.
+@dataclass
+class BagFrame:
+    """One depth frame of a recording and, when the recording has a usable colour stream, the
+    colour frame nearest to it in time. index counts depth frames from 0; timestamps are the
+    frames' own (ms). colour: (h, w, 3) uint8 BGR at the colour stream's own size; None, with
+    ``no_colour`` saying why, when no colour frame lies within BagColour.max_offset_ms (the nearest
+    is then still named by colour_number and colour_timestamp_ms) or the two streams' timestamps
+    are in different clock domains. All colour fields stay None without a colour stream."""
+
+    index: int
+    number: int
+    timestamp_ms: float
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    colour: np.ndarray | None = None
+    colour_number: int | None = None
+    colour_timestamp_ms: float | None = None
+    no_colour: str | None = None
+
+
+@dataclass(frozen=True)
+class BagColour:
+    """A recording's colour stream: format (BAG_COLOUR_FORMATS), intrinsics (depth_scale unused),
+    the depth-to-colour extrinsics (a depth point p is at rotation @ p + translation in the colour
+    camera's frame, metres; from the recording's profile.get_extrinsics_to) and the largest time
+    offset (ms) of a colour frame paired with a depth frame: half a colour frame period (the
+    farthest the nearest frame of a regular stream can be) plus BAG_COLOUR_SLACK_MS."""
+
+    format: str
+    intrinsics: Intrinsics
+    rotation: tuple[tuple[float, float, float], ...]
+    translation: tuple[float, float, float]
+    fps: int
+    max_offset_ms: float
+
+
+class BagRecording:
+    """A RealSense recording (.bag, ROS1; .db3, ROS2) opened for pyrealsense2 playback: its depth
+    stream, and its colour stream when it has one that can be kept (``colour``; else ``colour_note``
+    says why there is none). Opening reads the file's description only; ``frames`` plays it back.
+
+    The sensors are started directly (not through rs.pipeline, which drops frames when the consumer
+    is slower than the file) with non-real-time playback and a small blocking queue: the playback
+    thread waits for each frame to be taken, so none is lost and memory stays bounded. Colour is
+    paired with depth by timestamp here, not by rs.syncer, which may emit a frame alone or drop it.
     """
-    import queue
-    import threading
 
-    rs = _import_pyrealsense2()
-    path = Path(path)
-    if not path.is_file():
-        raise SphereBenchError(f"{path}: file not found")
-    try:
-        device = rs.context().load_device(str(path))
-        sensors = device.query_sensors()
-        streams = [p for s in sensors for p in s.get_stream_profiles()]
-    except RuntimeError as exc:
-        raise SphereBenchError(f"{path}: not a readable RealSense recording ({exc})") from None
-    depth_profiles = [(s, p) for s in sensors if s.is_depth_sensor() for p in s.get_stream_profiles()
-                      if p.stream_type() == rs.stream.depth]
-    if not depth_profiles:
-        found = ", ".join(sorted({str(p.stream_type()).removeprefix("stream.") for p in streams})) or "none"
-        raise SphereBenchError(f"{path}: the recording has no depth stream (streams: {found}); record with depth enabled")
-    sensor, profile = depth_profiles[0]
-    if profile.format() != rs.format.z16:
-        raise SphereBenchError(f"{path}: the depth stream is {profile.format()}, only z16 depth is supported")
-    depth_scale = float(sensor.as_depth_sensor().get_depth_scale())
-    playback = device.as_playback()
-    playback.set_real_time(False)
-    frames: queue.Queue = queue.Queue(maxsize=4)
-    stopping = threading.Event()
+    def __init__(self, path: str | Path):
+        rs = _import_pyrealsense2()
+        self.path = path = Path(path)
+        if not path.is_file():
+            raise SphereBenchError(f"{path}: file not found")
+        try:
+            self._device = rs.context().load_device(str(path))
+            sensors = self._device.query_sensors()
+            streams = [(i, s, p) for i, s in enumerate(sensors) for p in s.get_stream_profiles()]
+        except RuntimeError as exc:
+            raise SphereBenchError(f"{path}: not a readable RealSense recording ({exc})") from None
+        depth = [(i, s, p) for i, s, p in streams if s.is_depth_sensor() and p.stream_type() == rs.stream.depth]
+        if not depth:
+            found = ", ".join(sorted({str(p.stream_type()).removeprefix("stream.") for *_, p in streams})) or "none"
+            raise SphereBenchError(f"{path}: the recording has no depth stream (streams: {found}); "
+                                   "record with depth enabled")
+        self._depth_index, self._depth_sensor, self._depth_profile = depth[0]
+        if self._depth_profile.format() != rs.format.z16:
+            raise SphereBenchError(f"{path}: the depth stream is {self._depth_profile.format()}, "
+                                   "only z16 depth is supported")
+        self.depth_scale = float(self._depth_sensor.as_depth_sensor().get_depth_scale())
+        self.colour: BagColour | None = None
+        self.colour_note: str | None = None
+        self._colour_index = self._colour_sensor = self._colour_profile = None
+        colour = [(i, s, p) for i, s, p in streams if p.stream_type() == rs.stream.color]
+        if not colour:
+            self.colour_note = (f"{path.name}: the recording has no colour stream: its scenes keep no colour frame "
+                                "(annotate --from-colour needs one)")
+            return
+        sensor_index, sensor, profile = colour[0]
+        fmt = str(profile.format()).removeprefix("format.")
+        if fmt not in BAG_COLOUR_FORMATS:
+            self.colour_note = (f"{path.name}: the colour stream is {fmt}, which prepare does not convert "
+                                f"({', '.join(BAG_COLOUR_FORMATS)}): its scenes keep no colour frame")
+            return
+        try:
+            ext = self._depth_profile.get_extrinsics_to(profile)
+            c_intr = profile.as_video_stream_profile().get_intrinsics()
+            intr = _rs_intrinsics(c_intr, 1.0)
+        except (RuntimeError, SphereBenchError) as exc:
+            self.colour_note = (f"{path.name}: the colour stream's calibration cannot be used ({exc}): "
+                                "its scenes keep no colour frame")
+            return
+        r = [_f32(v) for v in ext.rotation]  # column-major, as rs2_extrinsics
+        self.colour = BagColour(format=fmt, intrinsics=intr,
+                                rotation=tuple((r[i], r[3 + i], r[6 + i]) for i in range(3)),
+                                translation=tuple(_f32(v) for v in ext.translation), fps=int(profile.fps()),
+                                max_offset_ms=(500.0 / profile.fps() if profile.fps() > 0 else math.inf)
+                                + BAG_COLOUR_SLACK_MS)
+        self._colour_index, self._colour_sensor, self._colour_profile = sensor_index, sensor, profile
 
-    def on_frame(frame) -> None:
-        # copy out and release the frame at once: librealsense's frame pool is small
-        vp = frame.get_profile().as_video_stream_profile()
-        item = (int(frame.get_frame_number()), float(frame.get_timestamp()),
-                np.array(np.asanyarray(frame.get_data()), dtype=np.uint16, copy=True), vp.get_intrinsics())
-        while not stopping.is_set():
-            try:
-                frames.put(item, timeout=0.05)
-                return
-            except queue.Full:
-                continue
+    def frames(self, stop_after: int | None = None, stall_timeout_s: float = 10.0):
+        """BagFrames in recording order; stop_after: stop once this many have been yielded."""
+        import collections
+        import queue
+        import threading
 
-    try:
-        sensor.open(profile)
-        sensor.start(on_frame)
-    except RuntimeError as exc:
-        raise SphereBenchError(f"{path}: pyrealsense2 cannot play the depth stream back ({exc})") from None
-    try:
-        index, idle_s, step_s, last = 0, 0.0, 0.05, None
-        while stop_after is None or index < stop_after:
-            try:
-                number, stamp, image, rs_intr = frames.get(timeout=step_s)
-            except queue.Empty:
-                idle_s += step_s
-                if playback.current_status() == rs.playback_status.stopped and frames.empty() and idle_s > 0.2:
-                    break
-                if idle_s > stall_timeout_s:
-                    raise SphereBenchError(f"{path}: playback stalled for {stall_timeout_s:g} s; the file may be damaged")
-                continue
-            idle_s = 0.0
-            if (number, stamp) == last:
-                continue
-            last = (number, stamp)
-            yield index, number, stamp, image, _rs_intrinsics(rs_intr, depth_scale)
+        rs = _import_pyrealsense2()
+        path = self.path
+        playback = self._device.as_playback()
+        playback.set_real_time(False)
+        items: queue.Queue = queue.Queue(maxsize=4)
+        stopping = threading.Event()
+        colour = self.colour
+        convert, bpp = BAG_COLOUR_FORMATS[colour.format] if colour is not None else (None, 0)
+
+        def on_frame(frame) -> None:
+            # copy out and release the frame at once: librealsense's frame pool is small
+            vp = frame.get_profile().as_video_stream_profile()
+            is_depth = vp.stream_type() == rs.stream.depth
+            data = np.asanyarray(frame.get_data())
+            image = np.array(data, dtype=np.uint16, copy=True) if is_depth else np.array(data, copy=True)
+            item = (is_depth, int(frame.get_frame_number()), float(frame.get_timestamp()), image,
+                    vp.get_intrinsics() if is_depth else (vp.width(), vp.height()),
+                    str(frame.get_frame_timestamp_domain()))
+            while not stopping.is_set():
+                try:
+                    items.put(item, timeout=0.05)
+                    return
+                except queue.Full:
+                    continue
+
+        # each sensor opens all of its streams at once (a D405's colour is on its depth sensor)
+        opened = [(self._depth_sensor, [self._depth_profile])]
+        if colour is not None:
+            if self._colour_index == self._depth_index:
+                opened[0][1].append(self._colour_profile)
+            else:
+                opened.append((self._colour_sensor, [self._colour_profile]))
+        started = []
+        try:
+            if colour is not None:
+                playback.pause()  # until every sensor is started: none misses the first frames
+            for sensor, profiles in opened:
+                sensor.open(profiles if len(profiles) > 1 else profiles[0])
+                sensor.start(on_frame)
+                started.append(sensor)
+            if colour is not None:
+                playback.resume()
+        except RuntimeError as exc:
+            _stop_sensors(started)
+            raise SphereBenchError(f"{path}: pyrealsense2 cannot play the recording back ({exc})") from None
+
+        pending: collections.deque = collections.deque()  # depth items waiting for a later colour frame
+        recent: collections.deque = collections.deque(maxlen=BAG_COLOUR_HISTORY)  # colour items
+        domains: dict[str, str] = {}
+        index = 0
+
+        def paired(depth_item):
+            nonlocal index
+            number, stamp, image, rs_intr = depth_item
+            frame = BagFrame(index, number, stamp, image, _rs_intrinsics(rs_intr, self.depth_scale))
             index += 1
-    finally:
-        stopping.set()
+            if colour is None:
+                return frame
+            if not recent:
+                frame.no_colour = "no colour frame was recorded up to it"
+                return frame
+            if domains["depth"] != domains["colour"]:
+                frame.no_colour = (f"its timestamp and the colour stream's are in different clock domains "
+                                   f"({domains['depth'].removeprefix('timestamp_domain.')}, "
+                                   f"{domains['colour'].removeprefix('timestamp_domain.')}): they cannot be paired")
+                return frame
+            # the colour stream is in time order: the first frame at or after the depth and the one before it
+            after = next((i for i, c in enumerate(recent) if c[1] >= stamp), None)
+            candidates = [recent[-1]] if after is None else [recent[after]] + ([recent[after - 1]] if after else [])
+            best = min(candidates, key=lambda c: (abs(c[1] - stamp), c[1]))
+            frame.colour_number, frame.colour_timestamp_ms = best[0], best[1]
+            if abs(best[1] - stamp) <= colour.max_offset_ms:
+                frame.colour = best[2]
+            else:
+                frame.no_colour = (f"the nearest colour frame is {abs(best[1] - stamp):.1f} ms away, more than "
+                                   f"half a colour frame period and {BAG_COLOUR_SLACK_MS:g} ms "
+                                   f"({colour.max_offset_ms:.1f} ms; a colour frame was lost?)")
+            return frame
+
+        def ready(final: bool = False):
+            while pending and (final or colour is None or len(pending) > BAG_PENDING_DEPTH_FRAMES
+                               or (recent and recent[-1][1] >= pending[0][1])):
+                yield paired(pending.popleft())
+
+        try:
+            idle_s, step_s, last = 0.0, 0.05, {}
+            while stop_after is None or index < stop_after:
+                try:
+                    is_depth, number, stamp, image, rs_intr, domain = items.get(timeout=step_s)
+                except queue.Empty:
+                    idle_s += step_s
+                    if playback.current_status() == rs.playback_status.stopped and items.empty() and idle_s > 0.2:
+                        break
+                    if idle_s > stall_timeout_s:
+                        raise SphereBenchError(f"{path}: playback stalled for {stall_timeout_s:g} s; "
+                                               "the file may be damaged")
+                    continue
+                idle_s = 0.0
+                kind = "depth" if is_depth else "colour"
+                if last.get(kind) == (number, stamp):
+                    continue
+                last[kind] = (number, stamp)
+                domains.setdefault(kind, domain)
+                if is_depth:
+                    pending.append((number, stamp, image, rs_intr))
+                else:
+                    recent.append((number, stamp, _colour_to_bgr(image, *rs_intr, bpp, convert, path)))
+                for frame in ready():
+                    yield frame
+                    if stop_after is not None and index >= stop_after:
+                        return
+            for frame in ready(final=True):
+                if stop_after is not None and frame.index >= stop_after:
+                    return
+                yield frame
+        finally:
+            stopping.set()
+            _stop_sensors(started)
+
+
+def _colour_to_bgr(data: np.ndarray, width: int, height: int, bpp: int, convert, path: Path) -> np.ndarray:
+    """A colour frame's pixels (BAG_COLOUR_FORMATS, any array shape) -> (height, width, 3) uint8 BGR."""
+    raw = np.ascontiguousarray(data).view(np.uint8).reshape(-1)
+    if raw.size != width * height * bpp:
+        raise SphereBenchError(f"{path}: a colour frame holds {raw.size} bytes, not the {width}x{height}x{bpp} of "
+                               "its stream: the file is damaged")
+    raw = raw.reshape(height, width, bpp)
+    return raw.copy() if convert is None else cv2.cvtColor(raw, convert)
+
+
+def _stop_sensors(sensors) -> None:
+    for sensor in sensors:
         try:
             sensor.stop()
             sensor.close()

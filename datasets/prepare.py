@@ -4,7 +4,9 @@ Inputs (each becomes a stream of ``Frame``s, then one scene per frame):
 
 - RealSense recordings (.bag, ROS1; .db3, ROS2) by pyrealsense2 playback: the depth stream,
   its intrinsics and the depth sensor's depth scale. Frames can be picked by index range,
-  every n-th, or by time from the first depth frame.
+  every n-th, or by time from the first depth frame. A colour stream, when recorded, gives each
+  depth frame the colour frame nearest in time, aligned to the depth (``camera.align_to_depth``),
+  kept as colour.png for annotation from colour.
 - 16-bit depth PNGs with an intrinsics JSON.
 - headerless raw depth frames (uint16 or float32, either byte order) with intrinsics.
 - point clouds (PLY, PCD, XYZ). An organised cloud (PLY with row/col, PCD with HEIGHT > 1)
@@ -44,7 +46,7 @@ import cv2
 import numpy as np
 
 from spherebench import __version__
-from spherebench.camera import Intrinsics, project
+from spherebench.camera import Intrinsics, align_to_depth, project
 from spherebench.cloud import Cloud, depth_to_metres
 from spherebench.datasets import io
 from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
@@ -181,8 +183,10 @@ class Frame:
     depths (m) as read, before storage, for the unit check (default: from depth).
     unit_alternatives: (depths m, option) of other readings of the same bytes, which the unit
     check suggests when they are plausible; garbage_hint: what to check when no unit fits.
-    colour: the recording's colour frame (JPEG or PNG) registered to depth, same size; the scene
-    keeps it as colour.jpg / colour.png, for annotation from colour (``spherebench annotate``)."""
+    colour: the recording's colour frame registered to depth, same size: a JPEG or PNG file, kept
+    as colour.jpg / colour.png, or an image (H, W, 3) uint8 BGR, kept as colour.png; for annotation
+    from colour (``spherebench annotate``). no_colour: why a frame whose source records colour has
+    none (said once, with how many). notes: said once for the whole dataset."""
 
     scene_id: str
     source: str
@@ -194,7 +198,9 @@ class Frame:
     unit_sample_m: np.ndarray | None = None
     unit_alternatives: tuple[tuple[np.ndarray, str], ...] = ()
     garbage_hint: str | None = None
-    colour: Path | None = None
+    colour: Path | np.ndarray | None = None
+    no_colour: str | None = None
+    notes: tuple[str, ...] = ()
 
 
 @dataclass
@@ -353,11 +359,18 @@ def cloud_to_depth(cloud: Cloud, intr: Intrinsics, where: str) -> tuple[np.ndarr
 # --------------------------------------------------------------------------- frame sources
 
 def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None = None) -> Iterator[Frame]:
-    """Depth frames of a RealSense recording, picked by ``selection``."""
+    """Depth frames of a RealSense recording, picked by ``selection``; with a colour stream, each
+    with the colour frame nearest in time aligned to it (``align_to_depth``, with the depth in
+    metres of the depth scale used) and, in meta, which colour frame it is and what the alignment
+    did."""
     stem = scene_id_from(path.stem)
+    recording = io.BagRecording(path)
+    notes = (recording.colour_note,) if recording.colour_note else ()
+    colour = recording.colour
     t_first = None
     kept = 0
-    for index, number, stamp, depth, intr in io.read_bag_depth(path, stop_after=selection.stop):
+    for bag_frame in recording.frames(stop_after=selection.stop):
+        index, stamp, intr = bag_frame.index, bag_frame.timestamp_ms, bag_frame.intrinsics
         t_first = stamp if t_first is None else t_first
         rel = stamp - t_first
         if selection.time_range_ms is not None:
@@ -373,9 +386,30 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
             continue
         if depth_scale is not None:
             intr = _with_depth_scale(intr, depth_scale)
-        yield Frame(scene_id=f"{stem}_{index:06d}", source=f"{path} frame {index}", intrinsics=intr, depth=depth,
-                    meta={"source": path.name, "frame_index": index, "frame_number": number,
-                          "timestamp_ms": stamp, "time_from_first_frame_ms": round(rel, 6)})
+        meta = {"source": path.name, "frame_index": index, "frame_number": bag_frame.number,
+                "timestamp_ms": stamp, "time_from_first_frame_ms": round(rel, 6)}
+        aligned = None
+        if colour is not None:
+            meta["colour"] = _colour_meta(colour, bag_frame)
+            if bag_frame.colour is not None:
+                aligned, counts = align_to_depth(depth_to_metres(bag_frame.depth, intr), intr, bag_frame.colour,
+                                                 colour.intrinsics, colour.rotation, colour.translation)
+                meta["colour"]["aligned_pixels"] = counts
+        yield Frame(scene_id=f"{stem}_{index:06d}", source=f"{path} frame {index}", intrinsics=intr,
+                    depth=bag_frame.depth, meta=meta, colour=aligned, no_colour=bag_frame.no_colour, notes=notes)
+
+
+def _colour_meta(colour: io.BagColour, frame: io.BagFrame) -> dict:
+    """What a scene records of its colour frame: which one, its offset in time, the stream."""
+    offset = None if frame.colour_timestamp_ms is None else round(frame.colour_timestamp_ms - frame.timestamp_ms, 6)
+    intrinsics = colour.intrinsics.to_dict()
+    del intrinsics["depth_scale"]
+    return {"frame_number": frame.colour_number, "timestamp_ms": frame.colour_timestamp_ms, "offset_ms": offset,
+            "format": colour.format, "intrinsics": intrinsics,
+            "depth_to_colour": {"rotation": [list(r) for r in colour.rotation],
+                                "translation_m": list(colour.translation)},
+            "aligned": "to the depth: each depth pixel's nearest colour pixel; black without depth, off the colour "
+                       "image or hidden from the colour camera"}
 
 
 def depth_png_frames(paths: list[Path], intr: Intrinsics | None, selection: FrameSelection,
@@ -802,12 +836,21 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                     check_units(sample, frame.source, _input_scale(frame, options), "depth",
                                 frame.unit_alternatives, frame.garbage_hint)
                 colour = frame.colour
-                if colour is not None and not colour.is_file():
+                if isinstance(colour, np.ndarray):
+                    if colour.shape[:2] != frame.depth.shape:  # aligned to the depth by its reader
+                        raise SphereBenchError(f"{frame.source}: the aligned colour frame is {colour.shape[1]}x"
+                                               f"{colour.shape[0]} but the depth is {frame.depth.shape[1]}x"
+                                               f"{frame.depth.shape[0]}")
+                elif colour is not None and not colour.is_file():
                     no_colour.append(str(colour))
                     colour = None
                 elif colour is not None:
                     _check_colour(colour, frame.depth.shape)
-                names = frame.image_names + ((colour.name,) if colour is not None else ())
+                if colour is None and frame.no_colour:
+                    no_colour.append(f"{frame.scene_id}: {frame.no_colour}")
+                colour_name = io.colour_file_name(colour) if colour is not None else None
+                names = frame.image_names + ((colour_name,) if isinstance(colour, np.ndarray) else
+                                             (colour.name,) if colour is not None else ())
                 balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m, names)
                 for ball in balls or ():
                     fit = (mask_fit_centre(depth_to_metres(frame.depth, frame.intrinsics), frame.intrinsics,
@@ -825,6 +868,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 if options.unit_check:
                     check_units(np.linalg.norm(frame.cloud.points.astype(np.float64), axis=1), frame.source,
                                 _input_scale(frame, options), what="range")
+            notes.extend(n for n in frame.notes if n not in notes)
             if frame.meta.get("non_finite_points_dropped"):
                 non_finite[frame.source] = frame.meta["non_finite_points_dropped"]
             if n_valid == 0:
@@ -842,8 +886,8 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 # where LabelMe looks when that image is reopened
                 doc = io.read_labelme(labelme)
                 drawn = Path(str(doc.get("imagePath") or "").replace("\\", "/")).name
-                on_colour = colour is not None and drawn in (*io.COLOUR_FILES, colour.name)
-                kept = io.colour_file_name(colour) if on_colour else "image.png"
+                on_colour = colour is not None and drawn in (*io.COLOUR_FILES, *names[len(frame.image_names):])
+                kept = colour_name if on_colour else "image.png"
                 doc["imagePath"] = kept
                 io.write_json(scene_dir / (Path(kept).stem + ".json"), doc, indent=2)
             if balls is not None:

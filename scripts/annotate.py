@@ -3,13 +3,14 @@
     spherebench annotate DATASET --from-colour [--hsv H0:H1,S0:S1,V0:V1] [--label ball] [--overwrite]
     spherebench annotate DATASET --sheet DIR            (review sheets of the annotations as they are)
 
-For every scene of a prepared dataset that kept its colour frame (colour.jpg, registered to
-depth: ``prepare`` keeps it for sources that record colour), the ball's mask is taken from an
+For every scene of a prepared dataset that kept its colour frame (colour.jpg or colour.png,
+registered to depth: ``prepare`` keeps it for sources that record colour, the kinect-pochang set
+and RealSense recordings with a colour stream), the ball's mask is taken from an
 HSV range (default a saturated yellow, 18:40,100:255,80:255 on OpenCV's scale: H 0-179), as the
 largest connected component of the ball's expected size at its depth, holes filled; a hand or a
 stick in front is not of that colour and stays out. Its outline is written as a LabelMe polygon
 beside the colour frame, ``scenes/<id>/colour.json``; a frame where nothing fits gets no file
-and stays unannotated (said once). Review them in LabelMe (open colour.jpg), then
+and stays unannotated (said once). Review them in LabelMe (open colour.jpg / colour.png), then
 ``spherebench prepare ... --labelme DATASET --out DATASET`` reads them as ground truth.
 
 --sheet DIR: PNG pages of every annotated scene for review by eye: the mask over the colour
@@ -41,7 +42,7 @@ PAGE_SCENES, PAGE_COLUMNS, CLOSEUP_PX, OVERVIEW_SCALE = 12, 3, 160, 0.3
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dataset", type=Path, help="a prepared dataset folder (its scenes keep colour.jpg)")
+    p.add_argument("dataset", type=Path, help="a prepared dataset folder (its scenes keep colour.jpg or colour.png)")
     p.add_argument("--from-colour", action="store_true",
                    help="write each frame's ball mask from its colour as scenes/<id>/colour.json (LabelMe)")
     hsv = ",".join(f"{a}:{b}" for a, b in DEFAULT_HSV)

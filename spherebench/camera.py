@@ -193,3 +193,150 @@ def image_rays(intr: Intrinsics) -> np.ndarray:
     """Rays (H, W, 3) with z = 1 through every pixel centre, for ray casting and deprojection."""
     v, u = np.mgrid[0:intr.height, 0:intr.width]
     return pixel_rays(intr, u.astype(np.float64), v.astype(np.float64))
+
+
+#: A depth pixel is hidden from the other camera (``align_to_depth``) when the depth surface, nearer
+#: to that camera by more than the larger of these, covers the pixel it lands on there.
+OCCLUSION_MARGIN_M = 0.01
+OCCLUSION_MARGIN_FRACTION = 0.03
+#: A depth pixel is at a depth edge when a neighbour has no depth or is farther by this fraction.
+EDGE_JUMP_FRACTION = 0.1
+#: A triangle of the depth surface covers at most this many pixels a side of the other image (a
+#: larger one, across a wide depth edge, is clipped).
+MAX_FOOTPRINT_PX = 16
+
+
+def _transform(rotation: np.ndarray, translation: np.ndarray, x, y, z) -> tuple[np.ndarray, ...]:
+    """rotation @ (x, y, z) + translation, one coordinate at a time (element-wise arithmetic, so
+    the result is the same bit for bit on every machine, unlike a BLAS product)."""
+    return tuple(rotation[i, 0] * x + rotation[i, 1] * y + rotation[i, 2] * z + translation[i] for i in range(3))
+
+
+def _draw_boxes(nearest: np.ndarray, w: int, h: int, us: np.ndarray, vs: np.ndarray, z: np.ndarray) -> None:
+    """Lower ``nearest`` (h * w, the other image's z-buffer) to z over each box: the pixels nearest
+    to the corners' span (us, vs: (corners, n) px), clipped to MAX_FOOTPRINT_PX a side."""
+    with np.errstate(invalid="ignore"):
+        x0, x1 = np.floor(us.min(axis=0) + 0.5), np.floor(us.max(axis=0) + 0.5)
+        y0, y1 = np.floor(vs.min(axis=0) + 0.5), np.floor(vs.max(axis=0) + 0.5)
+        keep = np.flatnonzero(np.isfinite(z) & np.isfinite(x0) & np.isfinite(x1) & np.isfinite(y0) & np.isfinite(y1)
+                              & (x1 >= 0) & (x0 < w) & (y1 >= 0) & (y0 < h))
+    x0, y0 = np.maximum(x0[keep], 0), np.maximum(y0[keep], 0)
+    span_x = (np.minimum(x1[keep], w - 1) - x0).clip(0, MAX_FOOTPRINT_PX - 1).astype(np.int64)
+    span_y = (np.minimum(y1[keep], h - 1) - y0).clip(0, MAX_FOOTPRINT_PX - 1).astype(np.int64)
+    x0, y0, z = x0.astype(np.int64), y0.astype(np.int64), z[keep]
+    for dy in range(int(span_y.max(initial=-1)) + 1):
+        tall = np.flatnonzero(span_y >= dy)
+        for dx in range(int(span_x[tall].max(initial=-1)) + 1):
+            sel = tall[span_x[tall] >= dx]
+            np.minimum.at(nearest, (y0[sel] + dy) * w + x0[sel] + dx, z[sel])
+
+
+def _draw_triangles(nearest: np.ndarray, w: int, h: int, tu: np.ndarray, tv: np.ndarray, tz: np.ndarray) -> None:
+    """Lower ``nearest`` (h * w, the other image's z-buffer) over each triangle (tu, tv: (3, n) px
+    of its corners, tz (3, n) their depths; NaN: no triangle) to its depth at each pixel centre it
+    covers, interpolated linearly; clipped to MAX_FOOTPRINT_PX a side."""
+    with np.errstate(invalid="ignore"):
+        x0, x1 = np.ceil(tu.min(axis=0)), np.floor(tu.max(axis=0))  # the pixel centres it may cover
+        y0, y1 = np.ceil(tv.min(axis=0)), np.floor(tv.max(axis=0))
+        area = (tv[1] - tv[2]) * (tu[0] - tu[2]) + (tu[2] - tu[1]) * (tv[0] - tv[2])
+        keep = np.flatnonzero(np.isfinite(tz).all(axis=0) & np.isfinite(area) & (area != 0)
+                              & (x1 >= x0) & (y1 >= y0) & (x1 >= 0) & (x0 < w) & (y1 >= 0) & (y0 < h))
+    tu, tv, tz, area = tu[:, keep], tv[:, keep], tz[:, keep], area[keep]
+    x0, y0 = np.maximum(x0[keep], 0), np.maximum(y0[keep], 0)
+    span_x = (np.minimum(x1[keep], w - 1) - x0).clip(0, MAX_FOOTPRINT_PX - 1).astype(np.int64)
+    span_y = (np.minimum(y1[keep], h - 1) - y0).clip(0, MAX_FOOTPRINT_PX - 1).astype(np.int64)
+    for dy in range(int(span_y.max(initial=-1)) + 1):
+        tall = np.flatnonzero(span_y >= dy)
+        for dx in range(int(span_x[tall].max(initial=-1)) + 1):
+            sel = tall[span_x[tall] >= dx]
+            px, py = x0[sel] + dx, y0[sel] + dy
+            u, v, z, d = tu[:, sel], tv[:, sel], tz[:, sel], area[sel]
+            l0 = ((v[1] - v[2]) * (px - u[2]) + (u[2] - u[1]) * (py - v[2])) / d  # barycentric coordinates
+            l1 = ((v[2] - v[0]) * (px - u[2]) + (u[0] - u[2]) * (py - v[2])) / d
+            l2 = 1.0 - l0 - l1
+            hit = (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
+            np.minimum.at(nearest, (py[hit] * w + px[hit]).astype(np.int64), (l0 * z[0] + l1 * z[1] + l2 * z[2])[hit])
+
+
+def align_to_depth(depth_m: np.ndarray, depth_intr: Intrinsics, image: np.ndarray, image_intr: Intrinsics,
+                   rotation, translation) -> tuple[np.ndarray, dict]:
+    """Another camera's image (a colour frame) resampled onto the depth image's pixel grid.
+
+    For every depth pixel with depth: deproject its centre with ``depth_intr`` and its depth
+    (``deproject``), move the point into the other camera's frame (rotation (3, 3) @ p +
+    translation (3,), metres: librealsense's depth-to-other extrinsics), project it with
+    ``image_intr`` (``project``, the distortion model as rs2_project_point_to_pixel applies it)
+    and take the nearest pixel there. A depth pixel stays black (0) where it has no depth, where
+    it lands off the image or behind the camera, and where the other camera does not see it
+    (occluded): the depth surface covers the pixel it lands on at a depth nearer to that camera
+    by more than OCCLUSION_MARGIN_M or OCCLUSION_MARGIN_FRACTION, the larger. The surface drawn
+    in the other image is each depth pixel's square at its own depth (the box of its corners
+    there; at a depth edge, EDGE_JUMP_FRACTION, where the silhouette may lie anywhere up to the
+    farther neighbour, reaching to its neighbours' centres) and the triangles between
+    neighbouring pixel centres, the depth interpolated across each (a triangle across a depth
+    edge hides what lies behind it). Without that test the cameras' baseline paints the
+    background beside a near object in the object's colour.
+
+    depth_m: (H, W) metres (0, NaN: no depth), H, W = depth_intr's. image: (h, w) or (h, w, C),
+    h, w = image_intr's. Returns (the aligned image (H, W[, C]) of image's dtype, counts of depth
+    pixels: with depth, coloured, off the image, occluded).
+    """
+    z = np.asarray(depth_m, dtype=np.float64)
+    if z.shape != depth_intr.shape:
+        raise SphereBenchError(f"the depth is {z.shape[1]}x{z.shape[0]} but its intrinsics are "
+                               f"{depth_intr.width}x{depth_intr.height}")
+    if image.shape[:2] != image_intr.shape:
+        raise SphereBenchError(f"the image is {image.shape[1]}x{image.shape[0]} but its intrinsics are "
+                               f"{image_intr.width}x{image_intr.height}")
+    rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    trans = np.asarray(translation, dtype=np.float64).reshape(3)
+    height, width = depth_intr.shape
+    h, w = image_intr.shape
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(z) & (z > 0)
+    flat = np.flatnonzero(valid)
+    rows, cols = np.divmod(flat, width)
+    zs = z.ravel()[flat]
+    ray = pixel_rays(depth_intr, cols.astype(np.float64), rows.astype(np.float64))
+    x, y, z_other = _transform(rot, trans, ray[:, 0] * zs, ray[:, 1] * zs, zs)
+    uv = project(image_intr, np.stack([x, y, z_other], axis=1))  # NaN behind the camera
+    with np.errstate(invalid="ignore"):
+        cu, cv = np.floor(uv[:, 0] + 0.5), np.floor(uv[:, 1] + 0.5)  # nearest pixel; pixel centres are integers
+        inside = np.isfinite(cu) & np.isfinite(cv) & (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    sample = np.where(inside, cv * w + cu, 0).astype(np.int64)
+
+    # the depth surface in the other image: each pixel's square (its corners at its own depth; to
+    # its neighbours' centres at a depth edge, where the silhouette may lie anywhere up to them)
+    # and the triangles between neighbouring pixel centres (two to each quad of a pixel and its
+    # right, lower and lower-right neighbours), the depth interpolated across each
+    nearest = np.full(h * w, np.inf)
+    np.minimum.at(nearest, sample[inside], z_other[inside])
+    z_front = np.where(z_other > 0, z_other, np.nan)
+    padded = np.full((height + 2, width + 2), np.inf)
+    padded[rows + 1, cols + 1] = np.where(z_other > 0, z_other, np.inf)
+    farthest = np.max([padded[rows + 1 + dr, cols + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], axis=0)
+    with np.errstate(invalid="ignore"):
+        half = np.where(farthest > z_other * (1.0 + EDGE_JUMP_FRACTION), 1.0, 0.5)
+    squares = []
+    for du, dv in ((-1, -1), (1, -1), (-1, 1), (1, 1)):
+        corner = pixel_rays(depth_intr, cols + du * half, rows + dv * half)
+        cx, cy, cz = _transform(rot, trans, corner[:, 0] * zs, corner[:, 1] * zs, zs)
+        squares.append(project(image_intr, np.stack([cx, cy, cz], axis=1)))
+    _draw_boxes(nearest, w, h, np.stack([c[:, 0] for c in squares]), np.stack([c[:, 1] for c in squares]), z_front)
+    grids = []
+    for values in (uv[:, 0], uv[:, 1], z_front):
+        grid = np.full((height + 1, width + 1), np.nan)
+        grid[rows, cols] = values
+        grids.append(grid)
+    for corners in (((0, 0), (0, 1), (1, 1)), ((0, 0), (1, 0), (1, 1))):
+        _draw_triangles(nearest, w, h, *(np.stack([g[rows + dr, cols + dc] for dr, dc in corners]) for g in grids))
+    front = nearest[sample]
+    with np.errstate(invalid="ignore"):
+        occluded = inside & (z_other > front + np.maximum(OCCLUSION_MARGIN_M, OCCLUSION_MARGIN_FRACTION * front))
+    shown = inside & ~occluded
+    out = np.zeros((height, width) + image.shape[2:], dtype=image.dtype)
+    pixels = image.reshape((h * w,) + image.shape[2:])
+    out.reshape((height * width,) + image.shape[2:])[flat[shown]] = pixels[sample[shown]]
+    counts = {"with_depth": int(flat.size), "coloured": int(np.count_nonzero(shown)),
+              "off_image": int(np.count_nonzero(~inside)), "occluded": int(np.count_nonzero(occluded))}
+    return out, counts

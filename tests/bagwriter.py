@@ -6,7 +6,8 @@ bag of synthetic frames with the pure-Python ``rosbags`` library, in the topic l
 librealsense's ROS1 reader (``src/media/ros/ros_reader.cpp``, ``ros_file_format.h``) plays back,
 so that the ``.bag`` path of ``spherebench prepare`` is tested on the format users actually have.
 
-Layout written (one device, one sensor, one video stream; ``<S>`` = ``Depth_0`` or ``Color_0``)::
+Layout written (one device; sensor_0 with one video stream, ``<S>`` = ``Depth_0`` or ``Color_0``;
+with a ``ColourStream``, also sensor_1 = RGB Camera with ``Color_0``, or ``Color_0`` on sensor_0)::
 
     /file_version                                  std_msgs/UInt32              4
     /device_0/info                                 diagnostic_msgs/KeyValue     Name, Serial Number, ...
@@ -35,12 +36,20 @@ Conventions of the SDK's writer that the reader relies on:
   ``option_underscores`` picks one.
 - Intrinsics are librealsense's float32 values; K and D carry them as float64 here, so values
   that are not float32-exact come back as the nearest float32.
+- Extrinsics: a stream's ``tf/0`` holds the extrinsics from the device's reference stream
+  (extrinsics group 0) to it, as the reader gives it back for
+  ``reference_profile.get_extrinsics_to(profile)``. The depth stream is the reference (the
+  identity), so the colour stream's ``tf/0`` is the ``ColourStream``'s depth-to-colour rotation
+  and translation (tests/test_prepare_bag_colour.py reads them back).
+- Frame messages of all streams are written in record-time order; a frame's record time is its
+  timestamp less the earliest first timestamp of the streams, plus one depth frame period.
 """
 
 from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +89,48 @@ _STREAMS = {
     "color": ("RGB Camera", "Color", "rgb8", 3),
 }
 
+#: Colour encodings as librealsense's ROS writer names them (ros_file_format.h: ROS names for the
+#: formats ROS has, rs2_format_to_string otherwise) -> bytes per pixel.
+COLOUR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "YUYV": 2, "yuv422": 2,  # yuv422 = UYVY
+                    "mono8": 1, "8UC1": 1, "16UC1": 2, "RAW16": 2}
+
+
+@dataclass(frozen=True)
+class ColourStream:
+    """A colour stream recorded beside the depth, on its own sensor (sensor_1, "RGB Camera") unless
+    ``on_depth_sensor``.
+
+    frames: (H, W, bpp) or (H, W) uint8 arrays holding each frame's bytes in ``encoding``
+        (COLOUR_ENCODINGS; rgb8: R, G, B), H, W = intrinsics.height, width.
+    rotation: 3x3 row-major, translation: metres; a depth point p is at rotation @ p + translation
+        in the colour camera's frame (librealsense's depth-to-colour extrinsics).
+    timestamps_ms: each frame's timestamp; default first_timestamp_ms + i * 1000 / fps.
+    timestamp_domain: rs2_timestamp_domain's name, written in every frame's metadata.
+    on_depth_sensor: record the stream on the depth sensor (sensor_0), as a D405 has it.
+    """
+
+    frames: Sequence[np.ndarray]
+    intrinsics: Intrinsics
+    rotation: Sequence[Sequence[float]] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    translation: Sequence[float] = (0.015, 0.0, 0.0)
+    fps: int = 30
+    first_timestamp_ms: float = 1000.0
+    timestamps_ms: Sequence[float] | None = None
+    encoding: str = "rgb8"
+    timestamp_domain: str = "Hardware Clock"
+    on_depth_sensor: bool = False
+
+    def stamps_ms(self) -> list[float]:
+        if self.timestamps_ms is not None:
+            return [float(t) for t in self.timestamps_ms]
+        return [self.first_timestamp_ms + i * 1000.0 / self.fps for i in range(len(self.frames))]
+
+
+def _quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix, as librealsense's rot2quat (w > 0 assumed)."""
+    w = np.sqrt(1.0 + r[0, 0] + r[1, 1] + r[2, 2]) / 2.0
+    return ((r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w), w)
+
 
 def _typestore():
     store = get_typestore(Stores.ROS1_NOETIC)
@@ -100,7 +151,7 @@ def _stamp(store, seconds: float):
 def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsics: Intrinsics, *,
                         stream: str = "depth", fps: int = 30, first_timestamp_ms: float = 1000.0,
                         frame_depth_units: bool = True, option_underscores: bool = False,
-                        device_info: dict[str, str] | None = None) -> Path:
+                        device_info: dict[str, str] | None = None, colour: ColourStream | None = None) -> Path:
     """Write ``frames`` as a RealSense SDK ROS1 recording (file format version 4) at ``path``.
 
     frames: depth frames (H, W) uint16 in counts of ``intrinsics.depth_scale`` (stream="depth"),
@@ -108,27 +159,45 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
     intrinsics: the stream's intrinsics (pixels) and, for depth, its depth unit (metres/count),
         written as the sensor's Depth Units option.
     fps: nominal frame rate, Hz; frame i gets the timestamp first_timestamp_ms + i * 1000 / fps
-        (ms) and frame number i, and is stamped i + 1 frame periods after the recording's start.
+        (ms) and frame number i.
     frame_depth_units: write the newer SDKs' Image extension (frame_id "1" + float32 depth unit).
     option_underscores: name option topics "Depth_Units" (as newer SDKs) rather than "Depth Units".
+    colour: a colour stream recorded beside the depth (stream="depth" only).
     Returns ``path``.
     """
     if stream not in _STREAMS:
         raise ValueError(f"stream must be one of {sorted(_STREAMS)}, not {stream!r}")
-    sensor_name, stream_name, encoding, bpp = _STREAMS[stream]
+    if colour is not None and stream != "depth":
+        raise ValueError("a ColourStream goes beside a depth stream")
     h, w = intrinsics.height, intrinsics.width
     for i, f in enumerate(frames):
         want = (np.uint16, (h, w)) if stream == "depth" else (np.uint8, (h, w, 3))
         if f.dtype != want[0] or f.shape != want[1]:
             raise ValueError(f"frame {i} is {f.dtype} {f.shape}, expected {np.dtype(want[0])} {want[1]}")
+    streams = [(0, stream, frames, intrinsics, _STREAMS[stream][2], _STREAMS[stream][3],
+                [first_timestamp_ms + i * 1000.0 / fps for i in range(len(frames))], fps, "Hardware Clock", None)]
+    if colour is not None:
+        if colour.encoding not in COLOUR_ENCODINGS:
+            raise ValueError(f"colour encoding must be one of {sorted(COLOUR_ENCODINGS)}, not {colour.encoding!r}")
+        bpp = COLOUR_ENCODINGS[colour.encoding]
+        ci = colour.intrinsics
+        for i, f in enumerate(colour.frames):
+            if f.dtype != np.uint8 or f.size != ci.height * ci.width * bpp or f.shape[:2] != (ci.height, ci.width):
+                raise ValueError(f"colour frame {i} is {f.dtype} {f.shape}, expected uint8 "
+                                 f"({ci.height}, {ci.width}) x {bpp} bytes ({colour.encoding})")
+        rot = np.asarray(colour.rotation, dtype=np.float64).reshape(3, 3)
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9) or np.linalg.det(rot) <= 0:
+            raise ValueError("the colour stream's rotation must be a rotation matrix")
+        streams.append((0 if colour.on_depth_sensor else 1, "color", colour.frames, ci, colour.encoding, bpp,
+                        colour.stamps_ms(), colour.fps, colour.timestamp_domain,
+                        (rot, np.asarray(colour.translation, dtype=np.float64))))
 
     store = _typestore()
     T = store.types
     path = Path(path)
     path.unlink(missing_ok=True)  # rosbags refuses to overwrite
-    prefix = "/device_0/sensor_0"
-    stream_prefix = f"{prefix}/{stream_name}_0"
     period_ns = round(1e9 / fps)
+    t0_ms = min((s[6][0] for s in streams if s[6]), default=0.0)  # the earliest first timestamp
 
     with Writer(path) as bag:
         connections = {}
@@ -142,44 +211,66 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
         put("/file_version", "std_msgs/msg/UInt32", STATIC_NS, T["std_msgs/msg/UInt32"](data=4))
         for key, value in (device_info or D435_DEVICE_INFO).items():
             put("/device_0/info", kv, STATIC_NS, T[kv](key=key, value=value))
-        put(f"{prefix}/info", kv, STATIC_NS, T[kv](key="Name", value=sensor_name))
 
-        put(f"{stream_prefix}/info", "realsense_msgs/msg/StreamInfo", STATIC_NS,
-            T["realsense_msgs/msg/StreamInfo"](fps=fps, encoding=encoding, is_recommended=True))
-        zero_header = T["std_msgs/msg/Header"](seq=0, stamp=_stamp(store, 0.0), frame_id="")
-        K = np.zeros(9)
-        K[[0, 2, 4, 5, 8]] = intrinsics.fx, intrinsics.ppx, intrinsics.fy, intrinsics.ppy, 1.0
-        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        put(f"{stream_prefix}/info/camera_info", "sensor_msgs/msg/CameraInfo", STATIC_NS,
-            T["sensor_msgs/msg/CameraInfo"](
-                header=zero_header, height=h, width=w, distortion_model=_distortion_string(intrinsics.model),
-                D=np.asarray(intrinsics.coeffs, dtype=np.float64), K=K, R=np.zeros(9), P=np.zeros(12),
-                binning_x=0, binning_y=0, roi=roi))
-        # identity extrinsics to the device's reference frame 0
-        put(f"{stream_prefix}/tf/0", "geometry_msgs/msg/Transform", STATIC_NS,
-            T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                                             rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
-        if stream == "depth":
-            option = "Depth_Units" if option_underscores else "Depth Units"
-            put(f"{prefix}/option/{option}/value", "std_msgs/msg/Float32", STATIC_NS,
-                T["std_msgs/msg/Float32"](data=float(intrinsics.depth_scale)))
-            put(f"{prefix}/option/{option}/description", "std_msgs/msg/String", STATIC_NS,
-                T["std_msgs/msg/String"](data="Number of meters represented by a single depth unit"))
+        timed = []  # (record time ns, stream, frame, topic, msgtype, message or serialised bytes)
+        named = set()
+        for k, (sensor_index, kind, stream_frames, intr, encoding, bpp, stamps, stream_fps, domain,
+                extrinsics) in enumerate(streams):
+            sensor_name, stream_name = _STREAMS[kind][:2]
+            prefix = f"/device_0/sensor_{sensor_index}"
+            stream_prefix = f"{prefix}/{stream_name}_0"
+            if sensor_index not in named:  # a sensor's name, once: its first stream's
+                named.add(sensor_index)
+                put(f"{prefix}/info", kv, STATIC_NS, T[kv](key="Name", value=sensor_name))
+            put(f"{stream_prefix}/info", "realsense_msgs/msg/StreamInfo", STATIC_NS,
+                T["realsense_msgs/msg/StreamInfo"](fps=stream_fps, encoding=encoding, is_recommended=True))
+            zero_header = T["std_msgs/msg/Header"](seq=0, stamp=_stamp(store, 0.0), frame_id="")
+            K = np.zeros(9)
+            K[[0, 2, 4, 5, 8]] = intr.fx, intr.ppx, intr.fy, intr.ppy, 1.0
+            roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+            put(f"{stream_prefix}/info/camera_info", "sensor_msgs/msg/CameraInfo", STATIC_NS,
+                T["sensor_msgs/msg/CameraInfo"](
+                    header=zero_header, height=intr.height, width=intr.width,
+                    distortion_model=_distortion_string(intr.model), D=np.asarray(intr.coeffs, dtype=np.float64),
+                    K=K, R=np.zeros(9), P=np.zeros(12), binning_x=0, binning_y=0, roi=roi))
+            # extrinsics from the reference (the depth stream): identity for depth, depth-to-colour for
+            # colour (the reader gives a stream's tf/0 as the reference's get_extrinsics_to(stream))
+            if extrinsics is None:
+                rot, trans = np.eye(3), np.zeros(3)
+            else:
+                rot, trans = extrinsics
+            qx, qy, qz, qw = _quaternion(rot)
+            put(f"{stream_prefix}/tf/0", "geometry_msgs/msg/Transform", STATIC_NS,
+                T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=float(trans[0]), y=float(trans[1]), z=float(trans[2])),
+                    rotation=T["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw))))
+            if kind == "depth":
+                option = "Depth_Units" if option_underscores else "Depth Units"
+                put(f"{prefix}/option/{option}/value", "std_msgs/msg/Float32", STATIC_NS,
+                    T["std_msgs/msg/Float32"](data=float(intr.depth_scale)))
+                put(f"{prefix}/option/{option}/description", "std_msgs/msg/String", STATIC_NS,
+                    T["std_msgs/msg/String"](data="Number of meters represented by a single depth unit"))
 
-        for i, frame in enumerate(frames):
-            t_ns = (i + 1) * period_ns
-            stamp_ms = first_timestamp_ms + i * 1000.0 / fps
-            header = T["std_msgs/msg/Header"](seq=i, stamp=_stamp(store, stamp_ms / 1000.0),
-                                              frame_id="1" if frame_depth_units else "")
-            pixels = np.ascontiguousarray(frame).astype(frame.dtype.newbyteorder("<"), copy=False)
-            image = T["sensor_msgs/msg/Image"](header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
-                                               step=w * bpp, data=pixels.reshape(-1).view(np.uint8))
-            data = store.serialize_ros1(image, "sensor_msgs/msg/Image")
-            if frame_depth_units:
-                # the SDK's extension of sensor_msgs/Image, read when frame_id == "1": 0 for colour
-                data = bytes(data) + struct.pack("<f", intrinsics.depth_scale if stream == "depth" else 0.0)
-            put(f"{stream_prefix}/image/data", "sensor_msgs/msg/Image", t_ns, data=data)
-            for key, value in (("system_time", f"{stamp_ms:.6f}"), ("timestamp_domain", "Hardware Clock"),
-                               ("Frame Counter", str(i)), ("Frame Timestamp", str(int(stamp_ms * 1000)))):
-                put(f"{stream_prefix}/image/metadata", kv, t_ns, T[kv](key=key, value=value))
+            for i, (frame, stamp_ms) in enumerate(zip(stream_frames, stamps)):
+                t_ns = round((stamp_ms - t0_ms) * 1e6) + period_ns
+                header = T["std_msgs/msg/Header"](seq=i, stamp=_stamp(store, stamp_ms / 1000.0),
+                                                  frame_id="1" if frame_depth_units else "")
+                pixels = np.ascontiguousarray(frame).astype(frame.dtype.newbyteorder("<"), copy=False)
+                image = T["sensor_msgs/msg/Image"](header=header, height=intr.height, width=intr.width,
+                                                   encoding=encoding, is_bigendian=0, step=intr.width * bpp,
+                                                   data=pixels.reshape(-1).view(np.uint8))
+                data = bytes(store.serialize_ros1(image, "sensor_msgs/msg/Image"))
+                if frame_depth_units:
+                    # the SDK's extension of sensor_msgs/Image, read when frame_id == "1": 0 for colour
+                    data += struct.pack("<f", intr.depth_scale if kind == "depth" else 0.0)
+                timed.append((t_ns, k, i, f"{stream_prefix}/image/data", "sensor_msgs/msg/Image", data))
+                for key, value in (("system_time", f"{stamp_ms:.6f}"), ("timestamp_domain", domain),
+                                   ("Frame Counter", str(i)), ("Frame Timestamp", str(int(stamp_ms * 1000)))):
+                    timed.append((t_ns, k, i, f"{stream_prefix}/image/metadata", kv,
+                                  T[kv](key=key, value=value)))
+        for t_ns, _, _, topic, msgtype, item in sorted(timed, key=lambda e: e[:3]):
+            if isinstance(item, bytes):
+                put(topic, msgtype, t_ns, data=item)
+            else:
+                put(topic, msgtype, t_ns, item)
     return path
