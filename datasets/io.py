@@ -81,11 +81,38 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
         raise
 
 
-def write_report(out: str | Path, markdown: str, data: dict) -> tuple[Path, Path]:
-    """A script's report: OUT.md (the tables) and OUT.json (the figures; infinities as null), each
-    written atomically. Returns the two paths."""
+def _report_is_ours(js: Path, kind: str) -> bool:
+    """An existing OUT.json written by the same report: it names the kind, or (written before the
+    kind was recorded) is a JSON object holding the report's seed or seeds."""
+    try:
+        old = json.loads(js.read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    if not isinstance(old, dict):
+        return False
+    return old["report"] == kind if "report" in old else bool({"seed", "seeds"} & set(old))
+
+
+def check_report_out(out: str | Path, kind: str) -> tuple[Path, Path]:
+    """OUT.md and OUT.json for a report of this kind, refused (SphereBenchError) before any work when
+    either is a folder or a link, or when an existing pair is not recognisably this report's
+    (``_report_is_ours``): a file the user put there is never overwritten."""
     out = Path(out)
     md, js = out.with_suffix(".md"), out.with_suffix(".json")
+    for path in (md, js):
+        if path.is_symlink() or path.is_dir():
+            raise SphereBenchError(f"{path}: is a folder or a link: give --out a path for the report's two files")
+    if (md.exists() or js.exists()) and not (js.is_file() and _report_is_ours(js, kind)):
+        raise SphereBenchError(f"--out {out}: {md.name} or {js.name} there was not written by this report; "
+                               "give another --out (nothing was written)")
+    return md, js
+
+
+def write_report(out: str | Path, markdown: str, data: dict, kind: str) -> tuple[Path, Path]:
+    """A script's report: OUT.md (the tables) and OUT.json (the figures, with "report": kind;
+    infinities as null), each written atomically, after ``check_report_out``. Returns the two paths."""
+    md, js = check_report_out(out, kind)
+    data = {"report": kind, **data}
     atomic_write_bytes(md, markdown.encode())
     atomic_write_bytes(js, json.dumps(data, indent=1, default=lambda x: None if x == math.inf else x).encode())
     return md, js

@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--peer-subset", type=int, default=12, help="scenes per dataset for pyransac3d (as above)")
     p.add_argument("--peer-points", type=int, default=10_000, help="pyransac3d's random subsample per cloud")
     p.add_argument("--peer-iterations", type=int, default=1000, help="pyransac3d's iterations")
-    p.add_argument("--limit", type=int, default=None, help="at most this many scenes per dataset (quick runs)")
+    p.add_argument("--limit", type=options.count, default=None, help="at most this many scenes per dataset (quick runs)")
     p.add_argument("--min-scores", default=",".join(f"{t:g}" for t in MIN_SCORES),
                    help="improved's operating points: min_score thresholds, comma-separated ('' for none)")
     p.add_argument("--passes", type=int, default=3,
@@ -316,6 +316,8 @@ def _versions() -> dict:
 def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
         io.list_scenes(ds)  # a clear error for a missing dataset before any work
+    if args.out:
+        io.check_report_out(args.out, "bench")
     machine = _machine()
     if args.passes < 1:
         raise SphereBenchError(f"--passes {args.passes}: give at least 1 timing pass")
@@ -339,7 +341,7 @@ def run(args: argparse.Namespace) -> int:
         slim = {k: v for k, v in result.items() if k != "datasets"}
         slim["datasets"] = {ds: {k: v for k, v in d.items() if k != "rows"} for ds, d in result["datasets"].items()}
         slim["rows"] = {ds: d["rows"] for ds, d in result["datasets"].items()}
-        print("wrote {} and {}".format(*io.write_report(args.out, md, slim)), file=sys.stderr)
+        print("wrote {} and {}".format(*io.write_report(args.out, md, slim, "bench")), file=sys.stderr)
     return 0
 
 

@@ -53,7 +53,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a DetectorConfig field (repeatable), as in sweep")
     p.add_argument("--workers", type=int, default=2, help="processes")
-    p.add_argument("--limit", type=int, default=None, help="at most this many scenes per dataset (quick runs)")
+    p.add_argument("--limit", type=options.count, default=None, help="at most this many scenes per dataset (quick runs)")
     p.add_argument("--no-timing", action="store_true", help="skip the timing against paper-lstsq")
     p.add_argument("--out", type=options.out_path, default=None, help="write OUT.md and OUT.json")
 
@@ -234,6 +234,8 @@ def run(args: argparse.Namespace) -> int:
     for ds in (args.robust, args.default, args.hard):
         if ds:
             io.list_scenes(ds)
+    if args.out:
+        io.check_report_out(args.out, "robustness")
     if not ((io.read_dataset_meta(args.robust).get("sensor_ranges") or {}).get("grid")):
         raise SphereBenchError(f"{args.robust}: no grid of sensor cells in its dataset.json: give the robust "
                                "preset's folder (spherebench generate --preset robust)")
@@ -242,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
     md = markdown(res)
     print(md)
     if args.out:
-        print("wrote {} and {}".format(*io.write_report(args.out, md, res)), file=sys.stderr)
+        print("wrote {} and {}".format(*io.write_report(args.out, md, res, "robustness")), file=sys.stderr)
     return 0
 
 

@@ -29,7 +29,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from spherebench import __version__  # noqa: E402
+from spherebench import __version__, options  # noqa: E402
 from spherebench.datasets import io  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
 from spherebench.eval.metrics3d import detection_counts, scene_counts  # noqa: E402
@@ -147,13 +147,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
                    help="override a DetectorConfig field (repeatable), e.g. --set min_score=0.3")
     p.add_argument("--workers", type=int, default=2, help="processes (each single-threaded)")
-    p.add_argument("--limit", type=int, default=None, help="at most this many scenes per dataset (quick runs)")
+    p.add_argument("--limit", type=options.count, default=None, help="at most this many scenes per dataset (quick runs)")
     p.add_argument("--out", default=None, help="write OUT.md and OUT.json (atomically)")
 
 
 def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
         io.list_scenes(ds)  # a clear error for a missing dataset before any work
+    if args.out:
+        io.check_report_out(args.out, "sweep")
     if args.workers < 1:
         raise SphereBenchError(f"--workers {args.workers}: give at least 1")
     result = sweep(args.datasets, parse_seeds(args.seeds), args.method, parse_overrides(args.overrides),
@@ -161,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     md = markdown(result)
     print(md)
     if args.out:
-        print("wrote {} and {}".format(*io.write_report(args.out, md, result)), file=sys.stderr)
+        print("wrote {} and {}".format(*io.write_report(args.out, md, result, "sweep")), file=sys.stderr)
     return 0
 
 

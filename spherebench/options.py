@@ -5,15 +5,24 @@ from __future__ import annotations
 import argparse
 
 
-def seed(text: str) -> int:
-    """A run seed: an integer from 0 (numpy's SeedSequence takes no negative seed)."""
+def _integer(text: str, least: int, what: str, too_small: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer seed") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value}: a seed is an integer from 0 up")
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer{what}") from None
+    if value < least:
+        raise argparse.ArgumentTypeError(f"{value}: {too_small}")
     return value
+
+
+def seed(text: str) -> int:
+    """A run seed: an integer from 0 (numpy's SeedSequence takes no negative seed)."""
+    return _integer(text, 0, " seed", "a seed is an integer from 0 up")
+
+
+def count(text: str) -> int:
+    """A positive count (scenes, passes): an integer from 1."""
+    return _integer(text, 1, "", "give 1 or more")
 
 
 def out_path(text: str) -> str:

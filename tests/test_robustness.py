@@ -95,3 +95,23 @@ def test_script_refuses_a_dataset_without_sensor_cells(tiny_robust, tmp_path, ca
     assert not (tmp_path / "x.md").exists()
     rc = script.main([str(default), "--seeds", "0", "--set", "no_such_field=1", "--no-timing"])
     assert rc == 2
+
+
+def test_reports_never_overwrite_a_file_they_did_not_write(tiny_robust, tmp_path, capsys):
+    robust, _ = tiny_robust
+    mine = tmp_path / "notes.md"
+    mine.write_text("my notes\n")
+    args = [str(robust), "--seeds", "0", "--workers", "1", "--no-timing", "--limit", "2"]
+    assert script.main([*args, "--out", str(tmp_path / "notes")]) == 2
+    err = capsys.readouterr().err
+    assert "not written by this report" in err and len(err.strip().splitlines()) == 1
+    assert mine.read_text() == "my notes\n" and not (tmp_path / "notes.json").exists()
+    # its own report it replaces; another report's it refuses
+    assert script.main([*args, "--out", str(tmp_path / "rob")]) == 0
+    assert script.main([*args, "--out", str(tmp_path / "rob")]) == 0
+    assert json.loads((tmp_path / "rob.json").read_text())["report"] == "robustness"
+    (tmp_path / "sweep.json").write_text(json.dumps({"report": "sweep", "seeds": [0]}))
+    assert script.main([*args, "--out", str(tmp_path / "sweep")]) == 2
+    capsys.readouterr()
+    assert script.main([*args, "--limit", "-3"]) == 2
+    assert "give 1 or more" in capsys.readouterr().err
