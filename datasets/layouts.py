@@ -15,7 +15,7 @@ import numpy as np
 
 from spherebench.camera import Intrinsics, pixel_rays
 from spherebench.circles import sphere_circle_amodal
-from spherebench.datasets.primitives import Box, Cylinder, Plane, Sphere
+from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere
 
 #: Radii (m) of the balls the hard preset puts beside the basketball: soccer ball (size 5),
 #: two smaller balls and a larger one.
@@ -39,7 +39,7 @@ class Layout:
         return item
 
     @property
-    def targets(self) -> list[Sphere]:
+    def targets(self) -> list[SolidSphere]:
         return [it.shape for it in self.items if it.kind == "target"]
 
 

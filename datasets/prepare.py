@@ -1,6 +1,6 @@
 """Recorded depth data -> a SphereBench dataset in the scene format of ``spherebench.datasets.io``.
 
-Inputs (each becomes a stream of ``Frame``s, then one scene per frame):
+Inputs (each becomes a stream of ``RecordedFrame``s, then one scene per frame):
 
 - RealSense recordings (.bag, ROS1; .db3, ROS2) by pyrealsense2 playback: the depth stream,
   its intrinsics and the depth sensor's depth scale. Frames can be picked by index range,
@@ -176,7 +176,7 @@ class PrepareOptions:
 
 
 @dataclass
-class Frame:
+class RecordedFrame:
     """One scene-to-be. depth: (H, W) uint16 counts of intrinsics.depth_scale, or None for an
     image-less frame, which has cloud (metres) instead. image_names: file names an annotator
     may have drawn on (LabelMe's imagePath is checked against them). unit_sample_m: the valid
@@ -208,7 +208,7 @@ class Plan:
     """Frames to prepare (an iterator: recordings are read as they are written), their count
     when known, what they came from (for dataset.json), and notes to print and keep."""
 
-    frames: Iterable[Frame]
+    frames: Iterable[RecordedFrame]
     total: int | None
     source: dict
     notes: list[str] = field(default_factory=list)
@@ -358,7 +358,7 @@ def cloud_to_depth(cloud: Cloud, intr: Intrinsics, where: str) -> tuple[np.ndarr
 
 # --------------------------------------------------------------------------- frame sources
 
-def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None = None) -> Iterator[Frame]:
+def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None = None) -> Iterator[RecordedFrame]:
     """Depth frames of a RealSense recording, picked by ``selection``; with a colour stream, each
     with the colour frame nearest in time aligned to it (``align_to_depth``, with the depth in
     metres of the depth scale used) and, in meta, which colour frame it is and what the alignment
@@ -395,7 +395,7 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
                 aligned, counts = align_to_depth(depth_to_metres(bag_frame.depth, intr), intr, bag_frame.colour,
                                                  colour.intrinsics, colour.rotation, colour.translation)
                 meta["colour"]["aligned_pixels"] = counts
-        yield Frame(scene_id=f"{stem}_{index:06d}", source=f"{path} frame {index}", intrinsics=intr,
+        yield RecordedFrame(scene_id=f"{stem}_{index:06d}", source=f"{path} frame {index}", intrinsics=intr,
                     depth=bag_frame.depth, meta=meta, colour=aligned, no_colour=bag_frame.no_colour, notes=notes)
 
 
@@ -428,7 +428,7 @@ def depth_png_frames(paths: list[Path], intr: Intrinsics | None, selection: Fram
             if depth.shape != intr.shape:
                 raise SphereBenchError(f"{p}: depth image is {depth.shape[1]}x{depth.shape[0]} but the intrinsics "
                                        f"are {intr.width}x{intr.height}: give the intrinsics of this stream")
-            yield Frame(scene_id_from(p.stem), p.name, intr, depth=depth, meta={"source": p.name},
+            yield RecordedFrame(scene_id_from(p.stem), p.name, intr, depth=depth, meta={"source": p.name},
                         image_names=("image.png", p.name))
     return Plan(frames(), len(picked), {"kind": "depth-png", "files": [p.name for p in picked]})
 
@@ -519,7 +519,7 @@ def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selec
                 sample = metres[np.isfinite(metres) & (metres > 0)]
                 garbage = ("these bytes are not float32 depth; are they integers (--raw-dtype uint16, with the "
                            "frame's own --raw-size)?")
-            yield Frame(scene_id_from(p.stem), p.name, out_intr, depth=depth, meta=meta,
+            yield RecordedFrame(scene_id_from(p.stem), p.name, out_intr, depth=depth, meta=meta,
                         image_names=("image.png", p.name), unit_sample_m=sample, unit_alternatives=alternatives,
                         garbage_hint=garbage)
     return Plan(frames(), len(picked), {"kind": f"raw-{raw.dtype}-{raw.byte_order}-endian",
@@ -574,11 +574,11 @@ def cloud_frames(paths: list[Path], intr: Intrinsics | None, selection: FrameSel
             if dropped:
                 meta["non_finite_points_dropped"] = dropped
             if out_intr is None:
-                yield Frame(sid, p.name, None, cloud=cloud, meta=meta, image_names=())
+                yield RecordedFrame(sid, p.name, None, cloud=cloud, meta=meta, image_names=())
                 continue
             depth, info = cloud_to_depth(cloud, out_intr, str(p))
             meta.update(info)
-            yield Frame(sid, p.name, out_intr, depth=depth, meta=meta, image_names=("image.png",),
+            yield RecordedFrame(sid, p.name, out_intr, depth=depth, meta=meta, image_names=("image.png",),
                         unit_sample_m=np.linalg.norm(cloud.points.astype(np.float64), axis=1))
     return Plan(frames(), len(keep), {"kind": "point-cloud", "files": [paths[i].name for i in keep],
                                       "coordinate_scale_m": scale}, notes)
@@ -772,7 +772,7 @@ def default_realdata_dir() -> Path:
 
 # --------------------------------------------------------------------------- the preparation
 
-def _input_scale(frame: Frame, options: PrepareOptions) -> float:
+def _input_scale(frame: RecordedFrame, options: PrepareOptions) -> float:
     """Metres per unit of the frame's input values, for the unit check's suggestion."""
     if options.depth_scale is not None:
         return options.depth_scale
@@ -781,7 +781,7 @@ def _input_scale(frame: Frame, options: PrepareOptions) -> float:
     return frame.intrinsics.depth_scale
 
 
-def _progress(frames: Iterable[Frame], total: int | None):
+def _progress(frames: Iterable[RecordedFrame], total: int | None):
     try:
         from tqdm import tqdm
     except ImportError:

@@ -50,7 +50,7 @@ class Plane:
 
 
 @dataclass
-class Sphere:
+class SolidSphere:
     center_m: np.ndarray
     radius_m: float
 

@@ -31,7 +31,7 @@ from spherebench.circles import sphere_circle_amodal, sphere_silhouette_mask
 from spherebench.datasets import io
 from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_view, ball_partly_out, bookcase,
                                           chair, floor_box, room, table, tripod)
-from spherebench.datasets.primitives import Box, Cylinder, Sphere, raycast, surface_map
+from spherebench.datasets.primitives import Box, Cylinder, SolidSphere, raycast, surface_map
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.datasets.sensor import D435Sensor, SensorRanges, apply_sensor, check_setting, draw_sensor
 from spherebench.errors import SphereBenchError
@@ -131,7 +131,7 @@ def family_clean(rng, intr: Intrinsics, radius: float) -> Layout:
     how = "floor" if rng.random() < 0.25 else "air"
     layout = Layout(floor_y_m=_place_floor_for(rng, centre, radius, how))
     room(rng, layout, wall_z_m=centre[2] + radius + rng.uniform(0.15, 2.0))
-    layout.add(Sphere(centre, radius), "target")
+    layout.add(SolidSphere(centre, radius), "target")
     return layout
 
 
@@ -154,7 +154,7 @@ def family_cluttered(rng, intr: Intrinsics, radius: float) -> Layout:
     wall_z = max(centre[2] + radius + rng.uniform(0.5, 2.0), 2.0)
     _clutter_room(rng, intr, layout, [centre], wall_z)
     _ball_support(rng, layout, centre, radius, how)
-    layout.add(Sphere(centre, radius), "target")
+    layout.add(SolidSphere(centre, radius), "target")
     return layout
 
 
@@ -180,14 +180,14 @@ def family_paper(name: str, intr: Intrinsics, radius: float) -> Layout:
         floor_box(rng, layout, -0.6, 1.4)
         chair(rng, layout, 0.9, 1.8)
         floor_box(rng, layout, 0.5, 3.0)
-    layout.add(Sphere(centre, radius), "target")
+    layout.add(SolidSphere(centre, radius), "target")
     return layout
 
 
 def _distractor_ball(rng, intr, layout: Layout, dist=(0.5, 2.5)) -> np.ndarray:
     r = float(rng.choice(DISTRACTOR_RADII_M))
     c = ball_in_view(rng, intr, r, dist)
-    layout.add(Sphere(c, r), "distractor")
+    layout.add(SolidSphere(c, r), "distractor")
     return c
 
 
@@ -208,7 +208,7 @@ def family_hard(family: str, rng, intr: Intrinsics, radius: float) -> Layout:
     _clutter_room(rng, intr, layout, centres, max(wall_z, 2.0))
     for c in centres:
         _ball_support(rng, layout, c, radius, how)
-        layout.add(Sphere(c, radius), "target")
+        layout.add(SolidSphere(c, radius), "target")
     if family in ("distractor", "negative"):
         for _ in range(int(rng.integers(1, 3))):
             _distractor_ball(rng, intr, layout)

@@ -61,7 +61,7 @@ def pr_curves(label: str, sets: Sequence, path: Path) -> None:
     _save(fig, path)
 
 
-def error_vs_distance(label: str, sets: Sequence, path: Path, reference: bool = False) -> None:
+def plot_error_vs_distance(label: str, sets: Sequence, path: Path, reference: bool = False) -> None:
     """Centre error (mm, log scale) against the ball centre's distance from the camera; misses at the top.
     reference: the centres are a recording's reference fits, not true centres (said on the axis)."""
     sets = [s for s in sets if s.distance_m is not None and s.rule != "paper"]

@@ -834,7 +834,7 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
                     figs.pr_curves(label, sets, tmp / f"pr_{label}.png")
                     fig_paths[f"Precision-recall on `{label}`"] = f"figures/pr_{label}.png"
                 if any(s.distance_m is not None for s in sets):
-                    figs.error_vs_distance(label, sets, tmp / f"error_vs_distance_{label}.png",
+                    figs.plot_error_vs_distance(label, sets, tmp / f"error_vs_distance_{label}.png",
                                            reference=f is not None)
                     fig_paths[f"Centre error against distance on `{label}`" + (
                         ": against the mask-fit reference centres, not a ground truth" if f is not None else "")] = \

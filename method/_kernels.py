@@ -775,7 +775,7 @@ def _keep_candidate(cands, quals, n_kept, cx, cy, cz, q, merge):
 
 
 @kernel
-def required_iterations(support, n_points, window_px, confidence):
+def iterations_for_support(support, n_points, window_px, confidence):
     """Standard RANSAC bound log(1 - conf) / log(1 - p) for a local sampler.
 
     p = (support / N) * q^2: the 1st point on the ball, then the 2nd and 3rd from the sampling
@@ -1423,5 +1423,5 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
             n_kept = _keep_candidate(cands, quals, n_kept, cx, cy, cz, q, 0.5 * radius)
             if n_kept > 0 and quals[0] == q:
                 # share of the 1st point's neighbourhood (27 cells, about (3 cell)^3) on the ball
-                needed = required_iterations(inliers, float(n), float(total), confidence)
+                needed = iterations_for_support(inliers, float(n), float(total), confidence)
     return it, n_kept

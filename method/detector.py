@@ -19,7 +19,7 @@ from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import _kernels as K
 from spherebench.method.config import IMPROVED, DetectorConfig
-from spherebench.method.improved import Frame, run_improved
+from spherebench.method.improved import PreparedFrame, run_improved
 from spherebench.method.paper import PaperTrace, run_paper
 
 Circle = tuple[float, float, float]
@@ -83,7 +83,7 @@ def _check_counts(points: np.ndarray, n_ok: int, n_big: int, config: DetectorCon
                                f"{told}; metres are expected")
 
 
-def prepare(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> tuple[Cloud, np.ndarray, bool]:
+def prepare_cloud(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> tuple[Cloud, np.ndarray, bool]:
     """Validate an unorganised cloud (or one searched as such) and choose the points to search.
 
     Returns (searched cloud, their indices (M,) in cloud.points, whether it is a subsample).
@@ -106,10 +106,10 @@ def prepare(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> t
     return cloud.subset(index), index, False
 
 
-def prepare_frame(cloud: Cloud, config: DetectorConfig) -> Frame:
+def prepare_frame(cloud: Cloud, config: DetectorConfig) -> PreparedFrame:
     """Validate an organised cloud and build what its kernels need (one pass over the points)."""
     _check_cloud(cloud)
-    frame = Frame(cloud, config)
+    frame = PreparedFrame(cloud, config)
     _check_counts(cloud.points, frame.n_ok, frame.n_big, config)
     return frame
 
@@ -183,7 +183,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
     R = config.radius_m
     if config.pipeline == "paper":
         rng = np.random.default_rng(seed)
-        work, index, _ = prepare(cloud, config, rng)
+        work, index, _ = prepare_cloud(cloud, config, rng)
         got = run_paper(work.points, config, rng)
         if got is None:
             return []
@@ -205,7 +205,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         found = run_improved(cloud.points, frame, config, search_seed(seed))
     else:
         rng = np.random.default_rng(seed)
-        work, index, subsampled = prepare(cloud, config, rng)
+        work, index, subsampled = prepare_cloud(cloud, config, rng)
         found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)))
     spheres = []
     for v in found:

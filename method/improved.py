@@ -361,7 +361,7 @@ def cell_lookup(h: int, w: int, bin_px: int) -> tuple[np.ndarray, np.ndarray]:
     return _LOOKUPS[key]
 
 
-class Frame:
+class PreparedFrame:
     """An organised cloud made ready for the kernels: index image, range integrals, parameters.
 
     One pass over the points (``_kernels.prepare_organised``); the buffers are reused between
@@ -416,7 +416,7 @@ class Frame:
         self.vstats = np.empty(K.N_STATS, np.float64)
 
 
-def search_organised(frame: Frame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,), occluded (M,)
     bool: passed the pretest with a side hidden by an occluder, ``_kernels.front_hypothesis``), best first."""
     hyp = np.zeros((config.search_candidates, 6), np.float64)
@@ -608,7 +608,7 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     return float(min(max(score, 0.0), 1.0)), size_ok
 
 
-def verify_organised(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
                      gate: np.ndarray | None = None) -> Candidate | None:
     """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it.
     gate: the kernel's early stop (default ``frame.gate``)."""
@@ -648,7 +648,7 @@ def rescore_starts(config: DetectorConfig) -> tuple[tuple[float, float, float], 
     return ((a, 0.0, 0.0), (-a, 0.0, 0.0), (0.0, a, 0.0), (0.0, -a, 0.0), (0.0, 0.0, b), (0.0, 0.0, -b))
 
 
-def verify_multistart(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray) -> Candidate | None:
+def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray) -> Candidate | None:
     """A hypothesis whose depth noise is a good part of R (``multistart_noise_fraction``), verified from
     its centre and from each of ``rescore_starts`` about it: where one pixel's noise nears R, the
     refinement's end depends on its start by a few cm, and a hypothesis a few cm off converges
@@ -661,7 +661,7 @@ def verify_multistart(frame: Frame, c0: np.ndarray, config: DetectorConfig, buf:
     return best
 
 
-def rescore(frame: Frame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
+def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
     """A candidate near the score threshold, verified again from each of ``rescore_starts`` about its centre
     (without the kernel's early stop, so that each start's whole score and size verdict count): its
     score becomes the mean of all (a start left with too few inliers counts 0) and its size check
@@ -716,14 +716,14 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
                      free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
 
 
-def run_improved(points: np.ndarray, frame: Frame | None, config: DetectorConfig,
+def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
                  seed: int) -> list[Candidate]:
     """Search, verify the best candidates, drop the failed ones, suppress duplicates. Best first.
 
     frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
     """
     if frame is not None:
-        cands, quals, occluded = search_organised(frame, config, seed)
+        cands, quals, occluded = search_frame(frame, config, seed)
         # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
         # cloud, so that frames of one stream reuse it (a fresh 7 MB buffer per 1280x720 frame cost
         # more in page faults than the detection)

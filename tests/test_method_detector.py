@@ -264,7 +264,7 @@ def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypa
     decoys = [np.array([x, y, 1.9]) for x, y in ((-0.6, -0.3), (-0.6, 0.3), (0.6, 0.3), (0.6, -0.3), (0.0, 0.35),
                                                  (-0.3, 0.35), (0.4, 0.35))]
     starts = np.array(decoys + [c])
-    monkeypatch.setattr(I, "search_organised", lambda frame, config, seed: (starts, np.arange(len(starts), 0, -1.0),
+    monkeypatch.setattr(I, "search_frame", lambda frame, config, seed: (starts, np.arange(len(starts), 0, -1.0),
                                                                      np.zeros(len(starts), bool)))
     found = detect(cloud, config_for("improved"), seed=0)
     assert len(found) == 1 and np.linalg.norm(found[0].center_m - c) < 0.003
@@ -279,7 +279,7 @@ def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
     c = np.array([0.1, -0.05, 1.0])
     cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
     starts = np.array([c, [-0.6, -0.3, 1.9], [0.6, 0.3, 1.9], [0.0, 0.35, 1.9]])
-    monkeypatch.setattr(I, "search_organised", lambda frame, config, seed: (starts, np.array([16.0, 12.0, 9.0, 8.0]),
+    monkeypatch.setattr(I, "search_frame", lambda frame, config, seed: (starts, np.array([16.0, 12.0, 9.0, 8.0]),
                                                                      np.zeros(len(starts), bool)))
     calls = []
     verify = I.verify_organised
@@ -302,7 +302,7 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
 
     c = np.array([0.1, -0.05, 1.0])
     cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
-    monkeypatch.setattr(I, "search_organised",
+    monkeypatch.setattr(I, "search_frame",
                         lambda frame, config, seed: (c[None], np.array([16.0]), np.zeros(1, bool)))
     scores = iter([first] + again)
     starts = []

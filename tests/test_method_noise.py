@@ -12,7 +12,7 @@ from spherebench.camera import Intrinsics
 from spherebench.cloud import cloud_from_depth, depth_to_metres
 from spherebench.datasets.sensor import D435Sensor, apply_sensor
 from spherebench.method import config_for
-from spherebench.method.improved import Frame, noise_a
+from spherebench.method.improved import PreparedFrame, noise_a
 
 # depth noise only: no holes, flying pixels or shadow band
 BARE = D435Sensor(hole_probability=0.0, hole_blobs_per_mpx=0.0, flying_probability=0.0, shadow=False)
@@ -36,7 +36,7 @@ def _wall_cloud(width, height, subpixel, corr_px, z_m=2.0, tilt_deg=30.0, seed=0
 def test_measured_noise_matches_the_sensor_within_10_percent(width, height, subpixel, corr_px):
     cloud, sensor = _wall_cloud(width, height, subpixel, corr_px)
     cfg = config_for("improved")
-    frame = Frame(cloud, cfg)
+    frame = PreparedFrame(cloud, cfg)
     true_a = sensor.sigma_z_m(1.0, cloud.intrinsics.fx)  # sigma_z / z^2
     assert frame.noise_a_measured == pytest.approx(true_a, rel=0.10)
     model_a = noise_a(cfg, cloud.intrinsics.fx)
@@ -49,13 +49,13 @@ def test_measured_noise_matches_the_sensor_within_10_percent(width, height, subp
 def test_the_override_and_a_frame_without_samples_use_the_configured_noise():
     cloud, _ = _wall_cloud(424, 240, 0.16, 0.0)
     told = config_for("improved", noise_z2_per_m=0.01)
-    frame = Frame(cloud, told)
+    frame = PreparedFrame(cloud, told)
     assert frame.noise_a_measured is None and frame.noise_a == 0.01
     near, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=0.4, tilt_deg=0.0)  # nearer than noise_estimate_min_depth_m
     cfg = config_for("improved")
-    frame = Frame(near, cfg)
+    frame = PreparedFrame(near, cfg)
     assert frame.noise_a_measured is None and frame.noise_a == noise_a(cfg, near.intrinsics.fx)
-    off = Frame(cloud, config_for("improved", noise_estimate=False))
+    off = PreparedFrame(cloud, config_for("improved", noise_estimate=False))
     assert off.noise_a_measured is None and off.noise_a == noise_a(cfg, cloud.intrinsics.fx)
 
 
@@ -66,13 +66,13 @@ def test_measured_noise_correlation_matches_the_sensor_within_10_percent(width, 
     """The correlation length read off second differences at lags 1 and 3 (in the stream's pixels:
     the sensor's correlation_px is given at 424 wide); independent noise reads 0."""
     cloud, _ = _wall_cloud(width, height, subpixel, corr_px)
-    frame = Frame(cloud, config_for("improved"))
+    frame = PreparedFrame(cloud, config_for("improved"))
     true_px = corr_px * width / 424
     if corr_px == 0:
         assert frame.noise_corr_px == 0.0
     else:
         assert frame.noise_corr_px == pytest.approx(true_px, rel=0.10)
-    assert Frame(cloud, config_for("improved", noise_correlation=False)).noise_corr_px == 0.0
+    assert PreparedFrame(cloud, config_for("improved", noise_correlation=False)).noise_corr_px == 0.0
 
 
 def test_effective_samples_of_correlated_noise():

@@ -38,7 +38,7 @@ def test_compiled_search_equals_reference(ball, noise, seed, width):
     cfg = config_for("improved", iterations=2000, adaptive=False, search_width_px=130)
     frame = det.prepare_frame(cloud, cfg)
     assert frame.bin == max(1, width // 130)
-    cands, quals, _ = imp.search_organised(frame, cfg, seed)
+    cands, quals, _ = imp.search_frame(frame, cfg, seed)
     hyp, ctr = ref.search_organised(cloud.points, frame.index_image, frame.prm, seed, cfg.search_candidates)
     assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
     assert np.array_equal(frame.hypotheses, hyp)
@@ -141,7 +141,7 @@ def test_search_draws_one_first_cell_per_stratum():
     cloud = scene(ball_c=(0.05, 0.0, 1.2), noise=0.004, width=160, height=120, seed=2)
     cfg = config_for("improved")
     frame = det.prepare_frame(cloud, cfg)
-    imp.search_organised(frame, cfg, 3)
+    imp.search_frame(frame, cfg, 3)
     sv, su = frame.stratum
     assert frame.counters[0] == frame.iterations == -(-120 // sv) * -(-160 // su)
 

@@ -17,7 +17,7 @@ from spherebench import cli
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.datasets import io, simulate
 from spherebench.datasets.layouts import Layout
-from spherebench.datasets.primitives import Box, Cylinder, Plane, Sphere, raycast
+from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, raycast
 from spherebench.datasets.sensor import D435Sensor, parse_settings
 from spherebench.errors import SphereBenchError
 
@@ -40,7 +40,7 @@ def _room_with_ball() -> Layout:
     layout.add(Plane(np.array([0.0, 0.0, 3.0]), np.array([0.0, 0.0, -1.0])), "wall")
     layout.add(Box(np.array([-0.8, 0.35, 2.0]), np.array([0.25, 0.25, 0.25])), "clutter")
     layout.add(Cylinder(np.array([0.8, 0.6, 2.0]), np.array([0.0, -1.0, 0.0]), 0.12, 0.9), "cylinder")
-    layout.add(Sphere(np.array([0.0, 0.0, 1.5]), 0.12), "target")
+    layout.add(SolidSphere(np.array([0.0, 0.0, 1.5]), 0.12), "target")
     return layout
 
 

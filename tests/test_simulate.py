@@ -14,7 +14,7 @@ from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import mask_circle, sphere_circle_amodal, sphere_silhouette_mask
 from spherebench.datasets import io, simulate
 from spherebench.datasets.layouts import Layout
-from spherebench.datasets.primitives import Box, Cylinder, Plane, Sphere, raycast
+from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, raycast
 from spherebench.datasets.sensor import D435Sensor, apply_sensor, shadow_mask
 from spherebench.errors import SphereBenchError
 
@@ -45,7 +45,7 @@ def test_raycast_primitives_hit_where_geometry_says():
     intr = Intrinsics.d435(424, 240)
     rays = image_rays(intr)
     objs = [Plane(np.array([0, 0, 4.0]), np.array([0, 0, -1.0])),
-            Sphere(np.array([0.0, 0.0, 2.0]), 0.12),
+            SolidSphere(np.array([0.0, 0.0, 2.0]), 0.12),
             Box(np.array([-0.6, 0.0, 2.0]), np.array([0.1, 0.1, 0.1])),
             Cylinder(np.array([0.6, 0.3, 2.0]), np.array([0.0, -1.0, 0.0]), 0.1, 0.6)]
     z, label = raycast(objs, rays, intr)
