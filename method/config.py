@@ -120,21 +120,16 @@ class DetectorConfig:
         verify_candidates_if_none: ... or this many, if more (organised clouds), while none has
             been accepted: a ball whose hypothesis ranks below clutter (one on a floor beside the image
             border, a partly hidden one) is then still verified, and a frame with a ball pays nothing
-            for it. 16, every kept hypothesis (``search_candidates``): on the train preset 4-6 more
-            balls than 10 at each of seeds 0-3 with the same false detections, for about a fifth
-            more time on frames without a ball.
+            for it. 16: every kept hypothesis (``search_candidates``).
         verify_score_margin: organised clouds: once a sphere is accepted, hypotheses whose search
             score (``_kernels.front_hypothesis``: 2 per agreeing side box of the cap, 1 per ring box
             on background, ...) is more than this below the best accepted one's are not verified.
-            The second of two balls scores at most 3.6 below the first on the train preset;
-            6 is three agreeing sides: cluttered frames verify 3.3 hypotheses instead of 5.6.
+            6 is three agreeing sides: more than the second of two balls scores below the first.
         rescore_band: organised clouds: a candidate scoring within this of min_score is verified
             again from ``improved.rescore_starts`` about its refined centre and takes the
             mean score (the size check: the majority). At 2-3 m the refinement's inlier selection
             has several optima a cm apart, whose scores differ by 0.1 or more: one start's score is
-            a noisy draw. On the train preset, the top 10 candidates of each frame re-scored: false
-            detections 9 -> 1 at the same balls found; the detector: 1,886 -> 1,887 balls, 5 -> 3
-            false detections. 0 disables it.
+            a noisy draw. 0 disables it.
         multistart_noise_fraction: organised clouds, while no sphere is accepted: a hypothesis whose
             depth noise (one pixel's sigma_z) exceeds this fraction of R is verified from its centre
             and the six ``rescore_starts`` about it, the best kept and its score then taken as the
@@ -146,9 +141,7 @@ class DetectorConfig:
         score_max_points: unorganised search: scoring visits at most about this many points per
             candidate, bounding the cost for balls near the camera.
         refine_iterations: Gauss-Newton rounds (each re-selects inliers); organised clouds then take
-            2 more steps on the final inliers. 4: on the train preset at seeds 0-3 (``make
-            sweep-train``), 2-7 more balls than 3 rounds at every seed and 1.5 fewer false detections
-            on average, for 3-4 % more time per frame (5 rounds: 1 more ball again, twice the time).
+            2 more steps on the final inliers.
         min_inliers: fewer inliers than this: no detection.
         size_check: compare the free-radius fit with R.
         size_tolerance_m, size_tolerance_fraction: the free radius may differ from R by the larger of
