@@ -2,15 +2,16 @@
 from the truth, so that the search cannot lose the ball.
 
 For each true ball, the detector's own verification (``improved.verify_organised``: refinement,
-evidence, free-radius size check; ``improved.rescore`` near the threshold) runs on the same
-prepared frame (the frame's measured noise included) from the true centre and from the six
-starts about it that ``rescore`` uses (``improved.rescore_starts``): where the noise is a good
-part of R, the refinement's optima lie a cm or two apart and one start's end is a draw. The ball
-is within the **ceiling** when one of them accepts it as the detector would (size check passed,
-score at least ``min_score``) with its refined centre within 2 cm of the truth: a detector whose
-search always started there would find it (the best score of those is the ball's score). The **separable** ceiling drops the score threshold: the ball's
-score from the truth beats every clutter sphere the detector verifies in the frame (run with
-``min_score`` 0), so that some threshold would take it and no false detection of that frame.
+evidence, free-radius size check; ``improved.rescore`` near the threshold) runs on the same prepared
+frame (the frame's measured noise included) from the true centre and from the six starts about it
+that ``rescore`` uses (``improved.rescore_starts``): where the noise is a good part of R, the
+refinement's optima lie a cm or two apart and one start's end is a draw. The ball is within the
+**ceiling** when one of them accepts it as the detector would (size check passed, score at least
+``min_score``) with its refined centre within 2 cm of the truth: a detector whose search always
+started there would find it (the best score of those is the ball's score). The **separable** ceiling
+drops the score threshold: the ball's score from the truth beats every clutter sphere the detector
+verifies in the frame (run with ``min_score`` 0), so that some threshold would take it and no false
+detection of that frame.
 Both are upper bounds of what the detector can reach on the data, not of what the data allow:
 the verification's evidence is the detector's.
 """

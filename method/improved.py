@@ -148,6 +148,7 @@ def frame_noise_correlation_px(points: np.ndarray, index_image: np.ndarray, conf
     return length if length >= config.noise_correlation_min_px * bin_px else 0.0
 
 
+@functools.lru_cache(maxsize=64)  # every verified candidate of a frame asks with the same arguments
 def mean_variance_inflation(length_px: float, stride: int = 1) -> float:
     """How much more a mean over a large patch of pixels (every stride-th in both directions) varies
     than one over as many independent ones, for noise of correlation length ``length_px``: the sum
@@ -512,14 +513,15 @@ def see_through_excess(stats: dict, free: float, sigmas: float = 3.0) -> float:
 
 
 def edge_behind_excess(stats: dict, free: float, sigmas: float = 2.0) -> float:
-    """The share of the silhouette's edge band (rays passing the centre beyond sqrt(profile_outer_sq) R,
-    0.89 R, up to R; ``_kernels.window_stats``) seen behind the sphere, beyond ``free``
+    """The share of the silhouette's edge band (rays passing the centre beyond sqrt(profile_outer_sq)
+    R, 0.89 R, up to R; ``_kernels.window_stats``) seen behind the sphere, beyond ``free``
     (``edge_behind_free``) plus ``sigmas`` (``edge_behind_sigmas``) binomial standard errors;
-    occluded (front) pixels are left out. A ball of the right size fills the band but for its outline's mixed pixels and the noise's tail (simulated D435 balls: a share
-    of 0.07 at 1 m, 0.32 at 2.5-3 m, at most 0.50); a smaller one leaves it to the background: a
-    0.11 m soccer ball fitted with R = 0.12 m shows 0.8-0.95 at 0.6-2 m, where its free radius's
-    error is small, but also where its outline is a pixel or more inside the basketball's (its
-    free radius alone lets it through near 2 m at 424x240: 11.3 +/- 0.4 cm)."""
+    occluded (front) pixels are left out. A ball of the right size fills the band but for its
+    outline's mixed pixels and the noise's tail (simulated D435 balls: a share of 0.07 at 1 m, 0.32
+    at 2.5-3 m, at most 0.50); a smaller one leaves it to the background: a 0.11 m soccer ball
+    fitted with R = 0.12 m shows 0.8-0.95 at 0.6-2 m, where its free radius's error is small, but
+    also where its outline is a pixel or more inside the basketball's (its free radius alone lets it
+    through near 2 m at 424x240: 11.3 +/- 0.4 cm)."""
     n = stats.get("edge_n", 0.0)
     if n < 1:
         return 0.0
@@ -648,7 +650,8 @@ def rescore_starts(config: DetectorConfig) -> tuple[tuple[float, float, float], 
     return ((a, 0.0, 0.0), (-a, 0.0, 0.0), (0.0, a, 0.0), (0.0, -a, 0.0), (0.0, 0.0, b), (0.0, 0.0, -b))
 
 
-def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray) -> Candidate | None:
+def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
+                      buf: np.ndarray) -> Candidate | None:
     """A hypothesis whose depth noise is a good part of R (``multistart_noise_fraction``), verified from
     its centre and from each of ``rescore_starts`` about it: where one pixel's noise nears R, the
     refinement's end depends on its start by a few cm, and a hypothesis a few cm off converges

@@ -7,12 +7,13 @@ On the `robust` preset (20 sensor cells: subpixel x correlation x dropouts), per
 group (balls within 2 m; at 2-3 m), over the seeds: balls found (a detection within 2 cm), the
 oracle's ceiling (``eval.oracle``, ``eval.robustness.ceiling_holds``: the detector's verification
 started about the true centre, its score above every clutter sphere of its frame) and the share it
-accepts at the detector's own threshold, the target (``eval.robustness``) and whether it holds. Then the overall rate beside `default`'s,
-false detections, `hard`'s negatives and distractors, and the time per 424x240 frame as a ratio to
-the `paper-lstsq` control (``scripts.bench``, same run, same frames), with the frame noise
-estimate's own cost. A false detection lies farther than one radius from every ball (the matching
-gate of ``eval.metrics3d``): a detection of a ball 2-3 cm off is a miss of the 2 cm rate, not a
-false detection. Prints markdown; --out writes OUT.md and OUT.json (atomically).
+accepts at the detector's own threshold, the target (``eval.robustness``) and whether it holds. Then
+the overall rate beside `default`'s, false detections, `hard`'s negatives and distractors, and the
+time per 424x240 frame as a ratio to the `paper-lstsq` control (``scripts.bench``, same run, same
+frames), with the frame noise estimate's own cost. A false detection lies farther than one radius
+from every ball (the matching gate of ``eval.metrics3d``): a detection of a ball 2-3 cm off is a
+miss of the 2 cm rate, not a false detection. Prints markdown; --out writes OUT.md and OUT.json
+(atomically).
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a DetectorConfig field (repeatable), as in sweep")
     p.add_argument("--workers", type=int, default=2, help="processes")
-    p.add_argument("--limit", type=options.count, default=None, help="at most this many scenes per dataset (quick runs)")
+    p.add_argument("--limit", type=options.count, default=None,
+                   help="at most this many scenes per dataset (quick runs)")
     p.add_argument("--no-timing", action="store_true", help="skip the timing against paper-lstsq")
     p.add_argument("--out", type=options.out_path, default=None, help="write OUT.md and OUT.json")
 
@@ -210,7 +212,8 @@ def markdown(res: dict) -> str:
     if "hard" in res:
         h = res["hard"]
         lines.append(f"| hard: detections on negatives | {h['detections_on_negatives']} "
-                     f"({h['negative_scenes']} negative scene runs) | 0 | {_verdict(h['detections_on_negatives'] == 0)} |")
+                     f"({h['negative_scenes']} negative scene runs) | 0 | "
+                     f"{_verdict(h['detections_on_negatives'] == 0)} |")
         lines.append(f"| hard: distractors rejected | {h['distractors_rejected']}/{h['distractors']} | all | "
                      f"{_verdict(h['distractors_rejected'] == h['distractors'])} |")
     if "timing" in res:

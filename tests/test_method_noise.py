@@ -80,7 +80,8 @@ def test_effective_samples_of_correlated_noise():
     from spherebench.method.improved import correlation_from_ratio, _second_difference_ratio, mean_variance_inflation
     assert mean_variance_inflation(0.0) == 1.0 and mean_variance_inflation(0.3) == pytest.approx(1.0, abs=1e-4)
     assert mean_variance_inflation(4.0) == pytest.approx(np.pi * 16.0, rel=1e-3)  # pi length^2 when long
-    assert mean_variance_inflation(2.0, stride=4) < mean_variance_inflation(2.0, stride=2) < mean_variance_inflation(2.0)
+    assert (mean_variance_inflation(2.0, stride=4) < mean_variance_inflation(2.0, stride=2)
+            < mean_variance_inflation(2.0))
     for length in (0.8, 1.0, 1.7, 2.5):
         assert correlation_from_ratio(_second_difference_ratio(length, 3), 3, 6.0) == pytest.approx(length, rel=1e-6)
     # patch means of such noise vary as the lattice sum says: 16 x 16 means of a length-1.5 field (a
@@ -101,7 +102,8 @@ def test_evidence_counts_effective_samples_and_the_noise_share():
              "outer_v_n": 80.0, "outer_v_sum": 0.0, "sigma_m": 0.02}
     assert imp.relief_agreement(stats, cfg) < imp.relief_agreement({**stats, "pixels_per_sample": 4.0}, cfg)
     # a band the cap does not bind (2.5 sigma, or eps near the camera): nothing changes
-    assert imp.noise_shares({"sigma_m": 0.01}, cfg) == (1.0, 0.0) and imp.noise_shares({"sigma_m": 0.001}, cfg) == (1.0, 0.0)
+    assert imp.noise_shares({"sigma_m": 0.01}, cfg) == (1.0, 0.0)
+    assert imp.noise_shares({"sigma_m": 0.001}, cfg) == (1.0, 0.0)
     # sigma 0.12 m: the band 2.5 sigma is capped at 1.5 R = 1.5 sigma: 87 % of 98.8 % of the pixels, 6 % more behind
     p_in, q = imp.noise_shares({"sigma_m": 0.12}, cfg)
     assert p_in == pytest.approx(0.8664 / 0.9876, abs=1e-4) and q == pytest.approx(0.0668 - 0.0062, abs=1e-4)
