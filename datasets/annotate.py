@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 
 from spherebench.camera import Intrinsics, deproject, project
 from spherebench.circles import mask_circle, sphere_silhouette_mask
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError
 
@@ -58,7 +58,7 @@ BALL_SHAPE_TYPES = ("circle", "polygon")
 #: Offset from LabelMe (Qt: pixel i spans [i, i + 1)) to SphereBench pixel coordinates (centres at i).
 LABELME_OFFSET_PX = -0.5
 #: Image names that every scene folder uses (the reprojected depth, the recorded colour frame).
-SCENE_IMAGE_NAMES = ("image.png", *io.COLOUR_FILES)
+SCENE_IMAGE_NAMES = ("image.png", *inout.COLOUR_FILES)
 
 
 # --------------------------------------------------------------------------- geometry
@@ -101,7 +101,7 @@ def balls_from_masks(paths: list[Path], shape: tuple[int, int], radius_m: float)
     """One ball per mask PNG, its circle the mask's smallest enclosing circle."""
     balls = []
     for path in paths:
-        mask = io.read_mask_png(path, shape)
+        mask = inout.read_mask_png(path, shape)
         if not mask.any():
             raise SphereBenchError(f"{path}: the mask is empty (no non-zero pixel); draw the ball or delete the file")
         balls.append(Ball(radius_m=radius_m, mask=mask))
@@ -136,7 +136,7 @@ def balls_from_labelme(path: Path, shape: tuple[int, int], radius_m: float, scen
     Returns (balls, ignored): ignored names each shape that is not a ball, as "rectangle" or
     "circle labelled 'hand'".
     """
-    doc = io.read_labelme(path)
+    doc = inout.read_labelme(path)
     h, w = shape
     if (doc["imageWidth"], doc["imageHeight"]) != (w, h):
         raise SphereBenchError(f"{path}: LabelMe image is {doc['imageWidth']}x{doc['imageHeight']} but scene "
@@ -205,7 +205,7 @@ class AnnotationIndex:
             root = Path(labelme_dir)
             for p in sorted(root.glob("*.json")):
                 self._labelme[p.stem] = p
-            beside = [p for name in io.LABELME_FILES for p in (*root.glob(f"*/{name}"), *root.glob(f"scenes/*/{name}"))]
+            beside = [p for name in inout.LABELME_FILES for p in (*root.glob(f"*/{name}"), *root.glob(f"scenes/*/{name}"))]
             for p in sorted(beside):
                 if p.parent.name in self._labelme and self._labelme[p.parent.name] != p:
                     raise SphereBenchError(f"{p}: scene {p.parent.name} has two LabelMe files "

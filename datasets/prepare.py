@@ -1,4 +1,4 @@
-"""Recorded depth data -> a SphereBench dataset in the scene format of ``spherebench.datasets.io``.
+"""Recorded depth data -> a SphereBench dataset in the scene format of ``spherebench.datasets.inout``.
 
 Inputs (each becomes a stream of ``RecordedFrame``s, then one scene per frame):
 
@@ -48,7 +48,7 @@ import numpy as np
 from spherebench import __version__
 from spherebench.camera import Intrinsics, align_to_depth, project
 from spherebench.cloud import Cloud, depth_to_metres
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
 from spherebench.datasets.scene import Scene
 from spherebench.errors import SphereBenchError
@@ -159,7 +159,7 @@ class PrepareOptions:
     unit, default 1). unit_check: refuse depth whose median is outside UNIT_CHECK_RANGE_M."""
 
     ball_radius_m: float = DEFAULT_BALL_RADIUS_M
-    category: str = io.DEFAULT_CATEGORY
+    category: str = inout.DEFAULT_CATEGORY
     name: str | None = None
     depth_scale: float | None = None
     unit_check: bool = True
@@ -364,7 +364,7 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
     metres of the depth scale used) and, in meta, which colour frame it is and what the alignment
     did."""
     stem = scene_id_from(path.stem)
-    recording = io.BagRecording(path)
+    recording = inout.BagRecording(path)
     notes = (recording.colour_note,) if recording.colour_note else ()
     colour = recording.colour
     t_first = None
@@ -399,7 +399,7 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
                     depth=bag_frame.depth, meta=meta, colour=aligned, no_colour=bag_frame.no_colour, notes=notes)
 
 
-def _colour_meta(colour: io.BagColour, frame: io.BagFrame) -> dict:
+def _colour_meta(colour: inout.BagColour, frame: inout.BagFrame) -> dict:
     """What a scene records of its colour frame: which one, its offset in time, the stream."""
     offset = None if frame.colour_timestamp_ms is None else round(frame.colour_timestamp_ms - frame.timestamp_ms, 6)
     intrinsics = colour.intrinsics.to_dict()
@@ -424,7 +424,7 @@ def depth_png_frames(paths: list[Path], intr: Intrinsics | None, selection: Fram
 
     def frames():
         for p in picked:
-            depth = io.read_depth_png(p)
+            depth = inout.read_depth_png(p)
             if depth.shape != intr.shape:
                 raise SphereBenchError(f"{p}: depth image is {depth.shape[1]}x{depth.shape[0]} but the intrinsics "
                                        f"are {intr.width}x{intr.height}: give the intrinsics of this stream")
@@ -502,7 +502,7 @@ def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selec
 
     def frames():
         for p in picked:
-            values = io.read_raw_depth(p, intr.width, intr.height, raw.dtype, raw.byte_order)
+            values = inout.read_raw_depth(p, intr.width, intr.height, raw.dtype, raw.byte_order)
             swapped_values = values.byteswap()
             check_raw_reading(values, str(p), _raw_readings(values, swapped_values, raw))
             meta = {"source": p.name}
@@ -529,11 +529,11 @@ def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selec
 def read_cloud_file(path: Path, intr: Intrinsics | None) -> Cloud:
     suffix = path.suffix.lower()
     if suffix == ".ply":
-        return io.read_ply(path)
+        return inout.read_ply(path)
     if suffix == ".pcd":
-        return io.read_pcd(path, intr)
+        return inout.read_pcd(path, intr)
     if suffix in (".xyz", ".txt"):
-        return io.read_xyz(path)
+        return inout.read_xyz(path)
     raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' (.ply, .pcd, .xyz)")
 
 
@@ -615,7 +615,7 @@ def camera_from_options(intrinsics_file: Path | None = None, fx: float | None = 
     if intrinsics_file is not None:
         if given:
             raise SphereBenchError(f"give intrinsics as --intrinsics FILE or as {', '.join(numbers)}, not both")
-        intr = io.read_camera_json(intrinsics_file)
+        intr = inout.read_camera_json(intrinsics_file)
         if width is not None and (width, height) != (intr.width, intr.height):
             raise SphereBenchError(f"{intrinsics_file}: intrinsics are {intr.width}x{intr.height} but the frames "
                                    f"are {width}x{height} ({size_option}): give the intrinsics of this stream")
@@ -819,7 +819,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
     no_colour, fits, unfit = [], [], []  # frames without their colour image; mask-fit SEs (m); balls without
     # annotations read from out_dir itself (the LabelMe round trip) are carried into the new dataset
     carried = options.labelme_dir is not None and Path(options.labelme_dir).resolve() == out_dir.resolve()
-    with io.atomic_directory(out_dir, lambda d: io.replaceable_dataset(d, labelme_carried=carried)) as tmp:
+    with inout.atomic_directory(out_dir, lambda d: inout.replaceable_dataset(d, labelme_carried=carried)) as tmp:
         for frame in _progress(plan.frames, plan.total):
             if frame.scene_id in seen:
                 raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "
@@ -848,7 +848,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                     _check_colour(colour, frame.depth.shape)
                 if colour is None and frame.no_colour:
                     no_colour.append(f"{frame.scene_id}: {frame.no_colour}")
-                colour_name = io.colour_file_name(colour) if colour is not None else None
+                colour_name = inout.colour_file_name(colour) if colour is not None else None
                 names = frame.image_names + ((colour_name,) if isinstance(colour, np.ndarray) else
                                              (colour.name,) if colour is not None else ())
                 balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m, names)
@@ -878,18 +878,18 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
             scene = Scene(scene_id=frame.scene_id, family="recorded", intrinsics=frame.intrinsics, depth=frame.depth,
                           balls=balls or [], seed=None, annotated=balls is not None, cloud=frame.cloud,
                           meta=frame.meta)
-            scene_dir = io.write_scene(tmp / "scenes", scene, options.ball_radius_m, colour=colour)
+            scene_dir = inout.write_scene(tmp / "scenes", scene, options.ball_radius_m, colour=colour)
             # a LabelMe file is kept even when it held no ball shape: it is the user's work
             labelme = annotations.labelme_file(frame.scene_id) if frame.depth is not None else None
             if labelme is not None:
                 # keep the annotation beside the image it was drawn on (image.png or the colour frame),
                 # where LabelMe looks when that image is reopened
-                doc = io.read_labelme(labelme)
+                doc = inout.read_labelme(labelme)
                 drawn = Path(str(doc.get("imagePath") or "").replace("\\", "/")).name
-                on_colour = colour is not None and drawn in (*io.COLOUR_FILES, *names[len(frame.image_names):])
+                on_colour = colour is not None and drawn in (*inout.COLOUR_FILES, *names[len(frame.image_names):])
                 kept = colour_name if on_colour else "image.png"
                 doc["imagePath"] = kept
-                io.write_json(scene_dir / (Path(kept).stem + ".json"), doc, indent=2)
+                inout.write_json(scene_dir / (Path(kept).stem + ".json"), doc, indent=2)
             if balls is not None:
                 counts["annotated"] += 1
                 counts["balls"] += len(balls)
@@ -918,7 +918,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 "source": "mask-fit", "radius_m": float(options.ball_radius_m), "balls": len(fits),
                 "se_median_m": round(float(np.median(fits)), 6) if fits else None, "without_centre": len(unfit),
                 "rule": "fixed-radius least squares on the mask's depth pixels (eroded 2 px), block-jackknife SE"}
-        io.finish_dataset(tmp, meta)
+        inout.finish_dataset(tmp, meta)
     for n in notes:
         log(f"note: {n}")
     return PrepareReport(out_dir, len(seen), counts["annotated"], counts["balls"], counts["image_less"],

@@ -1,7 +1,7 @@
 """One scene of a dataset in memory: the depth frame, the camera, and the ground truth.
 
 Simulated and recorded scenes are the same thing here; what a recording lacks (the full
-silhouette, the 3D centre) is None. ``spherebench.datasets.io`` writes and reads the folder form.
+silhouette, the 3D centre) is None. ``spherebench.datasets.inout`` writes and reads the folder form.
 """
 
 from __future__ import annotations

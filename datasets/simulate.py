@@ -28,7 +28,7 @@ from tqdm import tqdm
 from spherebench import __version__
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import sphere_circle_amodal, sphere_silhouette_mask
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_view, ball_partly_out, bookcase,
                                           chair, floor_box, room, table, tripod)
 from spherebench.datasets.primitives import Box, Cylinder, SolidSphere, raycast, surface_map
@@ -373,7 +373,7 @@ def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[in
 def _build_one(args) -> str:
     preset_name, index, family, seed, resolution, radius_m, sensor, overrides, scenes_dir, clouds = args
     scene = simulate_scene(preset_name, index, family, seed, resolution, radius_m, sensor, overrides)
-    io.write_scene(scenes_dir, scene, radius_m, write_cloud=clouds)
+    inout.write_scene(scenes_dir, scene, radius_m, write_cloud=clouds)
     return scene.scene_id
 
 
@@ -398,7 +398,7 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
     for i, _f, _r in jobs:  # every scene's sensor is valid (e.g. drawn depth limits in order) before any work
         scene_sensor(preset_name, seed, i, sensor, overrides)
     out_dir = Path(out_dir)
-    with io.atomic_directory(out_dir, io.replaceable_dataset) as tmp:
+    with inout.atomic_directory(out_dir, inout.replaceable_dataset) as tmp:
         scenes_dir = tmp / "scenes"
         scenes_dir.mkdir()
         tasks = [(preset_name, i, f, seed, r, radius_m, sensor, overrides, scenes_dir, clouds) for i, f, r in jobs]
@@ -421,7 +421,7 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         if overrides:
             meta["sensor_overrides"] = {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()}
         meta.update({"spherebench_version": __version__, "numpy_version": np.__version__})
-        io.finish_dataset(tmp, meta)
+        inout.finish_dataset(tmp, meta)
     return out_dir
 
 

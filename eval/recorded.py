@@ -27,7 +27,7 @@ from typing import Sequence
 
 import numpy as np
 
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.eval.runner import PAPER_CIRCLE, REPO_ROOT, dataset_scenes
 
 #: The learned 2D methods (trained on simulated D435 frames) and the one tuned on them.
@@ -49,9 +49,9 @@ def _labelme_copies(scenes) -> dict[str, dict]:
     """{scene id: the LabelMe document prepare kept in the scene folder} of the annotated scenes."""
     out = {}
     for s in scenes:
-        for name in io.LABELME_FILES:
+        for name in inout.LABELME_FILES:
             if s.annotated and (s.path / name).is_file():
-                out[s.scene_id] = io.read_json(s.path / name)
+                out[s.scene_id] = inout.read_json(s.path / name)
                 break
     return out
 
@@ -72,7 +72,7 @@ def annotation_source(name: str, scenes) -> dict:
     folder = ANNOTATION_SETS / str(name)
     annotated = [s for s in scenes if s.annotated]
     if docs and folder.is_dir() and len(docs) == len(annotated) and all(
-            (folder / f"{sid}.json").is_file() and io.read_json(folder / f"{sid}.json").get("shapes") == doc.get("shapes")
+            (folder / f"{sid}.json").is_file() and inout.read_json(folder / f"{sid}.json").get("shapes") == doc.get("shapes")
             for sid, doc in docs.items()):
         out["set"] = str(folder.relative_to(REPO_ROOT))
         if (folder / "README.md").is_file():
@@ -98,7 +98,7 @@ def facts(data_dir: str | Path) -> dict | None:
     scenes = dataset_scenes(root)
     if not scenes or any(s.family != "recorded" for s in scenes):
         return None
-    meta = io.read_dataset_meta(root) if (root / "dataset.json").is_file() else {}
+    meta = inout.read_dataset_meta(root) if (root / "dataset.json").is_file() else {}
     source = meta.get("source") or {}
     radius = float(meta.get("ball_radius_m", 0.12))
     out = {"name": meta.get("name") or root.name, "camera": source.get("camera") or source.get("sensor"),
@@ -106,15 +106,15 @@ def facts(data_dir: str | Path) -> dict | None:
            "n_scenes": len(scenes), "annotated": sum(s.annotated for s in scenes),
            "image_less": sum(not s.has_image for s in scenes),
            "resolution": next((s.resolution for s in scenes if s.resolution), None),
-           "colour": sum(any((s.path / name).is_file() for name in io.COLOUR_FILES) for s in scenes),
+           "colour": sum(any((s.path / name).is_file() for name in inout.COLOUR_FILES) for s in scenes),
            "annotations": annotation_source(meta.get("name") or root.name, scenes)}
     se, ratios, offsets, authors = [], [], [], []
     n_balls = n_fit = 0
     for s in scenes:
         if not s.annotated:
             continue
-        gt = io.read_json(s.path / "gt.json")
-        intr = io.read_intrinsics(s.path) if (s.path / "intrinsics.json").is_file() else None
+        gt = inout.read_json(s.path / "gt.json")
+        intr = inout.read_intrinsics(s.path) if (s.path / "intrinsics.json").is_file() else None
         for b in gt.get("balls", []):
             n_balls += 1
             if b.get("center_source") != "mask-fit" or b.get("center_m") is None:
@@ -271,7 +271,7 @@ def load_beside(path: str | Path, label: str) -> tuple[Beside, dict]:
     path = Path(path)
     if not path.is_file():
         raise SphereBenchError(f"--beside {path}: file not found (give another evaluation's metrics.json)")
-    metrics = io.read_json(path)
+    metrics = inout.read_json(path)
     if not isinstance(metrics, dict) or not all(isinstance(v, dict) for v in metrics.values()):
         raise SphereBenchError(f"--beside {path}: not a metrics.json of `spherebench evaluate`")
     if not any(isinstance(by.get(label), dict) and by[label].get("mAP") is not None for by in metrics.values()):
@@ -282,12 +282,12 @@ def load_beside(path: str | Path, label: str) -> tuple[Beside, dict]:
     for output in metrics:
         meta_file = meta_path(path.parent / "predictions" / label / f"{output}.json")
         if meta_file.is_file():
-            meta = io.read_json(meta_file)
+            meta = inout.read_json(meta_file)
             if isinstance(meta, dict):
                 settings[output] = {"config": meta.get("config"), "extra_fingerprint": meta.get("extra_fingerprint")}
     git = {}
     if path.with_name("provenance.json").is_file():
-        prov = io.read_json(path.with_name("provenance.json"))
+        prov = inout.read_json(path.with_name("provenance.json"))
         git = (prov.get("git") or {}) if isinstance(prov, dict) else {}
     commit = git.get("commit")
     where = f"`{path}`" + (f" (made at commit {commit[:10]}{', with uncommitted changes' if git.get('dirty') else ''})"

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import csv
 import datetime as _dt
-import io as _io
+import io
 import math
 import subprocess
 from collections import Counter
@@ -30,7 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
 from spherebench.eval.metrics3d import DEFAULT_GATE_M, match_scene, summarize_3d
 from spherebench.eval.sensor_grid import (GRID_AXES, band_of, detection_rates, grid_key, grid_rows, level_label,
@@ -273,7 +273,7 @@ class Table:
     notes: list[str] = field(default_factory=list)
 
     def csv(self) -> str:
-        buf = _io.StringIO()
+        buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(self.columns)
         for r in self.rows:
@@ -533,12 +533,12 @@ def provenance(repo: Path, seeds: dict, configs: dict, extra: dict | None = None
 
 #: A results folder is ours if it has the owner marker or (written before the marker) provenance.json.
 RESULTS_KIND, RESULTS_LEGACY_FILE = "results", "provenance.json"
-is_results_dir = io.owned_by_kind(RESULTS_KIND, RESULTS_LEGACY_FILE)
+is_results_dir = inout.owned_by_kind(RESULTS_KIND, RESULTS_LEGACY_FILE)
 
 
 def claim_results_dir(out: str | Path) -> Path:
     """``out`` as a results folder (new, empty or a previous one of ours), or a one-line error."""
-    return io.claim_output_dir(out, RESULTS_KIND, RESULTS_LEGACY_FILE)
+    return inout.claim_output_dir(out, RESULTS_KIND, RESULTS_LEGACY_FILE)
 
 
 def _in_results_dir(folder: Path) -> bool:
@@ -562,7 +562,7 @@ def _keep_subfolders(old: Path, tmp: Path) -> list[str]:
 
 def write_tables(folder: Path, tables: Sequence[Table]) -> None:
     """Every table as CSV and Markdown, into ``folder`` replaced as a whole (atomic)."""
-    with io.atomic_directory(folder, _in_results_dir) as tmp:
+    with inout.atomic_directory(folder, _in_results_dir) as tmp:
         for t in tables:
             (tmp / f"{t.name}.csv").write_text(t.csv())
             (tmp / f"{t.name}.md").write_text(t.markdown())
@@ -826,7 +826,7 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     metrics = metrics_json(sets_by)
     fig_paths: dict[str, str | None] = {}
     if figures:
-        with io.atomic_directory(out / "figures", _in_results_dir) as tmp:
+        with inout.atomic_directory(out / "figures", _in_results_dir) as tmp:
             kept = _keep_subfolders(out / "figures", tmp)
             for label, (data_dir, coco, sets) in per_dataset.items():
                 f = facts[label]
@@ -859,11 +859,11 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
             for name in kept:
                 fig_paths[f"[`figures/{name}/`](figures/{name}/): kept from another tool (not drawn by `evaluate`)"] = None
     write_tables(out / "tables", tables)
-    io.write_json(out / "metrics.json", metrics)
+    inout.write_json(out / "metrics.json", metrics)
     if t2:
-        io.write_json(out / "table2.json", _json_safe(list(t2)))
-    io.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
+        inout.write_json(out / "table2.json", _json_safe(list(t2)))
+    inout.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
                                                     about).encode())
-    io.write_json(out / "provenance.json", prov)
+    inout.write_json(out / "provenance.json", prov)
     return {"metrics": out / "metrics.json", "tables": out / "tables", "figures": out / "figures",
             "readme": out / "README.md", "provenance": out / "provenance.json"}

@@ -131,8 +131,8 @@ def dataset_fingerprint(data_dir: str | Path) -> str:
     h.update(_hash_files(files, root).encode())
     gt = root / "coco_gt.json"
     if gt.is_file():
-        from spherebench.datasets import io  # deferred, as everywhere here: `evaluate --help` stays fast
-        coco = io.read_json(gt)  # a truncated file: one line, not a traceback
+        from spherebench.datasets import inout  # deferred, as everywhere here: `evaluate --help` stays fast
+        coco = inout.read_json(gt)  # a truncated file: one line, not a traceback
         h.update(json.dumps({k: coco.get(k) for k in ("images", "annotations", "categories")},
                             sort_keys=True).encode())
     return h.hexdigest()
@@ -198,7 +198,7 @@ def machine_info() -> dict:
 # --------------------------------------------------------------------------- methods
 
 #: Modules whose source is every method's code version (scene reading, circles, the runner).
-_CORE_MODULES = ("spherebench.camera", "spherebench.cloud", "spherebench.circles", "spherebench.datasets.io",
+_CORE_MODULES = ("spherebench.camera", "spherebench.cloud", "spherebench.circles", "spherebench.datasets.inout",
                  "spherebench.eval.runner")
 
 
@@ -293,8 +293,8 @@ def circlenet_spec(model_path: str | Path, name: str = "circlenet") -> MethodSpe
     card_path = path.with_name("model_card.json")
     budget = ""
     if card_path.is_file():  # the training budget belongs next to the numbers (fairness)
-        from spherebench.datasets import io
-        card = io.read_json(card_path)
+        from spherebench.datasets import inout
+        card = inout.read_json(card_path)
         budget = "; " + card_budget(card if isinstance(card, dict) else {})
     return MethodSpec(name=name, kind="2d",
                       config={"engine": "circlenet", "model": path.name, "min_score": CIRCLENET_MIN_SCORE,
@@ -384,8 +384,8 @@ class _DetectorEngine:
         self.estimates_radius = self.config.pipeline == "improved"
 
     def load(self, scene_dir: Path):
-        from spherebench.datasets import io
-        return io.load_cloud(scene_dir)
+        from spherebench.datasets import inout
+        return inout.load_cloud(scene_dir)
 
     def detect(self, cloud, seed: int) -> list[dict]:
         from spherebench.method import detect
@@ -407,8 +407,8 @@ class _PyRansac3dEngine:
         self.config = config
 
     def load(self, scene_dir: Path):
-        from spherebench.datasets import io
-        return io.load_cloud(scene_dir)
+        from spherebench.datasets import inout
+        return inout.load_cloud(scene_dir)
 
     def detect(self, cloud, seed: int) -> list[dict]:
         from spherebench.baselines import pyransac3d_peer
@@ -429,8 +429,8 @@ class _HoughEngine:
         self.config = HoughConfig(**{k: v for k, v in config.items() if k in fields})
 
     def load(self, scene_dir: Path):
-        from spherebench.datasets import io
-        return io.read_image(scene_dir / "image.png")
+        from spherebench.datasets import inout
+        return inout.read_image(scene_dir / "image.png")
 
     def detect(self, image, seed: int) -> list[dict]:
         from spherebench.baselines.hough import detect_circles
@@ -549,16 +549,16 @@ class SceneInfo:
 
 def dataset_scenes(data_dir: str | Path) -> list[SceneInfo]:
     """Every scene of a dataset, in scene-id order, with its image id and 3D ground truth."""
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     root = Path(data_dir)
-    coco = io.read_coco_gt(root)
+    coco = inout.read_coco_gt(root)
     image_ids = {img.get("scene_id"): img["id"] for img in coco["images"]}
     out = []
-    for k, scene in enumerate(io.list_scenes(root)):
-        gt = io.read_json(scene / "gt.json")
+    for k, scene in enumerate(inout.list_scenes(root)):
+        gt = inout.read_json(scene / "gt.json")
         res = None
         if (scene / "intrinsics.json").is_file():
-            intr = io.read_json(scene / "intrinsics.json")
+            intr = inout.read_json(scene / "intrinsics.json")
             res = f"{intr.get('width')}x{intr.get('height')}"
         visible = [b for b in gt.get("balls", []) if b.get("circle") is not None or not (scene / "image.png").is_file()]
         balls = [b for b in visible if b.get("center_m") is not None]
@@ -600,9 +600,9 @@ def is_finished(pred_path: Path, key: str) -> bool:
 
 def read_predictions(pred_path: str | Path) -> tuple[list[dict], dict]:
     """(COCO results list, meta dict) of a prediction set."""
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     pred_path = Path(pred_path)
-    return io.read_json(pred_path), io.read_json(meta_path(pred_path))
+    return inout.read_json(pred_path), inout.read_json(meta_path(pred_path))
 
 
 def _results_and_records(spec: MethodSpec, output: str, scenes: list[SceneInfo], records: list[dict],
@@ -672,14 +672,14 @@ def run_methods(data_dir: str | Path, out_dir: str | Path, specs: Sequence[Metho
     Returns {output name: predictions path}. Finished sets with the same inputs are reused.
     """
     from tqdm import tqdm
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
 
     data_dir, out_dir = Path(data_dir), Path(out_dir)
     scenes = dataset_scenes(data_dir)
     fingerprint = fingerprint or dataset_fingerprint(data_dir)
-    coco = io.read_coco_gt(data_dir)
+    coco = inout.read_coco_gt(data_dir)
     category_id = int(coco["categories"][0]["id"]) if coco.get("categories") else 1
-    meta_ds = io.read_dataset_meta(data_dir) if (data_dir / "dataset.json").is_file() else {}
+    meta_ds = inout.read_dataset_meta(data_dir) if (data_dir / "dataset.json").is_file() else {}
     paths: dict[str, Path] = {}
     pending: list[tuple[MethodSpec, list[SceneInfo], dict[str, str], str]] = []
     for spec in specs:
@@ -724,9 +724,9 @@ def _write_set(pred: Path, spec: MethodSpec, output: str, chosen: list[SceneInfo
                category_id: int, key: str, version: str, seed: int, fingerprint: str, data_dir: Path,
                meta_ds: dict, n_scenes: int, workers: int) -> None:
     """Write one prediction set and then its meta file (the mark of a finished set)."""
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     res, scene_records = _results_and_records(spec, output, chosen, records, category_id)
-    io.write_json(pred, res, indent=None)
+    inout.write_json(pred, res, indent=None)
     meta = {"format": FORMAT_VERSION, "output": output, "method": spec.name, "kind": spec.kind,
             "rule": ("paper" if output.endswith(PAPER_CIRCLE) else "exact") if spec.kind == "3d" else None,
             "key": key, "predictions_sha256": file_sha256(pred), "config": spec.config,
@@ -738,7 +738,7 @@ def _write_set(pred: Path, spec: MethodSpec, output: str, chosen: list[SceneInfo
             "timing": "ms around the detection call only (no file reading), 1 thread per worker process",
             "machine": machine_info(), "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "scenes": scene_records}
-    io.write_json(meta_path(pred), meta, indent=None)
+    inout.write_json(meta_path(pred), meta, indent=None)
 
 
 class _SingleThreadHere:
@@ -796,7 +796,7 @@ def tuned_hough_config(cache_path: str | Path, train_dir: str | Path, n: int = H
     are never seen: the training preset's seeds are disjoint from theirs.
     """
     from spherebench.baselines import hough
-    from spherebench.datasets import io, simulate
+    from spherebench.datasets import inout, simulate
 
     cache_path, train_dir = Path(cache_path), Path(train_dir)
     key = _hough_key(n, seed)
@@ -808,7 +808,7 @@ def tuned_hough_config(cache_path: str | Path, train_dir: str | Path, n: int = H
                 return hough.HoughConfig(**cached["config"])
         except (OSError, json.JSONDecodeError, TypeError):
             pass
-    meta = io.read_dataset_meta(train_dir) if (train_dir / "dataset.json").is_file() else None
+    meta = inout.read_dataset_meta(train_dir) if (train_dir / "dataset.json").is_file() else None
     if meta is None or meta.get("preset") != "train" or meta.get("n") != n or meta.get("seed") != seed:
         if meta is not None and meta.get("preset") != "train":
             raise SphereBenchError(f"{train_dir} holds the '{meta.get('preset')}' preset: the Hough baseline is tuned "
@@ -842,20 +842,20 @@ def tuned_hough_config(cache_path: str | Path, train_dir: str | Path, n: int = H
                                       if v != getattr(hough.HoughConfig(), k)},
                         "mAP": m.get("mAP"), "mAP50": m.get("mAP50")} for c, m in scored],
               "seconds": round(time.perf_counter() - t0, 1)}
-    io.write_json(cache_path, _json_safe(record))
+    inout.write_json(cache_path, _json_safe(record))
     return best
 
 
 def _hough_grid_part(train_dir: str, grid: list[dict]) -> list:
     """``hough.grid_scores`` of part of the grid on a training dataset's images (in a worker)."""
     from spherebench.baselines import hough
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     root = Path(train_dir)
-    coco = io.read_coco_gt(root)
+    coco = inout.read_coco_gt(root)
     circles: dict[int, list] = {img["id"]: [] for img in coco["images"]}
     for a in coco["annotations"]:
         circles[a["image_id"]].append([*a["circle_center"], a["circle_radius"]])
-    images = [io.read_image(root / img["file_name"]) for img in coco["images"]]
+    images = [inout.read_image(root / img["file_name"]) for img in coco["images"]]
     gts = [np.asarray(circles[img["id"]], np.float64).reshape(-1, 3) for img in coco["images"]]
     return hough.grid_scores(images, gts, grid)
 
@@ -879,7 +879,7 @@ def _json_safe(obj):
 
 #: The modules whose source defines the oracle's rows (with the detector's configuration and the data).
 ORACLE_MODULES = ("spherebench.eval.oracle", "spherebench.method", "spherebench.eval.sensor_grid",
-                  "spherebench.datasets.io", "spherebench.cloud")
+                  "spherebench.datasets.inout", "spherebench.cloud")
 
 
 def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, workers: int = 2,
@@ -894,13 +894,13 @@ def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, wo
     None when this installation has no ``spherebench.eval.oracle``.
     """
     import importlib.util
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     from spherebench.method import config_for
     if importlib.util.find_spec("spherebench.eval.oracle") is None:
         log("oracle: spherebench.eval.oracle is not installed; no ceiling drawn")
         return None
     data_dir, cache_path = Path(data_dir), Path(cache_path)
-    radius = float((io.read_dataset_meta(data_dir) or {}).get("ball_radius_m", 0.12))
+    radius = float((inout.read_dataset_meta(data_dir) or {}).get("ball_radius_m", 0.12))
     config = dataclasses.asdict(config_for("improved", radius_m=radius))
     key = hashlib.sha256(json.dumps({"dataset": dataset_fingerprint(data_dir), "config": config, "seed": int(seed),
                                      "code": code_version(ORACLE_MODULES)}, sort_keys=True).encode()).hexdigest()
@@ -919,24 +919,24 @@ def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, wo
     with _pool(workers) as pool:
         parts = list(pool.map(_oracle_scene, tasks, chunksize=4) if pool is not None else map(_oracle_scene, tasks))
     balls = [b for part in parts for b in part]
-    io.write_json(cache_path, _json_safe({"key": key, "dataset": str(data_dir), "seed": int(seed), "balls": balls,
+    inout.write_json(cache_path, _json_safe({"key": key, "dataset": str(data_dir), "seed": int(seed), "balls": balls,
                                           "seconds": round(time.perf_counter() - t0, 1)}))
     return balls
 
 
 def _oracle_scene(task: tuple) -> list[dict]:
     """``oracle_balls``' rows of one scene (in a worker)."""
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     from spherebench.eval.oracle import ceiling
     from spherebench.eval.sensor_grid import band_of, surface_distance_m
     from spherebench.method import DetectorConfig
     config_json, scene_dir, seed = task
     config = DetectorConfig(**json.loads(config_json))
-    gt = io.read_json(Path(scene_dir) / "gt.json")
+    gt = inout.read_json(Path(scene_dir) / "gt.json")
     balls = [(k, b) for k, b in enumerate(gt.get("balls", [])) if b.get("center_m") is not None]
     if not balls:
         return []
-    found = ceiling(io.load_cloud(scene_dir), [b["center_m"] for _, b in balls], config, seed=seed)
+    found = ceiling(inout.load_cloud(scene_dir), [b["center_m"] for _, b in balls], config, seed=seed)
     cell = (gt.get("meta") or {}).get("sensor_cell")
     return [{"scene_id": str(gt.get("scene_id", Path(scene_dir).name)), "ball": k, "cell": cell,
              "band": band_of(surface_distance_m(b["center_m"], b.get("radius_m", config.radius_m))),
@@ -969,7 +969,7 @@ def table2_rows(paper_dir: str | Path, seed: int = 0, thresholds: Sequence[float
     least-squares refinement of the same kept points (R fixed), that of the whole improved
     detector, and the paper's values where it reports the row.
     """
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     from spherebench.eval.table2 import table2_row
     from spherebench.method import IMPROVED, config_for, detect
 
@@ -977,7 +977,7 @@ def table2_rows(paper_dir: str | Path, seed: int = 0, thresholds: Sequence[float
     rows = []
     with _SingleThreadHere():
         for scene in scenes:
-            cloud = io.load_cloud(scene.path)
+            cloud = inout.load_cloud(scene.path)
             s_seed = scene_seed(seed, scene.index)
             truth = scene.gt_centres_m[0] if scene.gt_centres_m else None
             its = iterations or PAPER_ITERATIONS.get(scene.scene_id, 1000)

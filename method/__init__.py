@@ -3,7 +3,7 @@
     from spherebench.method import detect, config_for
     spheres = detect(cloud, config_for("improved", radius_m=0.12), seed=0)
 
-Arrays in, results out: this package reads no files (see ``spherebench.datasets.io``).
+Arrays in, results out: this package reads no files (see ``spherebench.datasets.inout``).
 """
 
 from spherebench.method.config import IMPROVED, PAPER, PAPER_LSTSQ, PRESETS, DetectorConfig, config_for

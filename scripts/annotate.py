@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from spherebench.cloud import depth_to_metres
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.annotate import (DEFAULT_HSV, LABELME_OFFSET_PX, colour_mask, contact_sheet,
                                            labelme_from_mask, labelme_text, mask_fit_centre, parse_hsv,
                                            polygon_mask, review_tile)
@@ -59,13 +59,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _scenes_with_colour(dataset: Path) -> list[tuple[Path, Path]]:
     """(scene folder, colour frame) of every scene with an image; refuses a dataset without colour."""
-    scenes = [s for s in io.list_scenes(dataset) if (s / "depth.png").is_file()]
+    scenes = [s for s in inout.list_scenes(dataset) if (s / "depth.png").is_file()]
     if not scenes:
         raise SphereBenchError(f"{dataset}: no scene has a depth image (image-less scenes cannot be annotated)")
-    found = [(s, next((s / n for n in io.COLOUR_FILES if (s / n).is_file()), None)) for s in scenes]
+    found = [(s, next((s / n for n in inout.COLOUR_FILES if (s / n).is_file()), None)) for s in scenes]
     missing = [s for s, c in found if c is None]
     if len(missing) == len(found):
-        raise SphereBenchError(f"{dataset}: no scene holds a colour frame ({' or '.join(io.COLOUR_FILES)}); prepare "
+        raise SphereBenchError(f"{dataset}: no scene holds a colour frame ({' or '.join(inout.COLOUR_FILES)}); prepare "
                                "keeps one for sources that record colour registered to depth")
     if missing:
         raise SphereBenchError(f"{missing[0]}: no colour frame ({len(missing)} of {len(found)} scenes lack one); "
@@ -75,8 +75,8 @@ def _scenes_with_colour(dataset: Path) -> list[tuple[Path, Path]]:
 
 def _load(scene: Path, colour_path: Path):
     """(colour BGR, depth m, intrinsics) of a scene, the colour checked against the depth's size."""
-    intr = io.read_intrinsics(scene / "intrinsics.json")
-    depth = io.read_depth_png(scene / "depth.png")
+    intr = inout.read_intrinsics(scene / "intrinsics.json")
+    depth = inout.read_depth_png(scene / "depth.png")
     colour = cv2.imread(str(colour_path), cv2.IMREAD_COLOR)
     if colour is None:
         raise SphereBenchError(f"{colour_path}: not a readable colour image")
@@ -90,7 +90,7 @@ def _labelme_mask(path: Path, shape) -> np.ndarray | None:
     """The union of a LabelMe file's polygons (None: no polygon, or no file)."""
     if not path.is_file():
         return None
-    doc = io.read_labelme(path)
+    doc = inout.read_labelme(path)
     mask = np.zeros(shape, bool)
     for s in doc["shapes"]:
         if (s.get("shape_type") or "polygon") == "polygon":
@@ -103,7 +103,7 @@ def write_sheets(out: Path, scenes: list[tuple[Path, Path]], radius_m: float) ->
     overview, closeup = [], []
     for scene, colour_path in scenes:
         colour, depth_m, intr = _load(scene, colour_path)
-        depth_image = io.read_image(scene / "image.png")
+        depth_image = inout.read_image(scene / "image.png")
         mask = _labelme_mask(scene / "colour.json", depth_m.shape)
         fit = mask_fit_centre(depth_m, intr, mask, radius_m) if mask is not None else None
         centre = fit.center_m if fit is not None else None
@@ -113,11 +113,11 @@ def write_sheets(out: Path, scenes: list[tuple[Path, Path]], radius_m: float) ->
         if mask is not None:
             closeup.append(review_tile(colour, depth_image, mask, scene.name, intr, centre, radius_m, CLOSEUP_PX))
     written = []
-    with io.atomic_directory(out, io.owned_by_kind(SHEET_KIND)) as tmp:
-        io.write_json(tmp / io.OWNER_MARKER, {"kind": SHEET_KIND, "written_by": "spherebench"})
+    with inout.atomic_directory(out, inout.owned_by_kind(SHEET_KIND)) as tmp:
+        inout.write_json(tmp / inout.OWNER_MARKER, {"kind": SHEET_KIND, "written_by": "spherebench"})
         for name, tiles in (("overview", overview), ("closeup", closeup)):
             for page, start in enumerate(range(0, len(tiles), PAGE_SCENES), 1):
-                io.write_png(tmp / f"{name}_{page:02d}.png",
+                inout.write_png(tmp / f"{name}_{page:02d}.png",
                              contact_sheet(tiles[start:start + PAGE_SCENES], PAGE_COLUMNS))
                 written.append(out / f"{name}_{page:02d}.png")
     return written
@@ -127,16 +127,16 @@ def run(args: argparse.Namespace) -> int:
     if not args.from_colour and args.sheet is None:
         raise SphereBenchError("say what to do: --from-colour (masks from the colour frames) and/or --sheet DIR")
     hsv = parse_hsv(args.hsv)
-    if not io.is_dataset_dir(args.dataset):
+    if not inout.is_dataset_dir(args.dataset):
         raise SphereBenchError(f"{args.dataset}: not a dataset (no dataset.json); prepare one with `spherebench prepare`")
-    radius = args.radius if args.radius is not None else io.read_dataset_meta(args.dataset).get("ball_radius_m")
+    radius = args.radius if args.radius is not None else inout.read_dataset_meta(args.dataset).get("ball_radius_m")
     if radius is None or not (math.isfinite(radius) and radius > 0):
         raise SphereBenchError(f"the ball radius must be a positive number of metres, got {radius}; give --radius")
     if not args.label.strip():
         raise SphereBenchError("--label is empty: give the ball's label, e.g. ball")
     scenes = _scenes_with_colour(args.dataset)
     if args.sheet is not None:
-        io.check_output_dir(args.sheet, io.owned_by_kind(SHEET_KIND), "--sheet", inputs=(args.dataset,))
+        inout.check_output_dir(args.sheet, inout.owned_by_kind(SHEET_KIND), "--sheet", inputs=(args.dataset,))
     if args.from_colour:
         existing = [s / "colour.json" for s, _ in scenes if (s / "colour.json").is_file()]
         if existing and not args.overwrite:
@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
         written = []
         try:
             for path, doc in docs.items():
-                io.atomic_write_bytes(path, labelme_text(doc).encode())
+                inout.atomic_write_bytes(path, labelme_text(doc).encode())
                 written.append(path)
         except BaseException:
             for path in written:

@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 
 from spherebench import __version__  # noqa: E402
 from spherebench import options  # noqa: E402
-from spherebench.datasets import io  # noqa: E402
+from spherebench.datasets import inout  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
 from spherebench.eval.metrics3d import detection_counts, scene_counts  # noqa: E402
 
@@ -151,8 +151,8 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
     result = {"seed": seed, "datasets": {}, "notes": []}
     peer_args = {"points": peer_points, "iterations": peer_iterations, "thresh_m": 0.01}
     for ds in datasets:
-        scenes = io.list_scenes(ds)[:limit]
-        meta = io.read_dataset_meta(ds) if (Path(ds) / "dataset.json").is_file() else {}
+        scenes = inout.list_scenes(ds)[:limit]
+        meta = inout.read_dataset_meta(ds) if (Path(ds) / "dataset.json").is_file() else {}
         R = float(meta.get("ball_radius_m", 0.12))
         eps = 0.01
         runs = {"improved": list(range(len(scenes))), "paper": _subset(len(scenes), paper_subset),
@@ -165,7 +165,7 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
         # frames (memory stays bounded by the block, whatever the dataset's size)
         for start in range(0, len(scenes), STREAM_BLOCK):
             block = range(start, min(start + STREAM_BLOCK, len(scenes)))
-            frames = {k: (io.read_json(scenes[k] / "gt.json"), io.load_cloud(scenes[k])) for k in block}
+            frames = {k: (inout.read_json(scenes[k] / "gt.json"), inout.load_cloud(scenes[k])) for k in block}
             for name in CONFIGS:
                 # a stream keeps one resolution: a block's frames run grouped by resolution (in scene
                 # order within each), else each mode change would start the next frame with cold caches
@@ -315,9 +315,9 @@ def _versions() -> dict:
 
 def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
-        io.list_scenes(ds)  # a clear error for a missing dataset before any work
+        inout.list_scenes(ds)  # a clear error for a missing dataset before any work
     if args.out:
-        io.check_report_out(args.out, "bench")
+        inout.check_report_out(args.out, "bench")
     machine = _machine()
     if args.passes < 1:
         raise SphereBenchError(f"--passes {args.passes}: give at least 1 timing pass")
@@ -341,7 +341,7 @@ def run(args: argparse.Namespace) -> int:
         slim = {k: v for k, v in result.items() if k != "datasets"}
         slim["datasets"] = {ds: {k: v for k, v in d.items() if k != "rows"} for ds, d in result["datasets"].items()}
         slim["rows"] = {ds: d["rows"] for ds, d in result["datasets"].items()}
-        print("wrote {} and {}".format(*io.write_report(args.out, md, slim, "bench")), file=sys.stderr)
+        print("wrote {} and {}".format(*inout.write_report(args.out, md, slim, "bench")), file=sys.stderr)
     return 0
 
 

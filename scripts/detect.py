@@ -5,7 +5,7 @@ One line per input: with --json, {"input", "radius_m", "radius_source", "spheres
 without, a short summary. The ball radius is --radius, else the dataset's (dataset.json two levels
 above a scene folder), else the scene's (gt.json), else 0.12 m (a basketball); radius_source says
 which ("--radius", "dataset", "scene", "default"). Every argument and input is checked before the
-first detection. Files are read and written only through ``spherebench.datasets.io``.
+first detection. Files are read and written only through ``spherebench.datasets.inout``.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 
 from spherebench import options
 from spherebench.cloud import in_front_of_camera
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import PRESETS, config_for, detect, warm_up
@@ -102,10 +102,10 @@ def ball_radius(path: Path, given: float | None) -> tuple[float, str]:
         return DEFAULT_RADIUS_M, "default"
     meta = scene.parent.parent / "dataset.json"
     if scene.parent.name == "scenes" and meta.is_file():
-        d = io.read_json(meta)
+        d = inout.read_json(meta)
         if isinstance(d, dict) and d.get("ball_radius_m") is not None:
             return _radius_of(d["ball_radius_m"], meta), "dataset"
-    gt = io.read_json(scene / "gt.json")
+    gt = inout.read_json(scene / "gt.json")
     if isinstance(gt, dict) and gt.get("ball_radius_m") is not None:
         return _radius_of(gt["ball_radius_m"], scene / "gt.json"), "scene"
     return DEFAULT_RADIUS_M, "default"
@@ -116,12 +116,12 @@ def _check_input(path: Path) -> None:
     if path.is_dir():
         if (path / "scenes").is_dir() and not (path / "cloud.ply").is_file():
             raise SphereBenchError(f"{path} is a dataset: give its scene folders ({path}/scenes/*)")
-        return  # io.load_cloud says what a folder lacks
+        return  # inout.load_cloud says what a folder lacks
     if not path.exists():
         raise SphereBenchError(f"{path}: file not found")
-    if path.suffix.lower() not in io.CLOUD_READERS:
+    if path.suffix.lower() not in inout.CLOUD_READERS:
         raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' "
-                               f"(use {', '.join(sorted(io.CLOUD_READERS))} or a scene folder)")
+                               f"(use {', '.join(sorted(inout.CLOUD_READERS))} or a scene folder)")
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -157,7 +157,7 @@ def _tolerance(args: argparse.Namespace, radius: float, source: str, raw: str) -
 def _image_for(path: Path, cloud) -> np.ndarray:
     """The reprojected image: a scene folder's image.png, else the organised cloud's depth colourised."""
     if path.is_dir() and (path / "image.png").is_file():
-        image = io.read_image(path / "image.png")
+        image = inout.read_image(path / "image.png")
         intr = cloud.intrinsics
         if intr is not None and image.shape[:2] != intr.shape:
             raise SphereBenchError(f"{path}: image.png is {image.shape[1]}x{image.shape[0]} but the intrinsics say "
@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         raise SphereBenchError(f"--depth-noise {args.depth_noise}: give sigma_z / z^2 in 1/m, >= 0 (e.g. 0.0015)")
     _check_outputs(args)
     extra = {} if args.depth_noise is None else {"noise_z2_per_m": args.depth_noise}
-    intr = io.read_intrinsics(args.intrinsics) if args.intrinsics else None
+    intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
     jobs = []
     for raw in args.paths:
         path = Path(raw)
@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         jobs.append((raw, path, radius, source, _tolerance(args, radius, source, raw)))
     configs: dict = {}
     for raw, path, radius, source, eps in jobs:
-        cloud, behind = in_front_of_camera(io.load_cloud(path, intr), raw)
+        cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)
         if behind:
             print(f"note: {raw}: {behind} points at z <= 0 left out (a depth camera sees only z > 0)",
                   file=sys.stderr)
@@ -217,7 +217,7 @@ def run(args: argparse.Namespace) -> int:
             for s in spheres:
                 colours[s.inlier_indices] = INLIER_RGB
             keep = np.isfinite(cloud.points).all(axis=1)
-            io.write_ply(args.out_ply, cloud.points[keep], colours[keep])
+            inout.write_ply(args.out_ply, cloud.points[keep], colours[keep])
         if args.out_png:
-            io.write_png(args.out_png, _draw(image, spheres))
+            inout.write_png(args.out_png, _draw(image, spheres))
     return 0

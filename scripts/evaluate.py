@@ -92,12 +92,12 @@ def resolve_hough(methods, hough_file, out: Path, seed: int, workers: int, progr
 def check_dataset(data_dir: Path) -> float:
     """A dataset's ball radius (m), once the files that say what it holds (dataset.json, coco_gt.json,
     every gt.json) have been read: a damaged one is refused before any method runs."""
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     from spherebench.eval import runner
     if not (data_dir / "scenes").is_dir():
         raise SphereBenchError(f"{data_dir}: not a dataset (no scenes/ folder); build one with "
                                "'spherebench generate' or 'spherebench prepare'")
-    meta = io.read_dataset_meta(data_dir) if (data_dir / "dataset.json").is_file() else {}
+    meta = inout.read_dataset_meta(data_dir) if (data_dir / "dataset.json").is_file() else {}
     radius = meta.get("ball_radius_m", 0.12) if isinstance(meta, dict) else None
     if not (isinstance(radius, (int, float)) and math.isfinite(radius) and radius > 0):
         raise SphereBenchError(f"{data_dir / 'dataset.json'}: ball_radius_m must be the ball's radius in metres, "
@@ -118,7 +118,7 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
     {(subpixel, correlation, dropouts, band label): rate}}, drawn in its robustness figure.
     beside: another evaluation (``recorded.Beside``, from ``recorded.load_beside``): each Table 3 is
     set beside that one's dataset."""
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     from spherebench.eval import report, runner
 
     out = Path(out)
@@ -145,7 +145,7 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
         stage_s[f"run {label}"] = round(time.perf_counter() - t0, 1)
         t0 = time.perf_counter()
         scenes = runner.dataset_scenes(data_dir)
-        coco = io.read_coco_gt(data_dir)
+        coco = inout.read_coco_gt(data_dir)
         order = [o for spec in specs for o in spec.outputs if o in paths]
         per_dataset[label] = (data_dir, coco, [report.score_set(paths[o], coco, scenes) for o in order])
         stage_s[f"score {label}"] = round(time.perf_counter() - t0, 1)
@@ -193,10 +193,10 @@ def console_line(method: str, m: dict | None) -> str | None:
 
 
 def _label(path: Path, taken: set) -> str:
-    from spherebench.datasets import io
+    from spherebench.datasets import inout
     name = path.resolve().name
     if (path / "dataset.json").is_file():
-        name = str(io.read_dataset_meta(path).get("name") or name)
+        name = str(inout.read_dataset_meta(path).get("name") or name)
     label, k = name, 2
     while label in taken:
         label, k = f"{name}-{k}", k + 1

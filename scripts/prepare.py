@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets import prepare as prep
 from spherebench.errors import SphereBenchError
 from spherebench.options import out_path
@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     sources = [*args.inputs, *(p for p in (args.masks, args.intrinsics) if p is not None)]
     if args.preset_source and not args.inputs:
         sources.append(prep.default_realdata_dir() / prep.PRESET_SOURCES[args.preset_source][1])
-    io.check_output_dir(args.out, io.is_dataset_dir, inputs=sources)
+    inout.check_output_dir(args.out, inout.is_dataset_dir, inputs=sources)
     selection = prep.FrameSelection.parse(args.every, args.frames, args.time_range)
     common = dict(depth_scale=args.depth_scale, unit_check=not args.skip_unit_check, selection=selection,
                   masks_dir=args.masks, labelme_dir=args.labelme, label=args.label, name=args.name)

@@ -32,7 +32,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from spherebench import options  # noqa: E402
-from spherebench.datasets import io  # noqa: E402
+from spherebench.datasets import inout  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
 from spherebench.eval import robustness as rb  # noqa: E402
 from spherebench.eval.metrics3d import FOUND_M, detection_counts, scene_counts  # noqa: E402
@@ -67,8 +67,8 @@ def _scene_work(task: tuple) -> dict:
     from spherebench.method import config_for, detect
     out = {"scenes": [], "balls": []}
     for scene in scenes:
-        gt = io.read_json(Path(scene) / "gt.json")
-        cloud = io.load_cloud(scene)
+        gt = inout.read_json(Path(scene) / "gt.json")
+        cloud = inout.load_cloud(scene)
         R = float(gt.get("ball_radius_m", 0.12))
         config = config_for("improved", **{"radius_m": R, **overrides})
         centres = [b["center_m"] for b in gt["balls"] if b.get("center_m") is not None]
@@ -91,7 +91,7 @@ def _scene_work(task: tuple) -> dict:
 
 
 def _run(dataset: str, seeds: list[int], overrides: dict, oracle: bool, workers: int, limit: int | None) -> dict:
-    scenes = [str(s) for s in io.list_scenes(dataset)[:limit]]
+    scenes = [str(s) for s in inout.list_scenes(dataset)[:limit]]
     tasks = [(scenes[k::workers], seeds, overrides, oracle) for k in range(workers) if scenes[k::workers]]
     if workers > 1 and len(tasks) > 1:
         with process_pool(len(tasks), start_method="spawn") as pool:
@@ -124,8 +124,8 @@ def _timing(default: str, limit: int | None, overrides: dict) -> dict:
     ctl = summ["paper-lstsq"]["time"].get("424x240", {}).get("cpu_median_ms")
     config = config_for("improved")
     noise_ms = []
-    for scene in io.list_scenes(default)[:limit]:
-        cloud = io.load_cloud(scene)
+    for scene in inout.list_scenes(default)[:limit]:
+        cloud = inout.load_cloud(scene)
         frame = prepare_frame(cloud, config)
         t0 = time.thread_time()
         for _ in range(20):
@@ -142,7 +142,7 @@ def robustness(robust: str, seeds: list[int], default: str | None = None, hard: 
                overrides: dict | None = None, workers: int = 2, limit: int | None = None,
                timing: bool = True, progress=print) -> dict:
     overrides = overrides or {}
-    progress(f"robust: {len(io.list_scenes(robust)[:limit])} scenes x {len(seeds)} seeds, with the oracle")
+    progress(f"robust: {len(inout.list_scenes(robust)[:limit])} scenes x {len(seeds)} seeds, with the oracle")
     r = _run(robust, seeds, overrides, True, workers, limit)
     if any(b["cell"] is None for b in r["balls"]):
         raise SphereBenchError(f"{robust}: scenes without a sensor cell: give the robust preset's folder")
@@ -150,13 +150,13 @@ def robustness(robust: str, seeds: list[int], default: str | None = None, hard: 
               "levels": rb.by_level(r["balls"]), "rows": r}
     default_rate = None
     if default:
-        progress(f"default: {len(io.list_scenes(default)[:limit])} scenes x {len(seeds)} seeds")
+        progress(f"default: {len(inout.list_scenes(default)[:limit])} scenes x {len(seeds)} seeds")
         d = _run(default, seeds, overrides, False, workers, limit)
         result["default"] = _default_figures(d["scenes"])
         default_rate = result["default"]["rate"]
     result["overall"] = rb.overall(r["balls"], r["scenes"], default_rate)
     if hard:
-        progress(f"hard: {len(io.list_scenes(hard)[:limit])} scenes x {len(seeds)} seeds")
+        progress(f"hard: {len(inout.list_scenes(hard)[:limit])} scenes x {len(seeds)} seeds")
         h = _run(hard, seeds, overrides, False, workers, limit)
         result["hard"] = detection_counts(h["scenes"])
     if timing and default:
@@ -236,10 +236,10 @@ def run(args: argparse.Namespace) -> int:
         raise SphereBenchError(f"--workers {args.workers}: give at least 1")
     for ds in (args.robust, args.default, args.hard):
         if ds:
-            io.list_scenes(ds)
+            inout.list_scenes(ds)
     if args.out:
-        io.check_report_out(args.out, "robustness")
-    if not ((io.read_dataset_meta(args.robust).get("sensor_ranges") or {}).get("grid")):
+        inout.check_report_out(args.out, "robustness")
+    if not ((inout.read_dataset_meta(args.robust).get("sensor_ranges") or {}).get("grid")):
         raise SphereBenchError(f"{args.robust}: no grid of sensor cells in its dataset.json: give the robust "
                                "preset's folder (spherebench generate --preset robust)")
     res = robustness(args.robust, seeds, args.default, args.hard, overrides, args.workers, args.limit,
@@ -247,7 +247,7 @@ def run(args: argparse.Namespace) -> int:
     md = markdown(res)
     print(md)
     if args.out:
-        print("wrote {} and {}".format(*io.write_report(args.out, md, res, "robustness")), file=sys.stderr)
+        print("wrote {} and {}".format(*inout.write_report(args.out, md, res, "robustness")), file=sys.stderr)
     return 0
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.annotate import ball_point_colors, draw_ground_truth
 from spherebench.errors import SphereBenchError
 
@@ -29,12 +29,12 @@ def run(args: argparse.Namespace) -> int:
     scene_dir = args.scene
     if not (scene_dir / "gt.json").is_file():
         raise SphereBenchError(f"{scene_dir}: not a scene folder (no gt.json); give DIR/scenes/<scene_id>")
-    if io.read_json(scene_dir / "gt.json").get("has_image", True) and not (scene_dir / "depth.png").is_file():
+    if inout.read_json(scene_dir / "gt.json").get("has_image", True) and not (scene_dir / "depth.png").is_file():
         raise SphereBenchError(f"depth.png is missing in {scene_dir}: gt.json says the scene has an image, so the "
                                "folder is damaged; rebuild the dataset with the command that wrote it")
-    scene = io.read_scene(scene_dir)
-    radius = io.read_json(scene_dir / "gt.json").get("ball_radius_m")
-    image = None if scene.depth is None else io.read_image(scene_dir)
+    scene = inout.read_scene(scene_dir)
+    radius = inout.read_json(scene_dir / "gt.json").get("ball_radius_m")
+    image = None if scene.depth is None else inout.read_image(scene_dir)
     if image is not None and image.shape[:2] != scene.depth.shape:  # the circles are in depth.png's pixels
         raise SphereBenchError(f"{scene_dir}: image.png is {image.shape[1]}x{image.shape[0]} but depth.png and the "
                                f"intrinsics are {scene.depth.shape[1]}x{scene.depth.shape[0]}: the circles would be "
@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"scene {scene.scene_id}: {status}, {len(scene.balls)} ball(s)")
     if image is not None:
         out_png = args.out_png or Path(f"{scene.scene_id}_gt.png")
-        io.write_png(out_png, draw_ground_truth(image, scene))
+        inout.write_png(out_png, draw_ground_truth(image, scene))
         for k, b in enumerate(scene.balls):
             if b.circle_px is not None:
                 print(f"  ball {k}: circle ({b.circle_px[0]:.1f}, {b.circle_px[1]:.1f}) r {b.circle_px[2]:.1f} px")
@@ -54,6 +54,6 @@ def run(args: argparse.Namespace) -> int:
         print("image-less scene: no image to draw on, writing the PLY only")
     points, colors, how = ball_point_colors(scene, radius, args.tolerance)
     out_ply = args.out_ply or Path(f"{scene.scene_id}_gt.ply")
-    io.write_ply(out_ply, points, colors)
+    inout.write_ply(out_ply, points, colors)
     print(f"wrote {out_ply} ({len(points)} points; {how})")
     return 0

@@ -30,7 +30,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from spherebench import __version__, options  # noqa: E402
-from spherebench.datasets import io  # noqa: E402
+from spherebench.datasets import inout  # noqa: E402
 from spherebench.errors import SphereBenchError  # noqa: E402
 from spherebench.eval.metrics3d import detection_counts, scene_counts  # noqa: E402
 from spherebench.parallel import ignore_interrupts  # noqa: E402
@@ -71,8 +71,8 @@ def _work(task: tuple) -> list[dict]:
     from spherebench.method import config_for, detect
     rows = []
     for scene in scenes:
-        gt = io.read_json(Path(scene) / "gt.json")
-        cloud = io.load_cloud(scene)
+        gt = inout.read_json(Path(scene) / "gt.json")
+        cloud = inout.load_cloud(scene)
         config = config_for(method, **{"radius_m": float(gt.get("ball_radius_m", 0.12)), **overrides})
         for seed in seeds:
             found = detect(cloud, config, seed=seed)
@@ -89,7 +89,7 @@ def sweep(datasets: list[str], seeds: list[int], method: str = "improved", overr
     config_for(method, **overrides)  # a clear error for a bad method or override before any work
     result = {"method": method, "overrides": overrides, "seeds": seeds, "datasets": {}}
     for ds in datasets:
-        scenes = [str(s) for s in io.list_scenes(ds)[:limit]]
+        scenes = [str(s) for s in inout.list_scenes(ds)[:limit]]
         tasks = [(scenes[k::workers], seeds, method, overrides) for k in range(workers) if scenes[k::workers]]
         if workers > 1 and len(tasks) > 1:
             with multiprocessing.get_context("spawn").Pool(len(tasks), initializer=ignore_interrupts) as pool:
@@ -153,9 +153,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
-        io.list_scenes(ds)  # a clear error for a missing dataset before any work
+        inout.list_scenes(ds)  # a clear error for a missing dataset before any work
     if args.out:
-        io.check_report_out(args.out, "sweep")
+        inout.check_report_out(args.out, "sweep")
     if args.workers < 1:
         raise SphereBenchError(f"--workers {args.workers}: give at least 1")
     result = sweep(args.datasets, parse_seeds(args.seeds), args.method, parse_overrides(args.overrides),
@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     md = markdown(result)
     print(md)
     if args.out:
-        print("wrote {} and {}".format(*io.write_report(args.out, md, result, "sweep")), file=sys.stderr)
+        print("wrote {} and {}".format(*inout.write_report(args.out, md, result, "sweep")), file=sys.stderr)
     return 0
 
 

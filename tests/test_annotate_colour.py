@@ -15,7 +15,7 @@ import pytest
 from spherebench.camera import Intrinsics, deproject, image_rays
 from spherebench.circles import mask_circle, sphere_silhouette_mask
 from spherebench.cli import main
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.annotate import (balls_from_labelme, colour_mask, fit_sphere_fixed_radius,
                                            labelme_from_mask, labelme_text, mask_fit_centre, parse_hsv)
 from spherebench.datasets.scene import Scene
@@ -150,9 +150,9 @@ def make_dataset(root: Path, n: int = 3, colour_size=None, empty_frame: int | No
         path = root.parent / f"colour_{root.name}_{i}.jpg"
         cv2.imwrite(str(path), frame, [cv2.IMWRITE_JPEG_QUALITY, 98])
         depth = np.round(depth_m / CAM.depth_scale).astype(np.uint16)
-        io.write_scene(root / "scenes", Scene(f"frame_{i}", "recorded", CAM, depth, annotated=False), R,
+        inout.write_scene(root / "scenes", Scene(f"frame_{i}", "recorded", CAM, depth, annotated=False), R,
                        colour=path)
-    io.finish_dataset(root, {"name": root.name, "preset": "recorded", "ball_radius_m": R, "category": "ball"})
+    inout.finish_dataset(root, {"name": root.name, "preset": "recorded", "ball_radius_m": R, "category": "ball"})
     return root
 
 
@@ -177,7 +177,7 @@ def test_annotate_writes_labelme_beside_the_colour_and_notes_empty_frames(tmp_pa
     notes = [s for s in cap.err.splitlines() if s.startswith("note:")]
     assert len(notes) == 1 and "1 frame(s)" in notes[0] and "frame_1" in notes[0]
     assert not (ds / "scenes/frame_1/colour.json").exists()
-    doc = io.read_labelme(ds / "scenes/frame_0/colour.json")
+    doc = inout.read_labelme(ds / "scenes/frame_0/colour.json")
     assert doc["imagePath"] == "colour.jpg" and len(doc["shapes"]) == 1
     assert {"closeup_01.png", "overview_01.png"} <= {p.name for p in (tmp_path / "sheets").iterdir()}
     # a second run would replace a person's corrections: refused, nothing touched
@@ -220,7 +220,7 @@ def test_the_committed_kinect_annotations_name_every_frame():
     files = sorted(ANNOTATIONS.glob("*.json"))
     assert [p.stem for p in files] == [f"kinect_1_dep_{i:02d}" for i in range(0, 100, 3)]
     for p in files:
-        doc = io.read_labelme(p)
+        doc = inout.read_labelme(p)
         assert (doc["imageWidth"], doc["imageHeight"], doc["imagePath"]) == (640, 480, "colour.jpg")
         assert [s["shape_type"] for s in doc["shapes"]] == ["polygon"] and doc["shapes"][0]["label"] == "ball"
         assert "reviewed by eye" in doc["shapes"][0]["description"]
@@ -232,13 +232,13 @@ def test_prepare_kinect_with_the_committed_masks(tmp_path, capsys):
     assert main(["prepare", "--preset-source", "kinect-pochang", "--labelme", str(ANNOTATIONS), "--out", str(out),
                  "--frames", "7:9"]) == 0
     capsys.readouterr()
-    ref = io.read_dataset_meta(out)["reference_centres"]
+    ref = inout.read_dataset_meta(out)["reference_centres"]
     assert (ref["source"], ref["balls"], ref["without_centre"]) == ("mask-fit", 2, 0) and ref["se_median_m"] < 0.01
-    s21, s24 = io.list_scenes(out)
+    s21, s24 = inout.list_scenes(out)
     src = REALDATA / "pochang_rgbd_sphere/sensors/Kinect_1/kinect_1_rgb_24.jpg"
     assert (s24 / "colour.jpg").read_bytes() == src.read_bytes()
-    assert io.read_labelme(s24 / "colour.json")["imagePath"] == "colour.jpg"
-    g = io.read_json(s24 / "gt.json")
+    assert inout.read_labelme(s24 / "colour.json")["imagePath"] == "colour.jpg"
+    g = inout.read_json(s24 / "gt.json")
     ball = g["balls"][0]
     assert g["annotated"] and ball["center_source"] == "mask-fit" and max(ball["center_se_m"]) < 0.01
     # the authors' own RANSAC fit (free radius) lies within a few centimetres of the mask fit
@@ -247,4 +247,4 @@ def test_prepare_kinect_with_the_committed_masks(tmp_path, capsys):
     # the LabelMe round trip: the dataset's own colour.json files carried into its rebuild
     assert main(["prepare", "--preset-source", "kinect-pochang", "--labelme", str(out), "--out", str(out),
                  "--frames", "7:9"]) == 0
-    assert io.read_json(s24 / "gt.json")["balls"][0]["circle"] == ball["circle"]
+    assert inout.read_json(s24 / "gt.json")["balls"][0]["circle"] == ball["circle"]

@@ -18,7 +18,7 @@ from spherebench.baselines import pyransac3d_peer as peer
 from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, in_front_of_camera
-from spherebench.datasets import io, simulate
+from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
 from spherebench.eval import report, runner
 
@@ -60,7 +60,7 @@ def big_ball(tmp_path_factory):
     """A dataset prepared with --radius 0.2 from one depth frame of a 0.2 m ball."""
     root = tmp_path_factory.mktemp("bigball")
     (root / "pngs").mkdir()
-    io.write_depth_png(root / "pngs" / "f.png", _ball_depth(0.2))
+    inout.write_depth_png(root / "pngs" / "f.png", _ball_depth(0.2))
     (root / "cam.json").write_text(json.dumps(CAM.to_dict()))
     out = root / "ds"
     assert cli.main(["prepare", str(root / "pngs"), "--intrinsics", str(root / "cam.json"), "--radius", "0.2",
@@ -84,7 +84,7 @@ def test_detect_takes_the_radius_of_the_dataset_and_says_so(big_ball, tmp_path, 
     # a scene folder on its own: its gt.json; --radius wins over both; a bare cloud: 0.12
     alone = tmp_path / "alone"
     shutil.copytree(scene, alone)
-    np.savetxt(tmp_path / "bare.xyz", io.load_cloud(scene).points[::3])
+    np.savetxt(tmp_path / "bare.xyz", inout.load_cloud(scene).points[::3])
     assert cli.main(["detect", str(alone), str(scene), str(tmp_path / "bare.xyz"), "--json"]) == 0
     recs = _json_lines(capsys.readouterr().out)
     assert [(r["radius_m"], r["radius_source"]) for r in recs] == [(0.2, "scene"), (0.2, "dataset"), (0.12, "default")]
@@ -105,7 +105,7 @@ def test_detect_refuses_a_dataset_folder_and_a_radius_below_the_tolerance(big_ba
 
 def test_detect_out_png_without_intrinsics_fails_before_any_result(big_ball, tmp_path, capsys):
     cloud = tmp_path / "c.xyz"
-    np.savetxt(cloud, io.load_cloud(big_ball / "scenes" / "f").points[::5])
+    np.savetxt(cloud, inout.load_cloud(big_ball / "scenes" / "f").points[::5])
     before = _listing(tmp_path)
     _fails(capsys, ["detect", cloud, "--out-png", tmp_path / "x.png"], "--out-png needs an organised cloud")
     _fails(capsys, ["detect", cloud, cloud, "--out-ply", tmp_path / "x.ply"], "one input")
@@ -122,7 +122,7 @@ def test_detect_out_png_without_intrinsics_fails_before_any_result(big_ball, tmp
 def test_detect_refuses_an_image_of_another_size_than_the_intrinsics(big_ball, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(big_ball / "scenes" / "f", scene)
-    io.write_png(scene / "image.png", np.zeros((60, 80, 3), np.uint8))
+    inout.write_png(scene / "image.png", np.zeros((60, 80, 3), np.uint8))
     before = _listing(tmp_path)
     _fails(capsys, ["detect", scene, "--out-png", tmp_path / "x.png"], "image.png is 80x60", "160x120")
     _fails(capsys, ["detect", scene, "--out-ply", scene / "cloud.ply"], "inside the input scene folder")
@@ -147,10 +147,10 @@ def test_intrinsics_with_the_principal_point_off_the_image_or_absurd_focal_lengt
 
 def test_detect_leaves_out_points_behind_a_depth_camera_and_refuses_a_cloud_mostly_behind(big_ball, tmp_path, capsys):
     scene = big_ball / "scenes" / "f"
-    cloud = io.load_cloud(scene)
+    cloud = inout.load_cloud(scene)
     pts = cloud.points.copy()
     pts[:40] = [0.0, 0.0, -1.0]  # a clump behind the camera, where a sphere would otherwise be reported
-    io.write_cloud_ply(tmp_path / "some.ply", Cloud(pts, cloud.rows, cloud.cols))
+    inout.write_cloud_ply(tmp_path / "some.ply", Cloud(pts, cloud.rows, cloud.cols))
     capsys.readouterr()
     assert cli.main(["detect", str(tmp_path / "some.ply"), "--intrinsics", str(scene), "--radius", "0.2",
                      "--json"]) == 0
@@ -159,7 +159,7 @@ def test_detect_leaves_out_points_behind_a_depth_camera_and_refuses_a_cloud_most
     centres = [s["center"] for s in _json_lines(cap.out)[0]["spheres"]]
     assert centres and all(c[2] > 0 for c in centres)
     assert np.linalg.norm(np.array(centres[0]) - BALL_CENTRE_M) < 0.01
-    io.write_cloud_ply(tmp_path / "flipped.ply", Cloud(cloud.points * [1, 1, -1], cloud.rows, cloud.cols))
+    inout.write_cloud_ply(tmp_path / "flipped.ply", Cloud(cloud.points * [1, 1, -1], cloud.rows, cloud.cols))
     _fails(capsys, ["detect", tmp_path / "flipped.ply"], "behind the camera", "z > 0")
     # an unorganised cloud (a LiDAR's) keeps its points on every side
     lidar = Cloud(cloud.points * [1, 1, -1])
@@ -171,7 +171,7 @@ def test_detect_leaves_out_points_behind_a_depth_camera_and_refuses_a_cloud_most
 def test_show_refuses_an_image_of_another_size_than_the_intrinsics(big_ball, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(big_ball / "scenes" / "f", scene)
-    io.write_png(scene / "image.png", np.zeros((120, 200, 3), np.uint8))
+    inout.write_png(scene / "image.png", np.zeros((120, 200, 3), np.uint8))
     before = _listing(tmp_path)
     _fails(capsys, ["show", scene, "--out-png", tmp_path / "s.png", "--out-ply", tmp_path / "s.ply"],
            "image.png is 200x120", "160x120")
@@ -267,7 +267,7 @@ def test_train_failing_in_its_first_steps_removes_the_folder_it_created(train_da
 # ---------------------------------------------------------------- reproducible peers
 
 def test_pyransac3d_fits_depend_on_the_scene_seed_only(big_ball, small_default):
-    clouds = [io.load_cloud(s) for s in [big_ball / "scenes" / "f", *io.list_scenes(small_default)[:3]]]
+    clouds = [inout.load_cloud(s) for s in [big_ball / "scenes" / "f", *inout.list_scenes(small_default)[:3]]]
     seeds = [runner.scene_seed(0, k) for k in range(len(clouds))]
 
     def fits(order, disturb):

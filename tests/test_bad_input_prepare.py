@@ -9,7 +9,7 @@ import pytest
 
 from spherebench import cli
 from spherebench.cloud import cloud_from_depth
-from spherebench.datasets import io, prepare
+from spherebench.datasets import inout, prepare
 from test_prepare import INTR, counts, labelme, render, shape, write_intrinsics_json  # tests/ is on sys.path
 
 CAM = ["--fx", str(INTR.fx), "--fy", str(INTR.fy), "--ppx", str(INTR.ppx), "--ppy", str(INTR.ppy)]
@@ -75,28 +75,28 @@ def test_non_finite_points_are_dropped_and_said_once(tmp_path, capsys, suffix):
     if suffix == ".xyz":
         np.savetxt(path, pts, fmt="%.6f")
     else:
-        io.write_ply(path, pts)
+        inout.write_ply(path, pts)
     out = tmp_path / "ds"
     summary, err = prepared(capsys, path, "--out", out)
     assert "297" in summary  # valid points per scene: the finite ones
     assert err.count("NaN or infinite") == 1 and "3 point(s)" in err and path.name in err
-    scene = io.list_scenes(out)[0]
-    back = io.read_ply(scene / "cloud.ply")
+    scene = inout.list_scenes(out)[0]
+    back = inout.read_ply(scene / "cloud.ply")
     assert len(back) == 297 and np.isfinite(back.points).all()
     np.testing.assert_allclose(back.points, np.delete(pts, [5, 6, 7], axis=0), atol=1e-6)
-    assert io.read_json(scene / "gt.json")["meta"]["non_finite_points_dropped"] == 3
+    assert inout.read_json(scene / "gt.json")["meta"]["non_finite_points_dropped"] == 3
 
 
 def test_non_finite_points_of_an_organised_cloud_keep_the_others_pixels(tmp_path, capsys):
     depth = counts(render()[0])
     cloud = cloud_from_depth(depth * np.float32(0.001), INTR)
     cloud.points[:40] = np.nan  # the first 40 pixels' points
-    io.write_cloud_ply(tmp_path / "org.ply", cloud)
+    inout.write_cloud_ply(tmp_path / "org.ply", cloud)
     out = tmp_path / "ds"
     _, err = prepared(capsys, tmp_path / "org.ply", "--intrinsics", write_intrinsics_json(tmp_path / "cam.json"),
                       "--out", out)
     assert "40 point(s) with NaN" in err
-    got = io.read_depth_png(io.list_scenes(out)[0] / "depth.png")
+    got = inout.read_depth_png(inout.list_scenes(out)[0] / "depth.png")
     expected = depth.copy()
     expected[cloud.rows[:40], cloud.cols[:40]] = 0
     np.testing.assert_array_equal(got, expected)
@@ -121,7 +121,7 @@ def test_labelme_without_ball_shapes_leaves_the_scene_unannotated(tmp_path, caps
     folder = tmp_path / "pngs"
     folder.mkdir()
     for i in range(4):
-        io.write_depth_png(folder / f"frame_{i}.png", counts(render()[0]))
+        inout.write_depth_png(folder / f"frame_{i}.png", counts(render()[0]))
     lm = tmp_path / "labelme"
     others = [shape("rectangle", [[1, 1], [5, 5]]), shape("ellipse", [[20, 20], [25, 22]]),
               shape("point", [[3, 3]]), shape("line", [[1, 1], [9, 9]])]
@@ -132,7 +132,7 @@ def test_labelme_without_ball_shapes_leaves_the_scene_unannotated(tmp_path, caps
     out = tmp_path / "ds"
     _, err = prepared(capsys, folder, "--intrinsics", write_intrinsics_json(tmp_path / "cam.json"),
                       "--labelme", lm, "--label", "basketball", "--out", out)
-    g = {s.name: io.read_json(s / "gt.json") for s in io.list_scenes(out)}
+    g = {s.name: inout.read_json(s / "gt.json") for s in inout.list_scenes(out)}
     assert not g["frame_0"]["annotated"] and not g["frame_1"]["annotated"]
     assert g["frame_2"]["annotated"] and g["frame_2"]["balls"] == []
     assert g["frame_3"]["annotated"] and len(g["frame_3"]["balls"]) == 1
@@ -143,13 +143,13 @@ def test_labelme_without_ball_shapes_leaves_the_scene_unannotated(tmp_path, caps
         assert words in err, (words, err)
     assert err.count("2 LabelMe file(s) hold no ball shape") == 1 and "unannotated, not negatives" in err
     # only annotated scenes are scored: the negative and the ball, not the two without a ball shape
-    coco = io.read_coco_gt(out)
+    coco = inout.read_coco_gt(out)
     assert sorted(im["scene_id"] for im in coco["images"]) == ["frame_2", "frame_3"]
     # the user's LabelMe files survive the rerun with --labelme OUT, usable or not
     assert (out / "scenes" / "frame_0" / "image.json").is_file()
     prepared(capsys, folder, "--intrinsics", tmp_path / "cam.json", "--labelme", out, "--label", "basketball",
              "--out", out)
-    assert not io.read_json(out / "scenes" / "frame_0" / "gt.json")["annotated"]
+    assert not inout.read_json(out / "scenes" / "frame_0" / "gt.json")["annotated"]
     assert (out / "scenes" / "frame_0" / "image.json").is_file()
 
 
@@ -248,7 +248,7 @@ def test_notes_go_to_stderr(tmp_path, capsys):
 def test_show_scene_missing_depth_png(tmp_path, capsys, monkeypatch):
     folder = tmp_path / "pngs"
     folder.mkdir()
-    io.write_depth_png(folder / "f.png", counts(render()[0]))
+    inout.write_depth_png(folder / "f.png", counts(render()[0]))
     out = tmp_path / "ds"
     prepared(capsys, folder, "--intrinsics", write_intrinsics_json(tmp_path / "cam.json"), "--out", out)
     scene = out / "scenes" / "f"
@@ -270,7 +270,7 @@ def test_show_scene_missing_depth_png(tmp_path, capsys, monkeypatch):
 def test_labelme_of_another_image(tmp_path, capsys, doc, words):
     folder = tmp_path / "pngs"
     folder.mkdir()
-    io.write_depth_png(folder / "frame_0.png", counts(render()[0]))
+    inout.write_depth_png(folder / "frame_0.png", counts(render()[0]))
     shapes = doc.pop("shapes", [shape("circle", [[40.5, 30.5], [48.5, 30.5]])])
     labelme(tmp_path / "labelme" / "frame_0.json", shapes, **doc)
     refused(capsys, tmp_path, [folder, "--intrinsics", write_intrinsics_json(tmp_path / "cam.json"),

@@ -20,7 +20,7 @@ from spherebench.baselines.circlenet.onnx_export import export_onnx
 from spherebench.baselines.circlenet.size_study import KINECT, render
 from spherebench.camera import Intrinsics
 from spherebench.cli import main
-from spherebench.datasets import io
+from spherebench.datasets import inout
 
 TINY = dict(resnet_width=8, neck_channels=16, head_channels=16)
 SHIPPED = [DEFAULT_MODEL, DEFAULT_MODEL.with_name("full") / "model.onnx"]
@@ -146,7 +146,7 @@ def test_detect_2d_runs_on_any_size_with_the_scene_camera(tmp_path, monkeypatch,
     for name, (h, w) in sizes.items():
         (tmp_path / name).mkdir()
         cv2.imwrite(str(tmp_path / name / "image.png"), _image(h, w)[:, :, ::-1])
-    io.write_intrinsics(tmp_path / "b" / "intrinsics.json", Intrinsics(width=640, height=480, ppx=320, ppy=240,
+    inout.write_intrinsics(tmp_path / "b" / "intrinsics.json", Intrinsics(width=640, height=480, ppx=320, ppy=240,
                                                                        fx=525.0, fy=525.0))
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     rc, cap = _cli(monkeypatch, capsys, "detect-2d", *(str(tmp_path / n) for n in sizes), "--model", str(model),

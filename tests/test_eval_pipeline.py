@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from spherebench.baselines.hough import HoughConfig
-from spherebench.datasets import io, simulate
+from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
 from spherebench.eval import report, runner
 
@@ -32,7 +32,7 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
     paths = runner.run_methods(tiny, tmp_path, _specs(), seed=0, workers=1, progress=False, log=lambda m: None)
     assert set(paths) == {"improved", "improved+paper-circle", "paper", "paper+paper-circle", "pyransac3d",
                           "pyransac3d+paper-circle", "hough"}
-    coco = io.read_coco_gt(tiny)
+    coco = inout.read_coco_gt(tiny)
     image_ids = {img["id"] for img in coco["images"]}
     for name, path in paths.items():
         results, meta = runner.read_predictions(path)
@@ -153,16 +153,16 @@ def test_unannotated_scenes_get_detection_statistics(tiny, tmp_path):
     import shutil
     data = tmp_path / "rec"
     shutil.copytree(tiny, data)
-    for scene in io.list_scenes(data):
-        gt = io.read_json(scene / "gt.json")
+    for scene in inout.list_scenes(data):
+        gt = inout.read_json(scene / "gt.json")
         gt["annotated"], gt["balls"] = False, []
         gt["meta"] = {"reference_center_m": [0.0, 0.0, 1.0]}
-        io.write_json(scene / "gt.json", gt)
-    io.write_json(data / "coco_gt.json", io.build_coco_gt(data))
+        inout.write_json(scene / "gt.json", gt)
+    inout.write_json(data / "coco_gt.json", inout.build_coco_gt(data))
     paths = runner.run_methods(data, tmp_path / "p", _specs(("improved",)), workers=1, progress=False,
                                log=lambda m: None)
     assert runner.read_predictions(paths["improved"])[0] == []  # nothing to score in 2D
-    scored = report.score_set(paths["improved"], io.read_coco_gt(data), runner.dataset_scenes(data))
+    scored = report.score_set(paths["improved"], inout.read_coco_gt(data), runner.dataset_scenes(data))
     u = scored.metrics["unannotated"]
     assert "mAP" not in scored.metrics and "3d" not in scored.metrics
     assert u["n_scenes"] == 4 and u["scenes_with_detection"] == 4 and u["n_reference"] == 4
@@ -187,7 +187,7 @@ def test_tables_are_never_half_written(tmp_path, monkeypatch):
     # the old set is intact, the new one absent, and no temporary folder is left
     assert (tmp_path / "tables" / "t.md").read_text() == before
     assert not (tmp_path / "tables" / "u.csv").exists()
-    assert sorted(p.name for p in tmp_path.iterdir()) == [io.OWNER_MARKER, "tables"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [inout.OWNER_MARKER, "tables"]
 
 
 def test_table_formats():
@@ -217,7 +217,7 @@ def test_table2_on_the_paper_preset(paper_dataset):
 
 def test_reading_and_readme_from_scores(tiny, tmp_path):
     paths = runner.run_methods(tiny, tmp_path, _specs(("improved",)), workers=1, progress=False, log=lambda m: None)
-    coco = io.read_coco_gt(tiny)
+    coco = inout.read_coco_gt(tiny)
     scenes = runner.dataset_scenes(tiny)
     sets = [report.score_set(paths[o], coco, scenes) for o in ("improved", "improved+paper-circle")]
     text = report.reading({"default": sets}, None, {"circlenet": "model file not found"})

@@ -15,7 +15,7 @@ import pytest
 from spherebench.baselines.hough import HoughConfig
 from spherebench.circles import sphere_silhouette_mask
 from spherebench.cli import main
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets import prepare as prep
 from spherebench.datasets.annotate import labelme_from_mask, labelme_text
 from spherebench.eval import figures, recorded, report, runner
@@ -100,7 +100,7 @@ def test_evaluate_scores_a_recording_against_its_reference_centres(rec, tmp_path
     # the review sheets of another tool are kept, and named; the examples are drawn on colour
     assert (sheets / "overview_01.png").read_bytes() == b"a review sheet"
     assert "figures/annotation/" in text and (out / "figures" / "examples_rec.png").is_file()
-    coco = io.read_coco_gt(rec)
+    coco = inout.read_coco_gt(rec)
     shown = figures._background(rec, coco["images"][0])
     colour = cv2.cvtColor(cv2.imread(str(rec / "scenes" / "frame_0" / "colour.jpg")), cv2.COLOR_BGR2RGB)
     np.testing.assert_array_equal(shown, colour)
@@ -113,12 +113,12 @@ def test_a_ball_without_a_reference_centre_leaves_its_scene_out_of_3d(rec, tmp_p
     data = tmp_path / "rec"
     shutil.copytree(rec, data)
     gt_path = data / "scenes" / "frame_1" / "gt.json"
-    gt = io.read_json(gt_path)
+    gt = inout.read_json(gt_path)
     gt["balls"][0].pop("center_m")  # the fit failed there
-    io.write_json(gt_path, gt)
+    inout.write_json(gt_path, gt)
     paths = runner.run_methods(data, tmp_path / "p", runner.build_methods(["improved"], radius_m=R), workers=1,
                                progress=False, log=_quiet)
-    scored = report.score_set(paths["improved"], io.read_coco_gt(data), runner.dataset_scenes(data))
+    scored = report.score_set(paths["improved"], inout.read_coco_gt(data), runner.dataset_scenes(data))
     d = scored.metrics["3d"]
     assert (d["n_scenes"], d["n_gt"], d["within_2cm"], d["scenes_without_centre"]) == (1, 1, 1.0, 1)
     assert scored.metrics["n_images"] == 2  # in 2D both frames are scored

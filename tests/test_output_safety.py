@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from spherebench import cli
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval import report
 
@@ -93,7 +93,7 @@ def test_out_file_and_symlink_are_refused(user_dir, capsys):
 def test_previous_dataset_is_replaced_but_not_a_file_added_to_it(user_dir, capsys):
     assert _gen("ds") == 0
     assert _gen("ds", "--seed", "1") == 0  # ours: replaced
-    assert io.read_dataset_meta(user_dir / "ds")["seed"] == 1
+    assert inout.read_dataset_meta(user_dir / "ds")["seed"] == 1
     (user_dir / "ds" / "README.txt").write_text("my notes")
     capsys.readouterr()
     assert _gen("ds") == 2
@@ -118,9 +118,9 @@ def _depth_pngs(folder: Path) -> tuple[Path, Path]:
     from spherebench.camera import Intrinsics
     folder.mkdir()
     for k in range(2):
-        io.write_depth_png(folder / f"f{k}.png", np.full((24, 32), 1500, np.uint16))
+        inout.write_depth_png(folder / f"f{k}.png", np.full((24, 32), 1500, np.uint16))
     cam = folder.parent / "cam.json"
-    io.write_intrinsics(cam, Intrinsics(32, 24, 16.0, 12.0, 30.0, 30.0))
+    inout.write_intrinsics(cam, Intrinsics(32, 24, 16.0, 12.0, 30.0, 30.0))
     return folder, cam
 
 
@@ -189,7 +189,7 @@ def test_stopped_generate_leaves_nothing(tmp_path, how):
 
 
 def test_closed_pipe_is_quiet(small_default):
-    scenes = [str(p) for p in io.list_scenes(small_default)]
+    scenes = [str(p) for p in inout.list_scenes(small_default)]
     proc = subprocess.Popen(SB + ["detect", *scenes, "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     proc.stdout.close()  # the reader has gone, as `| head` does
     err = proc.stderr.read().decode()
@@ -231,7 +231,7 @@ def test_os_errors_are_one_line(capsys, code, words):
 
 
 def test_writing_onto_a_folder_is_one_line(small_default, tmp_path, capsys):
-    scene = io.list_scenes(small_default)[0]
+    scene = inout.list_scenes(small_default)[0]
     (tmp_path / "out.ply").mkdir()
     assert cli.main(["detect", str(scene), "--out-ply", str(tmp_path / "out.ply")]) == 2
     _one_line_error(capsys, "out.ply")

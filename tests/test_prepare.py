@@ -9,7 +9,7 @@ import pytest
 from spherebench import cli
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import cloud_from_depth
-from spherebench.datasets import io
+from spherebench.datasets import inout
 
 INTR = Intrinsics(width=80, height=60, ppx=39.3, ppy=29.7, fx=70.0, fy=69.5, model="brown_conrady",
                   coeffs=(0.02, -0.01, 0.001, 0.0005, 0.0), depth_scale=0.001)
@@ -60,7 +60,7 @@ def png_folder(tmp_path, n=3):
     folder.mkdir()
     depth, hit = render()
     for i in range(n):
-        io.write_depth_png(folder / f"frame_{i}.png", counts(depth))
+        inout.write_depth_png(folder / f"frame_{i}.png", counts(depth))
     return folder, counts(depth), hit
 
 
@@ -116,22 +116,22 @@ def test_recording_round_trip(recording, tmp_path):
     path, frames = recording
     out = tmp_path / "ds"
     assert run_cli(path, "--out", out) == 0
-    scenes = io.list_scenes(out)
+    scenes = inout.list_scenes(out)
     assert [s.name for s in scenes] == [f"rec_{i:06d}" for i in range(5)]
     for scene_dir, frame in zip(scenes, frames):
-        np.testing.assert_array_equal(io.read_depth_png(scene_dir / "depth.png"), frame)
-        intr = io.read_intrinsics(scene_dir)
+        np.testing.assert_array_equal(inout.read_depth_png(scene_dir / "depth.png"), frame)
+        intr = inout.read_intrinsics(scene_dir)
         assert intr.depth_scale == 0.0001
         assert (intr.width, intr.height, intr.model) == (80, 60, "brown_conrady")
         # librealsense stores float32; the shortest decimal of each float32 is kept, so values read as given
         for name in ("ppx", "ppy", "fx", "fy", "coeffs"):
             assert getattr(intr, name) == getattr(INTR, name)
-        gt = io.read_json(scene_dir / "gt.json")
+        gt = inout.read_json(scene_dir / "gt.json")
         assert gt["annotated"] is False and gt["ball_radius_m"] == 0.12
-    meta = io.read_json(scenes[3] / "gt.json")["meta"]
+    meta = inout.read_json(scenes[3] / "gt.json")["meta"]
     assert meta["frame_index"] == 3 and abs(meta["time_from_first_frame_ms"] - 99.9) < 1e-3
     # the ball's points lie on the sphere: deprojection uses the stream's model and depth scale
-    cloud = io.load_cloud(scenes[0])
+    cloud = inout.load_cloud(scenes[0])
     near = np.linalg.norm(cloud.points - CENTRE, axis=1) < RADIUS + 0.01
     assert near.sum() > 50
     np.testing.assert_allclose(np.linalg.norm(cloud.points[near] - CENTRE, axis=1), RADIUS, atol=2e-3)
@@ -143,7 +143,7 @@ def test_recording_round_trip(recording, tmp_path):
 def test_recording_frame_selection(recording, tmp_path, options, kept):
     out = tmp_path / "ds"
     assert run_cli(recording[0], "--out", out, *options) == 0
-    assert [s.name for s in io.list_scenes(out)] == [f"rec_{i:06d}" for i in kept]
+    assert [s.name for s in inout.list_scenes(out)] == [f"rec_{i:06d}" for i in kept]
 
 
 def test_recording_without_depth_stream(tmp_path, capsys):
@@ -181,14 +181,14 @@ def test_png_folder_with_intrinsics(tmp_path):
     out = tmp_path / "ds"
     assert run_cli(folder, "--intrinsics", write_intrinsics_json(tmp_path / "cam.json"), "--out", out,
                    "--radius", "0.2", "--name", "mine") == 0
-    scenes = io.list_scenes(out)
+    scenes = inout.list_scenes(out)
     assert [s.name for s in scenes] == ["frame_0", "frame_1", "frame_2"]
-    np.testing.assert_array_equal(io.read_depth_png(scenes[1] / "depth.png"), depth)
-    assert io.read_image(scenes[1]).shape == (60, 80, 3)
-    meta = io.read_dataset_meta(out)
+    np.testing.assert_array_equal(inout.read_depth_png(scenes[1] / "depth.png"), depth)
+    assert inout.read_image(scenes[1]).shape == (60, 80, 3)
+    meta = inout.read_dataset_meta(out)
     assert meta["ball_radius_m"] == 0.2 and meta["name"] == "mine" and meta["source"]["kind"] == "depth-png"
-    assert io.read_json(scenes[0] / "gt.json")["ball_radius_m"] == 0.2
-    coco = io.read_coco_gt(out)
+    assert inout.read_json(scenes[0] / "gt.json")["ball_radius_m"] == 0.2
+    coco = inout.read_coco_gt(out)
     assert coco["images"] == [] and coco["annotations"] == []  # nothing annotated, nothing to score
 
 
@@ -221,15 +221,15 @@ def test_raw_frames(tmp_path, capsys):
     cam = ["--fx", INTR.fx, "--fy", INTR.fy, "--ppx", INTR.ppx, "--ppy", INTR.ppy]
     out = tmp_path / "ds"
     assert run_cli(folder, "--raw-size", "80x60", *cam, "--out", out, "--frames", "1:") == 0
-    (scene,) = io.list_scenes(out)
+    (scene,) = inout.list_scenes(out)
     assert scene.name == "b"
-    np.testing.assert_array_equal(io.read_depth_png(scene / "depth.png"), counts(depth_m))
+    np.testing.assert_array_equal(inout.read_depth_png(scene / "depth.png"), counts(depth_m))
     # float32 metres, big-endian -> millimetre counts
     f = tmp_path / "f.bin"
     f.write_bytes(depth_m.astype(">f4").tobytes())
     out2 = tmp_path / "ds2"
     assert run_cli(f, "--raw-size", "80x60", "--raw-dtype", "float32", "--raw-byte-order", "big", *cam, "--out", out2) == 0
-    np.testing.assert_array_equal(io.read_depth_png(io.list_scenes(out2)[0] / "depth.png"), counts(depth_m))
+    np.testing.assert_array_equal(inout.read_depth_png(inout.list_scenes(out2)[0] / "depth.png"), counts(depth_m))
     # the same floats in millimetres: plainly the wrong unit
     f.write_bytes((depth_m * 1000).astype(">f4").tobytes())
     assert_failed(capsys, run_cli(f, "--raw-size", "80x60", "--raw-dtype", "float32", "--raw-byte-order", "big", *cam,
@@ -248,15 +248,15 @@ def test_ply_organised_and_unorganised(tmp_path, capsys):
     depth_m, _ = render()
     depth = counts(depth_m)
     cloud = cloud_from_depth(depth * np.float32(0.001), INTR)
-    io.write_cloud_ply(tmp_path / "org.ply", cloud)
-    io.write_ply(tmp_path / "flat.ply", cloud.points)  # no row/col: unorganised
+    inout.write_cloud_ply(tmp_path / "org.ply", cloud)
+    inout.write_ply(tmp_path / "flat.ply", cloud.points)  # no row/col: unorganised
     cam = write_intrinsics_json(tmp_path / "cam.json")
     for name in ("org", "flat"):
         out = tmp_path / f"ds_{name}"
         assert run_cli(tmp_path / f"{name}.ply", "--intrinsics", cam, "--out", out) == 0
-        got = io.read_depth_png(io.list_scenes(out)[0] / "depth.png")
+        got = inout.read_depth_png(inout.list_scenes(out)[0] / "depth.png")
         np.testing.assert_array_equal(got, depth)
-        meta = io.read_json(io.list_scenes(out)[0] / "gt.json")["meta"]
+        meta = inout.read_json(inout.list_scenes(out)[0] / "gt.json")["meta"]
         assert meta["organised_file"] is (name == "org")
     # the organised cloud under another camera's intrinsics is refused
     other = write_intrinsics_json(tmp_path / "other.json", Intrinsics(80, 60, 30.0, 20.0, 140.0, 140.0))
@@ -265,9 +265,9 @@ def test_ply_organised_and_unorganised(tmp_path, capsys):
     # without intrinsics: an image-less scene keeping the cloud and its pixels
     out = tmp_path / "ds_none"
     assert run_cli(tmp_path / "org.ply", "--out", out) == 0
-    scene = io.list_scenes(out)[0]
+    scene = inout.list_scenes(out)[0]
     assert sorted(p.name for p in scene.iterdir()) == ["cloud.ply", "gt.json"]
-    back = io.read_ply(scene / "cloud.ply")
+    back = inout.read_ply(scene / "cloud.ply")
     np.testing.assert_array_equal(back.points, cloud.points)
     np.testing.assert_array_equal(back.rows, cloud.rows)
 
@@ -295,13 +295,13 @@ def test_pcd_organised_and_unorganised(tmp_path, mode):
     _write_pcd(tmp_path / "org.pcd", full.reshape(-1, 3), mode, width=80, height=60)
     out = tmp_path / "ds"
     assert run_cli(tmp_path / "org.pcd", "--intrinsics", write_intrinsics_json(tmp_path / "cam.json"), "--out", out) == 0
-    np.testing.assert_array_equal(io.read_depth_png(io.list_scenes(out)[0] / "depth.png"), expected)
+    np.testing.assert_array_equal(inout.read_depth_png(inout.list_scenes(out)[0] / "depth.png"), expected)
     pts = full.reshape(-1, 3)[::7]
     pts = pts[np.isfinite(pts).all(1)]
     _write_pcd(tmp_path / "flat.pcd", pts, mode)
     out2 = tmp_path / "ds2"
     assert run_cli(tmp_path / "flat.pcd", "--out", out2) == 0
-    np.testing.assert_allclose(io.read_ply(io.list_scenes(out2)[0] / "cloud.ply").points, pts, atol=1e-6)
+    np.testing.assert_allclose(inout.read_ply(inout.list_scenes(out2)[0] / "cloud.ply").points, pts, atol=1e-6)
 
 
 def test_xyz_image_less_and_units(tmp_path, capsys):
@@ -310,18 +310,18 @@ def test_xyz_image_less_and_units(tmp_path, capsys):
     np.savetxt(tmp_path / "scan.xyz", pts, fmt="%.6f")
     out = tmp_path / "ds"
     assert run_cli(tmp_path / "scan.xyz", "--out", out, "--radius", "0.3") == 0
-    scene = io.list_scenes(out)[0]
-    gt = io.read_json(scene / "gt.json")
+    scene = inout.list_scenes(out)[0]
+    gt = inout.read_json(scene / "gt.json")
     assert gt["has_image"] is False and gt["annotated"] is False and gt["meta"]["valid_points"] == 300
-    np.testing.assert_allclose(io.read_ply(scene / "cloud.ply").points, pts, atol=1e-6)
-    assert io.read_coco_gt(out)["images"] == []
+    np.testing.assert_allclose(inout.read_ply(scene / "cloud.ply").points, pts, atol=1e-6)
+    assert inout.read_coco_gt(out)["images"] == []
     assert "image-less" in capsys.readouterr().out
     np.savetxt(tmp_path / "mm.xyz", pts * 1000, fmt="%.3f")
     assert_failed(capsys, run_cli(tmp_path / "mm.xyz", "--out", tmp_path / "x"), tmp_path / "x",
                   "mm.xyz", "--depth-scale 0.001")
     assert run_cli(tmp_path / "mm.xyz", "--out", tmp_path / "y", "--depth-scale", "0.001") == 0
     assert "image-less" in capsys.readouterr().err  # the notes, on stderr
-    np.testing.assert_allclose(io.read_ply(io.list_scenes(tmp_path / "y")[0] / "cloud.ply").points, pts, atol=1e-5)
+    np.testing.assert_allclose(inout.read_ply(inout.list_scenes(tmp_path / "y")[0] / "cloud.ply").points, pts, atol=1e-5)
     (tmp_path / "cut.xyz").write_text("1 2 3\n4 5\n")
     assert_failed(capsys, run_cli(tmp_path / "cut.xyz", "--out", tmp_path / "x"), tmp_path / "x", "cut.xyz")
     (tmp_path / "cut.ply").write_bytes((tmp_path / "y" / "scenes" / "mm" / "cloud.ply").read_bytes()[:300])
@@ -337,25 +337,25 @@ def test_masks_give_circles(tmp_path, capsys):
     masks.mkdir()
     second = np.zeros_like(hit)
     second[2:6, 3:9] = True
-    io.write_mask_png(masks / "frame_0.png", hit)
-    io.write_mask_png(masks / "frame_1_0.png", hit)
-    io.write_mask_png(masks / "frame_1_1.png", second)
+    inout.write_mask_png(masks / "frame_0.png", hit)
+    inout.write_mask_png(masks / "frame_1_0.png", hit)
+    inout.write_mask_png(masks / "frame_1_1.png", second)
     cam = write_intrinsics_json(tmp_path / "cam.json")
     out = tmp_path / "ds"
     assert run_cli(folder, "--intrinsics", cam, "--masks", masks, "--out", out) == 0
-    g0, g1, g2 = (io.read_json(s / "gt.json") for s in io.list_scenes(out))
+    g0, g1, g2 = (inout.read_json(s / "gt.json") for s in inout.list_scenes(out))
     assert g0["annotated"] and g1["annotated"] and not g2["annotated"]
     assert g0["balls"][0]["circle"] == pytest.approx(list(mask_circle(hit)))
     assert [b["circle"] for b in g1["balls"]] == [pytest.approx(list(mask_circle(m))) for m in (hit, second)]
-    mask_back = io.read_mask_png(out / "scenes" / "frame_1" / "mask_1.png")
+    mask_back = inout.read_mask_png(out / "scenes" / "frame_1" / "mask_1.png")
     np.testing.assert_array_equal(mask_back, second)
-    coco = io.read_coco_gt(out)
+    coco = inout.read_coco_gt(out)
     assert len(coco["images"]) == 2 and len(coco["annotations"]) == 3
     # bad masks: empty, wrong size
-    io.write_mask_png(masks / "frame_2.png", np.zeros_like(hit))
+    inout.write_mask_png(masks / "frame_2.png", np.zeros_like(hit))
     assert_failed(capsys, run_cli(folder, "--intrinsics", cam, "--masks", masks, "--out", tmp_path / "x"),
                   tmp_path / "x", "frame_2.png", "empty")
-    io.write_mask_png(masks / "frame_2.png", np.ones((30, 40), bool))
+    inout.write_mask_png(masks / "frame_2.png", np.ones((30, 40), bool))
     assert_failed(capsys, run_cli(folder, "--intrinsics", cam, "--masks", masks, "--out", tmp_path / "x"),
                   tmp_path / "x", "frame_2.png", "40x30")
 
@@ -387,7 +387,7 @@ def test_labelme_circle_and_polygon(tmp_path, capsys):
                                   shape("polygon", [[1, 1], [9, 1], [9, 9]], label="hand")])
     out = tmp_path / "ds"
     assert run_cli(folder, "--intrinsics", cam, "--labelme", lm, "--label", "basketball", "--out", out) == 0
-    g0, g1 = (io.read_json(s / "gt.json") for s in io.list_scenes(out))
+    g0, g1 = (inout.read_json(s / "gt.json") for s in inout.list_scenes(out))
     assert g0["balls"][0]["circle"] == pytest.approx([cx, cy, r], abs=1e-9)
     assert len(g1["balls"]) == 1  # the rectangle and the other label are not balls
     assert g1["balls"][0]["circle"] == pytest.approx([cx, cy, r], abs=1.0)
@@ -411,7 +411,7 @@ def test_labelme_drawn_on_prepared_dataset(tmp_path):
     assert run_cli(folder, "--intrinsics", cam, "--out", out) == 0
     labelme(out / "scenes" / "frame_1" / "image.json", [shape("circle", [[40.5, 30.5], [50.5, 30.5]])])
     assert run_cli(folder, "--intrinsics", cam, "--out", out, "--labelme", out) == 0
-    g0, g1 = (io.read_json(s / "gt.json") for s in io.list_scenes(out))
+    g0, g1 = (inout.read_json(s / "gt.json") for s in inout.list_scenes(out))
     assert not g0["annotated"] and g1["balls"][0]["circle"] == [40.0, 30.0, 10.0]
     # the annotation survives, so the same command can be run again
     before = tree_bytes(out)

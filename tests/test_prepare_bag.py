@@ -14,7 +14,7 @@ from bagwriter import write_realsense_bag  # noqa: E402  (tests/ is on sys.path 
 
 from spherebench import cli  # noqa: E402
 from spherebench.camera import Intrinsics, image_rays  # noqa: E402
-from spherebench.datasets import io  # noqa: E402
+from spherebench.datasets import inout  # noqa: E402
 
 # Principal point off the image centre and non-zero distortion, so that a field mixed up or
 # dropped on the way (ppx/ppy swapped, coeffs lost, model defaulted) shows. All values are
@@ -73,17 +73,17 @@ def test_bag_round_trip(bag, tmp_path):
     assert path.read_bytes().startswith(b"#ROSBAG V2.0\n")
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
-    scenes = io.list_scenes(out)
+    scenes = inout.list_scenes(out)
     assert [s.name for s in scenes] == [f"d435_{i:06d}" for i in range(N_FRAMES)]
     for i, (scene, frame) in enumerate(zip(scenes, frames)):
-        depth = io.read_depth_png(scene / "depth.png")
+        depth = inout.read_depth_png(scene / "depth.png")
         assert depth.dtype == np.uint16
         np.testing.assert_array_equal(depth, frame)
-        assert io.read_json(scene / "intrinsics.json") == INTR.to_dict()
-        meta = io.read_json(scene / "gt.json")["meta"]
+        assert inout.read_json(scene / "intrinsics.json") == INTR.to_dict()
+        meta = inout.read_json(scene / "gt.json")["meta"]
         assert meta["frame_index"] == i and meta["frame_number"] == i
         assert meta["time_from_first_frame_ms"] == pytest.approx(i * 1000 / FPS, abs=1e-3)
-    assert io.read_dataset_meta(out)["source"] == {"kind": "realsense-recording", "files": ["d435.bag"]}
+    assert inout.read_dataset_meta(out)["source"] == {"kind": "realsense-recording", "files": ["d435.bag"]}
 
 
 @pytest.mark.parametrize("options, kept", [(["--every", "2"], [0, 2, 4]),
@@ -93,10 +93,10 @@ def test_bag_frame_selection(bag, tmp_path, options, kept):
     path, frames = bag
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out, *options) == 0
-    scenes = io.list_scenes(out)
+    scenes = inout.list_scenes(out)
     assert [s.name for s in scenes] == [f"d435_{i:06d}" for i in kept]
     for scene, i in zip(scenes, kept):
-        np.testing.assert_array_equal(io.read_depth_png(scene / "depth.png"), frames[i])
+        np.testing.assert_array_equal(inout.read_depth_png(scene / "depth.png"), frames[i])
 
 
 def test_bag_without_depth_stream(tmp_path, capsys):

@@ -21,7 +21,7 @@ from bagwriter import ColourStream, write_realsense_bag  # noqa: E402  (tests/ i
 
 from spherebench import cli  # noqa: E402
 from spherebench.camera import Intrinsics, align_to_depth, image_rays, project  # noqa: E402
-from spherebench.datasets import io  # noqa: E402
+from spherebench.datasets import inout  # noqa: E402
 
 # a D435 at 424x240 depth; colour of another size, field of view and distortion, 15 mm to the side
 DEPTH = Intrinsics(width=424, height=240, ppx=211.5, ppy=119.25, fx=213.0, fy=213.0, model="brown_conrady",
@@ -198,14 +198,14 @@ def test_prepare_keeps_the_colour_aligned_to_the_depth(d435, tmp_path, capsys):
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
     assert "colour" not in capsys.readouterr().err  # nothing to say
-    scenes = io.list_scenes(out)
+    scenes = inout.list_scenes(out)
     assert len(scenes) == N_FRAMES
     for i, (scene, (depth, ball, _)) in enumerate(zip(scenes, frames)):
-        np.testing.assert_array_equal(io.read_depth_png(scene / "depth.png"), depth)
+        np.testing.assert_array_equal(inout.read_depth_png(scene / "depth.png"), depth)
         colour = cv2.imread(str(scene / "colour.png"), cv2.IMREAD_UNCHANGED)
         assert colour.shape == (DEPTH.height, DEPTH.width, 3)
         assert within_one_pixel(yellow(colour), ball), scene.name
-        meta = io.read_json(scene / "gt.json")["meta"]["colour"]
+        meta = inout.read_json(scene / "gt.json")["meta"]["colour"]
         assert meta["frame_number"] == i and meta["offset_ms"] == pytest.approx(10.0, abs=1e-3)
         assert meta["format"] == "rgb8" and meta["intrinsics"]["model"] == "inverse_brown_conrady"
         assert meta["depth_to_colour"]["translation_m"] == pytest.approx(list(TRANSLATION), abs=1e-7)
@@ -229,16 +229,16 @@ def test_annotate_from_colour_and_labelme_round_trip_on_a_recording(d435, tmp_pa
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
     assert cli.main(["annotate", str(out), "--from-colour"]) == 0
-    scenes = io.list_scenes(out)
+    scenes = inout.list_scenes(out)
     assert all((s / "colour.json").is_file() for s in scenes)
-    assert io.read_json(scenes[0] / "colour.json")["imagePath"] == "colour.png"
+    assert inout.read_json(scenes[0] / "colour.json")["imagePath"] == "colour.png"
     assert run_prepare(path, "--labelme", out, "--out", out) == 0
     capsys.readouterr()
-    for i, (scene, (_, ball, _)) in enumerate(zip(io.list_scenes(out), frames)):
+    for i, (scene, (_, ball, _)) in enumerate(zip(inout.list_scenes(out), frames)):
         assert (scene / "colour.json").is_file() and (scene / "colour.png").is_file()
-        gt = io.read_json(scene / "gt.json")
+        gt = inout.read_json(scene / "gt.json")
         assert gt["annotated"] and len(gt["balls"]) == 1
-        mask = io.read_mask_png(scene / gt["balls"][0]["mask"])
+        mask = inout.read_mask_png(scene / gt["balls"][0]["mask"])
         assert within_one_pixel(mask, ball)
         assert np.linalg.norm(np.array(gt["balls"][0]["center_m"]) - centre(i)) < 0.005
 
@@ -252,7 +252,7 @@ def test_colour_of_the_depths_size_or_smaller(tmp_path, size):
     path, frames = colour_bag(tmp_path / "small.bag", intr, n=1)
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
-    colour = cv2.imread(str(io.list_scenes(out)[0] / "colour.png"), cv2.IMREAD_UNCHANGED)
+    colour = cv2.imread(str(inout.list_scenes(out)[0] / "colour.png"), cv2.IMREAD_UNCHANGED)
     assert colour.shape == (DEPTH.height, DEPTH.width, 3)
     # a colour pixel larger than a depth pixel: the disc's edge is as sharp as the colour's pixels
     ball = frames[0][1]
@@ -266,7 +266,7 @@ def test_colour_formats(tmp_path, encoding):
     path, frames = colour_bag(tmp_path / f"{encoding}.bag", encoding=encoding, n=1)
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
-    colour = cv2.imread(str(io.list_scenes(out)[0] / "colour.png"), cv2.IMREAD_UNCHANGED).astype(int)
+    colour = cv2.imread(str(inout.list_scenes(out)[0] / "colour.png"), cv2.IMREAD_UNCHANGED).astype(int)
     if encoding in ("YUYV", "yuv422"):  # chroma shared by two pixels, and YUV's rounding
         ball = (colour[..., 2] > 200) & (colour[..., 1] > 150) & (colour[..., 0] < 100)
         assert np.abs(colour[ball] - YELLOW).max() <= 40
@@ -283,7 +283,7 @@ def test_a_recording_without_colour_notes_it_once(tmp_path, capsys):
     err = [line for line in capsys.readouterr().err.splitlines() if "colour" in line]
     assert len(err) == 1 and "depth_only.bag" in err[0] and "no colour stream" in err[0], err
     assert not [p for p in out.rglob("colour.*")]
-    assert "colour" not in io.read_json(io.list_scenes(out)[0] / "gt.json")["meta"]
+    assert "colour" not in inout.read_json(inout.list_scenes(out)[0] / "gt.json")["meta"]
 
 
 def test_an_unsupported_colour_format_is_a_clear_note_and_no_colour_file(tmp_path, capsys):
@@ -292,7 +292,7 @@ def test_an_unsupported_colour_format_is_a_clear_note_and_no_colour_file(tmp_pat
     assert run_prepare(path, "--out", out) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if "colour" in line]
     assert len(err) == 1 and "mono.bag" in err[0] and "raw8" in err[0] and "rgb8" in err[0], err
-    assert len(io.list_scenes(out)) == 2 and not [p for p in out.rglob("colour.*")]
+    assert len(inout.list_scenes(out)) == 2 and not [p for p in out.rglob("colour.*")]
     # annotate then says, in one line, that there is nothing to annotate from
     assert cli.main(["annotate", str(out), "--from-colour"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
@@ -312,12 +312,12 @@ def test_pairing_takes_the_nearest_colour_frame_and_notes_the_unpaired(tmp_path,
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if "colour" in line]
-    scenes = io.list_scenes(out)
-    numbers = [io.read_json(s / "gt.json")["meta"]["colour"]["frame_number"] for s in scenes]
+    scenes = inout.list_scenes(out)
+    numbers = [inout.read_json(s / "gt.json")["meta"]["colour"]["frame_number"] for s in scenes]
     # depth at 0, 33.3, ..., 300 ms; the frame lost at 200 ms leaves 200 ms 66.7 ms from either neighbour
     assert numbers == [0, 0, 1, 1, 2, 2, 2, 3, 3, 3]
     assert [(s / "colour.png").is_file() for s in scenes] == [True] * 6 + [False] + [True] * 3
-    offsets = [io.read_json(s / "gt.json")["meta"]["colour"]["offset_ms"] for s in scenes]
+    offsets = [inout.read_json(s / "gt.json")["meta"]["colour"]["offset_ms"] for s in scenes]
     assert offsets[:3] == pytest.approx([0.0, -1000 / 30, 0.0], abs=1e-3)
     assert len(err) == 1 and "1 frame(s) have no colour" in err[0] and "drop_000006" in err[0], err
     assert "66.7 ms away" in err[0]
@@ -331,7 +331,7 @@ def test_frames_beyond_a_colour_period_keep_no_colour(tmp_path, capsys):
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if "colour" in line]
-    kept = [(s / "colour.png").is_file() for s in io.list_scenes(out)]
+    kept = [(s / "colour.png").is_file() for s in inout.list_scenes(out)]
     assert kept == [True, True, False, False, False, False]  # 66.7 ms is 33.3 ms from the last
     assert len(err) == 1 and "4 frame(s) have no colour" in err[0] and "stop_000002" in err[0], err
 
@@ -387,7 +387,7 @@ def test_ros2_recording_with_colour(tmp_path):
     gc.collect()
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
-    for scene, (_, ball, _) in zip(io.list_scenes(out), frames):
+    for scene, (_, ball, _) in zip(inout.list_scenes(out), frames):
         assert within_one_pixel(yellow(cv2.imread(str(scene / "colour.png"))), ball)
 
 
@@ -398,5 +398,5 @@ def test_colour_on_the_depth_sensor(tmp_path):
     assert len(dev.query_sensors()) == 1
     out = tmp_path / "ds"
     assert run_prepare(path, "--out", out) == 0
-    for scene, (_, ball, _) in zip(io.list_scenes(out), frames):
+    for scene, (_, ball, _) in zip(inout.list_scenes(out), frames):
         assert within_one_pixel(yellow(cv2.imread(str(scene / "colour.png"))), ball)

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from spherebench.datasets import io, simulate
+from spherebench.datasets import inout, simulate
 from spherebench.eval import oracle
 from spherebench.eval import robustness as rb
 from spherebench.method import config_for
@@ -60,15 +60,15 @@ def test_oracle_from_the_truth_accepts_a_visible_ball(tiny_robust):
     robust, _ = tiny_robust
     cfg = config_for("improved")
     seen = 0
-    for scene in io.list_scenes(robust):
-        gt = io.read_json(scene / "gt.json")
+    for scene in inout.list_scenes(robust):
+        gt = inout.read_json(scene / "gt.json")
         centres = [b["center_m"] for b in gt["balls"]]
         if not centres or np.linalg.norm(centres[0]) > 2.0:
             continue
-        out = oracle.ceiling(io.load_cloud(scene), centres, cfg)
+        out = oracle.ceiling(inout.load_cloud(scene), centres, cfg)
         assert out[0]["within"] and out[0]["separable"] and out[0]["error_m"] < oracle.CEILING_M
         # and a centre 30 cm beside the ball is no ball
-        beside = oracle.ceiling(io.load_cloud(scene), [np.asarray(centres[0]) + [0.3, 0.0, 0.0]], cfg)
+        beside = oracle.ceiling(inout.load_cloud(scene), [np.asarray(centres[0]) + [0.3, 0.0, 0.0]], cfg)
         assert not beside[0]["within"]
         seen += 1
     assert seen >= 1

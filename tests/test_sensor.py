@@ -15,7 +15,7 @@ import pytest
 
 from spherebench import cli
 from spherebench.camera import Intrinsics, image_rays
-from spherebench.datasets import io, simulate
+from spherebench.datasets import inout, simulate
 from spherebench.datasets.layouts import Layout
 from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, raycast
 from spherebench.datasets.sensor import D435Sensor, parse_settings
@@ -170,10 +170,10 @@ def test_robust_dataset_is_byte_identical_for_the_same_seed_and_records_each_sce
     assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
     for f in files:
         assert filecmp.cmp(a / f, b / f, shallow=False), f
-    meta = io.read_dataset_meta(a)
+    meta = inout.read_dataset_meta(a)
     assert meta["sensor_ranges"]["cells"] == 20 and meta["sensor_overrides"] == {"flying_probability": [0.1, 0.5]}
     seen = []
-    for scene_dir in io.list_scenes(a):
+    for scene_dir in inout.list_scenes(a):
         gt = json.loads((scene_dir / "gt.json").read_text())
         sensor = D435Sensor.from_dict(gt["meta"]["sensor"])
         assert 0.1 <= sensor.flying_probability <= 0.5

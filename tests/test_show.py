@@ -9,7 +9,7 @@ from plyfile import PlyData
 from spherebench import cli
 from spherebench.camera import Intrinsics
 from spherebench.cloud import Cloud
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.datasets.annotate import BALL_RGB, REST_RGB, ball_point_colors
 from spherebench.datasets.scene import Ball, Scene
 
@@ -24,9 +24,9 @@ def dataset(tmp_path):
     depth[0:3, 0:5] = 0  # no depth here
     depth[20, 40] = 0  # a hole inside the ball
     (tmp_path / "pngs").mkdir()
-    io.write_depth_png(tmp_path / "pngs" / "f.png", depth)
+    inout.write_depth_png(tmp_path / "pngs" / "f.png", depth)
     (tmp_path / "masks").mkdir()
-    io.write_mask_png(tmp_path / "masks" / "f.png", ball)
+    inout.write_mask_png(tmp_path / "masks" / "f.png", ball)
     (tmp_path / "cam.json").write_text(json.dumps(INTR.to_dict()))
     out = tmp_path / "ds"
     assert cli.main(["prepare", str(tmp_path / "pngs"), "--intrinsics", str(tmp_path / "cam.json"),
@@ -38,8 +38,8 @@ def test_show_png_and_ply(dataset, tmp_path, capsys):
     out, ball, depth = dataset
     png, ply = tmp_path / "s.png", tmp_path / "s.ply"
     assert cli.main(["show", str(out / "scenes" / "f"), "--out-png", str(png), "--out-ply", str(ply)]) == 0
-    img = io.read_image(png)
-    src = io.read_image(out / "scenes" / "f")
+    img = inout.read_image(png)
+    src = inout.read_image(out / "scenes" / "f")
     changed = np.any(img != src, axis=2)
     v, u = np.nonzero(changed)
     r = np.hypot(u - 40, v - 20)

@@ -12,7 +12,7 @@ import pytest
 
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import mask_circle, sphere_circle_amodal, sphere_silhouette_mask
-from spherebench.datasets import io, simulate
+from spherebench.datasets import inout, simulate
 from spherebench.datasets.layouts import Layout
 from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, raycast
 from spherebench.datasets.sensor import D435Sensor, apply_sensor, shadow_mask
@@ -80,8 +80,8 @@ def test_unoccluded_ball_mask_circle_matches_the_analytic_silhouette(paper_datas
     worst = 0.0
     n = 0
     for ds in (paper_dataset, small_default):
-        for scene_dir in io.list_scenes(ds):
-            scene = io.read_scene(scene_dir)
+        for scene_dir in inout.list_scenes(ds):
+            scene = inout.read_scene(scene_dir)
             for ball in scene.balls:
                 if ball.visible_fraction < 0.97:
                     continue  # a tripod cup hides the lowest rim
@@ -103,7 +103,7 @@ def test_silhouette_rasterisation_agrees_with_the_analytic_ellipse_off_axis():
 
 
 def test_visible_mask_is_first_surface_and_valid_depth(paper_dataset):
-    scene = io.read_scene(paper_dataset / "scenes" / "E2")
+    scene = inout.read_scene(paper_dataset / "scenes" / "E2")
     ball = scene.balls[0]
     assert not (ball.mask & (scene.depth == 0)).any()
     assert (ball.mask <= ball.silhouette).all()
@@ -155,8 +155,8 @@ def test_coco_gt_has_circlenet_fields(small_default):
 
 def test_scene_cloud_is_the_deprojected_depth(paper_dataset):
     scene_dir = paper_dataset / "scenes" / "E1"
-    scene = io.read_scene(scene_dir)
-    cloud = io.load_cloud(scene_dir)
+    scene = inout.read_scene(scene_dir)
+    cloud = inout.load_cloud(scene_dir)
     assert cloud.organised and len(cloud) == int((scene.depth > 0).sum())
     z = scene.depth[cloud.rows, cloud.cols] * 0.001
     np.testing.assert_allclose(cloud.points[:, 2], z, rtol=1e-6)

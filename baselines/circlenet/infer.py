@@ -25,7 +25,7 @@ from spherebench.baselines.circlenet.imaging import (decode_numpy, focal_scale, 
                                                      scale_image, to_network_input, training_focal_px,
                                                      unscale_circles)
 from spherebench.baselines.circlenet.onnx_export import FORMAT_VERSION, INPUT_NAME, METADATA_KEY, OUTPUT_NAMES
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
 #: The shipped model (committed by ``make train``).
@@ -126,7 +126,7 @@ def scene_focal_px(scene_dir) -> float | None:
     path = Path(scene_dir) / "intrinsics.json"
     if not path.is_file():
         return None
-    intr = io.read_intrinsics(path)
+    intr = inout.read_intrinsics(path)
     return math.sqrt(float(intr.fx) * float(intr.fy))
 
 

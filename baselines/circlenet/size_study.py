@@ -30,7 +30,7 @@ from spherebench.baselines.circlenet.imaging import load_image
 from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector, scene_focal_px
 from spherebench.baselines.circlenet.train import coco_circle_map
 from spherebench.camera import Intrinsics
-from spherebench.datasets import io, simulate
+from spherebench.datasets import inout, simulate
 from spherebench.datasets.reproject import colorize_depth
 
 #: The recorded set's camera (``datasets.prepare.POCHANG_INTRINSICS``), with the D435's depth unit.
@@ -86,8 +86,8 @@ def real_study(dataset, model=DEFAULT_MODEL) -> dict:
     """The three rules on an annotated recorded dataset's scenes (their mask circles as truth)."""
     detector = CircleNetDetector(model, threads=1)
     items = []
-    for scene in io.list_scenes(dataset):
-        gt = io.read_json(scene / "gt.json")
+    for scene in inout.list_scenes(dataset):
+        gt = inout.read_json(scene / "gt.json")
         if not gt.get("annotated") or not (scene / "image.png").is_file():
             continue
         circles = np.asarray([b["circle"] for b in gt["balls"] if b.get("circle")], np.float64).reshape(-1, 3)

@@ -34,10 +34,10 @@ from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, r
 from spherebench.baselines.circlenet.imaging import scale_circles
 from spherebench.baselines.circlenet.loss import circlenet_loss
 from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode
-from spherebench.datasets import io
+from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
-#: The owner-marker kind of a training run's folder (``io.claim_output_dir``).
+#: The owner-marker kind of a training run's folder (``inout.claim_output_dir``).
 TRAINING_RUN_KIND = "training run"
 
 
@@ -249,13 +249,13 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
     train_recs, val_recs = split_scenes(records, config.val_fraction, seed)
     created = not out.exists()
     # a new, empty or earlier training folder only: a run never overwrites files it did not write
-    io.claim_output_dir(out, TRAINING_RUN_KIND, legacy="checkpoint.pt")
+    inout.claim_output_dir(out, TRAINING_RUN_KIND, legacy="checkpoint.pt")
     try:
         return _train(config, device, seed, out, ckpt_path, train_dir, records, train_recs, val_recs, state,
                       progress, command)
     except BaseException:
-        if created and {p.name for p in out.iterdir()} <= {io.OWNER_MARKER}:  # nothing to resume from
-            (out / io.OWNER_MARKER).unlink(missing_ok=True)
+        if created and {p.name for p in out.iterdir()} <= {inout.OWNER_MARKER}:  # nothing to resume from
+            (out / inout.OWNER_MARKER).unlink(missing_ok=True)
             out.rmdir()
         raise
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import io
 import json
 import math
 import os
@@ -394,8 +395,7 @@ def write_ply(path: str | Path, points_m: np.ndarray, colors: np.ndarray | None 
 
 
 def _write_ply_vertices(path: str | Path, vertices: np.ndarray) -> None:
-    import io as _io
-    buf = _io.BytesIO()
+    buf = io.BytesIO()
     PlyData([PlyElement.describe(vertices, "vertex")], byte_order="<").write(buf)
     atomic_write_bytes(path, buf.getvalue())
 
