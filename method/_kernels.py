@@ -323,7 +323,9 @@ P_H_FRAC, P_D_FRAC, P_RING_FRAC, P_RING_H_FRAC, P_PREFILTER_FRAC, P_DESCENT_STEP
 # box means' noise over the independent-pixel figure sigma / sqrt(n): the noise's correlation
 # (``improved.mean_variance_inflation``), square-rooted
 P_MEAN_NOISE = 35
-N_PRM = 36
+# the search's stencil follows the silhouette's off-axis stretch (1: on; 0: square, as on the axis)
+P_OFF_AXIS = 36
+N_PRM = 37
 #: The packed table's count field starts at this bit; the depth sum (mm) takes the bits below.
 COUNT_SHIFT = 40
 _DEPTH_MASK = (1 << COUNT_SHIFT) - 1
@@ -495,6 +497,22 @@ def cap_relief(s):
 
 
 @kernel
+def stencil_stretch(prm, v, u):
+    """(su, sv): pixels per pixel-on-the-axis of a small angle along the image's u and v axes at cell
+    (v, u). A ball off the optical axis images larger than on it, 1 / cos^2 of its angle radially and
+    1 / cos tangentially; with x, y the cell centre's normalised coordinates and n2 = 1 + x^2 + y^2,
+    a step along u spans n2 / sqrt(1 + y^2) times the angle it spans on the axis, along v n2 / sqrt(1 + x^2).
+    (1, 1) when prm[P_OFF_AXIS] is 0."""
+    if prm[P_OFF_AXIS] == 0.0:
+        return 1.0, 1.0
+    b = prm[P_BIN]
+    x = (u * b + 0.5 * (b - 1.0) - prm[P_PPX]) / prm[P_FX]
+    y = (v * b + 0.5 * (b - 1.0) - prm[P_PPY]) / prm[P_FY]
+    n2 = 1.0 + x * x + y * y
+    return n2 / math.sqrt(1.0 + y * y), n2 / math.sqrt(1.0 + x * x)
+
+
+@kernel
 def plane_free(tab, prm, v, u, m0, s0, n0):
     """False if the inverse depth about cell (v, u) is affine within noise along every available axis
     (horizontal, vertical, then the diagonals while an axis is missing, two at most): the second
@@ -506,16 +524,19 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
     R = prm[P_R]
     rr = prm[P_FX] / prm[P_BIN] * R / m0
     hp = max(1, int(prm[P_H_FRAC] * rr + 0.5))
-    dp = int(prm[P_PREFILTER_FRAC] * rr + 0.5)
-    dg = int(prm[P_PREFILTER_FRAC] * rr * 0.7071067811865476 + 0.5)
+    su, sv = stencil_stretch(prm, v, u)
+    dpu = int(prm[P_PREFILTER_FRAC] * rr * su + 0.5)
+    dpv = int(prm[P_PREFILTER_FRAC] * rr * sv + 0.5)
+    dgu = int(prm[P_PREFILTER_FRAC] * rr * su * 0.7071067811865476 + 0.5)
+    dgv = int(prm[P_PREFILTER_FRAC] * rr * sv * 0.7071067811865476 + 0.5)
     bb = prm[P_CELL_PX]
     if n0 == 0:
         return True
     i0 = 1000.0 * n0 / s0
     planar = 0
     for axis in range(4):
-        du = dp if axis == 0 else (0 if axis == 1 else dg)
-        dv = 0 if axis == 0 else (dp if axis == 1 else (dg if axis == 2 else -dg))
+        du = dpu if axis == 0 else (0 if axis == 1 else dgu)
+        dv = 0 if axis == 0 else (dpv if axis == 1 else (dgv if axis == 2 else -dgv))
         sa, na_, aa = box_sums(tab, v + dv, u + du, hp)
         sb, nb_, ab = box_sums(tab, v - dv, u - du, hp)
         if na_ == 0 or nb_ == 0 or na_ < prm[P_MIN_VALID] * aa * bb or nb_ < prm[P_MIN_VALID] * ab * bb:
@@ -544,18 +565,21 @@ def ring_boxes(tab, prm, v, u, front, sig):
     dist = front + R
     rr = prm[P_FX] / prm[P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
     hr = max(1, int(prm[P_RING_H_FRAC] * rr + 0.5))
-    dr = prm[P_RING_FRAC] * rr
-    dd = dr * 0.7071067811865476
+    su, sv = stencil_stretch(prm, v, u)
+    dru = prm[P_RING_FRAC] * rr * su
+    drv = prm[P_RING_FRAC] * rr * sv
+    ddu = dru * 0.7071067811865476
+    ddv = drv * 0.7071067811865476
     slack = prm[P_SLACK] * R
     cont = 0
     bg = 0
     for j in range(8):
         if j < 4:
-            ou = dr if j == 0 else (-dr if j == 1 else 0.0)
-            ov = dr if j == 2 else (-dr if j == 3 else 0.0)
+            ou = dru if j == 0 else (-dru if j == 1 else 0.0)
+            ov = drv if j == 2 else (-drv if j == 3 else 0.0)
         else:
-            ou = dd if (j == 4 or j == 6) else -dd
-            ov = dd if (j == 4 or j == 5) else -dd
+            ou = ddu if (j == 4 or j == 6) else -ddu
+            ov = ddv if (j == 4 or j == 5) else -ddv
         m, n = box_range(tab, prm, v + int(math.floor(ov + 0.5)), u + int(math.floor(ou + 0.5)), hr)
         if math.isnan(m) or m > dist:
             bg += 1
@@ -603,8 +627,9 @@ def front_hypothesis(tab, prm, v, u, out):
     if not plane_free(tab, prm, v, u, m0, s0, n0):
         return -np.inf
     h = 1
-    d = 2
+    du = dv = 2
     rr = 1.0
+    su = sv = 1.0
     mL = mR = mU = mD = 0.0
     nL = nR = nU = nD = 0
     steps = int(prm[P_DESCENT_STEPS])
@@ -612,32 +637,39 @@ def front_hypothesis(tab, prm, v, u, out):
         rr = fc * R / m0
         if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
             return -np.inf
+        # the side boxes' offsets follow the silhouette's stretch along each axis (``stencil_stretch``)
+        su, sv = stencil_stretch(prm, v, u)
         h = max(1, int(prm[P_H_FRAC] * rr + 0.5))
-        d = max(h + 1, int(prm[P_D_FRAC] * rr + 0.5))
+        du = max(h + 1, int(prm[P_D_FRAC] * rr * su + 0.5))
+        dv = max(h + 1, int(prm[P_D_FRAC] * rr * sv + 0.5))
         m0, n0 = box_range(tab, prm, v, u, h)
         if math.isnan(m0):
             return -np.inf
-        mL, nL = box_range(tab, prm, v, u - d, h)
-        mR, nR = box_range(tab, prm, v, u + d, h)
-        mU, nU = box_range(tab, prm, v - d, u, h)
-        mD, nD = box_range(tab, prm, v + d, u, h)
+        mL, nL = box_range(tab, prm, v, u - du, h)
+        mR, nR = box_range(tab, prm, v, u + du, h)
+        mU, nU = box_range(tab, prm, v - dv, u, h)
+        mD, nD = box_range(tab, prm, v + dv, u, h)
         if step == steps:
             break
-        k = 0.5 * R / (rr * rr)
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
-        iu = int(math.floor(descent_step(m0, mL, mR, d, k, off, 0.5 * rr) + 0.5))
-        iv = int(math.floor(descent_step(m0, mU, mD, d, k, off, 0.5 * rr) + 0.5))
+        iu = int(math.floor(descent_step(m0, mL, mR, du, 0.5 * R / (rr * su) ** 2, off, 0.5 * rr * su) + 0.5))
+        iv = int(math.floor(descent_step(m0, mU, mD, dv, 0.5 * R / (rr * sv) ** 2, off, 0.5 * rr * sv) + 0.5))
         if iu == 0 and iv == 0:
             break
         u += iu
         v += iv
         if u < 0 or u >= wc or v < 0 or v >= hc:
             return -np.inf
-    # pretest: the side boxes on the cap
-    ah = (h + 0.5) / rr
-    x0 = d / rr
-    front = m0 - R * cap_relief(2.0 * ah * ah / 3.0)
-    pred = front + R * cap_relief(x0 * x0 + 2.0 * ah * ah / 3.0)
+    # pretest: the side boxes on the cap; offsets and the boxes' half-sides in units of the ball's
+    # angular radius along each axis (the same on the axis)
+    ahu = (h + 0.5) / (rr * su)
+    ahv = (h + 0.5) / (rr * sv)
+    spread = (ahu * ahu + ahv * ahv) / 3.0
+    xu = du / (rr * su)
+    xv = dv / (rr * sv)
+    front = m0 - R * cap_relief(spread)
+    pred_u = front + R * cap_relief(xu * xu + spread)
+    pred_v = front + R * cap_relief(xv * xv + spread)
     sig = na * m0 * m0
     agree = 0
     behind = 0
@@ -649,7 +681,7 @@ def front_hypothesis(tab, prm, v, u, out):
         if math.isnan(m):
             continue
         tol = 3.0 * sig / math.sqrt(nk) + slack
-        res = m - pred
+        res = m - (pred_u if j < 2 else pred_v)
         if res > tol:
             behind += 1
         elif res >= -tol:

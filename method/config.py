@@ -163,6 +163,10 @@ class DetectorConfig:
     Search geometry (organised clouds; fractions of the ball's disc radius r at the box's depth):
         box_half_fraction: half-side of the stencil's boxes.
         box_offset_fraction: offset of the four side boxes from the centre box.
+        search_off_axis: stretch the stencil's offsets (side boxes, ring boxes, prefilter) along each
+            image axis as the ball's silhouette is off the optical axis (1 / cos^2 of its angle radially,
+            1 / cos tangentially). Off: square, as on the axis; on `train` the stretched stencil loses
+            partly hidden balls, while it finds low-noise balls 40 degrees off the axis.
         ring_offset_fraction, ring_half_fraction: offset and half-side of the 8 outline-ring boxes.
         prefilter_offset_fraction: the plane prefilter's boxes lie this far from the first cell.
         descent_steps: steps from the first cell toward the range's local minimum (the front point).
@@ -272,6 +276,7 @@ class DetectorConfig:
     # search geometry (organised)
     box_half_fraction: float = 0.25
     box_offset_fraction: float = 0.5
+    search_off_axis: bool = False
     ring_offset_fraction: float = 1.5
     ring_half_fraction: float = 0.25
     prefilter_offset_fraction: float = 2.0

@@ -13,10 +13,10 @@ the outline not continuing the surface). Raw three-point samples cannot place a 
 1.5 m at 424x240 (one pixel's depth noise exceeds the relief between two samples); box means of
 n pixels have sigma / sqrt(n). The distinct survivors are kept by score. The strata's size is
 the standard RANSAC bound for the smallest ball the frame can hold (``strata``).
-(The issue's three-point samples in a ball diameter are here a five-box stencil about the first
-pixel, and the known radius enters as the cap's curvature: the previous three-point search on
-patch means found 176 of the default preset's 200 balls, missing most beyond 2.3 m; a box-mean
-sample gives a centre only when all its boxes lie inside the disc, the descent from anywhere on it.)
+(The paper's three-point samples in a ball diameter are here a five-box stencil about the first
+pixel, and the known radius enters as the cap's curvature: a box-mean sample gives a centre only
+when all its boxes lie inside the disc, the descent from anywhere on it. Off the optical axis the
+stencil is stretched as the silhouette is, ``_kernels.stencil_stretch``.)
 Unorganised clouds: three-point local samples in a spatial grid (``_kernels.search_unorganised``).
 
 Verification (compiled, one call per candidate, best first, at most ``verify_candidates``, or
@@ -213,6 +213,7 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     prm[K.P_FIRST_BAND], prm[K.P_FIRST_STEPS] = c.first_band_fraction, c.first_steps
     prm[K.P_COARSE_BAND], prm[K.P_SIZE_LIMIT] = c.coarse_band_fraction, c.size_limit_fraction
     prm[K.P_SE_S_MIN] = c.radius_se_s_min_fraction
+    prm[K.P_OFF_AXIS] = 1.0 if c.search_off_axis else 0.0
     # a box of cells each bin_px wide: the correlation length in cells
     prm[K.P_MEAN_NOISE] = math.sqrt(mean_variance_inflation(corr_px / bin_px))
     return prm

@@ -84,21 +84,34 @@ def cap_relief(s: float) -> float:
     return 1.0 - math.sqrt(1.0 - min(s, 1.0))
 
 
+def stencil_stretch(prm, v: int, u: int) -> tuple[float, float]:
+    """``_kernels.stencil_stretch``: the silhouette's stretch along u and v at cell (v, u)."""
+    if prm[K.P_OFF_AXIS] == 0.0:
+        return 1.0, 1.0
+    b = prm[K.P_BIN]
+    x = (u * b + 0.5 * (b - 1.0) - prm[K.P_PPX]) / prm[K.P_FX]
+    y = (v * b + 0.5 * (b - 1.0) - prm[K.P_PPY]) / prm[K.P_FY]
+    n2 = 1.0 + x * x + y * y
+    return n2 / math.sqrt(1.0 + y * y), n2 / math.sqrt(1.0 + x * x)
+
+
 def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     """``_kernels.plane_free``: is the inverse depth about (v, u) curved along some available axis?"""
     prm = g.prm
     R = prm[K.P_R]
     rr = prm[K.P_FX] / prm[K.P_BIN] * R / m0
     hp = max(1, int(prm[K.P_H_FRAC] * rr + 0.5))
-    dp = int(prm[K.P_PREFILTER_FRAC] * rr + 0.5)
-    dg = int(prm[K.P_PREFILTER_FRAC] * rr * 0.7071067811865476 + 0.5)
+    su, sv = stencil_stretch(prm, v, u)
+    f = prm[K.P_PREFILTER_FRAC] * rr
+    dpu, dpv = int(f * su + 0.5), int(f * sv + 0.5)
+    dgu, dgv = int(f * su * 0.7071067811865476 + 0.5), int(f * sv * 0.7071067811865476 + 0.5)
     bb = prm[K.P_CELL_PX]
     s0, n0, _ = g.box_sums(v, u, 1)
     if n0 == 0:
         return True
     i0 = 1000.0 * n0 / s0
     planar = 0
-    for du, dv in ((dp, 0), (0, dp), (dg, dg), (dg, -dg)):
+    for du, dv in ((dpu, 0), (0, dpv), (dgu, dgv), (dgu, -dgv)):
         sa, na, aa = g.box_sums(v + dv, u + du, hp)
         sb, nb, ab = g.box_sums(v - dv, u - du, hp)
         if na == 0 or nb == 0 or na < prm[K.P_MIN_VALID] * aa * bb or nb < prm[K.P_MIN_VALID] * ab * bb:
@@ -136,10 +149,11 @@ def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float
     dist = front + R
     rr = prm[K.P_FX] / prm[K.P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
     hr = max(1, int(prm[K.P_RING_H_FRAC] * rr + 0.5))
-    dr = prm[K.P_RING_FRAC] * rr
-    dd = dr * 0.7071067811865476
+    su, sv = stencil_stretch(prm, v, u)
+    dru, drv = prm[K.P_RING_FRAC] * rr * su, prm[K.P_RING_FRAC] * rr * sv
+    ddu, ddv = dru * 0.7071067811865476, drv * 0.7071067811865476
     bg = cont = 0
-    for ou, ov in ((dr, 0.0), (-dr, 0.0), (0.0, dr), (0.0, -dr), (dd, dd), (-dd, dd), (dd, -dd), (-dd, -dd)):
+    for ou, ov in ((dru, 0.0), (-dru, 0.0), (0.0, drv), (0.0, -drv), (ddu, ddv), (-ddu, ddv), (ddu, -ddv), (-ddu, -ddv)):
         m, n = g.box_range(v + int(math.floor(ov + 0.5)), u + int(math.floor(ou + 0.5)), hr)
         if math.isnan(m) or m > dist:
             bg += 1
@@ -164,31 +178,36 @@ def front_hypothesis(g: Grid, v: int, u: int):
         rr = fc * R / m0
         if rr < prm[K.P_RR_MIN] or rr > prm[K.P_RR_MAX]:
             return -math.inf, None
+        su, sv = stencil_stretch(prm, v, u)
         h = max(1, int(prm[K.P_H_FRAC] * rr + 0.5))
-        d = max(h + 1, int(prm[K.P_D_FRAC] * rr + 0.5))
+        du = max(h + 1, int(prm[K.P_D_FRAC] * rr * su + 0.5))
+        dv = max(h + 1, int(prm[K.P_D_FRAC] * rr * sv + 0.5))
         m0, n0 = g.box_range(v, u, h)
         if math.isnan(m0):
             return -math.inf, None
-        sides = [g.box_range(v, u - d, h), g.box_range(v, u + d, h), g.box_range(v - d, u, h), g.box_range(v + d, u, h)]
+        sides = [g.box_range(v, u - du, h), g.box_range(v, u + du, h), g.box_range(v - dv, u, h),
+                 g.box_range(v + dv, u, h)]
         if step == int(prm[K.P_DESCENT_STEPS]):
             break
-        k = 0.5 * R / (rr * rr)
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
-        iu = int(math.floor(descent_step(m0, sides[0][0], sides[1][0], d, k, off, 0.5 * rr) + 0.5))
-        iv = int(math.floor(descent_step(m0, sides[2][0], sides[3][0], d, k, off, 0.5 * rr) + 0.5))
+        iu = int(math.floor(descent_step(m0, sides[0][0], sides[1][0], du, 0.5 * R / (rr * su) ** 2, off,
+                                         0.5 * rr * su) + 0.5))
+        iv = int(math.floor(descent_step(m0, sides[2][0], sides[3][0], dv, 0.5 * R / (rr * sv) ** 2, off,
+                                         0.5 * rr * sv) + 0.5))
         if iu == 0 and iv == 0:
             break
         u, v = u + iu, v + iv
         if not (0 <= u < g.wc and 0 <= v < g.hc):
             return -math.inf, None
-    ah = (h + 0.5) / rr
-    x0 = d / rr
-    front = m0 - R * cap_relief(2.0 * ah * ah / 3.0)
-    pred = front + R * cap_relief(x0 * x0 + 2.0 * ah * ah / 3.0)
+    ahu, ahv = (h + 0.5) / (rr * su), (h + 0.5) / (rr * sv)
+    spread = (ahu * ahu + ahv * ahv) / 3.0
+    xu, xv = du / (rr * su), dv / (rr * sv)
+    front = m0 - R * cap_relief(spread)
+    preds = (front + R * cap_relief(xu * xu + spread),) * 2 + (front + R * cap_relief(xv * xv + spread),) * 2
     sig = na * m0 * m0
     agree = behind = occluded = 0
     chi = 0.0
-    for m, nk in sides:
+    for (m, nk), pred in zip(sides, preds):
         if math.isnan(m):
             continue
         tol = 3.0 * sig / math.sqrt(nk) + slack

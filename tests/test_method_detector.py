@@ -595,14 +595,15 @@ def test_outcome_constants_are_configuration_fields():
               K.P_RING_FRONT_MIN: "ring_front_min_fraction", K.P_RING_FRONT_MAX: "ring_front_max_fraction",
               K.P_FIRST_BAND: "first_band_fraction", K.P_FIRST_STEPS: "first_steps",
               K.P_COARSE_BAND: "coarse_band_fraction", K.P_SIZE_LIMIT: "size_limit_fraction",
-              K.P_SE_S_MIN: "radius_se_s_min_fraction"}
+              K.P_SE_S_MIN: "radius_se_s_min_fraction", K.P_OFF_AXIS: "search_off_axis"}
     assert len(fields) == K.N_PRM - 18  # and P_MEAN_NOISE, from the frame's noise correlation
     base = kernel_parameters(intr)
     assert base[K.P_MEAN_NOISE] == 1.0
     for index, name in fields.items():
         value = getattr(IMPROVED, name)
         assert base[index] == value, name
-        other = value + 1 if isinstance(value, int) else value * 0.9  # within every field's valid range
+        # within every field's valid range
+        other = (not value) if isinstance(value, bool) else (value + 1 if isinstance(value, int) else value * 0.9)
         changed = kernel_parameters(intr, dataclasses.replace(IMPROVED, **{name: other}))
         assert changed[index] == other and np.count_nonzero(changed != base) == 1, name
     ball = scene()
@@ -612,6 +613,22 @@ def test_outcome_constants_are_configuration_fields():
     on_floor = scene(ball_c=(0.1, 0.13, 1.0), box=True, noise=0.002, width=424, height=240)
     assert len(detect(on_floor, seed=0)) == 1
     assert detect(on_floor, config_for("improved", ring_front_free=0.0, ring_front_power=1e4), seed=0) == []
+
+
+def test_search_stencil_follows_the_off_axis_silhouette():
+    """A ball at angle theta off the optical axis images 1 / cos^2 theta larger radially and 1 / cos theta
+    tangentially: the search's stencil is stretched so along each image axis, and square on the axis."""
+    intr = Intrinsics.d435(424, 240)
+    prm = kernel_parameters(intr, dataclasses.replace(IMPROVED, search_off_axis=True))
+    cu, cv = intr.ppx, intr.ppy  # bin 1: a cell is a pixel, its centre at the pixel's coordinate
+    assert K.stencil_stretch(prm, int(round(cv)), int(round(cu))) == pytest.approx((1.0, 1.0), abs=2e-4)
+    u = int(round(cu + intr.fx * math.tan(math.radians(35))))  # 35 degrees to the right, on the row of the axis
+    y = (int(round(cv)) - intr.ppy) / intr.fy
+    su, sv = K.stencil_stretch(prm, int(round(cv)), u)
+    x = (u - intr.ppx) / intr.fx
+    cos_theta = 1.0 / math.sqrt(1.0 + x * x + y * y)
+    assert su == pytest.approx(1.0 / cos_theta ** 2, rel=1e-3) and sv == pytest.approx(1.0 / cos_theta, rel=1e-3)
+    assert K.stencil_stretch(kernel_parameters(intr), int(round(cv)), u) == (1.0, 1.0)  # the default: square
 
 
 def test_outcome_constants_refuse_absurd_values():
