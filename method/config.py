@@ -130,6 +130,20 @@ class DetectorConfig:
             mean score (the size check: the majority). At 2-3 m the refinement's inlier selection
             has several optima a cm apart, whose scores differ by 0.1 or more: one start's score is
             a noisy draw. 0 disables it.
+        outline_noise_fraction: organised clouds: a reported sphere whose depth noise (one pixel's
+            sigma_z at its centre) is at least this fraction of R is re-centred across the line of
+            sight on its outline (``improved.outline_centre``): where the noise nears R the cap's
+            relief places the centre laterally to several mm, the outline's depth step to about one.
+            Below it the depth fit is the better (on `train`). inf: never.
+        outline_gap_sigmas: an outline is a step to a pixel farther than max(this * sigma_z, R) behind
+            the centre from one within this * sigma_z of the ball's depths.
+        outline_band_px, outline_band_fraction: the outline's pixels are taken within this many pixels
+            plus this fraction of the disc's radius of the current silhouette's outline.
+        outline_min_side: an image axis is re-centred only where at least this many outline pixels lie
+            on each of its two sides (a one-sided arc cannot tell a shift from a silhouette a pixel
+            smaller than the sphere's, as mixed pixels make it).
+        outline_max_shift_fraction: a re-centring that moves the centre by more than this fraction of
+            R is not taken.
         multistart_noise_fraction: organised clouds, while no sphere is accepted: a hypothesis whose
             depth noise (one pixel's sigma_z) exceeds this fraction of R is verified from its centre
             and the six ``rescore_starts`` about it, the best kept and its score then taken as the
@@ -258,6 +272,12 @@ class DetectorConfig:
     verify_score_margin: float = 6.0
     rescore_band: float = 0.15
     multistart_noise_fraction: float = 0.5
+    outline_noise_fraction: float = 0.25
+    outline_gap_sigmas: float = 3.0
+    outline_band_px: float = 2.0
+    outline_band_fraction: float = 0.15
+    outline_min_side: int = 4
+    outline_max_shift_fraction: float = 0.5
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 4
@@ -359,7 +379,7 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "refine_iterations", "min_inliers", "max_spheres", "max_points", "search_width_px",
                  "verify_candidates", "verify_candidates_if_none", "fit_max_points", "search_candidates",
                  "noise_estimate_lag_px", "noise_estimate_samples", "noise_estimate_min_samples", "descent_steps",
-                 "pretest_max_continued", "first_steps"):
+                 "pretest_max_continued", "first_steps", "outline_min_side"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int):
             out.append(f"{name}={v!r} must be an integer")
@@ -423,9 +443,16 @@ def _problems(c: DetectorConfig) -> list[str]:
         out.append("ring_front_min_fraction must be >= 0 and below ring_front_max_fraction")
     if finite("ring_factor") and not 1.0 < c.ring_factor <= 3.0:
         out.append(f"ring_factor={c.ring_factor} must be within (1, 3] (the outline ring's outer radius / R)")
-    v = c.multistart_noise_fraction
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:  # inf: never
-        out.append(f"multistart_noise_fraction={v!r} must be > 0 (a fraction of R; inf for never)")
+    for name in ("multistart_noise_fraction", "outline_noise_fraction"):
+        v = getattr(c, name)
+        least = 0.0 if name == "outline_noise_fraction" else math.ulp(0.0)  # 0: always; inf: never
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= least:
+            out.append(f"{name}={v!r} must be {'>=' if least == 0 else '>'} 0 (a fraction of R; inf for never)")
+    for name in ("outline_gap_sigmas", "outline_band_px", "outline_band_fraction", "outline_max_shift_fraction"):
+        if finite(name) and not getattr(c, name) > 0:
+            out.append(f"{name}={getattr(c, name)} must be > 0")
+    if isinstance(c.outline_min_side, int) and not 1 <= c.outline_min_side <= 1000:
+        out.append(f"outline_min_side={c.outline_min_side} must be 1-1000 (outline pixels on each side of an axis)")
     if finite("zscore_threshold") and c.zscore_threshold == 0:
         out.append("zscore_threshold must be > 0 (the paper uses 1.5)")
     if c.pipeline == "paper" and c.sampling != "global":

@@ -634,6 +634,75 @@ def test_search_stencil_follows_the_off_axis_silhouette():
 def test_outcome_constants_refuse_absurd_values():
     for bad in ({"ring_factor": 0.9}, {"profile_inner_sq": 0.9}, {"box_min_valid": 1.5}, {"descent_steps": -1},
                 {"pretest_max_continued": 9}, {"ring_front_min_fraction": 2.0}, {"ring_spread_power": -1.0},
-                {"noise_estimate_keep": 1.5}, {"first_steps": 0}):
+                {"noise_estimate_keep": 1.5}, {"first_steps": 0}, {"outline_min_side": 0},
+                {"outline_noise_fraction": -0.1}, {"outline_band_px": 0.0}):
         with pytest.raises(SphereBenchError, match=next(iter(bad))):
             config_for("improved", **bad)
+
+
+# ------------------------------------------------------------------------------ outline centring
+
+def _far_ball_frame(ball_c, noise_m, seed=0, left_wall=False, holder=False):
+    """A 424x240 frame: a wall 2 m behind the ball, the ball with per-pixel depth noise noise_m;
+    optionally a surface at the ball's depth along its left side, or a holder (a bar) under it."""
+    intr = Intrinsics.d435(424, 240)
+    rays = image_rays(intr)
+    c = np.asarray(ball_c)
+    z = np.full(rays.shape[:2], c[2] + 2.0)
+    if left_wall:  # a plane at the ball's centre depth left of its centre: the ball's left half stands on it
+        z = np.where(rays[..., 0] < c[0] / c[2], c[2], z)
+    if holder:  # a bar as wide as R, from the ball's bottom down, at its centre depth
+        below = (np.abs(rays[..., 0] * c[2] - c[0]) < 0.5 * R) & (rays[..., 1] * c[2] > c[1])
+        z = np.where(below, c[2], z)
+    u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    tc = u @ c
+    m2 = c @ c - tc ** 2
+    hit = m2 < R ** 2
+    t = tc - np.sqrt(np.maximum(R ** 2 - m2, 0))
+    z = np.where(hit, np.minimum(z, t * u[..., 2]), z)
+    z = z + np.random.default_rng(seed).normal(size=z.shape) * noise_m
+    return cloud_from_depth(z.astype(np.float32), intr)
+
+
+@pytest.mark.parametrize("holder", [False, True])
+def test_outline_centres_a_noisy_far_ball_across_the_line_of_sight(holder):
+    """At 2.6 m with 7 cm of depth noise per pixel (0.6 R) the outline's depth step places the centre
+    across the line of sight: a start 15 mm and 10 mm off comes back within 4 mm, its range kept; a
+    holder under the ball (its sides step sideways, not outward) does not pull it down."""
+    from spherebench.method import improved as I
+
+    truth = np.array([0.3, -0.1, 2.6])
+    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, holder=holder), config)
+    start = truth + np.array([0.015, -0.010, 0.0])
+    start *= np.linalg.norm(truth) / np.linalg.norm(start)  # the same range: only the direction is off
+    moved = I.outline_centre(frame, start, config)
+    assert np.linalg.norm(moved) == pytest.approx(np.linalg.norm(start), abs=1e-9)
+    assert np.linalg.norm(moved - truth) < 0.004
+    assert np.linalg.norm(start - truth) > 0.017
+
+
+def test_outline_centring_leaves_an_axis_without_two_sides():
+    """A surface at the ball's depth along its left side leaves the horizontal axis with an outline on
+    one side only: it keeps its start there (a one-sided arc cannot tell a shift from a silhouette a
+    pixel smaller), and the vertical axis, seen on both sides, is still centred."""
+    from spherebench.method import improved as I
+
+    truth = np.array([0.3, -0.1, 2.6])
+    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, left_wall=True), config)
+    start = truth + np.array([0.0, -0.012, 0.0]) + np.array([0.010, 0.0, 0.0])
+    moved = I.outline_centre(frame, start, config)
+    assert abs(moved[0] - start[0]) < 0.002  # horizontal: kept (up to the range's rescaling)
+    assert abs(moved[1] - truth[1]) < 0.004  # vertical: centred
+
+
+def test_detect_recentres_only_where_the_noise_nears_r():
+    """Near a nominal unit's noise the depth fit places the centre better than the outline (on
+    `train`), so a near ball's detection is the same with outline centring on or off."""
+    cloud = scene(ball_c=(0.1, -0.05, 1.0), noise=0.002, width=424, height=240)
+    on = detect(cloud, seed=0)
+    off = detect(cloud, config_for("improved", outline_noise_fraction=math.inf), seed=0)
+    assert len(on) == len(off) == 1 and np.array_equal(on[0].center_m, off[0].center_m)
+    always = detect(cloud, config_for("improved", outline_noise_fraction=0.0), seed=0)
+    assert len(always) == 1 and not np.array_equal(always[0].center_m, off[0].center_m)
