@@ -35,19 +35,23 @@ def kernel_parameters(intr: Intrinsics, config=IMPROVED) -> np.ndarray:
     return I.parameters(config, intr, (1, 1), 1, (intr.height, intr.width), 10.0)
 
 
+def with_sphere(z: np.ndarray, rays: np.ndarray, centre, radius: float) -> np.ndarray:
+    """The depth image z (H, W) m with a sphere drawn in front of what it hides (rays (H, W, 3), z = 1)."""
+    c = np.asarray(centre, np.float64)
+    u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    tc = u @ c
+    m2 = c @ c - tc ** 2
+    t = tc - np.sqrt(np.maximum(radius ** 2 - m2, 0))
+    return np.where(m2 < radius ** 2, np.minimum(z, t * u[..., 2]), z)
+
+
 def scene(ball_c=(0.1, -0.05, 1.0), ball_r=R, wall_z=1.8, noise=0.002, seed=0, width=160, height=120, box=False):
     """A small organised frame: a wall, a ball (or none), optionally a box corner; Gaussian depth noise."""
     intr = Intrinsics.d435(width, height)
     rays = image_rays(intr)
     z = np.full((height, width), wall_z)
     if ball_c is not None:
-        c = np.asarray(ball_c)
-        u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
-        tc = u @ c
-        m2 = c @ c - tc ** 2
-        hit = m2 < ball_r ** 2
-        t = tc - np.sqrt(np.maximum(ball_r ** 2 - m2, 0))
-        z = np.where(hit, np.minimum(z, t * u[..., 2]), z)
+        z = with_sphere(z, rays, ball_c, ball_r)
     if box:  # a concave corner (floor, side wall, back wall): a sphere fits tangent to its three faces
         with np.errstate(divide="ignore", invalid="ignore"):
             t_floor = np.where(rays[..., 1] > 0, 0.25 / rays[..., 1], np.inf)
@@ -654,13 +658,7 @@ def _far_ball_frame(ball_c, noise_m, seed=0, left_wall=False, holder=False):
     if holder:  # a bar as wide as R, from the ball's bottom down, at its centre depth
         below = (np.abs(rays[..., 0] * c[2] - c[0]) < 0.5 * R) & (rays[..., 1] * c[2] > c[1])
         z = np.where(below, c[2], z)
-    u = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
-    tc = u @ c
-    m2 = c @ c - tc ** 2
-    hit = m2 < R ** 2
-    t = tc - np.sqrt(np.maximum(R ** 2 - m2, 0))
-    z = np.where(hit, np.minimum(z, t * u[..., 2]), z)
-    z = z + np.random.default_rng(seed).normal(size=z.shape) * noise_m
+    z = with_sphere(z, rays, c, R) + np.random.default_rng(seed).normal(size=z.shape) * noise_m
     return cloud_from_depth(z.astype(np.float32), intr)
 
 
