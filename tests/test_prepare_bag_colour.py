@@ -3,7 +3,7 @@ frame nearest in time and keeps it aligned to the depth (colour.png), so that `a
 --from-colour` and `prepare --labelme` work on a D435 recording as on the Kinect set.
 
 The scenes are ray-cast twice, once in each camera, so the colour frame shows the ball where the
-colour camera sees it; the bags are written by tests/bagwriter.py (ROS1) and by pyrealsense2's
+colour camera sees it; the bags are written by datasets/bagwrite.py (ROS1) and by pyrealsense2's
 own recorder (ROS2, .db3) and read back through pyrealsense2 playback.
 """
 
@@ -17,7 +17,7 @@ import pytest
 
 rs = pytest.importorskip("pyrealsense2")
 
-from bagwriter import ColourStream, write_realsense_bag  # noqa: E402  (tests/ is on sys.path under pytest)
+from spherebench.datasets.bagwrite import ColourStream, write_realsense_bag  # noqa: E402
 
 from spherebench import cli  # noqa: E402
 from spherebench.camera import Intrinsics, align_to_depth, image_rays, project  # noqa: E402
