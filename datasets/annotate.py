@@ -663,8 +663,8 @@ def draw_detections(image_bgr: np.ndarray, circles_px, scores, color=DETECTION_C
         cv2.circle(out, c, max(1, round(r * (1 << _SHIFT))), color, 2 if k == 0 else 1, cv2.LINE_AA, _SHIFT)
         cv2.drawMarker(out, (round(cx), round(cy)), color, cv2.MARKER_CROSS, 6, 1)
         text = f"{label} {score:.2f}".strip()
-        scale = max(0.35, h / 960)  # legible at 240 and 720 rows alike
-        y = int(np.clip(cy - r - 4, 12, h - 4))
+        scale = max(0.4, h / 800)  # legible at 240 and 720 rows alike
+        y = int(cy - r - 5 if cy - r - 5 >= 12 else min(cy + r + 14, h - 4))  # above the circle, else below
         cv2.putText(out, text, (int(max(0, cx - r)), y), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(out, text, (int(max(0, cx - r)), y), cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
     return out

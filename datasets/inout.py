@@ -856,12 +856,10 @@ def read_labelme(path: str | Path) -> dict:
 
 
 def _import_pyrealsense2():
-    try:
-        import pyrealsense2 as rs
-    except ImportError as exc:
-        raise SphereBenchError(f"reading RealSense recordings needs pyrealsense2, which cannot be imported ({exc}); "
-                               "install it (pip install pyrealsense2) and libusb-1.0 (apt-get install libusb-1.0-0)") from None
-    return rs
+    from spherebench.errors import require
+
+    return require("pyrealsense2", "realsense", "reading RealSense recordings and cameras (also: apt-get install "
+                   "libusb-1.0-0)")
 
 
 #: Colour formats of a recording's colour stream that prepare keeps (pyrealsense2's rs.format

@@ -39,8 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="worker processes (output identical for any number)")
     p.add_argument("--force", action="store_true", help="recompute predictions even when finished ones match")
     p.add_argument("--hough-config", metavar="FILE", default=None,
-                   help="Hough configuration JSON (default: the tuned one in results/hough_config.json, else "
-                        "tuned now on a training subset built under OUT)")
+                   help="Hough configuration JSON (default: the tuned one in results/hough_config.json, else the "
+                        "copy shipped with the package, else tuned now on a training subset built under OUT)")
     p.add_argument("--model", metavar="FILE", default=None,
                    help="the `circlenet` method's ONNX model (default: baselines/circlenet/model.onnx; skipped if "
                         "missing); circlenet-full and circlenet-hg use theirs under baselines/circlenet/")
@@ -71,7 +71,8 @@ def load_hough_config(path: str | Path):
 
 
 def resolve_hough(methods, hough_file, out: Path, seed: int, workers: int, progress: bool, log=print):
-    """The Hough configuration to use: a given file, the repository's tuned cache, or a fresh tuning."""
+    """The Hough configuration to use: a given file, the repository's tuned cache, the package's copy, or
+    a fresh tuning."""
     from spherebench.eval import runner
     if methods is not None and "hough" not in methods:
         return None
@@ -85,6 +86,10 @@ def resolve_hough(methods, hough_file, out: Path, seed: int, workers: int, progr
                 return load_hough_config(repo_cache)
         except (OSError, json.JSONDecodeError):
             pass
+    from spherebench.baselines.hough import SHIPPED_CONFIG
+    if SHIPPED_CONFIG.is_file():  # an installed package, or a clone whose results/ predate its code
+        log(f"hough: the tuned configuration shipped with the package ({SHIPPED_CONFIG.name})")
+        return load_hough_config(SHIPPED_CONFIG)
     return runner.tuned_hough_config(out / "hough_config.json", out / "train-hough", seed=0, workers=workers,
                                      progress=progress, log=log)
 

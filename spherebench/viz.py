@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spherebench.errors import SphereBenchError
+from spherebench.errors import require
 
 #: Colours (RGB): the inliers of a sphere, the other points, the spheres and circles.
 INLIER_RGB = (255, 0, 0)
@@ -23,12 +23,7 @@ SPHERE_RGB = (255, 0, 255)
 
 def import_rerun():
     """rerun, or a one-line SphereBenchError naming the extra that installs it."""
-    try:
-        import rerun as rr
-    except ImportError:
-        raise SphereBenchError("--rerun and --rerun-save need rerun-sdk: pip install 'spherebench[viz]' "
-                               "(or pip install rerun-sdk)") from None
-    return rr
+    return require("rerun", "viz", "--rerun and --rerun-save")
 
 
 class RerunLog:
