@@ -49,6 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "beside the same methods' figures on its --beside-label dataset")
     p.add_argument("--beside-label", metavar="LABEL", default="default",
                    help="the dataset of --beside to compare with (default: default)")
+    p.add_argument("--provider", default=None, metavar="NAME",
+                   help="ONNX Runtime execution provider of the CircleNet methods: cpu (default), cuda (needs "
+                        "onnxruntime-gpu), or a full name")
     p.add_argument("--no-figures", action="store_true", help="write no figures")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -222,6 +225,16 @@ def run(args: argparse.Namespace) -> int:
         datasets[_label(path, taken)] = path
     for path in datasets.values():
         check_dataset(path)
+    if args.provider:  # the worker processes inherit it (infer.PROVIDER_VARIABLE)
+        import os
+        from spherebench.baselines.circlenet.infer import PROVIDER_VARIABLE, execution_provider
+        os.environ[PROVIDER_VARIABLE] = execution_provider(args.provider)
+    from spherebench.eval.runner import CIRCLENET_MODELS, circlenet_model_path
+    for name in args.methods or ():  # a method asked for by name is run, or refused: never dropped quietly
+        given = name == "circlenet" and args.model
+        if name in CIRCLENET_MODELS and not given and not circlenet_model_path(name).is_file():
+            raise SphereBenchError(f"--methods {name}: its model {circlenet_model_path(name)} is not there (train it "
+                                   f"with `{CIRCLENET_MODELS[name][1]}`, or leave the method out)")
     if args.model and (args.methods is None or "circlenet" in args.methods):
         from spherebench.eval.runner import circlenet_spec
         circlenet_spec(args.model)  # a corrupt model is refused now, not after the other methods have run
