@@ -98,6 +98,10 @@ class Intrinsics:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Intrinsics":
+        """From a dict of rs.intrinsics' fields (intrinsics.json), or from an ``rs.intrinsics`` itself
+        (``from_rs``, with the D435's depth unit)."""
+        if not isinstance(d, dict) and all(hasattr(d, k) for k in ("width", "height", "ppx", "ppy", "fx", "fy")):
+            return cls.from_rs(d)
         missing = [k for k in ("width", "height", "ppx", "ppy", "fx", "fy") if k not in d]
         if missing:
             raise SphereBenchError(f"intrinsics lack {', '.join(missing)}: give width, height, ppx, ppy, fx, fy "

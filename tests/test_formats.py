@@ -100,3 +100,21 @@ def test_show_draws_a_methods_predictions(small_default, tmp_path, capsys):
     assert cli.main(["show", str(scene), "--method", "absent", "--results", str(tmp_path / "results"),
                      "--out-png", str(tmp_path / "x.png")]) == 2
     assert "not found" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
+
+
+def test_provider_and_missing_models_are_one_line_errors(small_default, tmp_path, capsys, monkeypatch):
+    import onnxruntime as ort
+
+    from spherebench.eval import runner
+
+    scene = inout.list_scenes(small_default)[0]
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        assert cli.main(["detect-2d", str(scene), "--provider", "cuda"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "onnxruntime-gpu" in err
+    # a CircleNet asked for by name whose model is not there stops the run before anything is written
+    monkeypatch.setitem(runner.CIRCLENET_MODELS, "circlenet-hg", ("absent/model.onnx", "make train-hg"))
+    assert cli.main(["evaluate", "--data", str(small_default), "--out", str(tmp_path / "res"),
+                     "--methods", "circlenet-hg"]) == 2
+    err = capsys.readouterr().err
+    assert "circlenet-hg" in err and "not there" in err and not (tmp_path / "res").exists()

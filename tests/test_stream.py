@@ -179,3 +179,41 @@ def test_rerun_save_writes_a_recording(recording, tmp_path, capsys):
     assert status == 0, err
     assert rrd.stat().st_size > 1000
     _fails(capsys, "detect", path, "--rerun-save", rrd, words=("never overwritten",))
+
+
+def test_intrinsics_from_an_rs_intrinsics():
+    i = rs.intrinsics()
+    i.width, i.height, i.ppx, i.ppy, i.fx, i.fy = INTR.width, INTR.height, INTR.ppx, INTR.ppy, INTR.fx, INTR.fy
+    i.model = rs.distortion.inverse_brown_conrady
+    i.coeffs = list(INTR.coeffs)
+    assert Intrinsics.from_rs(i, 0.001) == INTR
+    assert Intrinsics.from_dict(i) == INTR  # an rs.intrinsics where a dict is expected
+
+
+def test_memory_stays_bounded_over_a_long_recording(tmp_path, monkeypatch):
+    import tracemalloc
+
+    import spherebench.method as method
+
+    monkeypatch.setattr(method, "detect", lambda cloud, config, seed=0: [])  # the stream, not the detector
+    intr = Intrinsics.d435(160, 120)
+    frame = np.full((120, 160), 1500, np.uint16)  # 38 kB a frame: 300 of them held would be 11 MB
+    path = write_realsense_bag(tmp_path / "long.bag", [frame] * 300, intr, fps=90)
+    tracemalloc.start()
+    try:
+        held = []
+        for r in stream.detect_stream(stream.recording_frames(path), config_for("improved")):
+            if r.frame.index in (50, 299):
+                held.append(tracemalloc.get_traced_memory()[0])
+    finally:
+        tracemalloc.stop()
+    assert len(held) == 2 and held[1] - held[0] < 2e6, held
+
+
+def test_a_viewer_that_cannot_start_is_a_note(recording, tmp_path, capsys, monkeypatch):
+    pytest.importorskip("rerun")
+    path, _, _ = recording
+    monkeypatch.setenv("PATH", str(tmp_path))  # no viewer to be found
+    status, out, err = _run(capsys, "detect", path, "--frames", "0:2", "--rerun")
+    assert status == 0 and len(out.strip().splitlines()) == 2
+    assert "Rerun viewer cannot start" in err and "Traceback" not in err
