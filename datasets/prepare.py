@@ -128,6 +128,8 @@ class FrameSelection:
         t_first = last_rel = None
         kept = 0
         for frame in frames:
+            if self.stop is not None and frame.index >= self.stop:
+                break  # a camera's stream has no end of its own
             t_first = frame.timestamp_ms if t_first is None else t_first
             last_rel = rel = frame.timestamp_ms - t_first
             if self.time_range_ms is not None:

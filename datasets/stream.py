@@ -123,15 +123,19 @@ def recording_frames(path: str | Path, selection=None, real_time: bool = False,
     return frames()
 
 
-def _counted(frames: Iterable, stats: StreamStats, dropped_so_far=lambda: 0) -> Iterator:
+def _counted(frames: Iterable, stats: StreamStats, dropped_so_far=lambda: 0, gaps_are_drops: bool = False) -> Iterator:
     """frames, with the gaps in their frame numbers counted in stats.missing (a note for each gap
-    that the reader did not make itself)."""
+    that the reader did not make itself), or in stats.dropped (gaps_are_drops: a live camera's,
+    whose librealsense queue drops the frames a slow consumer has not taken)."""
     for frame in frames:
         last = stats.last_number
         if last is not None and frame.number > last + 1:
             gap = frame.number - last - 1
-            stats.missing += gap
-            if stats.missing > dropped_so_far():
+            if gaps_are_drops:
+                stats.dropped += gap
+            else:
+                stats.missing += gap
+            if not gaps_are_drops and stats.missing > dropped_so_far():
                 stats.notes.append(f"frame {frame.number}: {gap} frame(s) before it are missing from the stream "
                                    f"(numbers {last + 1}-{frame.number - 1})")
         if stats.first_number is None:
@@ -163,7 +167,7 @@ def camera_frames(serial: str | None = None, width: int = 848, height: int = 480
                   stats: StreamStats | None = None, timeout_ms: int = CAMERA_TIMEOUT_MS) -> Iterator[inout.BagFrame]:
     """Depth frames of a live RealSense camera at one of its depth modes (width x height px, fps),
     until the consumer stops. The camera is opened here (an error at once if there is none); frames
-    the consumer was too slow for are dropped by librealsense and counted in ``stats.missing``."""
+    the consumer was too slow for are dropped by librealsense and counted in ``stats.dropped``."""
     rs = _rs()
     _, serial = find_camera(serial)
     stats = stats if stats is not None else StreamStats()
@@ -198,7 +202,7 @@ def camera_frames(serial: str | None = None, width: int = 848, height: int = 480
                 index += 1
         finally:
             pipeline.stop()
-    return _counted(frames(), stats)
+    return _counted(frames(), stats, gaps_are_drops=True)
 
 
 def detect_stream(frames: Iterable[inout.BagFrame], config, seed: int = 0,

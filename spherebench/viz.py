@@ -1,6 +1,6 @@
 """Detections to the Rerun viewer (rerun-sdk, the ``viz`` extra): per frame, the depth image, the
 point cloud with each sphere's inliers in red, the spheres themselves and their circles on the
-image, on a "frame" timeline (and the stream's own clock, "time_ms"), so that a stream can be
+image, on a "frame" timeline (and the camera's clock, "camera_time"), so that a stream can be
 watched live or its .rrd replayed later.
 
 A viewer that cannot start is a note, not an error: the detection goes on without it.
@@ -36,15 +36,18 @@ class RerunLog:
         self._count = 0
         self._intrinsics = None
         rr.init(app_id.replace(" ", "_"))
-        if save:
-            rr.save(str(save))
+        viewer = False
         if spawn:
             try:
-                rr.spawn(connect=not save)
+                rr.spawn(connect=False)
+                viewer = True
             except Exception as exc:  # no viewer binary, no display: the stream goes on without it
                 print(f"note: the Rerun viewer cannot start ({str(exc).splitlines()[0] if str(exc) else exc}); "
                       "detecting without it (use --rerun-save FILE.rrd)", file=sys.stderr)
-                self.enabled = bool(save)
+        sinks = ([rr.GrpcSink()] if viewer else []) + ([rr.FileSink(str(save))] if save else [])
+        self.enabled = bool(sinks)
+        if sinks:
+            rr.set_sinks(*sinks)
 
     def _camera(self, intr) -> None:
         if intr == self._intrinsics:
@@ -79,7 +82,7 @@ class RerunLog:
 
         rr = self.rr
         rr.set_time("frame", sequence=int(frame.number))
-        rr.set_time("time_ms", duration=float(frame.timestamp_ms) / 1000.0)
+        rr.set_time("camera_time", duration=float(frame.timestamp_ms) / 1000.0)  # seconds
         intr = frame.intrinsics
         self._camera(intr)
         rr.log("camera/depth", rr.DepthImage(frame.depth, meter=1.0 / intr.depth_scale))

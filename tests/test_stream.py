@@ -217,3 +217,46 @@ def test_a_viewer_that_cannot_start_is_a_note(recording, tmp_path, capsys, monke
     status, out, err = _run(capsys, "detect", path, "--frames", "0:2", "--rerun")
     assert status == 0 and len(out.strip().splitlines()) == 2
     assert "Rerun viewer cannot start" in err and "Traceback" not in err
+
+
+class _FakeRealSense:
+    """Just enough of pyrealsense2 for stream.camera_frames: one D435 whose pipeline delivers the
+    given depth frames with the given frame numbers (a gap: frames librealsense dropped)."""
+
+    def __init__(self, frames, numbers, intr=INTR):
+        from types import SimpleNamespace as NS
+
+        self.camera_info = NS(serial_number="serial")
+        self.stream, self.format = NS(depth="depth"), NS(z16="z16")
+        rs_intr = NS(width=intr.width, height=intr.height, ppx=intr.ppx, ppy=intr.ppy, fx=intr.fx, fy=intr.fy,
+                     model="distortion." + intr.model, coeffs=list(intr.coeffs))
+        profile = NS(as_video_stream_profile=lambda: NS(get_intrinsics=lambda: rs_intr))
+        self.stopped = False
+        device = NS(get_info=lambda what: "012345678901")
+        self.context = lambda: NS(query_devices=lambda: [device])
+        self.config = lambda: NS(enable_device=lambda serial: None, enable_stream=lambda *a: None)
+        queue = [NS(get_depth_frame=lambda d=d, n=n: NS(get_profile=lambda: profile, get_frame_number=lambda: n,
+                                                         get_timestamp=lambda: 1000.0 + n * 100 / 9,
+                                                         get_data=lambda: d))
+                 for d, n in zip(frames, numbers)]
+        sensor = NS(get_depth_scale=lambda: intr.depth_scale)
+        started = NS(get_device=lambda: NS(first_depth_sensor=lambda: sensor))
+
+        def stop():
+            self.stopped = True
+        self.pipeline = lambda: NS(start=lambda config: started, wait_for_frames=lambda timeout: queue.pop(0),
+                                   stop=stop)
+
+
+def test_camera_stream_with_a_fake_camera(monkeypatch, capsys):
+    frames = render_frames(n=6)
+    fake = _FakeRealSense(frames, [10, 11, 14, 15, 16, 17])
+    monkeypatch.setattr(stream, "_rs", lambda: fake)
+    status, out, err = _run(capsys, "detect", "--camera", "--size", "64x48", "--fps", "90", "--frames", "0:4",
+                            "--json")
+    assert status == 0, err
+    lines = [json.loads(x) for x in out.strip().splitlines()]
+    assert [x["frame"] for x in lines] == [10, 11, 14, 15] and lines[0]["input"] == "camera"
+    assert all(len(x["detections"]) == 1 for x in lines)
+    assert "4 frame(s)" in err and "2 dropped" in err and fake.stopped
+    _fails(capsys, "detect", "--camera", "999", words=("no RealSense camera with serial number 999",))
