@@ -282,3 +282,43 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
             else:
                 put(topic, msgtype, t_ns, item)
     return path
+
+
+def record_with_sdk(path: str | Path, frames: Sequence[np.ndarray], intrinsics: Intrinsics, *, fps: int = 30,
+                    first_timestamp_ms: float = 1000.0, frame_numbers: Sequence[int] | None = None) -> Path:
+    """Record depth frames with pyrealsense2's own recorder, as the SDK >= 2.56 writes (ROS2, ``.db3``
+    for a .db3 path): a software device with one depth stream, frame k numbered frame_numbers[k]
+    (default k) and stamped first_timestamp_ms + number * 1000 / fps. frames: (H, W) uint16 counts
+    of ``intrinsics.depth_scale``. Returns ``path``."""
+    import gc
+
+    import pyrealsense2 as rs
+
+    path = Path(path)
+    numbers = list(range(len(frames))) if frame_numbers is None else [int(n) for n in frame_numbers]
+    dev = rs.software_device()
+    sensor = dev.add_sensor("Stereo Module")
+    vs = rs.video_stream()
+    vs.type, vs.index, vs.uid, vs.width, vs.height, vs.fps = rs.stream.depth, 0, 0, intrinsics.width, \
+        intrinsics.height, fps
+    vs.bpp, vs.fmt, vs.intrinsics = 2, rs.format.z16, intrinsics.to_rs()
+    profile = sensor.add_video_stream(vs)
+    sensor.add_read_only_option(rs.option.depth_units, intrinsics.depth_scale)
+    recorder = rs.recorder(str(path), dev)
+    queue = rs.frame_queue(8)
+    sensor.open(profile)
+    sensor.start(queue)
+    for depth, number in zip(frames, numbers):
+        f = rs.software_video_frame()
+        f.pixels = np.ascontiguousarray(depth, dtype=np.uint16)
+        f.bpp, f.stride = 2, 2 * intrinsics.width
+        f.timestamp, f.domain = first_timestamp_ms + number * 1000.0 / fps, rs.timestamp_domain.hardware_clock
+        f.frame_number, f.depth_units = number, intrinsics.depth_scale
+        f.profile = profile.as_video_stream_profile()
+        sensor.on_video_frame(f)
+        queue.wait_for_frame(2000)
+    sensor.stop()
+    sensor.close()
+    del recorder  # the file is complete once the recorder is gone
+    gc.collect()
+    return path

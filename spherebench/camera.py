@@ -125,6 +125,18 @@ class Intrinsics:
                    fx=f32(rs_intr.fx), fy=f32(rs_intr.fy), model=str(rs_intr.model),
                    coeffs=tuple(f32(c) for c in rs_intr.coeffs), depth_scale=f32(depth_scale))
 
+    def to_rs(self):
+        """As pyrealsense2's ``rs.intrinsics`` (the inverse of ``from_rs``; the depth unit is not one
+        of its fields), e.g. for a software device's stream."""
+        from spherebench.errors import require
+
+        rs = require("pyrealsense2", "realsense", "an rs.intrinsics")
+        ri = rs.intrinsics()
+        ri.width, ri.height = self.width, self.height
+        ri.ppx, ri.ppy, ri.fx, ri.fy = self.ppx, self.ppy, self.fx, self.fy
+        ri.model, ri.coeffs = getattr(rs.distortion, self.model), list(self.coeffs)
+        return ri
+
     def scaled(self, width: int, height: int) -> "Intrinsics":
         """The same camera at another resolution (pixel-centre convention kept)."""
         sx, sy = width / self.width, height / self.height

@@ -182,10 +182,8 @@ def test_rerun_save_writes_a_recording(recording, tmp_path, capsys):
 
 
 def test_intrinsics_from_an_rs_intrinsics():
-    i = rs.intrinsics()
-    i.width, i.height, i.ppx, i.ppy, i.fx, i.fy = INTR.width, INTR.height, INTR.ppx, INTR.ppy, INTR.fx, INTR.fy
-    i.model = rs.distortion.inverse_brown_conrady
-    i.coeffs = list(INTR.coeffs)
+    i = INTR.to_rs()
+    assert isinstance(i, rs.intrinsics) and i.model == rs.distortion.inverse_brown_conrady
     assert Intrinsics.from_rs(i, 0.001) == INTR
     assert Intrinsics.from_dict(i) == INTR  # an rs.intrinsics where a dict is expected
 
@@ -260,3 +258,16 @@ def test_camera_stream_with_a_fake_camera(monkeypatch, capsys):
     assert all(len(x["detections"]) == 1 for x in lines)
     assert "4 frame(s)" in err and "2 dropped" in err and fake.stopped
     _fails(capsys, "detect", "--camera", "999", words=("no RealSense camera with serial number 999",))
+
+
+def test_detect_streams_an_sdk_recording(tmp_path, capsys):
+    """A ROS2 .db3, as pyrealsense2 >= 2.56 records, with a lost frame."""
+    from spherebench.datasets.bagwrite import record_with_sdk
+
+    frames = render_frames(n=3)
+    path = record_with_sdk(tmp_path / "d435.db3", frames, INTR, frame_numbers=[0, 1, 3])
+    status, out, err = _run(capsys, "detect", path, "--json")
+    assert status == 0, err
+    lines = [json.loads(x) for x in out.strip().splitlines()]
+    assert [x["frame"] for x in lines] == [0, 1, 3] and all(len(x["detections"]) == 1 for x in lines)
+    assert "1 missing" in err
