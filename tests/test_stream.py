@@ -112,7 +112,7 @@ def test_real_time_drops_frames_a_slow_detector_cannot_keep_up_with(recording, c
     import spherebench.method as method
 
     def slow(cloud, config, seed=0):
-        time.sleep(0.1)  # three frame periods at 30 fps
+        time.sleep(0.2)  # six frame periods at 30 fps
         return []
     monkeypatch.setattr(method, "detect", slow)
     path, _, _ = recording
