@@ -143,9 +143,10 @@ class FrameSelection:
             kept += 1
             if (kept - 1) % self.every == 0:
                 yield frame, rel
-        if kept == 0 and self.time_range_ms is not None and last_rel is not None and last_rel < self.time_range_ms[0]:
-            raise SphereBenchError(f"--time-range {self.time_range_ms[0]:g}:{self.time_range_ms[1]:g} starts past the end "
-                                   f"of {where}: its last depth frame is at {last_rel:.1f} ms from the first")
+        t = self.time_range_ms
+        if kept == 0 and t is not None and last_rel is not None and last_rel < t[0]:
+            raise SphereBenchError(f"--time-range {t[0]:g}:{t[1]:g} starts past the end of {where}: its last depth "
+                                   f"frame is at {last_rel:.1f} ms from the first")
 
 
 def _split_range(text: str, option: str, kind):
