@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "noisier than that (a quieter one is measured from the data)")
     p.add_argument("--intrinsics", default=None, help="intrinsics.json for clouds without their own")
     p.add_argument("--seed", type=options.seed, default=0, help="random seed (same seed, same output)")
-    p.add_argument("--json", action="store_true", help="one JSON line per input")
+    p.add_argument("--json", action="store_true", help="one JSON line per input or frame (docs/formats.md)")
     p.add_argument("--out-ply", default=None, help="write the cloud with the inliers in red (one input only)")
     p.add_argument("--out-png", default=None,
                    help="draw every sphere's circle and score on the reprojected image (one input only; needs "
@@ -89,7 +89,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="log each frame (depth, cloud with inliers in red, spheres, circles) to a Rerun viewer "
                         "(needs the viz extra)")
     g.add_argument("--rerun-save", metavar="FILE.rrd", default=None,
-                   help="log to a Rerun recording file instead of a viewer (open it later with `rerun FILE.rrd`)")
+                   help="log to a Rerun recording file (with --rerun, beside the viewer); open it later with "
+                        "`rerun FILE.rrd`")
 
 
 def _scene_dir(path: Path) -> Path | None:
