@@ -8,28 +8,32 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: eval test venv data data-hard data-robust data-train realdata bench robustness sweep sweep-train train train-full train-hg eval-real clean distclean
+.PHONY: help eval test venv stream-bench data data-hard data-robust data-train realdata bench robustness sweep sweep-train train train-full train-hg eval-real clean distclean
+
+# ---- help: every target with its line (the `## ` comment after the target's name)
+help:  ## list the targets with one line each
+	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/^([a-zA-Z_-]+):.*## (.*)/\1\t\2/' | expand -t 16
 
 # ---- environment: the virtual environment, created when missing
-venv: .venv/.installed
+venv: .venv/.installed  ## create .venv and install the package with every extra (train, realsense, viz, test)
 .venv/.installed: pyproject.toml
 	@bash scripts/system_deps.sh
 	@test -x $(PY) || python3 -m venv .venv
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet -e ".[all]"
 	@touch $@
 
 # ---- data: simulated presets, built once and cached (delete data/ to rebuild)
-data: $(DATA)/default/coco_gt.json $(DATA)/paper/coco_gt.json
-data-hard: $(DATA)/hard/coco_gt.json
-data-robust: $(DATA)/robust/coco_gt.json
-data-train: $(DATA)/train/coco_gt.json
+data: $(DATA)/default/coco_gt.json $(DATA)/paper/coco_gt.json  ## build the default and paper presets into data/
+data-hard: $(DATA)/hard/coco_gt.json  ## build the hard preset
+data-robust: $(DATA)/robust/coco_gt.json  ## build the robust preset (the sensor grid)
+data-train: $(DATA)/train/coco_gt.json  ## build the train preset (CircleNet, Hough tuning)
 
 $(DATA)/%/coco_gt.json: | venv
 	$(SB) generate --preset $* --out $(DATA)/$* --seed $(SEED) --workers $(WORKERS)
 
 # ---- recorded data: the real sensor sets of ../shared/realdata, in the scene format
-realdata: $(DATA)/real/kinect-pochang/dataset.json $(DATA)/real/lidar-spherecalib/dataset.json
+realdata: $(DATA)/real/kinect-pochang/dataset.json $(DATA)/real/lidar-spherecalib/dataset.json  ## prepare the recorded sets of ../shared/realdata
 # the Kinect set with its reviewed colour-derived ball masks (datasets/annotations/kinect-pochang/README.md)
 KINECT_LABELME := datasets/annotations/kinect-pochang
 $(DATA)/real/kinect-pochang/dataset.json: $(wildcard $(KINECT_LABELME)/*.json) | venv
@@ -41,12 +45,13 @@ $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 # ---- the benchmark
 # every method on data/default, data/hard and data/robust (the sensor grid), Table 2 on data/paper
 # -> results/ (resumable; FORCE=1 recomputes every prediction set)
-eval: venv data data-hard data-robust
+eval: venv data data-hard data-robust  ## every method on default, hard, robust; Table 2 on paper -> results/
 	$(PY) scripts/run_eval.py --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
+	cp results/hough_config.json baselines/hough_config.json  # the package's copy (package data)
 
 # the recorded data sets (data/real/*) -> results/real/, each Table 3 beside the simulated `default`
 # of results/metrics.json (make eval) where that file exists
-eval-real: venv realdata
+eval-real: venv realdata  ## score the recorded sets -> results/real/
 	$(SB) evaluate $$(for d in $(DATA)/real/*/; do printf -- '--data %s ' "$${d%/}"; done) \
 		--out results/real --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force) \
 		$(if $(wildcard results/metrics.json),--beside results/metrics.json)
@@ -54,7 +59,7 @@ eval-real: venv realdata
 # ---- the learned 2D baseline: train the shipped CircleNet (ResNet-18) on the train preset (CPU,
 # about an hour on 2 cores), then install its ONNX model and card where `make eval` looks
 CIRCLENET_RUN := checkpoints/circlenet
-train: venv data-train
+train: venv data-train  ## retrain the shipped CircleNet (CPU, about an hour)
 	$(SB) train --data $(DATA)/train --out $(CIRCLENET_RUN) --backbone resnet18 --epochs 20 --seed $(SEED) \
 		--workers 1 --threads $(TRAIN_THREADS) $(if $(RESUME),--resume)
 	cp $(CIRCLENET_RUN)/model.onnx baselines/circlenet/model.onnx
@@ -72,40 +77,45 @@ TRAIN_THREADS ?= 1
 # data loading (cores), not the GPU, bounds the time. On such a machine: `make train-full train-hg
 # WORKERS=16` (WORKERS: data generation; GPU_WORKERS: data-loading processes per run).
 GPU_WORKERS ?= 8
-train-full: venv data-train
+train-full: venv data-train  ## the full-width CircleNet (CUDA only)
 	$(SB) train --data $(DATA)/train --out checkpoints/circlenet-full --backbone resnet18 --resnet-width 64 \
 		--epochs 40 --seed $(SEED) --device cuda --workers $(GPU_WORKERS) --onnx-weights float16 $(if $(RESUME),--resume)
 	mkdir -p baselines/circlenet/full
 	cp checkpoints/circlenet-full/model.onnx checkpoints/circlenet-full/model_card.md \
 		checkpoints/circlenet-full/model_card.json checkpoints/circlenet-full/training_curve.png baselines/circlenet/full/
-train-hg: venv data-train
+train-hg: venv data-train  ## the hourglass CircleNet (CUDA only)
 	$(SB) train --data $(DATA)/train --out checkpoints/circlenet-hg --backbone hourglass \
 		--epochs 20 --seed $(SEED) --device cuda --workers $(GPU_WORKERS) $(if $(RESUME),--resume)
 	mkdir -p baselines/circlenet/hg
 	cp checkpoints/circlenet-hg/model.onnx checkpoints/circlenet-hg/model_card.md \
 		checkpoints/circlenet-hg/model_card.json checkpoints/circlenet-hg/training_curve.png baselines/circlenet/hg/
 
-bench: venv data data-hard
+bench: venv data data-hard  ## detection and CPU time of the 3D detector -> results/bench.md
 	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench
 
 # the improved detector across sensor conditions (robust) over seeds 0-3, against issue 16's targets,
 # with the oracle's ceilings, default's and hard's figures and the time against paper-lstsq
-robustness: venv data data-hard data-robust
+robustness: venv data data-hard data-robust  ## the detector over the sensor grid, seeds 0-3 -> results/robustness.md
 	$(PY) -m spherebench.scripts.robustness $(DATA)/robust --default $(DATA)/default --hard $(DATA)/hard \
 		--seeds 0-3 --workers $(WORKERS) --out results/robustness
 
 # the 3D detector's detections over seeds 0-7 (default, hard) and 0-3 (train): how much they move with it
-sweep: venv data data-hard
+sweep: venv data data-hard  ## the detector over seeds 0-7 -> results/sweep.md
 	$(PY) -m spherebench.scripts.sweep $(DATA)/default $(DATA)/hard --seeds 0-7 --workers $(WORKERS) --out results/sweep
-sweep-train: venv data-train
+sweep-train: venv data-train  ## the detector over seeds 0-3 on train -> results/sweep_train.md
 	$(PY) -m spherebench.scripts.sweep $(DATA)/train --seeds 0-3 --workers $(WORKERS) --out results/sweep_train
 
-test: venv
+test: venv  ## the test suite (pytest)
 	$(PY) -m pytest -q
 
-clean:
+# streaming latency: two synthetic recordings of simulated scenes (424x240 and 848x480, 90 fps) played
+# offline and in real time -> per-frame median and p95 ms, frames dropped (docs/benchmark.md)
+stream-bench: venv  ## per-frame latency and frames dropped of `detect` on recordings, 424x240 and 848x480
+	$(PY) -m spherebench.scripts.stream_bench --out results/stream_bench
+
+clean:  ## remove build files
 	rm -rf .pytest_cache build *.egg-info
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
 
-distclean: clean
+distclean: clean  ## also remove .venv and data/
 	rm -rf .venv $(DATA)

@@ -29,6 +29,7 @@ import functools
 import itertools
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import cv2
@@ -36,6 +37,11 @@ import numpy as np
 
 from spherebench.errors import SphereBenchError
 from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, load_ground_truth, results_from_circles
+
+#: The tuned configuration shipped with the package (a copy of results/hough_config.json, which
+#: `make eval` writes and copies here): what `evaluate` uses without --hough-config, so that an
+#: installed package never re-tunes.
+SHIPPED_CONFIG = Path(__file__).resolve().with_name("hough_config.json")
 
 _METHODS = {"gradient": cv2.HOUGH_GRADIENT, "gradient_alt": cv2.HOUGH_GRADIENT_ALT}
 _INPUTS = ("colormap", "luma")

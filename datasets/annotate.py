@@ -407,16 +407,36 @@ def mask_outline(mask: np.ndarray) -> list[np.ndarray]:
     return out
 
 
+def _labelme_shape(points_px, shape_type: str, label: str, description: str) -> dict:
+    """A LabelMe shape of SphereBench pixel coordinates (centres at integers), in LabelMe's."""
+    return {"label": label, "points": [[round(float(x) - LABELME_OFFSET_PX, 2), round(float(y) - LABELME_OFFSET_PX, 2)]
+                                       for x, y in points_px],
+            "group_id": None, "description": description, "shape_type": shape_type, "flags": {}}
+
+
+def _labelme_doc(shapes: list[dict], image_name: str, shape: tuple[int, int]) -> dict:
+    return {"version": LABELME_VERSION, "flags": {}, "shapes": shapes, "imagePath": image_name,
+            "imageData": None, "imageHeight": int(shape[0]), "imageWidth": int(shape[1])}
+
+
 def labelme_from_mask(mask: np.ndarray | None, image_name: str, label: str = "ball",
                       description: str = "") -> dict:
     """A LabelMe document (one polygon per outline of the mask; none for None) for an image."""
-    h, w = mask.shape if mask is not None else (0, 0)
-    shapes = [{"label": label, "points": [[round(float(x) - LABELME_OFFSET_PX, 2), round(float(y) - LABELME_OFFSET_PX, 2)]
-                                          for x, y in poly],
-               "group_id": None, "description": description, "shape_type": "polygon", "flags": {}}
+    shapes = [_labelme_shape(poly, "polygon", label, description)
               for poly in (mask_outline(mask) if mask is not None else [])]
-    return {"version": LABELME_VERSION, "flags": {}, "shapes": shapes, "imagePath": image_name,
-            "imageData": None, "imageHeight": int(h), "imageWidth": int(w)}
+    return _labelme_doc(shapes, image_name, mask.shape if mask is not None else (0, 0))
+
+
+def labelme_from_circles(circles_px, image_name: str, shape: tuple[int, int], label: str = "ball",
+                         descriptions=None) -> dict:
+    """A LabelMe document of circles (cx, cy, r) px on an image of ``shape`` (H, W): LabelMe's circle
+    shape, its centre and a point on its rim, which ``balls_from_labelme`` reads back. descriptions:
+    one text per circle (e.g. the detector's score), for the reviewer."""
+    circles = [tuple(float(v) for v in c[:3]) for c in circles_px]
+    descriptions = descriptions or [""] * len(circles)
+    shapes = [_labelme_shape([(cx, cy), (cx + r, cy)], "circle", label, text)
+              for (cx, cy, r), text in zip(circles, descriptions)]
+    return _labelme_doc(shapes, image_name, shape)
 
 
 def labelme_text(doc: dict) -> str:
@@ -590,6 +610,8 @@ def contact_sheet(tiles: list[np.ndarray], columns: int = 3) -> np.ndarray:
 GT_COLOR_BGR = (0, 255, 0)
 AMODAL_COLOR_BGR = (255, 255, 255)
 REFERENCE_COLOR_BGR = (0, 255, 255)
+#: Detections drawn over an image (show --predictions, detect --out-png): magenta, unlike any ground truth.
+DETECTION_COLOR_BGR = (255, 0, 255)
 BALL_RGB = (255, 0, 0)
 REFERENCE_RGB = (255, 200, 0)
 REST_RGB = (150, 150, 150)
@@ -623,6 +645,28 @@ def draw_ground_truth(image_bgr: np.ndarray, scene: Scene) -> np.ndarray:
         u, v = project(scene.intrinsics, np.asarray([ref]))[0]
         if np.isfinite(u) and np.isfinite(v):
             cv2.drawMarker(out, (round(u), round(v)), REFERENCE_COLOR_BGR, cv2.MARKER_TILTED_CROSS, 12, 2)
+    return out
+
+
+def draw_detections(image_bgr: np.ndarray, circles_px, scores, color=DETECTION_COLOR_BGR,
+                    label: str = "") -> np.ndarray:
+    """(H, W, 3) uint8 BGR copy of the image with each detection's circle (cx, cy, r) px, its centre
+    and its score (``label`` before it, e.g. the method's name), best first: the best drawn
+    thicker, so that it shows where detections overlap."""
+    out = image_bgr.copy()
+    h = out.shape[0]
+    for k, (circle, score) in enumerate(zip(circles_px, scores)):
+        if circle is None:
+            continue
+        cx, cy, r = (float(v) for v in circle[:3])
+        c = (round(cx * (1 << _SHIFT)), round(cy * (1 << _SHIFT)))
+        cv2.circle(out, c, max(1, round(r * (1 << _SHIFT))), color, 2 if k == 0 else 1, cv2.LINE_AA, _SHIFT)
+        cv2.drawMarker(out, (round(cx), round(cy)), color, cv2.MARKER_CROSS, 6, 1)
+        text = f"{label} {score:.2f}".strip()
+        scale = max(0.4, h / 800)  # legible at 240 and 720 rows alike
+        y = int(cy - r - 5 if cy - r - 5 >= 12 else min(cy + r + 14, h - 4))  # above the circle, else below
+        cv2.putText(out, text, (int(max(0, cx - r)), y), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(out, text, (int(max(0, cx - r)), y), cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
     return out
 
 

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from spherebench.camera import Intrinsics
+from spherebench.camera import Intrinsics, float32_decimal
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.datasets.scene import Ball, Scene
@@ -856,24 +856,10 @@ def read_labelme(path: str | Path) -> dict:
 
 
 def _import_pyrealsense2():
-    try:
-        import pyrealsense2 as rs
-    except ImportError as exc:
-        raise SphereBenchError(f"reading RealSense recordings needs pyrealsense2, which cannot be imported ({exc}); "
-                               "install it (pip install pyrealsense2) and libusb-1.0 (apt-get install libusb-1.0-0)") from None
-    return rs
+    from spherebench.errors import require
 
-
-def _f32(value: float) -> float:
-    """A float32 from librealsense as the shortest decimal that is the same float32 (0.0001, not
-    9.999999747378752e-05), so that intrinsics.json reads as the device reported it."""
-    return float(str(np.float32(value)))
-
-
-def _rs_intrinsics(rs_intr, depth_scale: float) -> Intrinsics:
-    return Intrinsics(width=rs_intr.width, height=rs_intr.height, ppx=_f32(rs_intr.ppx), ppy=_f32(rs_intr.ppy),
-                      fx=_f32(rs_intr.fx), fy=_f32(rs_intr.fy), model=_distortion_name(rs_intr.model),
-                      coeffs=tuple(_f32(c) for c in rs_intr.coeffs), depth_scale=_f32(depth_scale))
+    return require("pyrealsense2", "realsense", "reading RealSense recordings and cameras (also: apt-get install "
+                   "libusb-1.0-0)")
 
 
 #: Colour formats of a recording's colour stream that prepare keeps (pyrealsense2's rs.format
@@ -892,9 +878,9 @@ BAG_COLOUR_SLACK_MS = 1.0
 
 @dataclass
 class BagFrame:
-    """One depth frame of a recording and, when the recording has a usable colour stream, the
-    colour frame nearest to it in time. index counts depth frames from 0; timestamps are the
-    frames' own (ms). colour: (h, w, 3) uint8 BGR at the colour stream's own size; None, with
+    """One depth frame of a recording or a live camera and, when the recording has a usable colour
+    stream, the colour frame nearest to it in time. index counts depth frames from 0; timestamps
+    are the frames' own (ms). colour: (h, w, 3) uint8 BGR at the colour stream's own size; None, with
     ``no_colour`` saying why, when no colour frame lies within BagColour.max_offset_ms (the nearest
     is then still named by colour_number and colour_timestamp_ms) or the two streams' timestamps
     are in different clock domains. All colour fields stay None without a colour stream."""
@@ -947,7 +933,7 @@ class BagRecording:
             sensors = self._device.query_sensors()
             streams = [(i, s, p) for i, s in enumerate(sensors) for p in s.get_stream_profiles()]
         except RuntimeError as exc:
-            raise SphereBenchError(f"{path}: not a readable RealSense recording ({exc})") from None
+            raise SphereBenchError(f"{path}: not a readable RealSense recording, or one cut short ({exc})") from None
         depth = [(i, s, p) for i, s, p in streams if s.is_depth_sensor() and p.stream_type() == rs.stream.depth]
         if not depth:
             found = ", ".join(sorted({str(p.stream_type()).removeprefix("stream.") for *_, p in streams})) or "none"
@@ -975,21 +961,27 @@ class BagRecording:
         try:
             ext = self._depth_profile.get_extrinsics_to(profile)
             c_intr = profile.as_video_stream_profile().get_intrinsics()
-            intr = _rs_intrinsics(c_intr, 1.0)
+            intr = Intrinsics.from_rs(c_intr, 1.0)
         except (RuntimeError, SphereBenchError) as exc:
             self.colour_note = (f"{path.name}: the colour stream's calibration cannot be used ({exc}): "
                                 "its scenes keep no colour frame")
             return
-        r = [_f32(v) for v in ext.rotation]  # column-major, as rs2_extrinsics
+        r = [float32_decimal(v) for v in ext.rotation]  # column-major, as rs2_extrinsics
         self.colour = BagColour(format=fmt, intrinsics=intr,
                                 rotation=tuple((r[i], r[3 + i], r[6 + i]) for i in range(3)),
-                                translation=tuple(_f32(v) for v in ext.translation), fps=int(profile.fps()),
+                                translation=tuple(float32_decimal(v) for v in ext.translation), fps=int(profile.fps()),
                                 max_offset_ms=(500.0 / profile.fps() if profile.fps() > 0 else math.inf)
                                 + BAG_COLOUR_SLACK_MS)
         self._colour_index, self._colour_sensor, self._colour_profile = sensor_index, sensor, profile
 
-    def frames(self, stop_after: int | None = None, stall_timeout_s: float = 10.0):
-        """BagFrames in recording order; stop_after: stop once this many have been yielded."""
+    def frames(self, stop_after: int | None = None, stall_timeout_s: float = 10.0, real_time: bool = False,
+               with_colour: bool = True):
+        """BagFrames in recording order; stop_after: stop once this many have been yielded;
+        with_colour=False plays the depth stream alone (a detector needs no colour).
+
+        real_time: play at the recording's rate, as a camera would deliver it: a frame that
+        arrives while the consumer is still busy with earlier ones is dropped (counted in
+        ``self.dropped``, by stream: "depth", "colour") rather than waited for."""
         import collections
         import queue
         import threading
@@ -997,10 +989,11 @@ class BagRecording:
         rs = _import_pyrealsense2()
         path = self.path
         playback = self._device.as_playback()
-        playback.set_real_time(False)
-        items: queue.Queue = queue.Queue(maxsize=4)
+        playback.set_real_time(bool(real_time))
+        items: queue.Queue = queue.Queue(maxsize=2 if real_time else 4)  # real time: hold little, drop the rest
         stopping = threading.Event()
-        colour = self.colour
+        self.dropped = {"depth": 0, "colour": 0}
+        colour = self.colour if with_colour else None
         convert, bpp = BAG_COLOUR_FORMATS[colour.format] if colour is not None else (None, 0)
 
         def on_frame(frame) -> None:
@@ -1012,6 +1005,12 @@ class BagRecording:
             item = (is_depth, int(frame.get_frame_number()), float(frame.get_timestamp()), image,
                     vp.get_intrinsics() if is_depth else (vp.width(), vp.height()),
                     str(frame.get_frame_timestamp_domain()))
+            if real_time:
+                try:
+                    items.put_nowait(item)
+                except queue.Full:
+                    self.dropped["depth" if is_depth else "colour"] += 1
+                return
             while not stopping.is_set():
                 try:
                     items.put(item, timeout=0.05)
@@ -1048,7 +1047,7 @@ class BagRecording:
         def paired(depth_item):
             nonlocal index
             number, stamp, image, rs_intr = depth_item
-            frame = BagFrame(index, number, stamp, image, _rs_intrinsics(rs_intr, self.depth_scale))
+            frame = BagFrame(index, number, stamp, image, Intrinsics.from_rs(rs_intr, self.depth_scale))
             index += 1
             if colour is None:
                 return frame
@@ -1131,3 +1130,35 @@ def _stop_sensors(sensors) -> None:
             sensor.close()
         except RuntimeError:
             pass  # already stopped at the end of the file
+
+
+# --------------------------------------------------------------------------- detection records
+#
+# One JSON schema for every detector's output, 3D and 2D alike (docs/formats.md): what
+# `spherebench detect` and `detect-2d` print, one line per input or frame.
+
+def detection_record(score: float, circle_px=None, center_m=None, radius_m: float | None = None,
+                     inliers: int | None = None) -> dict:
+    """One detection: score; circle_px {center [cx, cy], radius} px (None: it projects nowhere on
+    the image) with its COCO bbox [x, y, w, h] px; center_m [x, y, z] and radius_m, metres, camera
+    frame (None from a 2D detector); inliers, the points on the sphere (None from a 2D detector)."""
+    from spherebench.circles import circle_bbox
+
+    circle = None if circle_px is None else [float(v) for v in circle_px[:3]]
+    return {"score": round(float(score), 6),
+            "center_m": None if center_m is None else [round(float(v), 6) for v in center_m],
+            "radius_m": None if radius_m is None else round(float(radius_m), 6),
+            "circle_px": None if circle is None else {"center": [round(circle[0], 3), round(circle[1], 3)],
+                                                      "radius": round(circle[2], 3)},
+            "bbox": None if circle is None else [round(v, 3) for v in circle_bbox(*circle)],
+            "inliers": None if inliers is None else int(inliers)}
+
+
+def frame_record(source: str, detections: list[dict], ms: float, frame: int | None = None,
+                 timestamp_ms: float | None = None, **extra) -> dict:
+    """One input's (or one stream frame's) line: source, frame number and timestamp (ms; None for a
+    file), detections (``detection_record``s, best first), ms (the detection alone), and any extra
+    fields of the command (e.g. radius_m)."""
+    return {"input": str(source), "frame": None if frame is None else int(frame),
+            "timestamp_ms": None if timestamp_ms is None else round(float(timestamp_ms), 3),
+            **extra, "detections": detections, "ms": round(float(ms), 3)}

@@ -120,6 +120,34 @@ class FrameSelection:
         """Indices kept out of a sequence of n frames without timestamps."""
         return list(range(self.first, n if self.stop is None else min(n, self.stop)))[::self.every]
 
+    def apply(self, frames, where: str = "the recording") -> Iterator[tuple]:
+        """(frame, ms from the first frame) of the timestamped frames kept (objects with ``index``,
+        0-based, and ``timestamp_ms``), lazily: a stream is never held in memory. Stops reading at
+        the end of the time range. Raises SphereBenchError when a time range starts past the last
+        frame, so that it is not taken for an empty recording."""
+        t_first = last_rel = None
+        kept = 0
+        for frame in frames:
+            if self.stop is not None and frame.index >= self.stop:
+                break  # a camera's stream has no end of its own
+            t_first = frame.timestamp_ms if t_first is None else t_first
+            last_rel = rel = frame.timestamp_ms - t_first
+            if self.time_range_ms is not None:
+                t0, t1 = self.time_range_ms
+                if rel > t1:
+                    break
+                if rel < t0:
+                    continue
+            if frame.index < self.first:
+                continue
+            kept += 1
+            if (kept - 1) % self.every == 0:
+                yield frame, rel
+        t = self.time_range_ms
+        if kept == 0 and t is not None and last_rel is not None and last_rel < t[0]:
+            raise SphereBenchError(f"--time-range {t[0]:g}:{t[1]:g} starts past the end of {where}: its last depth "
+                                   f"frame is at {last_rel:.1f} ms from the first")
+
 
 def _split_range(text: str, option: str, kind):
     parts = text.split(":")
@@ -367,23 +395,8 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
     recording = inout.BagRecording(path)
     notes = (recording.colour_note,) if recording.colour_note else ()
     colour = recording.colour
-    t_first = None
-    kept = 0
-    for bag_frame in recording.frames(stop_after=selection.stop):
+    for bag_frame, rel in selection.apply(recording.frames(stop_after=selection.stop), path.name):
         index, stamp, intr = bag_frame.index, bag_frame.timestamp_ms, bag_frame.intrinsics
-        t_first = stamp if t_first is None else t_first
-        rel = stamp - t_first
-        if selection.time_range_ms is not None:
-            t0, t1 = selection.time_range_ms
-            if rel > t1:
-                break
-            if rel < t0:
-                continue
-        if index < selection.first:
-            continue
-        kept += 1
-        if (kept - 1) % selection.every:
-            continue
         if depth_scale is not None:
             intr = _with_depth_scale(intr, depth_scale)
         meta = {"source": path.name, "frame_index": index, "frame_number": bag_frame.number,

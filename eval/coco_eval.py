@@ -41,6 +41,7 @@ import numpy as np
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
+from spherebench.circles import circle_bbox
 from spherebench.errors import SphereBenchError
 from spherebench.eval.circle_iou import circle_intersection_matrix, circle_iou_matrix
 
@@ -72,7 +73,7 @@ def _circle_of(ann: dict, what: str) -> tuple[float, float, float]:
 
 def _with_circle_geometry(ann: dict, circle: tuple[float, float, float]) -> dict:
     cx, cy, r = circle
-    ann["bbox"] = [cx - r, cy - r, 2.0 * r, 2.0 * r]
+    ann["bbox"] = circle_bbox(cx, cy, r)
     ann["area"] = math.pi * r * r
     return ann
 

@@ -372,6 +372,12 @@ def _circle(c) -> list[float] | None:
     return None if c is None else [round(float(v), 3) for v in c]
 
 
+def _coco_bbox(circle) -> list[float]:
+    """A result's COCO bbox [x, y, w, h] px round its circle: pycocotools' loadRes needs one."""
+    from spherebench.circles import circle_bbox
+    return [round(v, 3) for v in circle_bbox(*circle)]
+
+
 class _DetectorEngine:
     """The 3D detector (``spherebench.method``)."""
 
@@ -622,7 +628,7 @@ def _results_and_records(spec: MethodSpec, output: str, scenes: list[SceneInfo],
             if scene.image_id is not None and circle is not None and circle[2] > 0:
                 r = {"image_id": scene.image_id, "category_id": category_id,
                      "circle_center": entry["circle"][:2], "circle_radius": entry["circle"][2],
-                     "score": entry["score"], "scene_id": scene.scene_id}
+                     "bbox": _coco_bbox(entry["circle"]), "score": entry["score"], "scene_id": scene.scene_id}
                 if spec.kind == "3d":
                     r["center_m"] = entry["center_m"]
                     if entry["radius_m"] is not None:

@@ -1,20 +1,28 @@
-"""`spherebench detect`: find balls of known radius in point clouds or scene folders.
+"""`spherebench detect`: find balls of known radius in point clouds, scene folders, RealSense
+recordings (.bag, .db3) and a live RealSense camera.
 
-One line per input: with --json, {"input", "radius_m", "radius_source", "spheres": [{"center",
-"radius", "score", "inliers", "circle"}], "ms"} (ms: the detection alone, file reading excluded);
-without, a short summary. The ball radius is --radius, else the dataset's (dataset.json two levels
-above a scene folder), else the scene's (gt.json), else 0.12 m (a basketball); radius_source says
-which ("--radius", "dataset", "scene", "default"). Every argument and input is checked before the
-first detection. Files are read and written only through ``spherebench.datasets.inout``.
+One line per input, or per frame of a recording or camera: with --json, a record of the schema of
+docs/formats.md, {"input", "frame", "timestamp_ms", "radius_m", "radius_source", "detections":
+[{"score", "center_m", "radius_m", "circle_px": {"center", "radius"}, "bbox", "inliers"}], "ms"}
+(ms: the detection alone, file reading excluded; frame and timestamp_ms: null for a file);
+without, a short summary. A stream ends with a summary on stderr: frames, median and 95th
+percentile time per frame, frames dropped (--real-time, a camera: detection fell behind) and
+missing (the recording lost them). The ball radius is --radius, else the dataset's (dataset.json
+two levels above a scene folder), else the scene's (gt.json), else 0.12 m (a basketball);
+radius_source says which ("--radius", "dataset", "scene", "default"). Every argument and input
+is checked before the first detection. Files are read and written only through
+``spherebench.datasets.inout``; streams come from ``spherebench.datasets.stream``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
 import time
+from array import array
 from pathlib import Path
 
 import cv2
@@ -22,7 +30,8 @@ import numpy as np
 
 from spherebench import options
 from spherebench.cloud import in_front_of_camera
-from spherebench.datasets import inout
+from spherebench.datasets import inout, stream
+from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import PRESETS, config_for, detect, warm_up
@@ -42,7 +51,8 @@ OTHER_RGB = (128, 128, 128)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("paths", nargs="+", metavar="PATH", help="PLY/PCD/XYZ clouds or scene folders")
+    p.add_argument("paths", nargs="*", metavar="PATH",
+                   help="PLY/PCD/XYZ clouds, scene folders or RealSense recordings (.bag, .db3)")
     p.add_argument("--radius", type=float, default=None,
                    help="ball radius, metres (default: a scene's or its dataset's ball_radius_m, else 0.12: a "
                         "basketball)")
@@ -55,25 +65,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "noisier than that (a quieter one is measured from the data)")
     p.add_argument("--intrinsics", default=None, help="intrinsics.json for clouds without their own")
     p.add_argument("--seed", type=options.seed, default=0, help="random seed (same seed, same output)")
-    p.add_argument("--json", action="store_true", help="one JSON line per input")
+    p.add_argument("--json", action="store_true", help="one JSON line per input or frame (docs/formats.md)")
     p.add_argument("--out-ply", default=None, help="write the cloud with the inliers in red (one input only)")
     p.add_argument("--out-png", default=None,
-                   help="draw the circles on the reprojected image (one input only; needs intrinsics)")
-
-
-def _draw(image: np.ndarray, spheres) -> np.ndarray:
-    out = image.copy()
-    for k, s in enumerate(spheres):
-        if s.circle_exact is None:
-            continue
-        cx, cy, r = s.circle_exact
-        colour = (255, 255, 255) if k == 0 else (200, 200, 200)
-        # sub-pixel drawing: OpenCV takes fixed-point coordinates with `shift` fractional bits
-        sh = 4
-        cv2.circle(out, (int(round(cx * 16)), int(round(cy * 16))), max(1, int(round(r * 16))), colour, 2,
-                   cv2.LINE_AA, sh)
-        cv2.drawMarker(out, (int(round(cx)), int(round(cy))), colour, cv2.MARKER_CROSS, 6, 1)
-    return out
+                   help="draw every sphere's circle and score on the reprojected image (one input only; needs "
+                        "intrinsics)")
+    g = p.add_argument_group("streams: recordings and a live camera")
+    g.add_argument("--camera", nargs="?", const="", default=None, metavar="SERIAL",
+                   help="detect in a live RealSense camera's depth (the one with this serial number, else the "
+                        "first found) until Ctrl-C or --frames' end")
+    g.add_argument("--size", default="848x480", metavar="WxH", help="--camera's depth mode (default 848x480)")
+    g.add_argument("--fps", type=options.count, default=90, help="--camera's frame rate (default 90)")
+    g.add_argument("--every", type=options.count, default=1, metavar="N", help="detect every N-th selected frame")
+    g.add_argument("--frames", metavar="A:B", help="frame indices A (inclusive) to B (exclusive), from 0")
+    g.add_argument("--time-range", metavar="T0:T1", help="recordings: ms from the first depth frame, inclusive")
+    g.add_argument("--real-time", action="store_true",
+                   help="play recordings at their own rate, dropping the frames that arrive while the detector is "
+                        "busy (as a camera would); default: every frame is read")
+    g.add_argument("--labelme-out", metavar="DIR", default=None,
+                   help="also write each frame's circles as a LabelMe file DIR/<scene_id>.json, to pre-annotate "
+                        "the recording (read back by `spherebench prepare REC --labelme DIR`)")
+    g.add_argument("--rerun", action="store_true",
+                   help="log each frame (depth, cloud with inliers in red, spheres, circles) to a Rerun viewer "
+                        "(needs the viz extra)")
+    g.add_argument("--rerun-save", metavar="FILE.rrd", default=None,
+                   help="log to a Rerun recording file (with --rerun, beside the viewer); open it later with "
+                        "`rerun FILE.rrd`")
 
 
 def _scene_dir(path: Path) -> Path | None:
@@ -112,32 +129,49 @@ def ball_radius(path: Path, given: float | None) -> tuple[float, str]:
 
 
 def _check_input(path: Path) -> None:
-    """What can be told of an input without reading it: it exists and is a cloud or a scene folder."""
+    """What can be told of an input without reading it: it exists and is a cloud, a scene folder or
+    a recording."""
     if path.is_dir():
         if (path / "scenes").is_dir() and not (path / "cloud.ply").is_file():
             raise SphereBenchError(f"{path} is a dataset: give its scene folders ({path}/scenes/*)")
         return  # inout.load_cloud says what a folder lacks
     if not path.exists():
         raise SphereBenchError(f"{path}: file not found")
-    if path.suffix.lower() not in inout.CLOUD_READERS:
+    if path.suffix.lower() not in inout.CLOUD_READERS and not stream.is_recording(path):
         raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' "
-                               f"(use {', '.join(sorted(inout.CLOUD_READERS))} or a scene folder)")
+                               f"(use {', '.join(sorted(inout.CLOUD_READERS))}, a scene folder or a RealSense "
+                               f"recording: {', '.join(stream.RECORDING_SUFFIXES)})")
 
 
-def _check_outputs(args: argparse.Namespace) -> None:
+def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
     outs = {name: Path(p) for name, p in (("--out-ply", args.out_ply), ("--out-png", args.out_png)) if p}
+    if outs and streaming:
+        raise SphereBenchError("--out-ply and --out-png take one cloud, not a stream of frames: use --labelme-out "
+                               "DIR or --rerun-save FILE.rrd for recordings and cameras")
     if outs and len(args.paths) != 1:
         raise SphereBenchError("--out-ply and --out-png take one input: give one PATH")
-    source = Path(args.paths[0]).resolve()
-    for name, out in outs.items():
+    sources = [Path(p).resolve() for p in args.paths]
+    named = {**outs, **({"--rerun-save": Path(args.rerun_save)} if args.rerun_save else {})}
+    for name, out in named.items():
         if out.is_dir():
             raise SphereBenchError(f"{name} {out} is a folder: give a file name")
-        if out.resolve() == source:
-            raise SphereBenchError(f"{name} {out} is the input: give another file name")
-        if source.is_dir() and source in out.resolve().parents:  # a scene's own files are not ours to write
-            raise SphereBenchError(f"{name} {out} is inside the input scene folder: write it elsewhere")
+        for source in sources:
+            if out.resolve() == source:
+                raise SphereBenchError(f"{name} {out} is the input: give another file name")
+            if source.is_dir() and source in out.resolve().parents:  # a scene's own files are not ours to write
+                raise SphereBenchError(f"{name} {out} is inside the input scene folder: write it elsewhere")
     if len(outs) == 2 and outs["--out-ply"].resolve() == outs["--out-png"].resolve():
         raise SphereBenchError("--out-ply and --out-png name the same file: give two names")
+    if args.rerun_save and Path(args.rerun_save).suffix != ".rrd":
+        raise SphereBenchError(f"--rerun-save {args.rerun_save}: give a file name ending in .rrd")
+    if args.rerun_save and Path(args.rerun_save).exists() and Path(args.rerun_save).stat().st_size:
+        raise SphereBenchError(f"--rerun-save {args.rerun_save} exists; it is never overwritten: give a new name")
+    if args.labelme_out:
+        inout.check_output_dir(args.labelme_out, inout.owned_by_kind(LABELME_KIND), "--labelme-out", args.paths)
+
+
+#: The kind of a --labelme-out folder (inout.OWNER_MARKER): replaced by a later run, never another's files.
+LABELME_KIND = "detect-labelme"
 
 
 def _tolerance(args: argparse.Namespace, radius: float, source: str, raw: str) -> float:
@@ -173,13 +207,75 @@ def _image_for(path: Path, cloud) -> np.ndarray:
     return colorize_depth(depth)
 
 
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise SphereBenchError(f"--size {text!r}: give WxH in pixels, e.g. 848x480") from None
+    if w <= 0 or h <= 0:
+        raise SphereBenchError(f"--size {text!r}: give a positive WxH, e.g. 848x480")
+    return w, h
+
+
+def _spheres_json(spheres) -> list[dict]:
+    return [inout.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices))
+            for s in spheres]
+
+
+def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None) -> None:
+    if args.json:
+        print(json.dumps(inout.frame_record(raw, _spheres_json(spheres), ms,
+                                            frame=None if frame is None else frame.number,
+                                            timestamp_ms=None if frame is None else frame.timestamp_ms,
+                                            radius_m=radius, radius_source=source)), flush=True)
+        return
+    parts = [f"({s.center_m[0]:+.3f}, {s.center_m[1]:+.3f}, {s.center_m[2]:.3f}) m score {s.score:.2f} "
+             f"{len(s.inlier_indices)} inliers" for s in spheres]
+    where = raw if frame is None else f"{raw} frame {frame.number} ({frame.timestamp_ms:.1f} ms)"
+    print(f"{where}: {len(spheres)} sphere(s) of radius {radius:g} m ({RADIUS_SOURCES[source]}) in {ms:.1f} ms"
+          + (": " + "; ".join(parts) if parts else ""), flush=True)
+
+
+def _labelme(out_dir: Path | None, scene_id: str, spheres, shape) -> None:
+    """The frame's circles as a LabelMe file <scene_id>.json, named as `prepare` names its scene."""
+    if out_dir is None:
+        return
+    circles = [s.circle_exact for s in spheres if s.circle_exact is not None]
+    scores = [f"score {s.score:.3f}" for s in spheres if s.circle_exact is not None]
+    doc = labelme_from_circles(circles, "image.png", shape, descriptions=scores)
+    inout.atomic_write_bytes(out_dir / f"{scene_id}.json", labelme_text(doc).encode())
+
+
+def _stream_summary(raw: str, times_ms, stats: stream.StreamStats, real_time: bool) -> None:
+    """One line on stderr at a stream's end: frames, time per frame, frames dropped and missing."""
+    lat = stream.latency_summary(np.frombuffer(times_ms, dtype=np.float64) if len(times_ms) else [])
+    timing = (f", {lat['median_ms']:.1f} ms median and {lat['p95_ms']:.1f} ms p95 per frame" if lat["frames"]
+              else "")
+    dropped = f", {stats.dropped} dropped (detection behind the frame rate)" if real_time or stats.dropped else ""
+    print(f"{raw}: {stats.frames} frame(s){timing}{dropped}, {stats.missing} missing", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
+    from spherebench.datasets.prepare import FrameSelection, scene_id_from
+
     # every argument and input first: nothing is detected, printed or written before all are good
     if args.radius is not None and not (np.isfinite(args.radius) and args.radius > 0):
         raise SphereBenchError(f"--radius {args.radius}: the ball radius must be > 0 metres (e.g. 0.12)")
     if args.depth_noise is not None and not (np.isfinite(args.depth_noise) and args.depth_noise >= 0):
         raise SphereBenchError(f"--depth-noise {args.depth_noise}: give sigma_z / z^2 in 1/m, >= 0 (e.g. 0.0015)")
-    _check_outputs(args)
+    if args.camera is not None and args.paths:
+        raise SphereBenchError("--camera reads the camera: give no PATH with it")
+    if args.camera is None and not args.paths:
+        raise SphereBenchError("nothing to detect in: give PATHs (clouds, scene folders, recordings) or --camera")
+    streaming = args.camera is not None or any(stream.is_recording(p) for p in args.paths)
+    stream_only = [o for o, v in (("--every", args.every != 1), ("--frames", args.frames),
+                                  ("--time-range", args.time_range), ("--real-time", args.real_time)) if v]
+    if stream_only and not streaming:
+        raise SphereBenchError(f"{stream_only[0]} selects frames of a recording or camera: give a .bag/.db3 or --camera")
+    if args.camera is not None and args.time_range:
+        raise SphereBenchError("--time-range is for recordings; with --camera use --frames A:B")
+    _check_outputs(args, streaming)
+    selection = FrameSelection.parse(args.every, args.frames, args.time_range)
     extra = {} if args.depth_noise is None else {"noise_z2_per_m": args.depth_noise}
     intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
     jobs = []
@@ -187,37 +283,83 @@ def run(args: argparse.Namespace) -> int:
         path = Path(raw)
         _check_input(path)
         radius, source = ball_radius(path, args.radius)
-        jobs.append((raw, path, radius, source, _tolerance(args, radius, source, raw)))
+        eps = _tolerance(args, radius, source, raw)
+        if stream.is_recording(path):  # opened now: a recording without depth is refused before any work
+            stats = stream.StreamStats()
+            jobs.append((raw, path, radius, source, eps,
+                         (stream.recording_frames(path, selection, args.real_time, stats), stats)))
+        else:
+            jobs.append((raw, path, radius, source, eps, None))
+    if args.camera is not None:
+        width, height = _size(args.size)
+        radius, source = (args.radius, "--radius") if args.radius is not None else (DEFAULT_RADIUS_M, "default")
+        eps = _tolerance(args, radius, source, "--camera")
+        stats = stream.StreamStats()
+        frames = stream.camera_frames(args.camera or None, width, height, args.fps, stats)
+        if selection.first or selection.stop is not None or selection.every != 1:
+            frames = (f for f, _ in selection.apply(frames, "the camera's stream"))
+        jobs.append((f"camera {args.camera}".strip(), None, radius, source, eps, (frames, stats)))
+    log = None
+    if args.rerun or args.rerun_save:
+        from spherebench import viz
+        log = viz.RerunLog("spherebench detect", save=args.rerun_save, spawn=args.rerun)
+    labelme_ctx = (inout.atomic_directory(args.labelme_out, inout.owned_by_kind(LABELME_KIND)) if args.labelme_out
+                   else contextlib.nullcontext())
     configs: dict = {}
-    for raw, path, radius, source, eps in jobs:
-        cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)
-        if behind:
-            print(f"note: {raw}: {behind} points at z <= 0 left out (a depth camera sees only z > 0)",
-                  file=sys.stderr)
-        image = _image_for(path, cloud) if args.out_png else None  # before the work: it may be refused
+
+    def config(radius, eps):
         if (radius, eps) not in configs:
             configs[radius, eps] = config_for(args.method, radius_m=radius, eps_m=eps, **extra)
             warm_up(configs[radius, eps])  # the kernels' one-off loading is no detection time
-        t = time.perf_counter()
-        spheres = detect(cloud, configs[radius, eps], seed=args.seed)
-        ms = (time.perf_counter() - t) * 1e3
-        if args.json:
-            rec = {"input": str(raw), "radius_m": radius, "radius_source": source,
-                   "spheres": [{k: v for k, v in s.to_dict().items()
-                                if k in ("center", "radius", "score", "inliers", "circle")} for s in spheres],
-                   "ms": round(ms, 3)}
-            print(json.dumps(rec), flush=True)
-        else:
-            parts = [f"({s.center_m[0]:+.3f}, {s.center_m[1]:+.3f}, {s.center_m[2]:.3f}) m score {s.score:.2f} "
-                     f"{len(s.inlier_indices)} inliers" for s in spheres]
-            print(f"{raw}: {len(spheres)} sphere(s) of radius {radius:g} m ({RADIUS_SOURCES[source]}) in {ms:.1f} ms"
-                  + (": " + "; ".join(parts) if parts else ""), flush=True)
-        if args.out_ply:
-            colours = np.tile(np.array(OTHER_RGB, np.uint8), (len(cloud.points), 1))
-            for s in spheres:
-                colours[s.inlier_indices] = INLIER_RGB
-            keep = np.isfinite(cloud.points).all(axis=1)
-            inout.write_ply(args.out_ply, cloud.points[keep], colours[keep])
-        if args.out_png:
-            inout.write_png(args.out_png, _draw(image, spheres))
+        return configs[radius, eps]
+
+    try:
+        with labelme_ctx as labelme_dir:
+            if labelme_dir is not None:
+                inout.write_json(Path(labelme_dir) / inout.OWNER_MARKER, {"kind": LABELME_KIND,
+                                                                           "written_by": "spherebench"})
+            for raw, path, radius, source, eps, streamed in jobs:
+                if streamed is not None:
+                    frames, stats = streamed
+                    stem = scene_id_from(path.stem) if path is not None else f"camera{args.camera or ''}"
+                    times = array("d")  # floats, not frames: bounded over an hour-long recording
+                    for frame, spheres, ms in stream.detect_stream(frames, config(radius, eps), args.seed, stats):
+                        stream.print_notes(stats, f"note: {raw}")
+                        times.append(ms)
+                        _print_result(args, raw, spheres, ms, radius, source, frame)
+                        _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
+                        if log is not None:
+                            log.frame(raw, frame, spheres)
+                    stream.print_notes(stats, f"note: {raw}")
+                    _stream_summary(raw, times, stats, args.real_time or path is None)
+                    continue
+                cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)
+                if behind:
+                    print(f"note: {raw}: {behind} points at z <= 0 left out (a depth camera sees only z > 0)",
+                          file=sys.stderr)
+                image = _image_for(path, cloud) if args.out_png else None  # before the work: it may be refused
+                if labelme_dir is not None and not cloud.organised:
+                    raise SphereBenchError(f"{raw}: --labelme-out needs an image: an organised cloud with intrinsics")
+                cfg = config(radius, eps)
+                t = time.perf_counter()
+                spheres = detect(cloud, cfg, seed=args.seed)
+                ms = (time.perf_counter() - t) * 1e3
+                _print_result(args, raw, spheres, ms, radius, source)
+                if labelme_dir is not None:
+                    _labelme(labelme_dir, scene_id_from(path.name if path.is_dir() else path.stem), spheres,
+                             cloud.intrinsics.shape)
+                if log is not None:
+                    log.cloud(raw, cloud, spheres)
+                if args.out_ply:
+                    colours = np.tile(np.array(OTHER_RGB, np.uint8), (len(cloud.points), 1))
+                    for s in spheres:
+                        colours[s.inlier_indices] = INLIER_RGB
+                    keep = np.isfinite(cloud.points).all(axis=1)
+                    inout.write_ply(args.out_ply, cloud.points[keep], colours[keep])
+                if args.out_png:
+                    inout.write_png(args.out_png, draw_detections(image, [s.circle_exact for s in spheres],
+                                                                  [s.score for s in spheres]))
+    finally:
+        if log is not None:
+            log.close()
     return 0

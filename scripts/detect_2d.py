@@ -7,10 +7,13 @@ folder holding one, of any size. The image is scaled to the model's training foc
 (213 px: the D435 at 424x240), run, and the circles mapped back to its own pixels. Its focal
 length comes from --focal-px, else from the intrinsics.json beside the image (a scene folder);
 without either the camera is taken to have the D435's field of view (a note says so when the
-image is not 424x240). With --json, one line per input:
-    {"input": PATH, "circles": [{"center": [cx, cy], "radius": r, "score": s}, ...], "ms": T}
-circles in the input's pixels, best first; ms = inference time (scaling, padding, ONNX Runtime,
-decoding), not file reading.
+image is not 424x240). With --json, one line per input in the schema that `detect` prints too
+(docs/formats.md):
+    {"input": PATH, "frame": null, "timestamp_ms": null, "detections": [{"score": s, "center_m": null,
+     "radius_m": null, "circle_px": {"center": [cx, cy], "radius": r}, "bbox": [x, y, w, h],
+     "inliers": null}, ...], "ms": T}
+circles in the input's pixels, best first (a 2D detector knows no metres); ms = inference time
+(scaling, padding, ONNX Runtime, decoding), not file reading.
 """
 
 from __future__ import annotations
@@ -35,6 +38,9 @@ def add_arguments(parser) -> None:
                              "use 0 for mAP)")
     parser.add_argument("--top-k", type=int, default=100, metavar="K", help="at most K circles per image (default 100)")
     parser.add_argument("--threads", type=int, default=None, metavar="N", help="ONNX Runtime threads (default: all)")
+    parser.add_argument("--provider", default=None, metavar="NAME",
+                        help="ONNX Runtime execution provider: cpu (default), cuda (needs onnxruntime-gpu), or a "
+                             "full name such as CUDAExecutionProvider")
 
 
 def _image_path(path: Path) -> Path:
@@ -53,6 +59,7 @@ def _image_path(path: Path) -> Path:
 def run(args) -> int:
     from spherebench.baselines.circlenet.imaging import load_image
     from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector, scene_focal_px
+    from spherebench.datasets import inout
     from spherebench.errors import SphereBenchError
 
     if args.top_k < 1:
@@ -61,7 +68,7 @@ def run(args) -> int:
         raise SphereBenchError(f"--focal-px must be a positive number of pixels, got {args.focal_px:g}")
     images = [_image_path(Path(p)) for p in args.paths]  # all checked before the model loads
     focals = [args.focal_px if args.focal_px is not None else scene_focal_px(p.parent) for p in images]
-    detector = CircleNetDetector(args.model or DEFAULT_MODEL, threads=args.threads)
+    detector = CircleNetDetector(args.model or DEFAULT_MODEL, threads=args.threads, provider=args.provider)
     assumed = []  # images of another size than the model's without a focal length
     for given, path, focal in zip(args.paths, images, focals):
         image = load_image(path)
@@ -71,9 +78,8 @@ def run(args) -> int:
         circles = detector.detect(image, min_score=args.min_score, top_k=args.top_k, focal_px=focal)
         ms = 1000 * (time.perf_counter() - t0)
         if args.json:
-            print(json.dumps({"input": given, "circles": [
-                {"center": [round(float(cx), 2), round(float(cy), 2)], "radius": round(float(r), 2),
-                 "score": round(float(s), 4)} for cx, cy, r, s in circles], "ms": round(ms, 2)}), flush=True)
+            print(json.dumps(inout.frame_record(given, [inout.detection_record(s, (cx, cy, r))
+                                                        for cx, cy, r, s in circles], ms)), flush=True)
         else:
             found = ", ".join(f"({cx:.1f}, {cy:.1f}) r {r:.1f} score {s:.2f}" for cx, cy, r, s in circles) or "none"
             print(f"{given}: {len(circles)} circle(s) {found} [{ms:.1f} ms]", flush=True)

@@ -39,8 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="worker processes (output identical for any number)")
     p.add_argument("--force", action="store_true", help="recompute predictions even when finished ones match")
     p.add_argument("--hough-config", metavar="FILE", default=None,
-                   help="Hough configuration JSON (default: the tuned one in results/hough_config.json, else "
-                        "tuned now on a training subset built under OUT)")
+                   help="Hough configuration JSON (default: the tuned one in results/hough_config.json, else the "
+                        "copy shipped with the package, else tuned now on a training subset built under OUT)")
     p.add_argument("--model", metavar="FILE", default=None,
                    help="the `circlenet` method's ONNX model (default: baselines/circlenet/model.onnx; skipped if "
                         "missing); circlenet-full and circlenet-hg use theirs under baselines/circlenet/")
@@ -49,6 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "beside the same methods' figures on its --beside-label dataset")
     p.add_argument("--beside-label", metavar="LABEL", default="default",
                    help="the dataset of --beside to compare with (default: default)")
+    p.add_argument("--provider", default=None, metavar="NAME",
+                   help="ONNX Runtime execution provider of the CircleNet methods: cpu (default), cuda (needs "
+                        "onnxruntime-gpu), or a full name")
     p.add_argument("--no-figures", action="store_true", help="write no figures")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -71,7 +74,8 @@ def load_hough_config(path: str | Path):
 
 
 def resolve_hough(methods, hough_file, out: Path, seed: int, workers: int, progress: bool, log=print):
-    """The Hough configuration to use: a given file, the repository's tuned cache, or a fresh tuning."""
+    """The Hough configuration to use: a given file, the repository's tuned cache, the package's copy, or
+    a fresh tuning."""
     from spherebench.eval import runner
     if methods is not None and "hough" not in methods:
         return None
@@ -85,6 +89,10 @@ def resolve_hough(methods, hough_file, out: Path, seed: int, workers: int, progr
                 return load_hough_config(repo_cache)
         except (OSError, json.JSONDecodeError):
             pass
+    from spherebench.baselines.hough import SHIPPED_CONFIG
+    if SHIPPED_CONFIG.is_file():  # an installed package, or a clone whose results/ predate its code
+        log(f"hough: the tuned configuration shipped with the package ({SHIPPED_CONFIG.name})")
+        return load_hough_config(SHIPPED_CONFIG)
     return runner.tuned_hough_config(out / "hough_config.json", out / "train-hough", seed=0, workers=workers,
                                      progress=progress, log=log)
 
@@ -217,6 +225,16 @@ def run(args: argparse.Namespace) -> int:
         datasets[_label(path, taken)] = path
     for path in datasets.values():
         check_dataset(path)
+    if args.provider:  # the worker processes inherit it (infer.PROVIDER_VARIABLE)
+        import os
+        from spherebench.baselines.circlenet.infer import PROVIDER_VARIABLE, execution_provider
+        os.environ[PROVIDER_VARIABLE] = execution_provider(args.provider)
+    from spherebench.eval.runner import CIRCLENET_MODELS, circlenet_model_path
+    for name in args.methods or ():  # a method asked for by name is run, or refused: never dropped quietly
+        given = name == "circlenet" and args.model
+        if name in CIRCLENET_MODELS and not given and not circlenet_model_path(name).is_file():
+            raise SphereBenchError(f"--methods {name}: its model {circlenet_model_path(name)} is not there (train it "
+                                   f"with `{CIRCLENET_MODELS[name][1]}`, or leave the method out)")
     if args.model and (args.methods is None or "circlenet" in args.methods):
         from spherebench.eval.runner import circlenet_spec
         circlenet_spec(args.model)  # a corrupt model is refused now, not after the other methods have run

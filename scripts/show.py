@@ -1,10 +1,12 @@
-"""``spherebench show DIR/scenes/<id>``: a scene's ground truth, to look at.
+"""``spherebench show DIR/scenes/<id>``: a scene's ground truth, and a method's detections, to look at.
 
 Writes a PNG of the reprojected image (image.png) with the ground-truth circles (visible-mask
 circle solid green, amodal circle dashed white, a source's reference centre, not ground truth,
 as a yellow cross) and a binary PLY of the scene's points with the ball's in red and the rest
-grey, for MeshLab. An image-less scene gets the PLY only. Thin driver: the drawing is in
-``spherebench.datasets.annotate``.
+grey, for MeshLab. With --predictions FILE (a predictions file of `evaluate`, a COCO results
+list) or --method NAME (results/predictions/<dataset>/<NAME>.json), the method's circles on
+this scene are drawn too, magenta, each with its score. An image-less scene gets the PLY only.
+Thin driver: the drawing is in ``spherebench.datasets.annotate``.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import argparse
 from pathlib import Path
 
 from spherebench.datasets import inout
-from spherebench.datasets.annotate import ball_point_colors, draw_ground_truth
+from spherebench.datasets.annotate import ball_point_colors, draw_detections, draw_ground_truth
 from spherebench.errors import SphereBenchError
 
 
@@ -23,6 +25,46 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out-ply", type=Path, help="coloured cloud (default ./<scene_id>_gt.ply)")
     p.add_argument("--tolerance", type=float, default=0.02,
                    help="image-less scenes: metres beyond the radius round a centre that count as the ball")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--predictions", type=Path, metavar="FILE",
+                   help="also draw a method's circles with their scores: a predictions file of `evaluate` "
+                        "(a COCO results list with circle_center, circle_radius, score)")
+    g.add_argument("--method", metavar="NAME",
+                   help="the same, from RESULTS/predictions/<dataset>/<NAME>.json (e.g. improved, circlenet)")
+    p.add_argument("--results", type=Path, default=Path("results"), metavar="RESULTS",
+                   help="the results folder of --method (default: results)")
+    p.add_argument("--min-score", type=float, default=0.3, metavar="S",
+                   help="draw detections scoring at least S (default 0.3; mAP files hold every score)")
+
+
+def _predictions_file(args, scene_dir: Path) -> Path | None:
+    if args.method:
+        path = args.results / "predictions" / scene_dir.resolve().parent.parent.name / f"{args.method}.json"
+        if not path.is_file():
+            raise SphereBenchError(f"--method {args.method}: {path} not found (run `spherebench evaluate`, or give "
+                                   "--results RESULTS or --predictions FILE)")
+        return path
+    if args.predictions is not None and not args.predictions.is_file():
+        raise SphereBenchError(f"--predictions {args.predictions}: file not found")
+    return args.predictions
+
+
+def scene_predictions(path: Path, scene_id: str, min_score: float) -> list[tuple[tuple[float, float, float], float]]:
+    """((cx, cy, r) px, score) of a predictions file's detections on one scene, best first."""
+    results = inout.read_json(path)
+    if not isinstance(results, list):
+        raise SphereBenchError(f"{path}: not a predictions file (a COCO results list)")
+    found = []
+    for i, r in enumerate(results):
+        if not isinstance(r, dict) or r.get("scene_id") != scene_id:
+            continue
+        try:
+            (cx, cy), rad, score = r["circle_center"], r["circle_radius"], float(r["score"])
+        except (KeyError, TypeError, ValueError):
+            raise SphereBenchError(f"{path}: result {i} lacks circle_center, circle_radius or score") from None
+        if score >= min_score:
+            found.append(((float(cx), float(cy), float(rad)), score))
+    return sorted(found, key=lambda d: -d[1])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,14 +83,26 @@ def run(args: argparse.Namespace) -> int:
                                "drawn off the image; rebuild the dataset with the command that wrote it")
     if image is None and args.out_png:
         raise SphereBenchError(f"{scene_dir}: an image-less scene (a cloud without a camera) has no image; drop --out-png")
+    pred_file = _predictions_file(args, scene_dir)
+    detections = [] if pred_file is None else scene_predictions(pred_file, scene.scene_id, args.min_score)
+    if pred_file is not None and image is None:
+        raise SphereBenchError(f"{scene_dir}: an image-less scene has no image to draw detections on")
     status = "annotated" if scene.annotated else "unannotated (no ground truth)"
     print(f"scene {scene.scene_id}: {status}, {len(scene.balls)} ball(s)")
     if image is not None:
         out_png = args.out_png or Path(f"{scene.scene_id}_gt.png")
-        inout.write_png(out_png, draw_ground_truth(image, scene))
+        drawn = draw_ground_truth(image, scene)
+        if pred_file is not None:
+            label = args.method or ""
+            drawn = draw_detections(drawn, [c for c, _ in detections], [s for _, s in detections], label=label)
+        inout.write_png(out_png, drawn)
         for k, b in enumerate(scene.balls):
             if b.circle_px is not None:
                 print(f"  ball {k}: circle ({b.circle_px[0]:.1f}, {b.circle_px[1]:.1f}) r {b.circle_px[2]:.1f} px")
+        for k, (c, score) in enumerate(detections):
+            print(f"  detection {k}: circle ({c[0]:.1f}, {c[1]:.1f}) r {c[2]:.1f} px, score {score:.2f}")
+        if pred_file is not None:
+            print(f"  {len(detections)} detection(s) of {pred_file} scoring >= {args.min_score:g}")
         print(f"wrote {out_png}")
     else:
         print("image-less scene: no image to draw on, writing the PLY only")

@@ -42,6 +42,9 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from spherebench.errors import require
+
+    require("torch", "train", "training")
     from spherebench.baselines.circlenet.model import CircleNetConfig
     from spherebench.baselines.circlenet.train import TrainConfig, run_config, train
     from spherebench.errors import SphereBenchError

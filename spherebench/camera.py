@@ -98,6 +98,10 @@ class Intrinsics:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Intrinsics":
+        """From a dict of rs.intrinsics' fields (intrinsics.json), or from an ``rs.intrinsics`` itself
+        (``from_rs``, with the D435's depth unit)."""
+        if not isinstance(d, dict) and all(hasattr(d, k) for k in ("width", "height", "ppx", "ppy", "fx", "fy")):
+            return cls.from_rs(d)
         missing = [k for k in ("width", "height", "ppx", "ppy", "fx", "fy") if k not in d]
         if missing:
             raise SphereBenchError(f"intrinsics lack {', '.join(missing)}: give width, height, ppx, ppy, fx, fy "
@@ -110,12 +114,40 @@ class Intrinsics:
         except (TypeError, ValueError) as exc:
             raise SphereBenchError(f"intrinsics have a value of the wrong type ({exc})") from None
 
+    @classmethod
+    def from_rs(cls, rs_intr, depth_scale: float = D435_DEPTH_SCALE_M) -> "Intrinsics":
+        """From pyrealsense2's ``rs.intrinsics`` (a stream profile's ``get_intrinsics()``) and the
+        depth sensor's ``get_depth_scale()`` (metres per count). librealsense keeps these in float32:
+        each is taken as the shortest decimal of the same float32 (0.0001, not 9.99999974e-05), so that
+        intrinsics.json reads as the device reported it."""
+        f32 = float32_decimal
+        return cls(width=int(rs_intr.width), height=int(rs_intr.height), ppx=f32(rs_intr.ppx), ppy=f32(rs_intr.ppy),
+                   fx=f32(rs_intr.fx), fy=f32(rs_intr.fy), model=str(rs_intr.model),
+                   coeffs=tuple(f32(c) for c in rs_intr.coeffs), depth_scale=f32(depth_scale))
+
+    def to_rs(self):
+        """As pyrealsense2's ``rs.intrinsics`` (the inverse of ``from_rs``; the depth unit is not one
+        of its fields), e.g. for a software device's stream."""
+        from spherebench.errors import require
+
+        rs = require("pyrealsense2", "realsense", "an rs.intrinsics")
+        ri = rs.intrinsics()
+        ri.width, ri.height = self.width, self.height
+        ri.ppx, ri.ppy, ri.fx, ri.fy = self.ppx, self.ppy, self.fx, self.fy
+        ri.model, ri.coeffs = getattr(rs.distortion, self.model), list(self.coeffs)
+        return ri
+
     def scaled(self, width: int, height: int) -> "Intrinsics":
         """The same camera at another resolution (pixel-centre convention kept)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(width=width, height=height, ppx=(self.ppx + 0.5) * sx - 0.5,
                           ppy=(self.ppy + 0.5) * sy - 0.5, fx=self.fx * sx, fy=self.fy * sy,
                           model=self.model, coeffs=self.coeffs, depth_scale=self.depth_scale)
+
+
+def float32_decimal(value: float) -> float:
+    """A float32 (librealsense's calibration values) as the shortest decimal that is the same float32."""
+    return float(str(np.float32(value)))
 
 
 def _implausible(intr: Intrinsics) -> list[str]:

@@ -23,6 +23,12 @@ import numpy as np
 
 from spherebench.camera import Intrinsics, pixel_rays, project
 
+def circle_bbox(cx: float, cy: float, r: float) -> list[float]:
+    """The box [x, y, w, h] px round a circle (COCO's bbox), so that a circle result loads in any
+    COCO tool (pycocotools' loadRes needs a bbox or a segmentation)."""
+    return [float(cx) - float(r), float(cy) - float(r), 2.0 * float(r), 2.0 * float(r)]
+
+
 def mask_circle(mask: np.ndarray) -> tuple[float, float, float] | None:
     """Smallest enclosing circle (cx, cy, r) px of a boolean mask (H, W); None if empty."""
     m = np.asarray(mask).astype(np.uint8)

@@ -80,7 +80,7 @@ def test_detect_takes_the_radius_of_the_dataset_and_says_so(big_ball, tmp_path, 
     assert cli.main(["detect", str(scene), "--json"]) == 0
     rec = _json_lines(capsys.readouterr().out)[0]
     assert rec["radius_m"] == 0.2 and rec["radius_source"] == "dataset"
-    assert np.linalg.norm(np.array(rec["spheres"][0]["center"]) - BALL_CENTRE_M) < 0.01
+    assert np.linalg.norm(np.array(rec["detections"][0]["center_m"]) - BALL_CENTRE_M) < 0.01
     # a scene folder on its own: its gt.json; --radius wins over both; a bare cloud: 0.12
     alone = tmp_path / "alone"
     shutil.copytree(scene, alone)
@@ -156,7 +156,7 @@ def test_detect_leaves_out_points_behind_a_depth_camera_and_refuses_a_cloud_most
                      "--json"]) == 0
     cap = capsys.readouterr()
     assert cap.err.count("\n") == 1 and "40 points at z <= 0 left out" in cap.err
-    centres = [s["center"] for s in _json_lines(cap.out)[0]["spheres"]]
+    centres = [s["center_m"] for s in _json_lines(cap.out)[0]["detections"]]
     assert centres and all(c[2] > 0 for c in centres)
     assert np.linalg.norm(np.array(centres[0]) - BALL_CENTRE_M) < 0.01
     inout.write_cloud_ply(tmp_path / "flipped.ply", Cloud(cloud.points * [1, 1, -1], cloud.rows, cloud.cols))

@@ -397,10 +397,11 @@ def test_cli_train_then_detect_2d(tmp_path, tiny_data, monkeypatch, capsys):
     lines = [json.loads(s) for s in cap.out.strip().splitlines()]
     assert [d["input"] for d in lines] == [str(tiny_data / "scenes/0002"), str(tiny_data / "scenes/0004/image.png")]
     for d in lines:
-        assert len(d["circles"]) == 3 and d["ms"] > 0
-        c = d["circles"][0]
-        assert len(c["center"]) == 2 and c["radius"] >= 0 and 0 < c["score"] < 1
-        assert [x["score"] for x in d["circles"]] == sorted((x["score"] for x in d["circles"]), reverse=True)
+        assert len(d["detections"]) == 3 and d["ms"] > 0
+        c = d["detections"][0]
+        assert len(c["circle_px"]["center"]) == 2 and c["circle_px"]["radius"] >= 0 and 0 < c["score"] < 1
+        assert c["center_m"] is None and c["radius_m"] is None  # a 2D detector knows no metres
+        assert [x["score"] for x in d["detections"]] == sorted((x["score"] for x in d["detections"]), reverse=True)
     rc, cap = _cli(monkeypatch, capsys, "detect-2d", str(tiny_data / "scenes/0002"), "--model", str(out / "model.onnx"))
     assert rc == 0 and cap.out.startswith(str(tiny_data / "scenes/0002") + ": ")
     # resuming takes the run's settings (batch size 4, 1 epoch); a finished run is only re-exported

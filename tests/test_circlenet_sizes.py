@@ -157,7 +157,7 @@ def test_detect_2d_runs_on_any_size_with_the_scene_camera(tmp_path, monkeypatch,
     for d, (name, (h, w)) in zip(lines, sizes.items()):  # b with its own camera, the others at the model's width
         want = det.detect(_image(h, w), top_k=3, focal_px=525.0 if name == "b" else None)
         assert len(want) >= 1
-        np.testing.assert_allclose([c["center"] + [c["radius"]] for c in d["circles"]], want[:, :3], atol=0.01)
+        np.testing.assert_allclose([c["circle_px"]["center"] + [c["circle_px"]["radius"]] for c in d["detections"]], want[:, :3], atol=0.01)
     image = _image(720, 1280)  # in the input's pixels, not the scaled 424x240's
     np.testing.assert_allclose(det.detect(image, top_k=3), unscale_circles(
         det.detect(cv2.resize(image, (64, 36), interpolation=cv2.INTER_NEAREST_EXACT), top_k=3, scale=1.0),

@@ -13,7 +13,7 @@ from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
 from spherebench.eval import report, runner
 
-RESULT_KEYS = {"image_id", "category_id", "circle_center", "circle_radius", "score", "scene_id"}
+RESULT_KEYS = {"image_id", "category_id", "circle_center", "circle_radius", "bbox", "score", "scene_id"}
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +56,22 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
     scored = report.score_set(paths["improved"], coco, runner.dataset_scenes(tiny))
     assert scored.metrics["3d"]["within_2cm"] == 1.0 and scored.metrics["mAP50"] == 1.0
     assert set(scored.metrics["families"]) == {gt[i]["family"] for i in gt}
+    # a predictions file loads in plain pycocotools (its bbox: the circle's box), and dropping the bbox
+    # (files written before it) scores the same
+    from pycocotools.coco import COCO
+    from spherebench.eval.coco_eval import evaluate_circles
+    plain = COCO()
+    plain.dataset = json.loads(json.dumps(coco))
+    for ann in plain.dataset["annotations"]:
+        ann.setdefault("bbox", [0, 0, 1, 1])
+    plain.createIndex()
+    loaded = plain.loadRes(str(paths["improved"]))
+    assert len(loaded.getAnnIds()) == len(exact)
+    for r in exact:
+        (cx, cy), rad = r["circle_center"], r["circle_radius"]
+        assert r["bbox"] == pytest.approx([cx - rad, cy - rad, 2 * rad, 2 * rad], abs=2e-3)
+    without = [{k: v for k, v in r.items() if k != "bbox"} for r in exact]
+    assert evaluate_circles(coco, without)["mAP"] == evaluate_circles(coco, exact)["mAP"] == scored.metrics["mAP"]
     # pyransac3d's radius is its own and is compared against R
     py = report.score_set(paths["pyransac3d"], coco, runner.dataset_scenes(tiny))
     assert all(d["radius_m"] is not None for s in py.scenes for d in s["detections"])

@@ -1,6 +1,6 @@
 """`spherebench prepare` on ROS1 `.bag` recordings (the SDK <= 2.55 / RealSense Viewer format).
 
-The bags are written by tests/bagwriter.py in librealsense's ROS1 topic layout and read back
+The bags are written by datasets/bagwrite.py in librealsense's ROS1 topic layout and read back
 through pyrealsense2's own playback, as a user's recording would be.
 """
 
@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("pyrealsense2")
 
 # rosbags is in the test extra (pure Python): missing, it is an error rather than a skip
-from bagwriter import write_realsense_bag  # noqa: E402  (tests/ is on sys.path under pytest)
+from spherebench.datasets.bagwrite import write_realsense_bag  # noqa: E402
 
 from spherebench import cli  # noqa: E402
 from spherebench.camera import Intrinsics, image_rays  # noqa: E402

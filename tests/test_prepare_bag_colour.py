@@ -3,7 +3,7 @@ frame nearest in time and keeps it aligned to the depth (colour.png), so that `a
 --from-colour` and `prepare --labelme` work on a D435 recording as on the Kinect set.
 
 The scenes are ray-cast twice, once in each camera, so the colour frame shows the ball where the
-colour camera sees it; the bags are written by tests/bagwriter.py (ROS1) and by pyrealsense2's
+colour camera sees it; the bags are written by datasets/bagwrite.py (ROS1) and by pyrealsense2's
 own recorder (ROS2, .db3) and read back through pyrealsense2 playback.
 """
 
@@ -17,7 +17,7 @@ import pytest
 
 rs = pytest.importorskip("pyrealsense2")
 
-from bagwriter import ColourStream, write_realsense_bag  # noqa: E402  (tests/ is on sys.path under pytest)
+from spherebench.datasets.bagwrite import ColourStream, write_realsense_bag  # noqa: E402
 
 from spherebench import cli  # noqa: E402
 from spherebench.camera import Intrinsics, align_to_depth, image_rays, project  # noqa: E402
@@ -91,13 +91,6 @@ def within_one_pixel(mask: np.ndarray, silhouette: np.ndarray) -> bool:
     return bool(np.all(grown | ~mask) and np.all(mask | ~shrunk))
 
 
-def rs_intrinsics(intr: Intrinsics):
-    ri = rs.intrinsics()
-    ri.width, ri.height, ri.ppx, ri.ppy, ri.fx, ri.fy = intr.width, intr.height, intr.ppx, intr.ppy, intr.fx, intr.fy
-    ri.model, ri.coeffs = getattr(rs.distortion, intr.model), list(intr.coeffs)
-    return ri
-
-
 def run_prepare(*args):
     return cli.main(["prepare", *map(str, args)])
 
@@ -111,7 +104,7 @@ def test_projection_is_librealsenses(model):
                       coeffs=(0.08, -0.05, 0.002, -0.001, 0.01))
     rng = np.random.default_rng(1)
     points = np.c_[rng.uniform(-0.4, 0.4, (300, 2)), rng.uniform(0.4, 3.0, 300)]
-    theirs = np.array([rs.rs2_project_point_to_pixel(rs_intrinsics(intr), list(p)) for p in points])
+    theirs = np.array([rs.rs2_project_point_to_pixel(intr.to_rs(), list(p)) for p in points])
     np.testing.assert_allclose(project(intr, points), theirs, atol=1e-3)  # px; librealsense is float32
 
 
@@ -129,9 +122,9 @@ def test_alignment_matches_librealsense_pixel_for_pixel():
     pick = rng.choice(len(rows), 400, replace=False)
     agree = 0
     for r, c in zip(rows[pick], cols[pick]):
-        p = rs.rs2_deproject_pixel_to_point(rs_intrinsics(DEPTH), [float(c), float(r)], float(depth[r, c]) * 0.001)
+        p = rs.rs2_deproject_pixel_to_point(DEPTH.to_rs(), [float(c), float(r)], float(depth[r, c]) * 0.001)
         q = rs.rs2_transform_point_to_point(extrinsics, p)
-        u, v = rs.rs2_project_point_to_pixel(rs_intrinsics(COLOUR), q)
+        u, v = rs.rs2_project_point_to_pixel(COLOUR.to_rs(), q)
         agree += np.array_equal(aligned[r, c], noise[int(np.floor(v + 0.5)), int(np.floor(u + 0.5))])
     assert agree >= 398, agree
     assert counts["with_depth"] == DEPTH.width * DEPTH.height
@@ -354,7 +347,7 @@ def test_ros2_recording_with_colour(tmp_path):
                                                          ("RGB Camera", rs.stream.color, COLOUR, rs.format.bgr8, 3))):
         vs = rs.video_stream()
         vs.type, vs.index, vs.uid, vs.width, vs.height, vs.fps = kind, 0, uid, intr.width, intr.height, 30
-        vs.bpp, vs.fmt, vs.intrinsics = bpp, fmt, rs_intrinsics(intr)
+        vs.bpp, vs.fmt, vs.intrinsics = bpp, fmt, intr.to_rs()
         sensors.append(dev.add_sensor(name))
         profiles.append(sensors[-1].add_video_stream(vs))
         streams.append(vs)

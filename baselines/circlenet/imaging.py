@@ -30,6 +30,14 @@ from scipy.ndimage import maximum_filter
 from spherebench.camera import D435_FOCAL_PER_WIDTH
 from spherebench.errors import SphereBenchError
 
+# The exported model's contract (onnx_export writes it, infer checks it), here so that inference
+# imports no torch.
+METADATA_KEY = "spherebench.circlenet"
+#: Bumped when the input/output contract changes; infer.py refuses other versions.
+FORMAT_VERSION = 1
+INPUT_NAME = "image"
+OUTPUT_NAMES = ("heat", "offset", "radius")
+
 #: Output stride of the heads, pixels per grid cell.
 STRIDE = 4
 #: Network input sides must be multiples of this (stride 32 at the deepest level of both backbones).

@@ -15,32 +15,55 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import onnx
 import onnxruntime as ort
 
-from spherebench.baselines.circlenet.imaging import (decode_numpy, focal_scale, input_size, load_image, pad_image,
+from spherebench.baselines.circlenet.imaging import (FORMAT_VERSION, INPUT_NAME, METADATA_KEY, OUTPUT_NAMES,
+                                                     decode_numpy, focal_scale, input_size, load_image, pad_image,
                                                      scale_image, to_network_input, training_focal_px,
                                                      unscale_circles)
-from spherebench.baselines.circlenet.onnx_export import FORMAT_VERSION, INPUT_NAME, METADATA_KEY, OUTPUT_NAMES
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
-#: The shipped model (committed by ``make train``).
+#: The shipped model (committed by ``make train``; package data of the wheel).
 DEFAULT_MODEL = Path(__file__).resolve().with_name("model.onnx")
+
+#: ONNX Runtime's execution provider when none is given: this variable's value, else the CPU's. A
+#: variable, so that `evaluate --provider` reaches the worker processes that load the model.
+PROVIDER_VARIABLE = "SPHEREBENCH_ONNX_PROVIDER"
+#: Short names of ONNX Runtime's execution providers.
+PROVIDER_NAMES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider",
+                  "tensorrt": "TensorrtExecutionProvider", "openvino": "OpenVINOExecutionProvider",
+                  "coreml": "CoreMLExecutionProvider", "dml": "DmlExecutionProvider"}
+
+
+def execution_provider(name: str | None = None) -> str:
+    """ONNX Runtime's provider for a name ("cpu", "cuda", or its full name; None: $PROVIDER_VARIABLE,
+    else the CPU), checked against this installation's: SphereBenchError if it lacks it."""
+    name = name or os.environ.get(PROVIDER_VARIABLE) or "cpu"
+    full = PROVIDER_NAMES.get(name.lower(), name)
+    available = ort.get_available_providers()
+    if full not in available:
+        raise SphereBenchError(f"ONNX Runtime here has no {full} (it has {', '.join(available)}); for CUDA install "
+                               "onnxruntime-gpu in place of onnxruntime")
+    return full
 
 
 class CircleNetDetector:
-    """An exported CircleNet in an ONNX Runtime CPU session.
+    """An exported CircleNet in an ONNX Runtime session (on the CPU unless told otherwise).
 
     model_path: the .onnx file written by ``onnx_export.export_onnx``. threads: ONNX Runtime
-    intra-op threads (None: its default, all cores).
+    intra-op threads (None: its default, all cores). provider: ``execution_provider``'s name (None:
+    the CPU, unless $SPHEREBENCH_ONNX_PROVIDER names another).
     """
 
-    def __init__(self, model_path=DEFAULT_MODEL, threads: int | None = None):
+    def __init__(self, model_path=DEFAULT_MODEL, threads: int | None = None, provider: str | None = None):
         path = Path(model_path)
+        provider = execution_provider(provider)
         if not path.is_file():
             raise SphereBenchError(f"model file {path} not found; train one with `spherebench train` "
                                    "or pass --model FILE")
@@ -51,7 +74,7 @@ class CircleNetDetector:
         try:
             proto = free_input_size(onnx.load(str(path)))
             self.session = ort.InferenceSession(proto.SerializeToString(), sess_options=opts,
-                                                providers=["CPUExecutionProvider"])
+                                                providers=[provider])
         except Exception as exc:  # onnx and ONNX Runtime raise their own types for corrupt files
             first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
             raise SphereBenchError(f"cannot load model {path}: not a valid ONNX file ({first})") from None

@@ -29,16 +29,12 @@ import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from spherebench.baselines.circlenet.imaging import STRIDE, training_focal_px
+from spherebench.baselines.circlenet.imaging import (FORMAT_VERSION, INPUT_NAME, METADATA_KEY, OUTPUT_NAMES,
+                                                     STRIDE, training_focal_px)
 from spherebench.baselines.circlenet.model import CircleNet
 from spherebench.errors import SphereBenchError
 
 OPSET = 17
-METADATA_KEY = "spherebench.circlenet"
-#: Bumped when the input/output contract changes; infer.py refuses other versions.
-FORMAT_VERSION = 1
-INPUT_NAME = "image"
-OUTPUT_NAMES = ("heat", "offset", "radius")
 #: How the exported file stores its weights (the arithmetic is float32 in both).
 WEIGHT_FORMATS = ("float32", "float16")
 

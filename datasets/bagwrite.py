@@ -1,10 +1,12 @@
-"""Test helper: write a minimal RealSense SDK recording in the ROS1 ``.bag`` layout.
+"""Write a minimal RealSense SDK recording in the ROS1 ``.bag`` layout: synthetic recordings for
+the tests and for ``make stream-bench`` (needs ``rosbags``, of the ``test`` extra).
 
 pyrealsense2 >= 2.56 records ROS2 (``.db3``) only, but almost every existing D435 recording (the
 RealSense Viewer's and ``rs.recorder``'s up to SDK 2.55) is a ROS1 bag. This module writes such a
 bag of synthetic frames with the pure-Python ``rosbags`` library, in the topic layout that
 librealsense's ROS1 reader (``src/media/ros/ros_reader.cpp``, ``ros_file_format.h``) plays back,
-so that the ``.bag`` path of ``spherebench prepare`` is tested on the format users actually have.
+so that the ``.bag`` paths of ``spherebench prepare`` and ``detect`` are tested on the format users
+actually have.
 
 Layout written (one device; sensor_0 with one video stream, ``<S>`` = ``Depth_0`` or ``Color_0``;
 with a ``ColourStream``, also sensor_1 = RGB Camera with ``Color_0``, or ``Color_0`` on sensor_0)::
@@ -151,7 +153,8 @@ def _stamp(store, seconds: float):
 def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsics: Intrinsics, *,
                         stream: str = "depth", fps: int = 30, first_timestamp_ms: float = 1000.0,
                         frame_depth_units: bool = True, option_underscores: bool = False,
-                        device_info: dict[str, str] | None = None, colour: ColourStream | None = None) -> Path:
+                        device_info: dict[str, str] | None = None, colour: ColourStream | None = None,
+                        frame_numbers: Sequence[int] | None = None) -> Path:
     """Write ``frames`` as a RealSense SDK ROS1 recording (file format version 4) at ``path``.
 
     frames: depth frames (H, W) uint16 in counts of ``intrinsics.depth_scale`` (stream="depth"),
@@ -163,6 +166,8 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
     frame_depth_units: write the newer SDKs' Image extension (frame_id "1" + float32 depth unit).
     option_underscores: name option topics "Depth_Units" (as newer SDKs) rather than "Depth Units".
     colour: a colour stream recorded beside the depth (stream="depth" only).
+    frame_numbers: the frames' numbers, increasing (default 0, 1, ...); a gap is a frame the camera
+        lost, and frame k's timestamp is first_timestamp_ms + frame_numbers[k] * 1000 / fps.
     Returns ``path``.
     """
     if stream not in _STREAMS:
@@ -174,8 +179,11 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
         want = (np.uint16, (h, w)) if stream == "depth" else (np.uint8, (h, w, 3))
         if f.dtype != want[0] or f.shape != want[1]:
             raise ValueError(f"frame {i} is {f.dtype} {f.shape}, expected {np.dtype(want[0])} {want[1]}")
+    numbers = list(range(len(frames))) if frame_numbers is None else [int(n) for n in frame_numbers]
+    if len(numbers) != len(frames) or any(b <= a for a, b in zip(numbers, numbers[1:])):
+        raise ValueError("frame_numbers must give one increasing number per frame")
     streams = [(0, stream, frames, intrinsics, _STREAMS[stream][2], _STREAMS[stream][3],
-                [first_timestamp_ms + i * 1000.0 / fps for i in range(len(frames))], fps, "Hardware Clock", None)]
+                [first_timestamp_ms + n * 1000.0 / fps for n in numbers], fps, "Hardware Clock", None, numbers)]
     if colour is not None:
         if colour.encoding not in COLOUR_ENCODINGS:
             raise ValueError(f"colour encoding must be one of {sorted(COLOUR_ENCODINGS)}, not {colour.encoding!r}")
@@ -190,7 +198,7 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
             raise ValueError("the colour stream's rotation must be a rotation matrix")
         streams.append((0 if colour.on_depth_sensor else 1, "color", colour.frames, ci, colour.encoding, bpp,
                         colour.stamps_ms(), colour.fps, colour.timestamp_domain,
-                        (rot, np.asarray(colour.translation, dtype=np.float64))))
+                        (rot, np.asarray(colour.translation, dtype=np.float64)), list(range(len(colour.frames)))))
 
     store = _typestore()
     T = store.types
@@ -215,7 +223,7 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
         timed = []  # (record time ns, stream, frame, topic, msgtype, message or serialised bytes)
         named = set()
         for k, (sensor_index, kind, stream_frames, intr, encoding, bpp, stamps, stream_fps, domain,
-                extrinsics) in enumerate(streams):
+                extrinsics, stream_numbers) in enumerate(streams):
             sensor_name, stream_name = _STREAMS[kind][:2]
             prefix = f"/device_0/sensor_{sensor_index}"
             stream_prefix = f"{prefix}/{stream_name}_0"
@@ -251,9 +259,9 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
                 put(f"{prefix}/option/{option}/description", "std_msgs/msg/String", STATIC_NS,
                     T["std_msgs/msg/String"](data="Number of meters represented by a single depth unit"))
 
-            for i, (frame, stamp_ms) in enumerate(zip(stream_frames, stamps)):
+            for i, (frame, stamp_ms, number) in enumerate(zip(stream_frames, stamps, stream_numbers)):
                 t_ns = round((stamp_ms - t0_ms) * 1e6) + period_ns
-                header = T["std_msgs/msg/Header"](seq=i, stamp=_stamp(store, stamp_ms / 1000.0),
+                header = T["std_msgs/msg/Header"](seq=number, stamp=_stamp(store, stamp_ms / 1000.0),
                                                   frame_id="1" if frame_depth_units else "")
                 pixels = np.ascontiguousarray(frame).astype(frame.dtype.newbyteorder("<"), copy=False)
                 image = T["sensor_msgs/msg/Image"](header=header, height=intr.height, width=intr.width,
@@ -265,7 +273,7 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
                     data += struct.pack("<f", intr.depth_scale if kind == "depth" else 0.0)
                 timed.append((t_ns, k, i, f"{stream_prefix}/image/data", "sensor_msgs/msg/Image", data))
                 for key, value in (("system_time", f"{stamp_ms:.6f}"), ("timestamp_domain", domain),
-                                   ("Frame Counter", str(i)), ("Frame Timestamp", str(int(stamp_ms * 1000)))):
+                                   ("Frame Counter", str(number)), ("Frame Timestamp", str(int(stamp_ms * 1000)))):
                     timed.append((t_ns, k, i, f"{stream_prefix}/image/metadata", kv,
                                   T[kv](key=key, value=value)))
         for t_ns, _, _, topic, msgtype, item in sorted(timed, key=lambda e: e[:3]):
@@ -273,4 +281,44 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
                 put(topic, msgtype, t_ns, data=item)
             else:
                 put(topic, msgtype, t_ns, item)
+    return path
+
+
+def record_with_sdk(path: str | Path, frames: Sequence[np.ndarray], intrinsics: Intrinsics, *, fps: int = 30,
+                    first_timestamp_ms: float = 1000.0, frame_numbers: Sequence[int] | None = None) -> Path:
+    """Record depth frames with pyrealsense2's own recorder, as the SDK >= 2.56 writes (ROS2, ``.db3``
+    for a .db3 path): a software device with one depth stream, frame k numbered frame_numbers[k]
+    (default k) and stamped first_timestamp_ms + number * 1000 / fps. frames: (H, W) uint16 counts
+    of ``intrinsics.depth_scale``. Returns ``path``."""
+    import gc
+
+    import pyrealsense2 as rs
+
+    path = Path(path)
+    numbers = list(range(len(frames))) if frame_numbers is None else [int(n) for n in frame_numbers]
+    dev = rs.software_device()
+    sensor = dev.add_sensor("Stereo Module")
+    vs = rs.video_stream()
+    vs.type, vs.index, vs.uid, vs.width, vs.height, vs.fps = rs.stream.depth, 0, 0, intrinsics.width, \
+        intrinsics.height, fps
+    vs.bpp, vs.fmt, vs.intrinsics = 2, rs.format.z16, intrinsics.to_rs()
+    profile = sensor.add_video_stream(vs)
+    sensor.add_read_only_option(rs.option.depth_units, intrinsics.depth_scale)
+    recorder = rs.recorder(str(path), dev)
+    queue = rs.frame_queue(8)
+    sensor.open(profile)
+    sensor.start(queue)
+    for depth, number in zip(frames, numbers):
+        f = rs.software_video_frame()
+        f.pixels = np.ascontiguousarray(depth, dtype=np.uint16)
+        f.bpp, f.stride = 2, 2 * intrinsics.width
+        f.timestamp, f.domain = first_timestamp_ms + number * 1000.0 / fps, rs.timestamp_domain.hardware_clock
+        f.frame_number, f.depth_units = number, intrinsics.depth_scale
+        f.profile = profile.as_video_stream_profile()
+        sensor.on_video_frame(f)
+        queue.wait_for_frame(2000)
+    sensor.stop()
+    sensor.close()
+    del recorder  # the file is complete once the recorder is gone
+    gc.collect()
     return path
