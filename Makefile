@@ -16,7 +16,7 @@ venv: .venv/.installed
 	@bash scripts/system_deps.sh
 	@test -x $(PY) || python3 -m venv .venv
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet -e ".[test,distributed]"
 	@touch $@
 
 # ---- data: simulated presets, built once and cached (delete data/ to rebuild)
@@ -42,7 +42,7 @@ $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 # every method on data/default, data/hard and data/robust (the sensor grid), Table 2 on data/paper
 # -> results/ (resumable; FORCE=1 recomputes every prediction set)
 eval: venv data data-hard data-robust
-	$(PY) scripts/run_eval.py --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
+	$(SB) eval --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
 
 # the recorded data sets (data/real/*) -> results/real/, each Table 3 beside the simulated `default`
 # of results/metrics.json (make eval) where that file exists
@@ -86,19 +86,19 @@ train-hg: venv data-train
 		checkpoints/circlenet-hg/model_card.json checkpoints/circlenet-hg/training_curve.png baselines/circlenet/hg/
 
 bench: venv data data-hard
-	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench
+	$(SB) bench $(DATA)/default $(DATA)/hard --out results/bench
 
 # the improved detector across sensor conditions (robust) over seeds 0-3, against issue 16's targets,
 # with the oracle's ceilings, default's and hard's figures and the time against paper-lstsq
 robustness: venv data data-hard data-robust
-	$(PY) -m spherebench.scripts.robustness $(DATA)/robust --default $(DATA)/default --hard $(DATA)/hard \
+	$(SB) robustness $(DATA)/robust --default $(DATA)/default --hard $(DATA)/hard \
 		--seeds 0-3 --workers $(WORKERS) --out results/robustness
 
 # the 3D detector's detections over seeds 0-7 (default, hard) and 0-3 (train): how much they move with it
 sweep: venv data data-hard
-	$(PY) -m spherebench.scripts.sweep $(DATA)/default $(DATA)/hard --seeds 0-7 --workers $(WORKERS) --out results/sweep
+	$(SB) sweep $(DATA)/default $(DATA)/hard --seeds 0-7 --workers $(WORKERS) --out results/sweep
 sweep-train: venv data-train
-	$(PY) -m spherebench.scripts.sweep $(DATA)/train --seeds 0-3 --workers $(WORKERS) --out results/sweep_train
+	$(SB) sweep $(DATA)/train --seeds 0-3 --workers $(WORKERS) --out results/sweep_train
 
 test: venv
 	$(PY) -m pytest -q

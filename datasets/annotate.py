@@ -619,7 +619,6 @@ def draw_ground_truth(image_bgr: np.ndarray, scene: Scene) -> np.ndarray:
             cv2.drawMarker(out, (round(cx), round(cy)), GT_COLOR_BGR, cv2.MARKER_CROSS, 8, 1)
     ref = scene.meta.get("reference_center_m")
     if ref is not None and scene.intrinsics is not None and ref[2] > 0:
-        from spherebench.camera import project
         u, v = project(scene.intrinsics, np.asarray([ref]))[0]
         if np.isfinite(u) and np.isfinite(v):
             cv2.drawMarker(out, (round(u), round(v)), REFERENCE_COLOR_BGR, cv2.MARKER_TILTED_CROSS, 12, 2)

@@ -20,15 +20,18 @@ run leaves nothing half-written behind.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import glob
 import io
 import json
 import math
 import os
+import queue
 import shutil
 import socket
 import tempfile
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -857,7 +860,7 @@ def read_labelme(path: str | Path) -> dict:
 
 def _import_pyrealsense2():
     try:
-        import pyrealsense2 as rs
+        import pyrealsense2 as rs  # here: a platform-specific wheel, needed only for RealSense recordings
     except ImportError as exc:
         raise SphereBenchError(f"reading RealSense recordings needs pyrealsense2, which cannot be imported ({exc}); "
                                "install it (pip install pyrealsense2) and libusb-1.0 (apt-get install libusb-1.0-0)") from None
@@ -990,9 +993,6 @@ class BagRecording:
 
     def frames(self, stop_after: int | None = None, stall_timeout_s: float = 10.0):
         """BagFrames in recording order; stop_after: stop once this many have been yielded."""
-        import collections
-        import queue
-        import threading
 
         rs = _import_pyrealsense2()
         path = self.path

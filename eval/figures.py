@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import matplotlib
 
 matplotlib.use("Agg")
@@ -115,7 +116,6 @@ def _top_circles(s, scene_id: str, k: int) -> list[tuple[float, float, float, fl
 def _background(data_dir: Path, img: dict) -> np.ndarray:
     """An example's picture (RGB): the scene's colour frame where it has one (a recording registered
     to depth), else the image the 2D methods are given."""
-    import cv2
     path = Path(data_dir) / img["file_name"]
     for name in ("colour.jpg", "colour.png"):
         if (path.parent / name).is_file():
