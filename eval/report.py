@@ -1,13 +1,14 @@
 """Scoring prediction sets and writing the benchmark's results: metrics, tables, README, provenance.
 
-``score_set`` turns one prediction set (``eval.runner``) into the figures of the tables: COCO
-metrics with circle IoU (overall and per scene family), 3D metrics for methods with a 3D centre,
-and the time per frame. ``write_results`` writes, under an output folder:
+``score_set`` turns one prediction set (``eval.cache``, written by ``eval.runner``) into the
+figures of the tables: COCO metrics with circle IoU (overall and per scene family), 3D metrics for
+methods with a 3D centre, and the time per frame. ``write_results`` writes, under an output folder:
 
     metrics.json          {method: {dataset: {...}}}, every figure of the tables
-    tables/*.csv, *.md    Table 3 per dataset (beside the paper's reported numbers; beside another
-                          evaluation's with ``beside``, ``eval.recorded``), per-family
-                          mAP, 3D metrics, timings, Table 2, detection statistics of unannotated data
+    tables/*.csv, *.md    (``eval.tables``, written by pandas) Table 3 per dataset (beside the
+                          paper's reported numbers; beside another evaluation's with ``beside``,
+                          ``eval.recorded``), per-family mAP, 3D metrics, timings, Table 2,
+                          detection statistics of unannotated data
     figures/*.png         (``eval.figures``)
     README.md             the tables, the figures, and a reading of them
     provenance.json       commit, package versions, seeds, configurations, machine, date

@@ -4,8 +4,9 @@ A task is one scene through one method configuration (``SceneTask``); ``run_task
 an executor (``spherebench.parallel.executor``: this process, a pool of local worker processes,
 or Ray) and returns each task's record in task order. ``run_methods`` builds the tasks of the
 benchmark's methods (``eval.registry``) on a dataset and writes one prediction set per output
-(``eval.cache``), reusing the finished ones; ``bench``, ``sweep``, ``robustness``, Table 2 and the
-oracle's ceiling run their tasks through the same loop and executor.
+(``eval.cache``), reusing the finished ones; ``bench``, ``sweep`` and ``robustness`` run their
+tasks through the same loop, Table 2 and the oracle's ceiling (``eval.studies``) theirs on the same
+executor with the same seeds.
 
 Seeding: scene k of a dataset (scene folders sorted by id) is run with ``detection_seed(seed, k)``
 (``eval.seeds``). Every task's output depends on its arguments only, so the files are identical

@@ -54,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    options.check_workers(args.workers)
+    options.check_executor(args)
     out = Path(args.out)
     taken: set = set()
     datasets = {}

@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     seeds = options.parse_seeds(args.seeds)
     overrides = options.parse_overrides(args.set)
     config_for("improved", **overrides)  # a bad override: one line before any work
-    options.check_workers(args.workers)
+    options.check_executor(args)
     for ds in (args.robust, args.default, args.hard):
         if ds:
             inout.list_scenes(ds)

@@ -39,7 +39,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    options.check_workers(args.workers)
+    options.check_executor(args)
     t0 = time.perf_counter()
     run_benchmark(Path(args.data), Path(args.out), seed=args.seed, workers=args.workers, force=args.force,
                   methods=args.methods, progress=not args.quiet, command=command_line(args), engine=args.engine,

@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    options.check_workers(args.workers)
+    options.check_executor(args)
     for ds in args.datasets:
         inout.list_scenes(ds)  # a clear error for a missing dataset before any work
     if args.out:

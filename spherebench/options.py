@@ -6,6 +6,7 @@ import argparse
 import json
 
 from spherebench.errors import SphereBenchError
+from spherebench.parallel import check_engine
 
 
 def _integer(text: str, least: int, what: str, too_small: str) -> int:
@@ -76,7 +77,6 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
-def check_workers(workers: int) -> None:
-    """--workers: 1 or more (checked before anything is written)."""
-    if workers < 1:
-        raise SphereBenchError(f"--workers {workers}: give at least 1")
+def check_executor(args: argparse.Namespace) -> None:
+    """--workers, --engine and --address (``add_executor_arguments``), checked before anything is written."""
+    check_engine(args.workers, args.engine, args.address)

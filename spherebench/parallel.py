@@ -19,6 +19,7 @@ cleanup removes their temporary output.
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import multiprocessing
 import os
 import signal
@@ -179,10 +180,7 @@ def _local(workers: int):
 
 @contextlib.contextmanager
 def _ray(workers: int, address: str | None):
-    try:
-        import ray  # optional (the `distributed` extra): imported only when this engine is chosen
-    except ImportError:
-        raise SphereBenchError("--engine ray needs Ray: pip install 'spherebench[distributed]'") from None
+    import ray  # here, not at the top: an optional dependency (the `distributed` extra), for this engine only
     started = not ray.is_initialized()
     if started:
         # every Ray worker starts single-threaded, as a local worker does
@@ -202,14 +200,21 @@ def _ray(workers: int, address: str | None):
             ray.shutdown()
 
 
-@contextlib.contextmanager
-def executor(workers: int = 2, engine: str = "local", address: str | None = None):
-    """The executor of a run (see the module docstring): ``with executor(2) as ex: ex.map(fn, items)``."""
+def check_engine(workers: int, engine: str, address: str | None) -> None:
+    """``executor``'s arguments, checked (a command checks them before it writes anything)."""
     if workers < 1:
         raise SphereBenchError(f"--workers {workers}: give at least 1")
     if engine not in ENGINES:
         raise SphereBenchError(f"--engine {engine}: choose from {', '.join(ENGINES)}")
     if address and engine != "ray":
         raise SphereBenchError("--address is the Ray cluster's: give it with --engine ray")
+    if engine == "ray" and importlib.util.find_spec("ray") is None:
+        raise SphereBenchError("--engine ray needs Ray: pip install 'spherebench[distributed]'")
+
+
+@contextlib.contextmanager
+def executor(workers: int = 2, engine: str = "local", address: str | None = None):
+    """The executor of a run (see the module docstring): ``with executor(2) as ex: ex.map(fn, items)``."""
+    check_engine(workers, engine, address)
     with (_ray(workers, address) if engine == "ray" else _local(workers)) as ex:
         yield ex

@@ -291,3 +291,28 @@ def test_provenance_names_what_the_peers_arithmetic_depends_on():
     assert "blas" in info
     if info["blas"] is not None:  # numpy's bundled OpenBLAS: its version and the kernel chosen for this CPU
         assert info["blas"].startswith("OpenBLAS")
+
+
+# ---------------------------------------------------------------- the benchmark's subcommands
+
+@pytest.mark.parametrize("argv, says", [
+    (["eval", "--data", "{tmp}/none"], "is missing"),
+    (["eval", "--data", "{tmp}/none", "--workers", "0"], "--workers 0"),
+    (["sweep", "{tmp}/none"], "none"),
+    (["robustness", "{tmp}/none"], "none"),
+    (["bench", "{tmp}/none"], "none"),
+])
+def test_benchmark_subcommands_refuse_bad_input_in_one_line(tmp_path, capsys, argv, says):
+    argv = [a.format(tmp=tmp_path) for a in argv] + ["--out", str(tmp_path / "out")]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"spherebench {argv[0]}: error:") and len(err.strip().splitlines()) == 1 and says in err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out.md").exists()
+
+
+def test_engine_options_are_checked_before_any_work(small_default, tmp_path, capsys):
+    base = ["evaluate", "--data", str(small_default), "--out", str(tmp_path / "out"), "--methods", "improved"]
+    assert cli.main([*base, "--engine", "spark"]) == 2  # argparse's choices
+    assert cli.main([*base, "--address", "ray://head:10001"]) == 2
+    err = capsys.readouterr().err
+    assert "--address is the Ray cluster's: give it with --engine ray" in err
