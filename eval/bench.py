@@ -8,10 +8,10 @@ of the balls within 2 m (the nearest detection's error; a miss counts as infinit
 scenes without a basketball (the hard preset's negatives), distractor balls rejected (no detection
 within 5 cm of their centre) by distance and size, and the detection time per frame (median, p95)
 per resolution: wall clock and the thread's CPU time (the machine may be shared; CPU time is what
-the detector itself costs). Each configuration runs on the one task loop (``eval.runner``) in this process, one thread,
-over its scenes in order, once per scene, as over the frames of a stream (grouped by resolution,
-as a stream keeps one: the `hard` preset mixes three; its buffers warm from the previous frame;
-the time excludes reading the frame). improved makes ``--passes`` such
+the detector itself costs). Each configuration runs on the one task loop (``eval.runner``) in one
+worker process pinned to one thread, over its scenes in order, once per scene, as over the frames
+of a stream (grouped by resolution, as a stream keeps one: the `hard` preset mixes three; its
+buffers warm from the previous frame; the time excludes reading the frame). improved makes ``--passes`` such
 passes (default 3; the detections come from the first, the others time the same work): the table
 gives the first pass's median and p95, and the median of each frame's fastest pass ("best of 3",
 the code's cost without the shared machine's interference, which moves the first figure by up to
@@ -125,7 +125,7 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
     passes: timing passes of improved (the first one also gives the detections).
     min_scores: improved's operating points (its own min_score reuses the main run)."""
     result = {"seed": seed, "datasets": {}, "notes": []}
-    with executor(1) as ex:  # one thread in this process: the times are the detector's own
+    with executor(1, isolated=True) as ex:  # one worker process, one thread: the times are the detector's own
         for ds in datasets:
             scenes = [s for s in dataset_scenes(ds, limit) if s.has_cloud]
             gts = {s.scene_id: inout.read_json(s.path / "gt.json") for s in scenes}

@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 
 from spherebench import options
-from spherebench.eval.evaluation import run_benchmark
 from spherebench.eval.registry import METHOD_ORDER
 
 
@@ -39,6 +38,10 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: the reports load matplotlib and pandas, and `spherebench eval --help` took
+    # 2.0 s with them, about 1 s without
+    from spherebench.eval.evaluation import run_benchmark
+
     options.check_executor(args)
     t0 = time.perf_counter()
     run_benchmark(Path(args.data), Path(args.out), seed=args.seed, workers=args.workers, force=args.force,

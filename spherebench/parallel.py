@@ -156,8 +156,8 @@ class RayTasks:
 
 
 @contextlib.contextmanager
-def _local(workers: int):
-    if workers <= 1:
+def _local(workers: int, isolated: bool = False):
+    if workers <= 1 and not isolated:
         with single_thread_here():
             yield InProcess()
         return
@@ -213,8 +213,11 @@ def check_engine(workers: int, engine: str, address: str | None) -> None:
 
 
 @contextlib.contextmanager
-def executor(workers: int = 2, engine: str = "local", address: str | None = None):
-    """The executor of a run (see the module docstring): ``with executor(2) as ex: ex.map(fn, items)``."""
+def executor(workers: int = 2, engine: str = "local", address: str | None = None, isolated: bool = False):
+    """The executor of a run (see the module docstring): ``with executor(2) as ex: ex.map(fn, items)``.
+
+    isolated: even one local worker is a spawned process (pinned before numpy and numba load, which
+    this process cannot be), for timings that must be single-threaded throughout (``bench``)."""
     check_engine(workers, engine, address)
-    with (_ray(workers, address) if engine == "ray" else _local(workers)) as ex:
+    with (_ray(workers, address) if engine == "ray" else _local(workers, isolated)) as ex:
         yield ex
