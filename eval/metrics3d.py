@@ -4,7 +4,7 @@ Units: metres throughout; camera frame (x right, y down, z forward).
 
 Two rules relate detections to balls; each report says which it uses.
 
-**Matched** (``match_scene``; `evaluate` / `make eval`'s 3D table, its "found <= 1 / 2 / 5 cm"
+**Matched** (``match_scene``; `evaluate` / `make eval`'s 3D table, its "matched <= 1 / 2 / 5 cm"
 rates and its false detections): predictions are taken in decreasing score order; each takes the
 nearest still-unmatched ground-truth ball whose centre lies within ``gate_m`` of its own
 (``MATCH_GATE_M``, 0.12 m, one ball radius: the predicted centre is inside the true ball). A prediction

@@ -236,7 +236,7 @@ def reading(label: str, f: dict, sets: Sequence) -> list[str]:
                          + f", {d['false_detections']} false detection{'s' if d['false_detections'] != 1 else ''}")
     if found:
         n = next(s.metrics["3d"]["n_gt"] for s in sets if s.metrics.get("3d"))
-        out.append(f"In 3D, balls of `{label}` found within 2 cm of the reference centre, of {n}: "
+        out.append(f"In 3D, balls of `{label}` matched within 2 cm of the reference centre, of {n}: "
                    + "; ".join(found) + ".")
     nets = [s for s in sets if s.method in LEARNED_2D and _ran(s) and s.metrics.get("mAP") is not None]
     hough = any(s.method == "hough" and _ran(s) for s in sets)

@@ -318,13 +318,13 @@ def sensor_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
     if not rows:
         return None
     return Table(name=f"sensor_{label}", title=f"Per sensor noise level and range band on `{label}`",
-                 columns=["method", "subpixel (px)"] + [f"found <= 2 cm, {b}" for b in bands]
+                 columns=["method", "subpixel (px)"] + [f"matched <= 2 cm, {b}" for b in bands]
                  + [f"mAP.50, {b}" for b in bands], rows=rows,
                  notes=["Each subpixel level pools its cells over noise correlation (none, 1 px) and low-texture "
                         "dropouts (off, on); the robustness figure shows the cells apart. Bands: the ball's true "
                         "distance to its nearest surface.",
-                        "Found: balls whose matched detection is within 2 cm of the true centre, over the band's "
-                        "balls. mAP.50: COCO AP at circle IoU 0.50 over the level's images, the balls of other bands "
+                        "Matched <= 2 cm: balls whose matched detection (`match_scene` of `eval/metrics3d.py`) is "
+                        "within 2 cm of the true centre, over the band's balls. mAP.50: COCO AP at circle IoU 0.50 over the level's images, the balls of other bands "
                         "being COCO's ignored ground truth (a detection matched to one counts nowhere); a detection "
                         "matched to no ball is a false positive in every band.",
                         "Per-cell figures (all three axes) are in metrics.json under `sensor_cells`."])
@@ -364,7 +364,7 @@ def metrics3d_table(label: str, sets: Sequence[ScoredSet], reference: str | None
     true = "reference" if reference else "true"
     return Table(name=f"metrics3d_{label}", title=f"3D metrics on `{label}`" + (
                      " against its reference centres" if reference else ""),
-                 columns=["method", "balls", "found <= 1 cm", "<= 2 cm", "<= 5 cm", "centre error median (mm)",
+                 columns=["method", "balls", "matched <= 1 cm", "<= 2 cm", "<= 5 cm", "centre error median (mm)",
                           "RMSE (mm)", "p95 (mm)", "radius error median (mm)", "radius |error| median (mm)",
                           "median radius of all detections (m)", "false detections",
                           "detections on negative scenes", "note"], rows=rows,
