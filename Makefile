@@ -15,7 +15,7 @@ help:  ## list the targets with one line each
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/^([a-zA-Z_-]+):.*## (.*)/\1\t\2/' | expand -t 16
 
 # ---- environment: the virtual environment, created when missing
-venv: .venv/.installed  ## create .venv and install the package with every extra (train, realsense, viz, test)
+venv: .venv/.installed  ## create .venv and install the package with every extra (train, realsense, viz, distributed, test)
 .venv/.installed: pyproject.toml
 	@bash scripts/system_deps.sh
 	@test -x $(PY) || python3 -m venv .venv
@@ -46,7 +46,7 @@ $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 # every method on data/default, data/hard and data/robust (the sensor grid), Table 2 on data/paper
 # -> results/ (resumable; FORCE=1 recomputes every prediction set)
 eval: venv data data-hard data-robust  ## every method on default, hard, robust; Table 2 on paper -> results/
-	$(PY) scripts/run_eval.py --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
+	$(SB) eval --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
 	cp results/hough_config.json baselines/hough_config.json  # the package's copy (package data)
 
 # the recorded data sets (data/real/*) -> results/real/, each Table 3 beside the simulated `default`
@@ -91,19 +91,19 @@ train-hg: venv data-train  ## the hourglass CircleNet (CUDA only)
 		checkpoints/circlenet-hg/model_card.json checkpoints/circlenet-hg/training_curve.png baselines/circlenet/hg/
 
 bench: venv data data-hard  ## detection and CPU time of the 3D detector -> results/bench.md
-	$(PY) -m spherebench.scripts.bench $(DATA)/default $(DATA)/hard --out results/bench
+	$(SB) bench $(DATA)/default $(DATA)/hard --out results/bench
 
 # the improved detector across sensor conditions (robust) over seeds 0-3, against issue 16's targets,
 # with the oracle's ceilings, default's and hard's figures and the time against paper-lstsq
 robustness: venv data data-hard data-robust  ## the detector over the sensor grid, seeds 0-3 -> results/robustness.md
-	$(PY) -m spherebench.scripts.robustness $(DATA)/robust --default $(DATA)/default --hard $(DATA)/hard \
+	$(SB) robustness $(DATA)/robust --default $(DATA)/default --hard $(DATA)/hard \
 		--seeds 0-3 --workers $(WORKERS) --out results/robustness
 
 # the 3D detector's detections over seeds 0-7 (default, hard) and 0-3 (train): how much they move with it
 sweep: venv data data-hard  ## the detector over seeds 0-7 -> results/sweep.md
-	$(PY) -m spherebench.scripts.sweep $(DATA)/default $(DATA)/hard --seeds 0-7 --workers $(WORKERS) --out results/sweep
+	$(SB) sweep $(DATA)/default $(DATA)/hard --seeds 0-7 --workers $(WORKERS) --out results/sweep
 sweep-train: venv data-train  ## the detector over seeds 0-3 on train -> results/sweep_train.md
-	$(PY) -m spherebench.scripts.sweep $(DATA)/train --seeds 0-3 --workers $(WORKERS) --out results/sweep_train
+	$(SB) sweep $(DATA)/train --seeds 0-3 --workers $(WORKERS) --out results/sweep_train
 
 test: venv  ## the test suite (pytest)
 	$(PY) -m pytest -q

@@ -24,6 +24,7 @@ import random
 import time
 
 import numpy as np
+import pyransac3d
 
 from spherebench.circles import sphere_circle_exact, sphere_circle_paper
 from spherebench.cloud import Cloud
@@ -43,8 +44,6 @@ def fit(points_m: np.ndarray, points: int = POINTS, iterations: int = ITERATIONS
     Returns {"center_m" (3,), "radius_m", "inliers" (K,) indices into points_m (whole cloud),
     "subsample": number of points fitted, "ms": the fit's time} or None when it finds nothing.
     """
-    import pyransac3d
-
     p = np.asarray(points_m, np.float64).reshape(-1, 3)
     finite = np.flatnonzero(np.isfinite(p).all(axis=1))
     if len(finite) < 4:

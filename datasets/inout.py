@@ -20,15 +20,18 @@ run leaves nothing half-written behind.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import glob
 import io
 import json
 import math
 import os
+import queue
 import shutil
 import socket
 import tempfile
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,10 +41,11 @@ import numpy as np
 from plyfile import PlyData, PlyElement
 
 from spherebench.camera import Intrinsics, float32_decimal
+from spherebench.circles import circle_bbox
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.datasets.scene import Ball, Scene
-from spherebench.errors import SphereBenchError
+from spherebench.errors import SphereBenchError, require
 
 CATEGORY_ID = 1
 DEFAULT_CATEGORY = "basketball"
@@ -686,126 +690,55 @@ def read_camera_json(path: str | Path) -> Intrinsics:
         raise SphereBenchError(f"{path}: {exc}") from None
 
 
-# PCD (the Point Cloud Library's format, v0.7): ascii, binary and binary_compressed (LZF) data.
+# PCD (the Point Cloud Library's format, v0.7): ascii, binary and binary_compressed data, read by
+# Open3D's tensor reader (NaN points kept). Its header is also read here: Open3D keeps no WIDTH and
+# HEIGHT, which say whether the cloud is an organised depth grid.
 
-_PCD_TYPES = {"F": "f", "U": "u", "I": "i"}
-
-
-def _lzf_decompress(data: bytes, size: int, path: Path) -> bytes:
-    """liblzf's format: control byte < 32 = literal run of ctrl + 1 bytes; otherwise a back
-    reference of length (ctrl >> 5) + 2 (7 = extended by the next byte) at distance
-    ((ctrl & 31) << 8) + next byte + 1."""
-    out = bytearray()
-    ip, n = 0, len(data)
-    bad = SphereBenchError(f"{path}: corrupt binary_compressed PCD data (LZF stream is damaged or truncated)")
-    while ip < n:
-        ctrl = data[ip]
-        ip += 1
-        if ctrl < 32:
-            if ip + ctrl + 1 > n:
-                raise bad
-            out += data[ip:ip + ctrl + 1]
-            ip += ctrl + 1
-            continue
-        length = ctrl >> 5
-        if length == 7:
-            if ip >= n:
-                raise bad
-            length += data[ip]
-            ip += 1
-        if ip >= n:
-            raise bad
-        dist = ((ctrl & 31) << 8) + data[ip] + 1
-        ip += 1
-        length += 2
-        start = len(out) - dist
-        if start < 0:
-            raise bad
-        if dist >= length:
-            out += out[start:start + length]
-        else:  # overlapping copy: the last `dist` bytes repeat
-            pattern = bytes(out[start:])
-            out += (pattern * (length // dist + 1))[:length]
-    if len(out) != size:
-        raise bad
-    return bytes(out)
-
-
-def _read_pcd(path: Path) -> tuple[Cloud, int, int]:
-    """(cloud, width, height) of a PCD file; NaN points are dropped, an organised one keeps pixels."""
+def _pcd_header(path: Path) -> tuple[int, int]:
+    """(WIDTH, HEIGHT) of a PCD file's header, checked: x, y, z fields and POINTS = WIDTH x HEIGHT."""
     if not path.is_file():
         raise SphereBenchError(f"{path}: file not found")
-    raw = path.read_bytes()
     header: dict[str, list[str]] = {}
-    pos = 0
-    while "DATA" not in header:
-        end = raw.find(b"\n", pos)
-        if end < 0:
-            raise SphereBenchError(f"{path}: not a PCD file (no DATA line in the header; truncated?)")
-        line = raw[pos:end].decode("ascii", errors="replace").strip()
-        pos = end + 1
-        if not line or line.startswith("#"):
-            continue
-        key, *values = line.split()
-        header[key.upper()] = values
-        if len(header) == 1 and key.upper() not in ("VERSION", "FIELDS"):
-            raise SphereBenchError(f"{path}: not a PCD file (it starts with '{line[:40]}')")
+    with open(path, "rb") as f:
+        while "DATA" not in header:
+            raw = f.readline()
+            if not raw.endswith(b"\n"):
+                raise SphereBenchError(f"{path}: not a PCD file (no DATA line in the header; truncated?)")
+            line = raw.decode("ascii", errors="replace").strip()
+            if not line or line.startswith("#"):
+                continue
+            key, *values = line.split()
+            header[key.upper()] = values
+            if len(header) == 1 and key.upper() not in ("VERSION", "FIELDS"):
+                raise SphereBenchError(f"{path}: not a PCD file (it starts with '{line[:40]}')")
     try:
         names = header["FIELDS"]
-        sizes = [int(s) for s in header["SIZE"]]
-        types = header["TYPE"]
-        counts = [int(c) for c in header.get("COUNT", ["1"] * len(names))]
         width, height = int(header["WIDTH"][0]), int(header["HEIGHT"][0])
         n_points = int(header.get("POINTS", [width * height])[0])
         mode = header["DATA"][0].lower()
     except (KeyError, IndexError, ValueError) as exc:
         raise SphereBenchError(f"{path}: PCD header is incomplete or malformed ({exc})") from None
-    if not (len(names) == len(sizes) == len(types) == len(counts)) or not {"x", "y", "z"} <= set(names):
-        raise SphereBenchError(f"{path}: PCD header must list x, y, z with one SIZE, TYPE and COUNT per field")
+    if not {"x", "y", "z"} <= set(names):
+        raise SphereBenchError(f"{path}: PCD header must list x, y and z fields")
     if n_points != width * height:
         raise SphereBenchError(f"{path}: PCD says POINTS {n_points} but WIDTH x HEIGHT = {width}x{height}")
-    fields, seen = [], {}
-    for name, size, typ, count in zip(names, sizes, types, counts):
-        if typ.upper() not in _PCD_TYPES or size not in (1, 2, 4, 8):
-            raise SphereBenchError(f"{path}: PCD field '{name}' has unsupported TYPE {typ} / SIZE {size}")
-        key = name if name not in seen else f"{name}__{seen[name]}"  # PCL pads with repeated '_' fields
-        seen[name] = seen.get(name, 0) + 1
-        fields.append((key, f"<{_PCD_TYPES[typ.upper()]}{size}", (count,) if count > 1 else ()))
-    record = np.dtype([(k, t, s) if s else (k, t) for k, t, s in fields])
-    body = raw[pos:]
-    if mode == "ascii":
-        try:
-            table = np.loadtxt(body.decode("ascii").splitlines(), dtype=np.float64, ndmin=2)
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise SphereBenchError(f"{path}: unreadable ASCII PCD data ({exc})") from None
-        if table.shape != (n_points, sum(counts)) and not (n_points == 0 and table.size == 0):
-            raise SphereBenchError(f"{path}: ASCII PCD data has {table.shape[0]} rows of {table.shape[1] if table.ndim == 2 else 0} "
-                                   f"values, the header promises {n_points} of {sum(counts)}: truncated?")
-        offsets = np.cumsum([0] + counts)
-        xyz = np.stack([table[:, offsets[names.index(c)]] if n_points else np.zeros(0) for c in "xyz"], axis=1)
-    elif mode == "binary":
-        if len(body) < n_points * record.itemsize:
-            raise SphereBenchError(f"{path}: binary PCD data is {len(body)} bytes, the header promises "
-                                   f"{n_points * record.itemsize}: the file is truncated")
-        data = np.frombuffer(body, dtype=record, count=n_points)
-        xyz = np.stack([data[c].astype(np.float64) for c in "xyz"], axis=1)
-    elif mode == "binary_compressed":
-        if len(body) < 8:
-            raise SphereBenchError(f"{path}: binary_compressed PCD has no data: the file is truncated")
-        csize, usize = (int(v) for v in np.frombuffer(body[:8], dtype="<u4"))
-        if usize != n_points * record.itemsize or len(body) < 8 + csize:
-            raise SphereBenchError(f"{path}: binary_compressed PCD sizes do not match the header: the file is "
-                                   "truncated or corrupt")
-        plain = _lzf_decompress(body[8:8 + csize], usize, path)
-        # the uncompressed data is stored field by field (all x, then all y, ...)
-        columns, offset = {}, 0
-        for key, typ, shape in fields:
-            dt = np.dtype((typ, shape)) if shape else np.dtype(typ)
-            columns[key] = np.frombuffer(plain, dtype=dt, count=n_points, offset=offset)
-            offset += dt.itemsize * n_points
-        xyz = np.stack([columns[c].astype(np.float64) for c in "xyz"], axis=1)
-    else:
+    if mode not in ("ascii", "binary", "binary_compressed"):
         raise SphereBenchError(f"{path}: unknown PCD DATA type '{mode}' (ascii, binary or binary_compressed)")
+    return width, height
+
+
+def _read_pcd(path: Path) -> tuple[Cloud, int, int]:
+    """(cloud, width, height) of a PCD file; NaN points are dropped, an organised one keeps pixels."""
+    width, height = _pcd_header(path)
+    # here, not at the top: open3d takes seconds to import, only PCD files need it, and it is an extra
+    o3d = require("open3d", "viz", "reading PCD files")
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # its failures are ours to say
+    pcd = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    n = width * height
+    xyz = pcd.point.positions.numpy().astype(np.float64) if "positions" in pcd.point else np.zeros((0, 3))
+    if len(xyz) != n:
+        raise SphereBenchError(f"{path}: PCD data holds {len(xyz)} points, the header promises {n}: the file "
+                               "is truncated or corrupt")
     valid = np.all(np.isfinite(xyz), axis=1)
     idx = np.nonzero(valid)[0]
     pts = xyz[valid].astype(np.float32)
@@ -856,8 +789,6 @@ def read_labelme(path: str | Path) -> dict:
 
 
 def _import_pyrealsense2():
-    from spherebench.errors import require
-
     return require("pyrealsense2", "realsense", "reading RealSense recordings and cameras (also: apt-get install "
                    "libusb-1.0-0)")
 
@@ -982,9 +913,6 @@ class BagRecording:
         real_time: play at the recording's rate, as a camera would deliver it: a frame that
         arrives while the consumer is still busy with earlier ones is dropped (counted in
         ``self.dropped``, by stream: "depth", "colour") rather than waited for."""
-        import collections
-        import queue
-        import threading
 
         rs = _import_pyrealsense2()
         path = self.path
@@ -1142,8 +1070,6 @@ def detection_record(score: float, circle_px=None, center_m=None, radius_m: floa
     """One detection: score; circle_px {center [cx, cy], radius} px (None: it projects nowhere on
     the image) with its COCO bbox [x, y, w, h] px; center_m [x, y, z] and radius_m, metres, camera
     frame (None from a 2D detector); inliers, the points on the sphere (None from a 2D detector)."""
-    from spherebench.circles import circle_bbox
-
     circle = None if circle_px is None else [float(v) for v in circle_px[:3]]
     return {"score": round(float(score), 6),
             "center_m": None if center_m is None else [round(float(v), 6) for v in center_m],

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from spherebench import __version__
 from spherebench.camera import Intrinsics, align_to_depth, project
@@ -795,10 +796,6 @@ def _input_scale(frame: RecordedFrame, options: PrepareOptions) -> float:
 
 
 def _progress(frames: Iterable[RecordedFrame], total: int | None):
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return frames
     return tqdm(frames, total=total, desc="prepare", unit="frame", leave=False, disable=None)
 
 

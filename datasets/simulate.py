@@ -91,8 +91,10 @@ PRESETS = {
 }
 
 
-def scene_seed(preset: Preset, seed: int, index: int) -> int:
-    """The seed of one scene, from (preset, run seed, index)."""
+def generation_seed(preset: Preset, seed: int, index: int) -> int:
+    """The seed from which the simulator builds scene ``index`` of a preset's dataset of seed ``seed``
+    (its layout and sensor draw): SeedSequence((preset code, seed, index)), so that no two presets'
+    scenes share one. Not the detector's seed on the built scene (``eval.seeds.detection_seed``)."""
     return int(np.random.SeedSequence([preset.code, int(seed), int(index)]).generate_state(1, np.uint64)[0])
 
 
@@ -287,7 +289,7 @@ def scene_sensor(preset_name: str, seed: int, index: int, sensor: D435Sensor = D
     settings.update(overrides or {})
     if not settings:
         return sensor, None
-    rng = np.random.default_rng([scene_seed(preset, seed, index), SENSOR_STREAM])
+    rng = np.random.default_rng([generation_seed(preset, seed, index), SENSOR_STREAM])
     return draw_sensor(sensor, settings, rng), None if cell is None else {"cell": cell[0], **cell[1]}
 
 
@@ -296,7 +298,7 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
                    sensor_overrides: Mapping | None = None) -> Scene:
     """One scene of a preset, fully determined by its arguments (``scene_sensor`` for the sensor)."""
     preset = PRESETS[preset_name]
-    s = scene_seed(preset, seed, index)
+    s = generation_seed(preset, seed, index)
     rng = np.random.default_rng(s)
     varied = preset.sensor is not None or bool(sensor_overrides) or sensor != D435Sensor()
     sensor, cell = scene_sensor(preset_name, seed, index, sensor, sensor_overrides)

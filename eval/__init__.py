@@ -1,5 +1,8 @@
-"""Metrics of the benchmark, as pure functions: circle IoU, COCO evaluation with circle IoU
-(CircleNet's protocol), 3D centre metrics, and the paper's Table 2."""
+"""The benchmark's evaluation. The package exports its pure metrics (circle IoU, COCO evaluation
+with circle IoU, CircleNet's protocol; 3D centre metrics; the paper's Table 2), which import
+nothing above them: the baselines use them. The runner and the reports (``eval.registry``,
+``runner``, ``report``, ...) sit above the detector and the baselines, and are imported by name,
+never from here."""
 
 from spherebench.eval.circle_iou import (circle_intersection_area, circle_intersection_matrix, circle_iou,
                                         circle_iou_matrix)

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import matplotlib
 
 matplotlib.use("Agg")
@@ -72,7 +73,7 @@ def plot_error_vs_distance(label: str, sets: Sequence, path: Path, reference: bo
     for c, s in zip(cols, sets):
         hit = np.isfinite(s.centre_error_m)
         ax.scatter(s.distance_m[hit], np.maximum(s.centre_error_m[hit] * 1000, 0.01), s=9, color=c, alpha=0.6,
-                   label=f"{s.method} (found {hit.sum()}/{hit.size})")
+                   label=f"{s.method} (matched {hit.sum()}/{hit.size})")
         if (~hit).any():
             ax.scatter(s.distance_m[~hit], np.full((~hit).sum(), top), marker="x", s=18, color=c, alpha=0.8)
     ax.set_yscale("log")
@@ -115,7 +116,6 @@ def _top_circles(s, scene_id: str, k: int) -> list[tuple[float, float, float, fl
 def _background(data_dir: Path, img: dict) -> np.ndarray:
     """An example's picture (RGB): the scene's colour frame where it has one (a recording registered
     to depth), else the image the 2D methods are given."""
-    import cv2
     path = Path(data_dir) / img["file_name"]
     for name in ("colour.jpg", "colour.png"):
         if (path.parent / name).is_file():
@@ -224,7 +224,7 @@ def robustness(label: str, rows_by_method: dict, path: Path, ceiling: dict | Non
     span = (levels[-1] - levels[0]) if len(levels) > 1 else 0.1
     nudge = {k: (i - 1.5) * 0.02 * span for i, k in enumerate(ROBUST_LINES)}
     colours = _colours(max(len(methods), 1))
-    for j, name in enumerate(("3D found within 2 cm", "2D mAP.50")):
+    for j, name in enumerate(("3D matched within 2 cm", "2D mAP.50")):
         for b, band in enumerate(bands):
             n = [r["n_balls"] for r in rows_by_method[methods[0]] if r["band"] == band
                  and r.get("n_balls") is not None] if methods else []

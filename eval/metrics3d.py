@@ -2,9 +2,12 @@
 
 Units: metres throughout; camera frame (x right, y down, z forward).
 
-Matching (``match_scene``): predictions are taken in decreasing score order; each takes the
+Two rules relate detections to balls; each report says which it uses.
+
+**Matched** (``match_scene``; `evaluate` / `make eval`'s 3D table, its "matched <= 1 / 2 / 5 cm"
+rates and its false detections): predictions are taken in decreasing score order; each takes the
 nearest still-unmatched ground-truth ball whose centre lies within ``gate_m`` of its own
-(default 0.12 m, one ball radius: the predicted centre is inside the true ball). A prediction
+(``MATCH_GATE_M``, 0.12 m, one ball radius: the predicted centre is inside the true ball). A prediction
 left unmatched is a false detection; a ball left unmatched is missed. This is COCO's greedy
 matching with centre distance in place of IoU.
 
@@ -17,9 +20,12 @@ Summary (``summarize_3d``), over all scenes:
   no ball) the number of predictions and the fraction of negatives with at least one.
 ``error_vs_distance`` gives the (distance to camera, centre error) pairs for a figure.
 
-Counts without matching (``scene_counts``, ``detection_counts``; ``make bench`` and ``make sweep``):
-a ball is found when any detection lies within FOUND_M (2 cm) of its centre, and a detection farther
-than that from every ball is a false one.
+**Nearest within 2 cm** (``scene_counts``, ``detection_counts``; `bench`, `sweep` and
+`robustness`): no one-to-one matching; a ball is found when its nearest detection lies within
+``FOUND_M`` (2 cm) of its centre; a detection farther than ``FOUND_M`` from every ball counts in
+"false", one farther than ``MATCH_GATE_M`` from every ball in "clutter" (what the matched rule
+calls a false detection; `robustness` reports this one). The two can differ on a ball with
+several detections about it (matched: the best-scored one within the gate; nearest: the nearest).
 """
 
 from __future__ import annotations
@@ -33,8 +39,8 @@ from spherebench.errors import SphereBenchError
 
 #: Thresholds (metres) of the detection rates.
 RATE_THRESHOLDS_M = (0.01, 0.02, 0.05)
-#: Default matching gate, metres (one basketball radius).
-DEFAULT_GATE_M = 0.12
+#: The matching gate of ``match_scene``, metres (one basketball radius).
+MATCH_GATE_M = 0.12
 
 
 def _points(a, name: str) -> np.ndarray:
@@ -87,7 +93,7 @@ class SceneMatch:
         return int(np.count_nonzero(self.pred_to_gt < 0))
 
 
-def match_scene(pred_centres_m, pred_scores, gt_centres_m, gate_m: float = DEFAULT_GATE_M,
+def match_scene(pred_centres_m, pred_scores, gt_centres_m, gate_m: float = MATCH_GATE_M,
                 pred_radii_m=None, gt_radii_m=None) -> SceneMatch:
     """Greedy matching by score of predicted centres (P, 3) to true centres (G, 3), metres.
 
@@ -197,7 +203,7 @@ def error_vs_distance(matches: Sequence[SceneMatch]) -> tuple[np.ndarray, np.nda
 
 # ---------------------------------------------------------------- the bench's counts (no matching)
 
-#: A basketball is found when a detection's centre is within this of its centre (``make bench``).
+#: The nearest-within rule: a basketball is found when a detection's centre is within this of its centre.
 FOUND_M = 0.02
 #: A detection this close to a distractor ball's centre accepts it (reports it as a basketball).
 DISTRACTOR_HIT_M = 0.05
@@ -209,7 +215,7 @@ def scene_counts(det_centres_m, gt: dict) -> dict:
 
     det_centres_m: (D, 3) or a list of centres, metres. Returns errs (per basketball, the nearest
     detection's centre error in metres, inf without one), z (their depths, m), false (detections
-    farther than FOUND_M from every basketball), clutter (those farther than DEFAULT_GATE_M, one radius,
+    farther than FOUND_M from every basketball), clutter (those farther than MATCH_GATE_M, one radius,
     from every basketball: not a ball's detection 2-5 cm off, a detection of something else) and distractors ([{radius_m, z_m, accepted}] for the
     distractor balls listed in gt["meta"]).
     """
@@ -217,7 +223,7 @@ def scene_counts(det_centres_m, gt: dict) -> dict:
     balls = [np.asarray(b["center_m"], float) for b in gt["balls"] if b.get("center_m") is not None]
     errs = [min((float(np.linalg.norm(d - b)) for d in dets), default=float("inf")) for b in balls]
     false = sum(1 for d in dets if all(np.linalg.norm(d - b) > FOUND_M for b in balls))
-    clutter = sum(1 for d in dets if all(np.linalg.norm(d - b) > DEFAULT_GATE_M for b in balls))
+    clutter = sum(1 for d in dets if all(np.linalg.norm(d - b) > MATCH_GATE_M for b in balls))
     distractors = []
     for dd in gt.get("meta", {}).get("distractors", []) or []:
         c = np.asarray(dd["center_m"], float)

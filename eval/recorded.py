@@ -27,8 +27,14 @@ from typing import Sequence
 
 import numpy as np
 
+from spherebench.circles import sphere_circle_exact
 from spherebench.datasets import inout
-from spherebench.eval.runner import PAPER_CIRCLE, REPO_ROOT, dataset_scenes
+from spherebench.errors import SphereBenchError
+from spherebench.eval.cache import meta_path
+from spherebench.eval.provenance import REPO_ROOT, file_sha256
+from spherebench.eval.registry import PAPER_CIRCLE
+from spherebench.eval.runner import dataset_scenes
+from spherebench.eval.tables import Table, fmt, rule_label
 
 #: The learned 2D methods (trained on simulated D435 frames) and the one tuned on them.
 LEARNED_2D = ("circlenet", "circlenet-full", "circlenet-hg")
@@ -93,7 +99,6 @@ def facts(data_dir: str | Path) -> dict | None:
     authors_distance_m (scenes with the recording's own reference fit, and the median distance of
     the mask fit from it).
     """
-    from spherebench.circles import sphere_circle_exact
     root = Path(data_dir)
     scenes = dataset_scenes(root)
     if not scenes or any(s.family != "recorded" for s in scenes):
@@ -231,7 +236,7 @@ def reading(label: str, f: dict, sets: Sequence) -> list[str]:
                          + f", {d['false_detections']} false detection{'s' if d['false_detections'] != 1 else ''}")
     if found:
         n = next(s.metrics["3d"]["n_gt"] for s in sets if s.metrics.get("3d"))
-        out.append(f"In 3D, balls of `{label}` found within 2 cm of the reference centre, of {n}: "
+        out.append(f"In 3D, balls of `{label}` matched within 2 cm of the reference centre, of {n}: "
                    + "; ".join(found) + ".")
     nets = [s for s in sets if s.method in LEARNED_2D and _ran(s) and s.metrics.get("mAP") is not None]
     hough = any(s.method == "hough" and _ran(s) for s in sets)
@@ -266,8 +271,6 @@ class Beside:
 def load_beside(path: str | Path, label: str) -> tuple[Beside, dict]:
     """(``Beside``, a provenance record) of another evaluation's metrics.json, its ``label`` dataset;
     a one-line error when the file is unreadable, not a metrics.json, or has no mAP on ``label``."""
-    from spherebench.errors import SphereBenchError
-    from spherebench.eval.runner import file_sha256, meta_path
     path = Path(path)
     if not path.is_file():
         raise SphereBenchError(f"--beside {path}: file not found (give another evaluation's metrics.json)")
@@ -329,11 +332,10 @@ def beside_table(label: str, sets: Sequence, beside: Beside):
     """Table 3 on ``label`` beside the same methods' Table 3 on the other evaluation's dataset; None
     without rows. A figure from a run with other settings (another model file, another tuning) is
     marked."""
-    from spherebench.eval.report import Table, _fmt, _rule_label
     other = beside.label
     found = beside_rows(sets, beside)
-    rows = [[s.output, _rule_label(s), _fmt(m.get("mAP")), _fmt(m.get("mAP50")), _fmt(m.get("mAP75")),
-             *(_fmt(o.get(k)) + ("" if same else " *") for k in ("mAP", "mAP50", "mAP75"))]
+    rows = [[s.output, rule_label(s.kind, s.rule), fmt(m.get("mAP")), fmt(m.get("mAP50")), fmt(m.get("mAP75")),
+             *(fmt(o.get(k)) + ("" if same else " *") for k in ("mAP", "mAP50", "mAP75"))]
             for s, m, o, same in found]
     if not rows:
         return None

@@ -1,13 +1,14 @@
 """Scoring prediction sets and writing the benchmark's results: metrics, tables, README, provenance.
 
-``score_set`` turns one prediction set (``eval.runner``) into the figures of the tables: COCO
-metrics with circle IoU (overall and per scene family), 3D metrics for methods with a 3D centre,
-and the time per frame. ``write_results`` writes, under an output folder:
+``score_set`` turns one prediction set (``eval.cache``, written by ``eval.runner``) into the
+figures of the tables: COCO metrics with circle IoU (overall and per scene family), 3D metrics for
+methods with a 3D centre, and the time per frame. ``write_results`` writes, under an output folder:
 
     metrics.json          {method: {dataset: {...}}}, every figure of the tables
-    tables/*.csv, *.md    Table 3 per dataset (beside the paper's reported numbers; beside another
-                          evaluation's with ``beside``, ``eval.recorded``), per-family
-                          mAP, 3D metrics, timings, Table 2, detection statistics of unannotated data
+    tables/*.csv, *.md    (``eval.tables``, written by pandas) Table 3 per dataset (beside the
+                          paper's reported numbers; beside another evaluation's with ``beside``,
+                          ``eval.recorded``), per-family mAP, 3D metrics, timings, Table 2,
+                          detection statistics of unannotated data
     figures/*.png         (``eval.figures``)
     README.md             the tables, the figures, and a reading of them
     provenance.json       commit, package versions, seeds, configurations, machine, date
@@ -18,11 +19,7 @@ temporary name, then swapped in), so an interrupted run never leaves a half-writ
 
 from __future__ import annotations
 
-import csv
-import datetime as _dt
-import io
-import math
-import subprocess
+import shutil
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,25 +28,23 @@ from typing import Sequence
 import numpy as np
 
 from spherebench.datasets import inout
+from spherebench.eval import figures as figs
+from spherebench.eval import recorded
+from spherebench.eval.cache import read_predictions
 from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
-from spherebench.eval.metrics3d import DEFAULT_GATE_M, match_scene, summarize_3d
-from spherebench.eval.sensor_grid import (GRID_AXES, band_of, detection_rates, grid_key, grid_rows, level_label,
-                                          map50_by_group, surface_distance_m)
-from spherebench.eval.runner import PAPER_CIRCLE, SceneInfo, _json_safe, machine_info, read_predictions
+from spherebench.eval.metrics3d import MATCH_GATE_M, match_scene, summarize_3d
+from spherebench.eval.paper_numbers import PAPER_TABLE2, PAPER_TABLE3
+from spherebench.eval.provenance import json_safe
+from spherebench.eval.registry import PAPER_CIRCLE
+from spherebench.eval.runner import SceneInfo
+from spherebench.eval.sensor_grid import (GRID_AXES, RANGE_BANDS_M, band_label, band_of, detection_rates, grid_key,
+                                          grid_rows, level_label, map50_by_group, surface_distance_m)
+from spherebench.eval.tables import Table, fmt, rule_label
 
-#: The paper's Table 3 (Roman-Rivera et al. 2023), on its own 200 hand-masked images.
-PAPER_TABLE3 = [("SphereDetection (ours), as reported by the paper", 0.512, 0.894, 0.529),
-                ("CircleNet-HG, as reported by the paper", 0.491, 0.843, 0.512)]
-
-#: The CircleNet methods in the reading, with what each one is (``runner.CIRCLENET_MODELS``).
+#: The CircleNet methods in the reading, with what each one is (``registry.CIRCLENET_MODELS``).
 CIRCLENET_READING = {"circlenet": "`circlenet` (half-width ResNet-18, CPU-trained)",
                      "circlenet-full": "`circlenet-full` (ResNet-18 at its own widths, GPU-trained)",
                      "circlenet-hg": "`circlenet-hg` (2-stack hourglass, GPU-trained)"}
-
-#: Packages whose versions go into the provenance.
-PACKAGES = ("numpy", "scipy", "opencv-python-headless", "numba", "pycocotools", "onnxruntime", "torch",
-            "pyransac3d", "matplotlib", "tqdm", "plyfile", "open3d")
-
 
 @dataclass
 class ScoredSet:
@@ -134,13 +129,13 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
             pc = np.asarray([d["center_m"] for d in dets], np.float64).reshape(-1, 3)
             ps = np.asarray([d["score"] for d in dets], np.float64)
             pr = np.asarray([np.nan if d.get("radius_m") is None else d["radius_m"] for d in dets], np.float64)
-            gate = max(s.gt_radii_m) if s.gt_radii_m else DEFAULT_GATE_M  # one radius of the scene's ball
+            gate = max(s.gt_radii_m) if s.gt_radii_m else MATCH_GATE_M  # one radius of the scene's ball
             gates.append(gate)
             matches.append(match_scene(pc, ps, s.gt_centres_m, gate_m=gate, pred_radii_m=pr,
                                        gt_radii_m=s.gt_radii_m))
             ball_errors.append((s, matches[-1].centre_error_m))
         if matches:
-            m["3d"] = _json_safe(summarize_3d(matches))
+            m["3d"] = json_safe(summarize_3d(matches))
             m["3d"]["gate_m"] = float(max(gates))
             m["3d"]["scenes_without_centre"] = sum(1 for s in scenes if s.annotated and len(s.gt_centres_m) != s.n_balls)
             out.distance_m = np.concatenate([mm.gt_distance_m for mm in matches])
@@ -148,7 +143,7 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
     cells = {r["scene_id"]: r.get("sensor_cell") or by_id[r["scene_id"]].sensor_cell for r in records}
     if any(cells.values()):
         for key, axes in (("sensor_cells", GRID_AXES), ("sensor_levels", ("subpixel",))):
-            m[key] = _json_safe(sensor_rows(cells, by_id, gt, results, ball_errors, axes))
+            m[key] = json_safe(sensor_rows(cells, by_id, gt, results, ball_errors, axes))
     m["ms"] = _stats_ms(ms)
     m["ms_median"], m["ms_p95"] = m["ms"]["median"], m["ms"]["p95"]
     res_groups: dict[str, list[float]] = {}
@@ -254,56 +249,12 @@ def detection_stats(records: Sequence[dict], references: Sequence | None = None)
 
 # --------------------------------------------------------------------------- tables
 
-def _fmt(v, nd: int = 3, scale: float = 1.0) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    if isinstance(v, (int, np.integer)) and scale == 1.0:
-        return str(int(v))
-    return f"{float(v) * scale + 0.0:.{nd}f}".replace("-0." + "0" * nd, "0." + "0" * nd)
-
-
-@dataclass
-class Table:
-    """A table: a name (file stem), a title, column names, rows of cells (str), notes under it."""
-
-    name: str
-    title: str
-    columns: list[str]
-    rows: list[list]
-    notes: list[str] = field(default_factory=list)
-
-    def csv(self) -> str:
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(self.columns)
-        for r in self.rows:
-            w.writerow(["" if c is None else c for c in r])
-        return buf.getvalue()
-
-    def markdown(self, heading: bool = True) -> str:
-        lines = [f"### {self.title}", ""] if heading else []
-        lines.append("| " + " | ".join(self.columns) + " |")
-        lines.append("|" + "|".join("---" for _ in self.columns) + "|")
-        for r in self.rows:
-            lines.append("| " + " | ".join("" if c is None else str(c) for c in r) + " |")
-        if self.notes:
-            lines.append("")
-            lines += [f"{n}" if n.startswith("- ") else f"- {n}" for n in self.notes]
-        return "\n".join(lines) + "\n"
-
-
-def _rule_label(s: ScoredSet) -> str:
-    if s.kind == "2d":
-        return "2D detector"
-    return "paper's projection" if s.rule == "paper" else "exact silhouette"
-
-
 def table3(label: str, sets: Sequence[ScoredSet], with_paper: bool = True) -> Table:
     """Table 3: mAP, mAP.50, mAP.75 (and mAR) per prediction set, the paper's reported rows below."""
-    rows = [[s.output, _rule_label(s), _fmt(s.metrics.get("mAP")), _fmt(s.metrics.get("mAP50")),
-             _fmt(s.metrics.get("mAP75")), _fmt(s.metrics.get("mAR")), s.metrics.get("n_images", "–"),
+    rows = [[s.output, rule_label(s.kind, s.rule), fmt(s.metrics.get("mAP")), fmt(s.metrics.get("mAP50")),
+             fmt(s.metrics.get("mAP75")), fmt(s.metrics.get("mAR")), s.metrics.get("n_images", "–"),
              s.note or ""] if not not_run(s) else
-            [s.output, _rule_label(s), "not run", "–", "–", "–", s.metrics.get("n_images", "–"),
+            [s.output, rule_label(s.kind, s.rule), "not run", "–", "–", "–", s.metrics.get("n_images", "–"),
              f"not run ({not_run(s)})"] for s in sets if "mAP" in s.metrics]
     notes = ["COCO protocol with circle IoU (CircleNet's): AP over IoU 0.50:0.05:0.95 (mAP), at 0.50 and 0.75; "
              "101-point interpolation, maxDets 1000, circle area = pi r^2.",
@@ -331,7 +282,7 @@ def family_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
         row = [s.output]
         for f in fams:
             v = s.metrics["families"].get(f, {})
-            row.append(f"{_fmt(v.get('mAP50'))} / {_fmt(v.get('mAP'))}")
+            row.append(f"{fmt(v.get('mAP50'))} / {fmt(v.get('mAP'))}")
         rows.append(row)
     counts = []
     for f in fams:
@@ -348,7 +299,7 @@ def _found(r: dict) -> str:
     """'0.984 (63/64)' of a sensor row's 3D detection rate, '–' without one."""
     if r.get("within_2cm") is None:
         return "–"
-    return f"{_fmt(r['within_2cm'])} ({r['found_2cm']}/{r['n_balls']})"
+    return f"{fmt(r['within_2cm'])} ({r['found_2cm']}/{r['n_balls']})"
 
 
 def sensor_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
@@ -363,17 +314,17 @@ def sensor_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
         for sub in dict.fromkeys(r["subpixel"] for r in levels):
             by_band = {r["band"]: r for r in levels if r["subpixel"] == sub}
             rows.append([s.method, level_label(sub)] + [_found(by_band.get(b, {})) for b in bands]
-                        + [_fmt(by_band.get(b, {}).get("mAP50")) for b in bands])
+                        + [fmt(by_band.get(b, {}).get("mAP50")) for b in bands])
     if not rows:
         return None
     return Table(name=f"sensor_{label}", title=f"Per sensor noise level and range band on `{label}`",
-                 columns=["method", "subpixel (px)"] + [f"found <= 2 cm, {b}" for b in bands]
+                 columns=["method", "subpixel (px)"] + [f"matched <= 2 cm, {b}" for b in bands]
                  + [f"mAP.50, {b}" for b in bands], rows=rows,
                  notes=["Each subpixel level pools its cells over noise correlation (none, 1 px) and low-texture "
                         "dropouts (off, on); the robustness figure shows the cells apart. Bands: the ball's true "
                         "distance to its nearest surface.",
-                        "Found: balls whose matched detection is within 2 cm of the true centre, over the band's "
-                        "balls. mAP.50: COCO AP at circle IoU 0.50 over the level's images, the balls of other bands "
+                        "Matched <= 2 cm: balls whose matched detection (`match_scene` of `eval/metrics3d.py`) is "
+                        "within 2 cm of the true centre, over the band's balls. mAP.50: COCO AP at circle IoU 0.50 over the level's images, the balls of other bands "
                         "being COCO's ignored ground truth (a detection matched to one counts nowhere); a detection "
                         "matched to no ball is a false positive in every band.",
                         "Per-cell figures (all three axes) are in metrics.json under `sensor_cells`."])
@@ -398,22 +349,22 @@ def metrics3d_table(label: str, sets: Sequence[ScoredSet], reference: str | None
             continue
         ce, re_ = d["centre_error_m"], d["radius_error_m"]
         own = _estimates_radius(s)
-        rows.append([s.method, d["n_gt"], _fmt(d.get("within_1cm")), _fmt(d.get("within_2cm")),
-                     _fmt(d.get("within_5cm")), _fmt(ce.get("median"), 1, 1000), _fmt(ce.get("rmse"), 1, 1000),
-                     _fmt(ce.get("p95"), 1, 1000),
-                     _fmt(re_.get("median"), 1, 1000) if own else "(R fixed)",
-                     _fmt(re_.get("median_abs"), 1, 1000) if own else "–",
-                     _fmt(_median_radius(s), 3) if own else "(R fixed)",
+        rows.append([s.method, d["n_gt"], fmt(d.get("within_1cm")), fmt(d.get("within_2cm")),
+                     fmt(d.get("within_5cm")), fmt(ce.get("median"), 1, 1000), fmt(ce.get("rmse"), 1, 1000),
+                     fmt(ce.get("p95"), 1, 1000),
+                     fmt(re_.get("median"), 1, 1000) if own else "(R fixed)",
+                     fmt(re_.get("median_abs"), 1, 1000) if own else "–",
+                     fmt(_median_radius(s), 3) if own else "(R fixed)",
                      d["false_detections"],
                      f"{d['negative_detections']} in {d['n_negative_scenes']}" if d["n_negative_scenes"] else "–",
                      s.note or ""])
     if not rows:
         return None
-    gate = next((s.metrics["3d"].get("gate_m") for s in sets if s.metrics.get("3d")), None) or DEFAULT_GATE_M
+    gate = next((s.metrics["3d"].get("gate_m") for s in sets if s.metrics.get("3d")), None) or MATCH_GATE_M
     true = "reference" if reference else "true"
     return Table(name=f"metrics3d_{label}", title=f"3D metrics on `{label}`" + (
                      " against its reference centres" if reference else ""),
-                 columns=["method", "balls", "found <= 1 cm", "<= 2 cm", "<= 5 cm", "centre error median (mm)",
+                 columns=["method", "balls", "matched <= 1 cm", "<= 2 cm", "<= 5 cm", "centre error median (mm)",
                           "RMSE (mm)", "p95 (mm)", "radius error median (mm)", "radius |error| median (mm)",
                           "median radius of all detections (m)", "false detections",
                           "detections on negative scenes", "note"], rows=rows,
@@ -433,7 +384,7 @@ def timing_table(per_dataset: dict[str, Sequence[ScoredSet]]) -> Table:
             if s.rule == "paper" or not_run(s):  # same run as the exact-rule row; a refusal's time is none
                 continue
             for res, st in s.metrics.get("ms_by_resolution", {}).items():
-                rows.append([s.method, label, res, st["n"], _fmt(st["median"], 1), _fmt(st["p95"], 1)])
+                rows.append([s.method, label, res, st["n"], fmt(st["median"], 1), fmt(st["p95"], 1)])
     return Table(name="timings", title="Time per frame (ms, one thread)", columns=[
         "method", "dataset", "resolution", "frames", "median ms", "p95 ms"], rows=rows,
         notes=["Measured around the detection call only (no file reading), in worker processes pinned to one "
@@ -445,12 +396,12 @@ def table2_table(rows: Sequence[dict]) -> Table:
     out = []
     for r in rows:
         p = r.get("paper") or {}
-        out.append([r["scene"], _fmt(r["z"], 1), r["iterations"], _fmt(r.get("rmse_ransac"), 6),
-                    _fmt(r.get("rmse_ransac_filtered"), 6), _fmt(r.get("rmse_barycentre"), 6),
-                    _fmt(p.get("rmse_ransac"), 6), _fmt(p.get("rmse_ransac_filtered"), 6),
-                    _fmt(p.get("rmse_barycentre"), 6), r.get("n_inliers", "–"), r.get("n_filtered", "–"),
-                    _fmt(r.get("error_ransac_m"), 1, 1000), _fmt(r.get("error_barycentre_m"), 1, 1000),
-                    _fmt(r.get("error_refined_m"), 1, 1000), _fmt(r.get("error_improved_m"), 1, 1000)])
+        out.append([r["scene"], fmt(r["z"], 1), r["iterations"], fmt(r.get("rmse_ransac"), 6),
+                    fmt(r.get("rmse_ransac_filtered"), 6), fmt(r.get("rmse_barycentre"), 6),
+                    fmt(p.get("rmse_ransac"), 6), fmt(p.get("rmse_ransac_filtered"), 6),
+                    fmt(p.get("rmse_barycentre"), 6), r.get("n_inliers", "–"), r.get("n_filtered", "–"),
+                    fmt(r.get("error_ransac_m"), 1, 1000), fmt(r.get("error_barycentre_m"), 1, 1000),
+                    fmt(r.get("error_refined_m"), 1, 1000), fmt(r.get("error_improved_m"), 1, 1000)])
     return Table(name="table2", title="Table 2 on `paper` (E1, E2, E3): RMSE (m) before and after the z-score filter",
                  columns=["scene", "z", "iterations", "RMSE RANSAC", "RMSE RANSAC centre, z-filtered points",
                           "RMSE barycentre", "paper: RMSE RANSAC", "paper: RANSAC centre, filtered",
@@ -478,11 +429,11 @@ def detections_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
         if not_run(s):
             rows.append([s.method, u["n_scenes"], f"not run ({not_run(s)})", *["–"] * 8])
             continue
-        rows.append([s.method, u["n_scenes"], u["scenes_with_detection"], _fmt(u["detections_per_scene"], 2),
-                     _fmt(u["top_score_median"], 3), _fmt(u["radius_m_median"], 4), _fmt(u["radius_m_p05"], 4),
-                     _fmt(u["radius_m_p95"], 4),
-                     f"{_fmt(u.get('within_5cm_of_reference'), 2)} of {u['n_reference']}" if u["n_reference"] else "–",
-                     _fmt(u.get("reference_distance_m_median"), 3), _fmt(s.metrics["ms"]["median"], 1)])
+        rows.append([s.method, u["n_scenes"], u["scenes_with_detection"], fmt(u["detections_per_scene"], 2),
+                     fmt(u["top_score_median"], 3), fmt(u["radius_m_median"], 4), fmt(u["radius_m_p05"], 4),
+                     fmt(u["radius_m_p95"], 4),
+                     f"{fmt(u.get('within_5cm_of_reference'), 2)} of {u['n_reference']}" if u["n_reference"] else "–",
+                     fmt(u.get("reference_distance_m_median"), 3), fmt(s.metrics["ms"]["median"], 1)])
     if not rows:
         return None
     return Table(name=f"detections_{label}", title=f"Detections on the unannotated scenes of `{label}`",
@@ -493,40 +444,6 @@ def detections_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
                         "estimate, where the method makes one.",
                         "Reference: a centre shipped with the recording (e.g. the dataset authors' own fit), where "
                         "there is one; agreement with it is not accuracy."])
-
-
-# --------------------------------------------------------------------------- provenance
-
-def git_state(repo: Path) -> dict:
-    """{commit, dirty} of the repository (None when git is unavailable)."""
-    def run(*args):
-        try:
-            return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=20).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return None
-    commit = run("rev-parse", "HEAD")
-    status = run("status", "--porcelain", "--untracked-files=no")
-    return {"commit": commit or None, "dirty": None if status is None else bool(status)}
-
-
-def package_versions() -> dict:
-    from importlib.metadata import PackageNotFoundError, version
-    out = {}
-    for name in PACKAGES:
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = None
-    return out
-
-
-def provenance(repo: Path, seeds: dict, configs: dict, extra: dict | None = None) -> dict:
-    import platform
-    from spherebench import __version__
-    return _json_safe({"spherebench": __version__, "git": git_state(repo), "python": platform.python_version(),
-                       "packages": package_versions(), "machine": machine_info(), "seeds": seeds,
-                       "configurations": configs,
-                       "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), **(extra or {})})
 
 
 # --------------------------------------------------------------------------- writing
@@ -549,7 +466,6 @@ def _in_results_dir(folder: Path) -> bool:
 def _keep_subfolders(old: Path, tmp: Path) -> list[str]:
     """Copy the sub-folders of an existing figures folder into its replacement ``tmp`` (the report
     writes files only; a sub-folder is another tool's, e.g. `annotate --sheet`); their names."""
-    import shutil
     if not old.is_dir():
         return []
     kept = []
@@ -574,7 +490,7 @@ def metrics_json(per_dataset: dict[str, Sequence[ScoredSet]]) -> dict:
     for label, sets in per_dataset.items():
         for s in sets:
             out.setdefault(s.output, {})[label] = s.metrics
-    return _json_safe(out)
+    return json_safe(out)
 
 
 def _get(sets: Sequence[ScoredSet], output: str) -> ScoredSet | None:
@@ -591,7 +507,6 @@ def _level_rate(levels: Sequence[dict], subpixel, bands: Sequence[str]) -> str:
 def robust_reading(label: str, sets: Sequence[ScoredSet], default: Sequence[ScoredSet] | None) -> list[str]:
     """The reading of a grid preset (``robust``): the best mAP, and the improved detector's rate and the
     best 2D method's mAP.50 per subpixel level (pooled over the other axes), as the figure shows them."""
-    from spherebench.eval.sensor_grid import RANGE_BANDS_M, band_label
     out = []
     scored = [s for s in sets if s.metrics.get("mAP") is not None and not not_run(s)]
     if scored:
@@ -620,7 +535,7 @@ def robust_reading(label: str, sets: Sequence[ScoredSet], default: Sequence[Scor
         best2d = max(nets, key=lambda s: s.metrics["mAP50"])
         levels = best2d.metrics["sensor_levels"]
         subs = list(dict.fromkeys(r["subpixel"] for r in levels))
-        per = {b: " / ".join(_fmt(next((r["mAP50"] for r in levels if r["subpixel"] == v and r["band"] == b), None))
+        per = {b: " / ".join(fmt(next((r["mAP50"] for r in levels if r["subpixel"] == v and r["band"] == b), None))
                              for v in subs) for b in (near + far)}
         out.append(f"The best 2D method on `{label}` at IoU 0.50, {best2d.output} (mAP.50 "
                    f"{best2d.metrics['mAP50']:.3f}), scores mAP.50 " + "; ".join(f"{v} at {b}" for b, v in per.items())
@@ -732,7 +647,6 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
         e1 = [r for r in t2 if r["scene"] == "E1" and r.get("rmse_barycentre") is not None]
         if e1:
             r = min(e1, key=lambda r: r["z"])
-            from spherebench.eval.runner import PAPER_TABLE2
             paper = PAPER_TABLE2.get(("E1", r["z"]))
             direction = "larger" if r["rmse_barycentre"] > r["rmse_ransac"] else "smaller"
             out.append(f"Table 2: on E1 at z {r['z']:g} the barycentre's RMSE is {r['rmse_barycentre']:.4f} m against "
@@ -800,8 +714,6 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     3D table and figures say that its centres are references. Sub-folders of figures/ that other
     tools wrote (the annotation review sheets) are kept when figures/ is replaced.
     """
-    from spherebench.eval import figures as figs
-    from spherebench.eval import recorded
     out = Path(out)
     sets_by = {k: v[2] for k, v in per_dataset.items()}
     facts = {label: recorded.facts(data_dir) for label, (data_dir, _, _) in per_dataset.items()}
@@ -861,7 +773,7 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     write_tables(out / "tables", tables)
     inout.write_json(out / "metrics.json", metrics)
     if t2:
-        inout.write_json(out / "table2.json", _json_safe(list(t2)))
+        inout.write_json(out / "table2.json", json_safe(list(t2)))
     inout.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
                                                     about).encode())
     inout.write_json(out / "provenance.json", prov)

@@ -26,6 +26,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth
+
 #: The grid's axes, as a scene's sensor_cell names them.
 GRID_AXES = ("subpixel", "correlation", "dropouts")
 #: Range bands of the ball's true distance (m, to its nearest surface); [lo, hi), the last closed.
@@ -93,7 +95,6 @@ def map50_by_group(coco_gt, results: Sequence[dict], image_keys: Mapping[int, tu
 
     coco_gt: a COCO object (``coco_eval.load_ground_truth``) or dict; ann_band(annotation) gives
     an annotation's band label (``band_of``)."""
-    from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth
     gt = coco_gt if hasattr(coco_gt, "getImgIds") else load_ground_truth(coco_gt)
     groups: dict[tuple, list[int]] = {}
     for image_id, key in image_keys.items():
@@ -140,7 +141,7 @@ def ceiling_key(row: Mapping) -> tuple:
 
 def ceiling_by_cell(balls: Sequence[Mapping], axes: Sequence[str] = GRID_AXES) -> dict[tuple, float]:
     """A per-cell ceiling for the robustness figure from an oracle's per-ball rows ({cell (a sensor_cell),
-    band, separable}, ``runner.oracle_balls``): {key + (band,): share of the group's balls that are
+    band, separable}, ``studies.oracle_balls``): {key + (band,): share of the group's balls that are
     separable} (``eval.oracle``: verified from the true centre to within 2 cm at the right size,
     with a score above every clutter sphere of the frame). Balls without a cell or band are left out."""
     groups: dict[tuple, list[bool]] = {}

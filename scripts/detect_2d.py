@@ -24,6 +24,9 @@ import sys
 import time
 from pathlib import Path
 
+from spherebench.datasets import inout
+from spherebench.errors import SphereBenchError
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("paths", nargs="+", metavar="PATH", help="image.png files or scene folders")
@@ -44,8 +47,6 @@ def add_arguments(parser) -> None:
 
 
 def _image_path(path: Path) -> Path:
-    from spherebench.errors import SphereBenchError
-
     if path.is_dir():
         if not (path / "image.png").is_file():
             raise SphereBenchError(f"{path} is a folder without image.png; pass image files or scene folders "
@@ -57,10 +58,9 @@ def _image_path(path: Path) -> Path:
 
 
 def run(args) -> int:
+    # here, not at the top: infer loads onnx and onnxruntime (about a second), which `detect-2d --help` does not need
     from spherebench.baselines.circlenet.imaging import load_image
     from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector, scene_focal_px
-    from spherebench.datasets import inout
-    from spherebench.errors import SphereBenchError
 
     if args.top_k < 1:
         raise SphereBenchError("--top-k must be at least 1")

@@ -14,6 +14,7 @@ import sys
 from dataclasses import replace
 
 from spherebench import options
+from spherebench.errors import SphereBenchError, require
 
 
 def add_arguments(parser) -> None:
@@ -42,12 +43,10 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from spherebench.errors import require
-
     require("torch", "train", "training")
+    # here, not at the top: they load torch (3 s), which `spherebench train --help` does not need
     from spherebench.baselines.circlenet.model import CircleNetConfig
     from spherebench.baselines.circlenet.train import TrainConfig, run_config, train
-    from spherebench.errors import SphereBenchError
 
     given = {k: getattr(args, k) for k in ("epochs", "batch_size", "device", "workers", "threads", "onnx_weights")
              if getattr(args, k) is not None}
@@ -81,8 +80,6 @@ def run(args) -> int:
 
 def _parse_size(text: str) -> tuple[int, int]:
     """'424x240' -> (height, width) = (240, 424)."""
-    from spherebench.errors import SphereBenchError
-
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:

@@ -1,5 +1,7 @@
 """The one exception type for bad input, turned into a one-line message by the CLI."""
 
+import importlib
+
 
 class SphereBenchError(Exception):
     """Bad input or parameters: the message says what is wrong and what to do.
@@ -12,8 +14,6 @@ class SphereBenchError(Exception):
 def require(module: str, extra: str, purpose: str):
     """Import an optional dependency, or raise a one-line SphereBenchError naming the extra that
     installs it (the core install leaves out torch, pyrealsense2, rerun-sdk and open3d)."""
-    import importlib
-
     try:
         return importlib.import_module(module)
     except ImportError as exc:

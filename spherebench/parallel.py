@@ -1,26 +1,86 @@
-"""Worker processes that stop cleanly: one pool for every parallel stage.
+"""Worker processes for every parallel stage: one executor, one thread-pinning rule, stopping cleanly.
 
-Ctrl-C in a terminal signals the whole process group. The workers ignore SIGINT, so that only the
-parent reacts (one "interrupted" line, no worker tracebacks); when the parent's work stops for any
-reason, pending tasks are cancelled and running workers terminated before the caller's cleanup
-removes their temporary output.
+``executor(workers, engine, address)`` gives an object whose ``map(fn, items)`` yields ``fn(item)``
+in input order, run by
+- ``local`` (default): this process when ``workers <= 1``, else a pool of ``workers`` spawned
+  processes (``process_pool``);
+- ``ray``: the tasks of a Ray cluster (``--engine ray [--address ADDR]``; without an address a
+  local one is started with ``workers`` CPUs). Ray is the optional extra ``distributed``.
+Every worker, local or Ray, is pinned to one thread (``SINGLE_THREAD_ENV``, ``pin_single_thread``):
+the benchmark's times are single-threaded, and the output of a task depends on its arguments only,
+so the results are the same whichever engine runs them.
+
+Ctrl-C in a terminal signals the whole process group. Local workers ignore SIGINT, so that only
+the parent reacts (one "interrupted" line, no worker tracebacks); when the parent's work stops
+for any reason, pending tasks are cancelled and running workers terminated before the caller's
+cleanup removes their temporary output.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import multiprocessing
+import os
 import signal
+import sys
 from concurrent.futures import ProcessPoolExecutor
-from typing import Callable
+from typing import Callable, Iterable, Iterator
+
+import cv2
+
+from spherebench.errors import SphereBenchError
+
+#: Environment variables that pin a worker to one thread (set before the worker starts).
+SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                     "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
+#: The executors of ``executor``.
+ENGINES = ("local", "ray")
 
 
 def ignore_interrupts() -> None:
-    """A worker's first step (also a multiprocessing.Pool initializer): the parent handles SIGINT
-    and terminates the workers."""
+    """A worker's first step: the parent handles SIGINT and terminates the workers."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # a forked worker inherits the CLI's SIGTERM handler: terminate() must simply end it
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def pin_single_thread() -> None:
+    """Pin this (worker) process's libraries to one thread: BLAS/OpenMP and numba through the
+    environment (each reads it when it loads), then OpenCV and numba directly."""
+    for k, v in SINGLE_THREAD_ENV.items():
+        if k != "NUMBA_NUM_THREADS" or "numba" not in sys.modules:  # numba: only before it loads
+            os.environ[k] = v
+    cv2.setNumThreads(1)
+    import numba  # here, not at the top: numba reads NUMBA_NUM_THREADS once, when it loads (just set)
+    with contextlib.suppress(ValueError):  # its pool already started with fewer threads
+        numba.set_num_threads(1)
+
+
+_PINNED = False
+
+
+def _pinned_call(fn: Callable, item):
+    """``fn(item)`` in a Ray worker, pinned to one thread at its first task."""
+    global _PINNED
+    if not _PINNED:
+        pin_single_thread()
+        _PINNED = True
+    return fn(item)
+
+
+@contextlib.contextmanager
+def single_thread_here():
+    """Numba and OpenCV at one thread in this process for a while (in-process runs), then restored."""
+    import numba  # not at the top: a worker sets NUMBA_NUM_THREADS before numba loads (pin_single_thread)
+    saved = cv2.getNumThreads(), numba.get_num_threads()
+    cv2.setNumThreads(1)
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(saved[0])
+        numba.set_num_threads(saved[1])
 
 
 def _worker_start(initializer: Callable | None, initargs: tuple) -> None:
@@ -51,3 +111,113 @@ def process_pool(workers: int, initializer: Callable | None = None, initargs: tu
     else:
         pool.shutdown(wait=True)
 
+
+class InProcess:
+    """``map`` in this process, one thread (``workers <= 1``)."""
+
+    workers = 1
+
+    def map(self, fn: Callable, items: Iterable) -> Iterator:
+        return map(fn, items)
+
+
+class LocalPool:
+    """``map`` over a pool of spawned, single-threaded worker processes."""
+
+    def __init__(self, pool: ProcessPoolExecutor, workers: int):
+        self.pool, self.workers = pool, workers
+
+    def map(self, fn: Callable, items: Iterable) -> Iterator:
+        return self.pool.map(fn, items, chunksize=1)
+
+
+class RayTasks:
+    """``map`` as Ray tasks of one CPU each, results in input order."""
+
+    def __init__(self, ray, workers: int):
+        self.ray, self.workers = ray, workers
+        self.remote = ray.remote(num_cpus=1)(_pinned_call)
+
+    def map(self, fn: Callable, items: Iterable) -> Iterator:
+        fn_ref = self.ray.put(fn)
+        refs = [self.remote.remote(fn_ref, item) for item in items]
+        done = 0
+        try:
+            for ref in refs:
+                yield self.ray.get(ref)
+                done += 1
+        finally:
+            # stopped early (an error, Ctrl-C): the rest is not needed. Not after the cluster is shut
+            # down: a Ray call would start a new one
+            if done < len(refs) and self.ray.is_initialized():
+                for ref in refs[done:]:
+                    with contextlib.suppress(Exception):
+                        self.ray.cancel(ref, force=True)
+
+
+@contextlib.contextmanager
+def _local(workers: int, isolated: bool = False):
+    if workers <= 1 and not isolated:
+        with single_thread_here():
+            yield InProcess()
+        return
+    # inherited by the workers before they import anything; NUMBA_NUM_THREADS is left to the
+    # workers' initializer: numba rereads it in this process at its next compilation, and refuses
+    # a value other than its running thread pool's
+    child_env = {k: v for k, v in SINGLE_THREAD_ENV.items() if k != "NUMBA_NUM_THREADS"}
+    saved = {k: os.environ.get(k) for k in child_env}
+    os.environ.update(child_env)
+    try:
+        with process_pool(workers, initializer=pin_single_thread, start_method="spawn") as pool:
+            yield LocalPool(pool, workers)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@contextlib.contextmanager
+def _ray(workers: int, address: str | None):
+    import ray  # here, not at the top: an optional dependency (the `distributed` extra), for this engine only
+    started = not ray.is_initialized()
+    if started:
+        # every Ray worker starts single-threaded, as a local worker does
+        runtime_env = {"env_vars": dict(SINGLE_THREAD_ENV)}
+        try:
+            if address:
+                ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
+            else:
+                ray.init(num_cpus=max(1, workers), include_dashboard=False, runtime_env=runtime_env,
+                         log_to_driver=False)
+        except ConnectionError as exc:
+            raise SphereBenchError(f"--address {address}: no Ray cluster there ({exc})") from None
+    try:
+        yield RayTasks(ray, max(1, int(ray.cluster_resources().get("CPU", workers))))
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def check_engine(workers: int, engine: str, address: str | None) -> None:
+    """``executor``'s arguments, checked (a command checks them before it writes anything)."""
+    if workers < 1:
+        raise SphereBenchError(f"--workers {workers}: give at least 1")
+    if engine not in ENGINES:
+        raise SphereBenchError(f"--engine {engine}: choose from {', '.join(ENGINES)}")
+    if address and engine != "ray":
+        raise SphereBenchError("--address is the Ray cluster's: give it with --engine ray")
+    if engine == "ray" and importlib.util.find_spec("ray") is None:
+        raise SphereBenchError("--engine ray needs Ray: pip install 'spherebench[distributed]'")
+
+
+@contextlib.contextmanager
+def executor(workers: int = 2, engine: str = "local", address: str | None = None, isolated: bool = False):
+    """The executor of a run (see the module docstring): ``with executor(2) as ex: ex.map(fn, items)``.
+
+    isolated: even one local worker is a spawned process (pinned before numpy and numba load, which
+    this process cannot be), for timings that must be single-threaded throughout (``bench``)."""
+    check_engine(workers, engine, address)
+    with (_ray(workers, address) if engine == "ray" else _local(workers, isolated)) as ex:
+        yield ex

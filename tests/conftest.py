@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from spherebench.datasets import simulate
@@ -17,3 +19,9 @@ def paper_dataset(tmp_path_factory):
 def small_default(tmp_path_factory):
     """Six scenes of the default preset (3 clean, 3 cluttered)."""
     return simulate.generate_dataset("default", tmp_path_factory.mktemp("data") / "default6", n=6, progress=False)
+
+
+def markdown_cells(text: str) -> str:
+    """Markdown with every table cell's padding reduced to one space: pandas pads a column's cells
+    to one width, and a test looks for the cells' text."""
+    return re.sub(r" +\|", " |", re.sub(r"\| +", "| ", text))

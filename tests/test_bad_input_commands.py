@@ -20,7 +20,8 @@ from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, in_front_of_camera
 from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
-from spherebench.eval import report, runner
+from spherebench.eval import provenance, registry, report, seeds
+from conftest import markdown_cells  # noqa: E402  (tests/ is on sys.path under pytest)
 
 CAM = Intrinsics(width=160, height=120, ppx=79.5, ppy=59.5, fx=140.0, fy=140.0)
 BALL_CENTRE_M = np.array([0.05, -0.03, 1.4])
@@ -214,13 +215,13 @@ def test_evaluate_refuses_a_truncated_coco_gt_of_any_dataset_before_running(big_
                     "--workers", "1", "--quiet", "--no-figures"], "coco_gt.json", "not valid JSON")
     assert _listing(tmp_path) == before
     with pytest.raises(SphereBenchError, match="truncated"):  # the path that read it with json.loads
-        runner.dataset_fingerprint(bad)
+        provenance.dataset_fingerprint(bad)
 
 
 def test_evaluate_says_a_method_that_refused_every_image_was_not_run(big_ball, tmp_path, capsys, monkeypatch):
     def refuse(self, image, seed):
         raise SphereBenchError("the image is 160x120 px, not this method's")
-    monkeypatch.setattr(runner._HoughEngine, "detect", refuse)  # --workers 1: the engines run in this process
+    monkeypatch.setattr(registry.HoughAdapter, "detect", refuse)  # --workers 1: the adapters run in this process
     hough = tmp_path / "hough.json"
     hough.write_text("{}")
     capsys.readouterr()
@@ -230,7 +231,7 @@ def test_evaluate_says_a_method_that_refused_every_image_was_not_run(big_ball, t
     line = next(x for x in out.splitlines() if " hough " in x)
     assert "refused 1/1: the image is 160x120 px" in line and "detections in" not in line and " ms" not in line
     assert "detections in 1/1" in next(x for x in out.splitlines() if " improved " in x)
-    readme = (tmp_path / "out" / "README.md").read_text()
+    readme = markdown_cells((tmp_path / "out" / "README.md").read_text())
     assert "hough was not run: it refused 1/1 scenes" in readme
     assert "| hough | 1 | not run (the image is 160x120 px" in readme
     assert "| hough | ds |" not in readme  # no time for a method that did not run
@@ -268,7 +269,7 @@ def test_train_failing_in_its_first_steps_removes_the_folder_it_created(train_da
 
 def test_pyransac3d_fits_depend_on_the_scene_seed_only(big_ball, small_default):
     clouds = [inout.load_cloud(s) for s in [big_ball / "scenes" / "f", *inout.list_scenes(small_default)[:3]]]
-    seeds = [runner.scene_seed(0, k) for k in range(len(clouds))]
+    scene_seeds = [seeds.detection_seed(0, k) for k in range(len(clouds))]
 
     def fits(order, disturb):
         out = {}
@@ -276,7 +277,7 @@ def test_pyransac3d_fits_depend_on_the_scene_seed_only(big_ball, small_default):
             random.seed(disturb + k)  # whatever the caller (or the scene before) left in the global generator
             np.random.seed(disturb + k)
             state = random.getstate()
-            got = peer.detect(clouds[k], points=600, iterations=80, seed=seeds[k])
+            got = peer.detect(clouds[k], points=600, iterations=80, seed=scene_seeds[k])
             assert random.getstate() == state  # and the caller's generator is left as it was
             out[k] = [(d["center_m"].tolist(), d["radius_m"], d["inliers"]) for d in got]
         return out
@@ -285,8 +286,33 @@ def test_pyransac3d_fits_depend_on_the_scene_seed_only(big_ball, small_default):
 
 
 def test_provenance_names_what_the_peers_arithmetic_depends_on():
-    assert "onnxruntime" in report.PACKAGES and "pyransac3d" in report.PACKAGES
-    info = runner.machine_info()
+    assert "onnxruntime" in provenance.PACKAGES and "pyransac3d" in provenance.PACKAGES
+    info = provenance.machine_info()
     assert "blas" in info
     if info["blas"] is not None:  # numpy's bundled OpenBLAS: its version and the kernel chosen for this CPU
         assert info["blas"].startswith("OpenBLAS")
+
+
+# ---------------------------------------------------------------- the benchmark's subcommands
+
+@pytest.mark.parametrize("argv, says", [
+    (["eval", "--data", "{tmp}/none"], "is missing"),
+    (["eval", "--data", "{tmp}/none", "--workers", "0"], "--workers 0"),
+    (["sweep", "{tmp}/none"], "none"),
+    (["robustness", "{tmp}/none"], "none"),
+    (["bench", "{tmp}/none"], "none"),
+])
+def test_benchmark_subcommands_refuse_bad_input_in_one_line(tmp_path, capsys, argv, says):
+    argv = [a.format(tmp=tmp_path) for a in argv] + ["--out", str(tmp_path / "out")]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"spherebench {argv[0]}: error:") and len(err.strip().splitlines()) == 1 and says in err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out.md").exists()
+
+
+def test_engine_options_are_checked_before_any_work(small_default, tmp_path, capsys):
+    base = ["evaluate", "--data", str(small_default), "--out", str(tmp_path / "out"), "--methods", "improved"]
+    assert cli.main([*base, "--engine", "spark"]) == 2  # argparse's choices
+    assert cli.main([*base, "--address", "ray://head:10001"]) == 2
+    err = capsys.readouterr().err
+    assert "--address is the Ray cluster's: give it with --engine ray" in err

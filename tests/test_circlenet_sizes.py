@@ -169,10 +169,10 @@ def test_detect_2d_runs_on_any_size_with_the_scene_camera(tmp_path, monkeypatch,
 
 
 def test_a_model_trained_on_the_earlier_train_preset_says_so():
-    from spherebench.eval import runner
-    full = runner.circlenet_model_path("circlenet-full")
+    from spherebench.eval import provenance, registry
+    full = registry.circlenet_model_path("circlenet-full")
     if not full.is_file():
         pytest.skip("the full-size CircleNet is not shipped in this checkout")
-    spec = runner.circlenet_spec(full, "circlenet-full")
-    assert (runner.file_sha256(full) in runner.EARLIER_TRAIN) == ("earlier train preset" in spec.note)
-    assert "earlier train preset" not in runner.circlenet_spec(runner.circlenet_model_path(), "circlenet").note
+    spec = registry.circlenet_spec(full, "circlenet-full")
+    assert (provenance.file_sha256(full) in registry.EARLIER_TRAIN) == ("earlier train preset" in spec.note)
+    assert "earlier train preset" not in registry.circlenet_spec(registry.circlenet_model_path(), "circlenet").note

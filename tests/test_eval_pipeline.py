@@ -11,7 +11,7 @@ import pytest
 from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
-from spherebench.eval import report, runner
+from spherebench.eval import cache, provenance, registry, report, runner, seeds, studies, tables
 
 RESULT_KEYS = {"image_id", "category_id", "circle_center", "circle_radius", "bbox", "score", "scene_id"}
 
@@ -23,9 +23,9 @@ def tiny(tmp_path_factory):
 
 
 def _specs(names=("improved", "paper", "pyransac3d", "hough")):
-    specs = runner.build_methods(list(names), hough_config=HoughConfig())
+    specs = registry.build_methods(list(names), hough_config=HoughConfig())
     # keep the peer cheap in tests
-    return [runner.pyransac3d_spec(points=800, iterations=60) if s.name == "pyransac3d" else s for s in specs]
+    return [registry.pyransac3d_spec(points=800, iterations=60) if s.name == "pyransac3d" else s for s in specs]
 
 
 def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
@@ -35,10 +35,10 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
     coco = inout.read_coco_gt(tiny)
     image_ids = {img["id"] for img in coco["images"]}
     for name, path in paths.items():
-        results, meta = runner.read_predictions(path)
+        results, meta = cache.read_predictions(path)
         assert isinstance(results, list)
         assert meta["output"] == name and meta["seed"] == 0 and len(meta["scenes"]) == 4
-        assert meta["predictions_sha256"] == runner.file_sha256(path)
+        assert meta["predictions_sha256"] == provenance.file_sha256(path)
         assert all(r["ms"] >= 0 for r in meta["scenes"])
         for r in results:
             assert RESULT_KEYS <= set(r) and r["image_id"] in image_ids and r["category_id"] == 1
@@ -47,8 +47,8 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
                 assert len(r["center_m"]) == 3
         assert all("center_m" not in r for r in results) or meta["kind"] == "3d"
     # one detection run, two rules: same centres and scores, different circles
-    exact, _ = runner.read_predictions(paths["improved"])
-    paper_rule, _ = runner.read_predictions(paths["improved+paper-circle"])
+    exact, _ = cache.read_predictions(paths["improved"])
+    paper_rule, _ = cache.read_predictions(paths["improved+paper-circle"])
     assert [r["center_m"] for r in exact] == [r["center_m"] for r in paper_rule]
     assert exact and any(a["circle_radius"] != b["circle_radius"] for a, b in zip(exact, paper_rule))
     # the improved detector finds the four simulated balls within 2 cm, and scores them
@@ -92,7 +92,7 @@ def test_deterministic_across_workers_and_resume(tiny, tmp_path):
     # another seed: recomputed (the paper pipeline's global sampling changes with it)
     runner.run_methods(tiny, tmp_path / "a", specs, seed=4, workers=1, progress=False, log=logged.append)
     assert all(p.stat().st_mtime_ns != before[n] for n, p in a.items())
-    assert runner.read_predictions(a["paper"])[1]["seed"] == 4
+    assert cache.read_predictions(a["paper"])[1]["seed"] == 4
     # a damaged predictions file is not reused
     a["improved"].write_text("[]")
     logged.clear()
@@ -102,44 +102,44 @@ def test_deterministic_across_workers_and_resume(tiny, tmp_path):
 
 
 def test_scene_seed_and_fingerprint(tiny, tmp_path):
-    assert runner.scene_seed(0, 1) == runner.scene_seed(0, 1) != runner.scene_seed(0, 2) != runner.scene_seed(1, 2)
-    fp = runner.dataset_fingerprint(tiny)
-    assert fp == runner.dataset_fingerprint(tiny)
+    assert seeds.detection_seed(0, 1) == seeds.detection_seed(0, 1) != seeds.detection_seed(0, 2) != seeds.detection_seed(1, 2)
+    fp = provenance.dataset_fingerprint(tiny)
+    assert fp == provenance.dataset_fingerprint(tiny)
     with pytest.raises(SphereBenchError):
-        runner.dataset_fingerprint(tmp_path)
+        provenance.dataset_fingerprint(tmp_path)
     with pytest.raises(SphereBenchError, match="unknown method"):
-        runner.build_methods(["nope"])
+        registry.build_methods(["nope"])
 
 
 def test_circlenet_skipped_when_model_missing(tmp_path):
     skipped = {}
-    specs = runner.build_methods(["circlenet"], circlenet_model=tmp_path / "absent.onnx",
+    specs = registry.build_methods(["circlenet"], circlenet_model=tmp_path / "absent.onnx",
                                  table_note=skipped.__setitem__)
     assert specs == [] and "not found" in skipped["circlenet"]
 
 
 def test_gpu_trained_circlenets_are_methods_and_skipped_when_missing(monkeypatch):
-    assert runner.METHOD_ORDER[-3:] == ("circlenet", "circlenet-full", "circlenet-hg")
+    assert registry.METHOD_ORDER[-3:] == ("circlenet", "circlenet-full", "circlenet-hg")
     for name in ("circlenet-full", "circlenet-hg"):
-        monkeypatch.setitem(runner.CIRCLENET_MODELS, name, (f"absent/{name}.onnx", f"make train-{name[10:]}, on a CUDA machine"))
+        monkeypatch.setitem(registry.CIRCLENET_MODELS, name, (f"absent/{name}.onnx", f"make train-{name[10:]}, on a CUDA machine"))
     skipped = {}
-    assert runner.build_methods(["circlenet-full", "circlenet-hg"], table_note=skipped.__setitem__) == []
+    assert registry.build_methods(["circlenet-full", "circlenet-hg"], table_note=skipped.__setitem__) == []
     assert set(skipped) == {"circlenet-full", "circlenet-hg"}
     assert "not found" in skipped["circlenet-full"] and "`make train-full, on a CUDA machine`" in skipped["circlenet-full"]
     with pytest.raises(SphereBenchError, match="make train-hg"):
-        runner.build_methods(["circlenet-hg"])
+        registry.build_methods(["circlenet-hg"])
 
 
 def test_shipped_gpu_circlenets_are_found(tmp_path):
-    shipped = [n for n in ("circlenet-full", "circlenet-hg") if runner.circlenet_model_path(n).is_file()]
+    shipped = [n for n in ("circlenet-full", "circlenet-hg") if registry.circlenet_model_path(n).is_file()]
     if not shipped:
         pytest.skip("no GPU-trained CircleNet model in baselines/circlenet/")
     # --model replaces the `circlenet` file only; the others keep their own
-    specs = runner.build_methods(shipped, circlenet_model=tmp_path / "absent.onnx")
+    specs = registry.build_methods(shipped, circlenet_model=tmp_path / "absent.onnx")
     assert [s.name for s in specs] == shipped
     for s in specs:
-        assert s.resource == str(runner.circlenet_model_path(s.name).resolve())
-        assert s.extra_fingerprint == runner.file_sha256(s.resource) and "on GPU" in s.note
+        assert s.resource == str(registry.circlenet_model_path(s.name).resolve())
+        assert s.extra_fingerprint == provenance.file_sha256(s.resource) and "on GPU" in s.note
 
 
 def test_evaluate_cli(tiny, tmp_path):
@@ -177,7 +177,7 @@ def test_unannotated_scenes_get_detection_statistics(tiny, tmp_path):
     inout.write_json(data / "coco_gt.json", inout.build_coco_gt(data))
     paths = runner.run_methods(data, tmp_path / "p", _specs(("improved",)), workers=1, progress=False,
                                log=lambda m: None)
-    assert runner.read_predictions(paths["improved"])[0] == []  # nothing to score in 2D
+    assert cache.read_predictions(paths["improved"])[0] == []  # nothing to score in 2D
     scored = report.score_set(paths["improved"], inout.read_coco_gt(data), runner.dataset_scenes(data))
     u = scored.metrics["unannotated"]
     assert "mAP" not in scored.metrics and "3d" not in scored.metrics
@@ -188,17 +188,17 @@ def test_unannotated_scenes_get_detection_statistics(tiny, tmp_path):
 
 
 def test_tables_are_never_half_written(tmp_path, monkeypatch):
-    good = report.Table("t", "T", ["a", "b"], [["1", "2"]])
+    good = tables.Table("t", "T", ["a", "b"], [["1", "2"]])
     report.claim_results_dir(tmp_path)  # tables/ is replaced only inside a results folder of ours
     report.write_tables(tmp_path / "tables", [good])
     before = (tmp_path / "tables" / "t.md").read_text()
 
-    class Broken(report.Table):
+    class Broken(tables.Table):
         def markdown(self, heading=True):
             raise RuntimeError("injected failure")
 
     with pytest.raises(RuntimeError, match="injected"):
-        report.write_tables(tmp_path / "tables", [report.Table("t", "T", ["a"], [["changed"]]),
+        report.write_tables(tmp_path / "tables", [tables.Table("t", "T", ["a"], [["changed"]]),
                                                   Broken("u", "U", ["a"], [["x"]])])
     # the old set is intact, the new one absent, and no temporary folder is left
     assert (tmp_path / "tables" / "t.md").read_text() == before
@@ -207,15 +207,16 @@ def test_tables_are_never_half_written(tmp_path, monkeypatch):
 
 
 def test_table_formats():
-    t = report.Table("x", "X", ["method", "mAP"], [["a,b", report._fmt(0.5)], ["c", report._fmt(None)]], ["n1"])
+    t = tables.Table("x", "X", ["method", "mAP"], [["a,b", tables.fmt(0.5)], ["c", tables.fmt(None)]], ["n1"])
     assert t.csv().splitlines() == ["method,mAP", '"a,b",0.500', "c,–"]
-    md = t.markdown()
-    assert "| method | mAP |" in md and "| c | – |" in md and "- n1" in md
-    assert report._fmt(-1e-9, 1, 1000) == "0.0"
+    md = t.markdown().splitlines()  # pandas' Markdown (tabulate's pipe table), columns padded to one width
+    assert md[:2] == ["### X", ""] and md[2].split("|")[1:3] == [" method   ", " mAP   "]
+    assert [c.strip() for c in md[5].split("|")[1:3]] == ["c", "–"] and md[-1] == "- n1"
+    assert tables.fmt(-1e-9, 1, 1000) == "0.0"
 
 
 def test_table2_on_the_paper_preset(paper_dataset):
-    rows = runner.table2_rows(paper_dataset, seed=0, iterations=300)
+    rows = studies.table2_rows(paper_dataset, seed=0, iterations=300)
     assert [(r["scene"], r["z"]) for r in rows] == [(s, z) for s in ("E1", "E2", "E3") for z in (3.0, 2.0, 1.5)]
     assert all(r["iterations"] == 300 for r in rows)
     e1 = [r for r in rows if r["scene"] == "E1"]
@@ -253,11 +254,11 @@ def test_circlenet_runs_from_an_onnx_file(tiny, tmp_path):
     torch.manual_seed(0)  # an untrained small model: the pipeline is under test, not its accuracy
     model = export_onnx(CircleNet(CircleNetConfig(resnet_width=8, neck_channels=16, head_channels=16)),
                         tmp_path / "m.onnx")
-    specs = runner.build_methods(["circlenet"], circlenet_model=model)
-    assert [s.name for s in specs] == ["circlenet"] and specs[0].extra_fingerprint == runner.file_sha256(model)
+    specs = registry.build_methods(["circlenet"], circlenet_model=model)
+    assert [s.name for s in specs] == ["circlenet"] and specs[0].extra_fingerprint == provenance.file_sha256(model)
     paths = runner.run_methods(tiny, tmp_path / "p", specs, workers=1, progress=False, log=lambda m: None)
-    results, meta = runner.read_predictions(paths["circlenet"])
+    results, meta = cache.read_predictions(paths["circlenet"])
     assert meta["kind"] == "2d" and len(meta["scenes"]) == 4
     assert all(RESULT_KEYS <= set(r) and "center_m" not in r for r in results)
-    assert all(runner.CIRCLENET_MIN_SCORE < r["score"] <= 1.0 for r in results)
-    assert all(len(s["detections"]) <= runner.CIRCLENET_TOP_K for s in meta["scenes"])
+    assert all(registry.CIRCLENET_MIN_SCORE < r["score"] <= 1.0 for r in results)
+    assert all(len(s["detections"]) <= registry.CIRCLENET_TOP_K for s in meta["scenes"])

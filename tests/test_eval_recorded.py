@@ -18,8 +18,9 @@ from spherebench.cli import main
 from spherebench.datasets import inout
 from spherebench.datasets import prepare as prep
 from spherebench.datasets.annotate import labelme_from_mask, labelme_text
-from spherebench.eval import figures, recorded, report, runner
-from spherebench.scripts import evaluate as ev
+from spherebench.eval import figures, recorded, registry, report, runner
+from spherebench.eval import evaluation as ev
+from conftest import markdown_cells  # noqa: E402  (tests/ is on sys.path under pytest)
 
 from test_annotate_colour import CAM, R, sphere_depth
 
@@ -89,10 +90,10 @@ def test_evaluate_scores_a_recording_against_its_reference_centres(rec, tmp_path
     for said in ("`rec` is a recording, not a simulation", "from a test camera at 160x120", "not a RealSense D435",
                  "reference centre, not a ground truth", f"'{DESCRIPTION}'", "looks about 0.21",
                  "Table 3 on `rec` beside `default` (mAP / mAP.50 / mAP.75): improved",
-                 "Hough's parameters were tuned there", "In 3D, balls of `rec` found within 2 cm of the reference "
+                 "Hough's parameters were tuned there", "In 3D, balls of `rec` matched within 2 cm of the reference "
                  "centre, of 2: improved 2"):
         assert said in text, said
-    beside = (out / "tables" / "table3_rec_beside_default.md").read_text()
+    beside = markdown_cells((out / "tables" / "table3_rec_beside_default.md").read_text())
     assert "| improved | exact silhouette |" in beside and "| 0.966 | 0.990 | 0.990 |" in beside
     assert "a test's results" in beside
     m3d = (out / "tables" / "metrics3d_rec.md").read_text()
@@ -116,7 +117,7 @@ def test_a_ball_without_a_reference_centre_leaves_its_scene_out_of_3d(rec, tmp_p
     gt = inout.read_json(gt_path)
     gt["balls"][0].pop("center_m")  # the fit failed there
     inout.write_json(gt_path, gt)
-    paths = runner.run_methods(data, tmp_path / "p", runner.build_methods(["improved"], radius_m=R), workers=1,
+    paths = runner.run_methods(data, tmp_path / "p", registry.build_methods(["improved"], radius_m=R), workers=1,
                                progress=False, log=_quiet)
     scored = report.score_set(paths["improved"], inout.read_coco_gt(data), runner.dataset_scenes(data))
     d = scored.metrics["3d"]

@@ -10,9 +10,9 @@ import pytest
 
 from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import simulate
-from spherebench.eval import figures, report, runner, sensor_grid
+from spherebench.eval import cache, figures, provenance, registry, report, sensor_grid, studies
 from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
-from spherebench.scripts.evaluate import evaluate
+from spherebench.eval.evaluation import evaluate
 
 
 def test_bands_keys_and_rates():
@@ -95,7 +95,7 @@ def test_robust_cells_through_the_stage_files(tiny_robust, tmp_path):
     metrics = evaluate({"robust": tiny_robust}, tmp_path / "out", methods=["improved", "hough"], workers=1,
                        hough_config=HoughConfig(), progress=False, log=lambda m: None)
     # every scene record of the predictions carries its cell
-    _, meta = runner.read_predictions(tmp_path / "out" / "predictions" / "robust" / "improved.json")
+    _, meta = cache.read_predictions(tmp_path / "out" / "predictions" / "robust" / "improved.json")
     assert [r["sensor_cell"]["cell"] for r in meta["scenes"]] == [0, 1, 2, 3]
     cells = metrics["improved"]["robust"]["sensor_cells"]
     assert [(r["correlation"], r["dropouts"]) for r in cells[::3]] == [("none", "off"), ("none", "on"),
@@ -118,11 +118,11 @@ def test_robust_cells_through_the_stage_files(tiny_robust, tmp_path):
 def test_oracle_ceiling_rows_are_cached(tiny_robust, tmp_path):
     pytest.importorskip("spherebench.eval.oracle")
     logged = []
-    balls = runner.oracle_balls(tiny_robust, tmp_path / "oracle.json", workers=1, log=logged.append)
+    balls = studies.oracle_balls(tiny_robust, tmp_path / "oracle.json", workers=1, log=logged.append)
     assert [(b["scene_id"], b["ball"], b["cell"]["cell"]) for b in balls] == \
         [(f"clean_{k:04d}", 0, k) for k in (0, 1)] + [(f"cluttered_{k:04d}", 0, k) for k in (2, 3)]
     assert all(b["band"] in ("0-1 m", "1-2 m", "2-3 m") and isinstance(b["within"], bool) for b in balls)
-    assert runner.oracle_balls(tiny_robust, tmp_path / "oracle.json", workers=1, log=logged.append) == balls
+    assert studies.oracle_balls(tiny_robust, tmp_path / "oracle.json", workers=1, log=logged.append) == balls
     assert "reused" in logged[-1]
     assert set(sensor_grid.ceiling_by_cell(balls)) == {sensor_grid.grid_key(b["cell"]) + (b["band"],) for b in balls}
 
@@ -145,25 +145,25 @@ def test_circlenet_engine_scales_by_the_scene_focal_length(tiny_robust, monkeypa
     monkeypatch.setattr(infer, "CircleNetDetector", _FakeDetector)
     scene = next(iter(sorted((tiny_robust / "scenes").iterdir())))
     config = {"engine": "circlenet", "min_score": 0.01, "top_k": 100, "scale": "focal_px"}
-    engine = runner._CircleNetEngine(config, tiny_robust / "absent.onnx")
+    engine = registry.CircleNetAdapter(config, tiny_robust / "absent.onnx")
     _FakeDetector.calls.clear()
     dets = engine.detect(engine.load(scene), 0)
     focal = infer.scene_focal_px(scene)
     assert focal is not None and math.isclose(_FakeDetector.calls[-1]["focal_px"], focal)
     assert dets == [{"score": 0.9, "circle": (10.0, 20.0, 5.0)}]
     # a configuration of before the rule keeps its width scaling (and another resume key)
-    old = runner._CircleNetEngine({k: v for k, v in config.items() if k != "scale"}, tiny_robust / "absent.onnx")
+    old = registry.CircleNetAdapter({k: v for k, v in config.items() if k != "scale"}, tiny_robust / "absent.onnx")
     old.detect(old.load(scene), 0)
     assert _FakeDetector.calls[-1]["focal_px"] is None
 
 
 def test_circlenet_spec_key_covers_the_scaling_rule():
-    path = runner.circlenet_model_path("circlenet")
+    path = registry.circlenet_model_path("circlenet")
     if not path.is_file():
         pytest.skip("no shipped CircleNet model")
-    spec = runner.circlenet_spec(path)
+    spec = registry.circlenet_spec(path)
     assert spec.config["scale"] == "focal_px" and "focal length" in spec.note
-    assert "spherebench.eval.runner" in spec.modules and "spherebench.baselines.circlenet" in spec.modules
-    before = runner.MethodSpec(**{**spec.__dict__, "config": {k: v for k, v in spec.config.items() if k != "scale"}})
-    args = ("circlenet", "fp", 0, runner.code_version(spec.modules), ["s"])
-    assert runner._key(spec, *args) != runner._key(before, *args)
+    assert "spherebench.eval.registry" in spec.modules and "spherebench.baselines.circlenet" in spec.modules
+    before = registry.MethodSpec(**{**spec.__dict__, "config": {k: v for k, v in spec.config.items() if k != "scale"}})
+    args = ("circlenet", "fp", 0, provenance.code_version(spec.modules), ["s"])
+    assert cache.prediction_key(spec, *args) != cache.prediction_key(before, *args)

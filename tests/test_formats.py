@@ -105,7 +105,7 @@ def test_show_draws_a_methods_predictions(small_default, tmp_path, capsys):
 def test_provider_and_missing_models_are_one_line_errors(small_default, tmp_path, capsys, monkeypatch):
     import onnxruntime as ort
 
-    from spherebench.eval import runner
+    from spherebench.eval import registry
 
     scene = inout.list_scenes(small_default)[0]
     if "CUDAExecutionProvider" not in ort.get_available_providers():
@@ -113,7 +113,7 @@ def test_provider_and_missing_models_are_one_line_errors(small_default, tmp_path
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "onnxruntime-gpu" in err
     # a CircleNet asked for by name whose model is not there stops the run before anything is written
-    monkeypatch.setitem(runner.CIRCLENET_MODELS, "circlenet-hg", ("absent/model.onnx", "make train-hg"))
+    monkeypatch.setitem(registry.CIRCLENET_MODELS, "circlenet-hg", ("absent/model.onnx", "make train-hg"))
     assert cli.main(["evaluate", "--data", str(small_default), "--out", str(tmp_path / "res"),
                      "--methods", "circlenet-hg"]) == 2
     err = capsys.readouterr().err

@@ -61,7 +61,7 @@ def test_read_pcd_organised_with_nan_and_padding_field(tmp_path):
     np.testing.assert_array_equal(cloud.rows, np.array(keep) // w)
     np.testing.assert_array_equal(cloud.cols, np.array(keep) % w)
     np.testing.assert_array_equal(cloud.points[:, 0], np.array(keep, np.float32))
-    # column-major binary_compressed layout of the same data (literal-only LZF)
+    # column-major binary_compressed layout of the same data (a literal-only LZF stream)
     plain = b"".join(rec[name].tobytes() for name in ("x", "y", "z", "rgb"))
     comp = _lzf_literals(plain)
     path2 = tmp_path / "org_c.pcd"
@@ -72,25 +72,20 @@ def test_read_pcd_organised_with_nan_and_padding_field(tmp_path):
     np.testing.assert_array_equal(c2.rows, cloud.rows)
 
 
-def test_lzf_back_reference_overlapping():
-    # literal 'ab', then a back reference of length 6 at distance 2 -> 'abababab'
-    stream = bytes([1]) + b"ab" + bytes([(4 << 5) | 0, 1])
-    assert inout._lzf_decompress(stream, 8, "x") == b"abababab"
-    with pytest.raises(SphereBenchError, match="corrupt"):
-        inout._lzf_decompress(stream[:-1], 8, "x")
-    with pytest.raises(SphereBenchError, match="corrupt"):
-        inout._lzf_decompress(bytes([(1 << 5) | 0, 9]) + b"", 3, "x")  # reference before the start
-
-
-@pytest.mark.parametrize("damage", ["truncate", "garbage", "points"])
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "points", "compressed"])
 def test_read_pcd_bad_files(tmp_path, points, damage):
     body = _pcd_header(["x", "y", "z"], [4] * 3, ["F"] * 3, len(points), 1, "binary") + points.tobytes()
     if damage == "truncate":
         body = body[:len(body) - 100]
     elif damage == "garbage":
         body = b"\x00\x01 not a point cloud at all"
-    else:
+    elif damage == "points":
         body = body.replace(f"POINTS {len(points)}".encode(), b"POINTS 7")
+    else:  # a binary_compressed body cut short
+        plain = b"".join(np.ascontiguousarray(points[:, k]).tobytes() for k in range(3))
+        comp = _lzf_literals(plain)
+        body = (_pcd_header(["x", "y", "z"], [4] * 3, ["F"] * 3, len(points), 1, "binary_compressed")
+                + np.array([len(comp), len(plain)], "<u4").tobytes() + comp[:len(comp) // 2])
     path = tmp_path / "bad.pcd"
     path.write_bytes(body)
     with pytest.raises(SphereBenchError, match="bad.pcd"):

@@ -182,9 +182,9 @@ def test_robust_dataset_is_byte_identical_for_the_same_seed_and_records_each_sce
 
 
 def test_robust_seeds_are_disjoint_from_the_other_presets():
-    robust = {simulate.scene_seed(simulate.PRESETS["robust"], s, i) for s in range(3) for i in range(400)}
+    robust = {simulate.generation_seed(simulate.PRESETS["robust"], s, i) for s in range(3) for i in range(400)}
     for name in ("default", "paper", "hard", "train"):
-        assert not robust & {simulate.scene_seed(simulate.PRESETS[name], s, i) for s in range(3) for i in range(2000)}
+        assert not robust & {simulate.generation_seed(simulate.PRESETS[name], s, i) for s in range(3) for i in range(2000)}
 
 
 @pytest.mark.parametrize("setting,named", [

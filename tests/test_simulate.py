@@ -135,9 +135,9 @@ def test_same_seed_same_bytes_any_worker_count(tmp_path):
 
 
 def test_train_seeds_are_disjoint_from_every_evaluation_preset():
-    train = {simulate.scene_seed(simulate.PRESETS["train"], 0, i) for i in range(2000)}
+    train = {simulate.generation_seed(simulate.PRESETS["train"], 0, i) for i in range(2000)}
     for name in ("default", "paper", "hard"):
-        evaluation = {simulate.scene_seed(simulate.PRESETS[name], s, i) for s in range(3) for i in range(300)}
+        evaluation = {simulate.generation_seed(simulate.PRESETS[name], s, i) for s in range(3) for i in range(300)}
         assert not train & evaluation
 
 

@@ -26,16 +26,23 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
-import torch
-from tqdm import tqdm
+import matplotlib
 
-from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, read_dataset, split_scenes
-from spherebench.baselines.circlenet.imaging import scale_circles
-from spherebench.baselines.circlenet.loss import circlenet_loss
-from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode
-from spherebench.datasets import inout
-from spherebench.errors import SphereBenchError
+matplotlib.use("Agg")  # files only, no display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, read_dataset, split_scenes  # noqa: E402
+from spherebench.baselines.circlenet.imaging import scale_circles  # noqa: E402
+from spherebench.baselines.circlenet.infer import CircleNetDetector  # noqa: E402
+from spherebench.baselines.circlenet.loss import circlenet_loss  # noqa: E402
+from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode  # noqa: E402
+from spherebench.baselines.circlenet.onnx_export import export_onnx  # noqa: E402
+from spherebench.datasets import inout  # noqa: E402
+from spherebench.errors import SphereBenchError  # noqa: E402
+from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, results_from_circles  # noqa: E402
 
 #: The owner-marker kind of a training run's folder (``inout.claim_output_dir``).
 TRAINING_RUN_KIND = "training run"
@@ -91,7 +98,6 @@ def coco_circle_map(gt: dict[int, np.ndarray], detections: dict[int, np.ndarray]
     detections: image id -> (K, 4) (cx, cy, r, score); missing ids have none. NaN when there is
     no ground-truth circle at all.
     """
-    from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
 
     ids = sorted(gt)
     none = np.zeros((0, 4))
@@ -163,11 +169,6 @@ def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[list[int]]:
 
 def plot_training_curve(history: dict, path) -> None:
     """Training loss (per iteration, and its running mean) and validation mAP per epoch, as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
     if history["loss"]:
         x, y = np.asarray(history["loss"], dtype=np.float64).T
@@ -378,8 +379,6 @@ def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt
 def _finish(model, config, seed, out, train_dir, train_recs, val_recs, val_set, val_gt, history,
             iteration, seconds, device, amp, command) -> dict:
     """Export the final model to ONNX, score the exported file on validation, write the model card."""
-    from spherebench.baselines.circlenet.infer import CircleNetDetector
-    from spherebench.baselines.circlenet.onnx_export import export_onnx
 
     dataset_meta = {}
     meta_path = Path(train_dir) / "dataset.json"

@@ -1,0 +1,345 @@
+"""The benchmark's methods: one configuration object (``MethodSpec``) and one small adapter each.
+
+A *method* turns a scene folder into detections. One detection run of a 3D method gives two
+prediction sets, one per 2D rule of ``spherebench.circles``:
+
+    <name>               the exact silhouette reduced to a circle (the ground truth's rule)
+    <name>+paper-circle  the paper's rule (project the centre and a point R to its left)
+
+Methods (``build_methods``, in ``METHOD_ORDER``):
+- ``improved``, ``paper``, ``paper-lstsq``: ``spherebench.method.detect`` with that preset;
+- ``pyransac3d``: the generic peer, pyransac3d's free-radius sphere RANSAC (``Sphere().fit``) on
+  a seeded subsample of each cloud; its circle is the projection of its centre with its own
+  radius, its score its inlier fraction;
+- ``hough``: OpenCV's Hough circle transform (``baselines.hough``) on image.png, with a
+  configuration tuned on the training split (``baselines.hough_tuning``);
+- ``circlenet``: the CircleNet-style ONNX model (``baselines.circlenet.infer``) on image.png
+  scaled to its training focal length by the scene's intrinsics, when a model file exists;
+  ``circlenet-full`` (ResNet-18 at its own widths) and ``circlenet-hg`` (the stacked hourglass)
+  the same with the GPU-trained models (``CIRCLENET_MODELS``).
+
+An adapter (``adapter_for``) has ``kind``, ``load(scene_dir)`` (the input it reads: the cloud or
+the image) and ``detect(inputs, seed)`` -> [{score, circle, and for 3D center_m, radius_m,
+circle_paper}]. Each worker process builds an adapter once per configuration and runs it once
+untimed on a first scene (``warm_adapter``), so that numba compilation and model loading stay out
+of every timing; a CircleNet adapter holds one single-threaded ONNX Runtime session.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+from spherebench.baselines import pyransac3d_peer
+from spherebench.baselines.hough import HoughConfig, detect_circles
+from spherebench.datasets import inout
+from spherebench.errors import SphereBenchError
+from spherebench.eval.provenance import REPO_ROOT, dist_version, file_sha256
+from spherebench.method import DetectorConfig, config_for, detect
+
+#: Suffix of the prediction set that uses the paper's projection rule.
+PAPER_CIRCLE = "+paper-circle"
+#: CircleNet: detections below this score are not written (keeps files small; CenterNet keeps
+#: its top 100, most of which score ~0).
+CIRCLENET_MIN_SCORE = 0.01
+#: CircleNet: at most this many circles per image (CenterNet's K).
+CIRCLENET_TOP_K = 100
+#: pyransac3d: the peer's own cost (2-3 s per 1,000 iterations on 100k points) does not fit the
+#: benchmark's budget; it runs on this many points, drawn at random (seeded) from each cloud.
+PYRANSAC3D_POINTS = 2_000
+#: pyransac3d: RANSAC iterations and inlier threshold (m), its own defaults being 1,000 and 0.2 m.
+PYRANSAC3D_ITERATIONS = 1000
+PYRANSAC3D_THRESH_M = 0.01
+#: The shipped CircleNet models' folder (``baselines/circlenet``).
+CIRCLENET_DIR = REPO_ROOT / "baselines" / "circlenet"
+
+#: The CircleNet models: method name -> (ONNX file under baselines/circlenet/, how to make it).
+#: ``circlenet``: the half-width ResNet-18 trained on the CPU; the others need a CUDA machine.
+CIRCLENET_MODELS = {
+    "circlenet": ("model.onnx", "make train"),
+    "circlenet-full": ("full/model.onnx", "make train-full, on a CUDA machine"),
+    "circlenet-hg": ("hg/model.onnx", "make train-hg, on a CUDA machine"),
+}
+
+#: Shipped models trained on an earlier `train` preset, by the sha256 of their ONNX file: their rows
+#: say so (the full-size model needs a CUDA machine to retrain, and none was at hand when `train`
+#: began drawing each scene's sensor, bf6a801).
+EARLIER_TRAIN = {
+    "3b72295ef7ff02b8fd1f939613db8828eb10db18006e57b50997ff17d2236862":
+        "trained on the earlier train preset (nominal sensor, before bf6a801); `make train-full` on a CUDA "
+        "machine retrains it on the current one",
+}
+
+DETECTOR_PRESETS = ("improved", "paper", "paper-lstsq")
+METHOD_ORDER = (*DETECTOR_PRESETS, "pyransac3d", "hough", *CIRCLENET_MODELS)
+
+#: Modules whose source is every method's code version (scene reading, circles, the adapters).
+_CORE_MODULES = ("spherebench.camera", "spherebench.cloud", "spherebench.circles", "spherebench.datasets.inout",
+                 "spherebench.eval.registry")
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A method of the benchmark.
+
+    name: its name; its prediction sets are ``outputs``.
+    kind: "3d" (reads cloud.ply + intrinsics) or "2d" (reads image.png).
+    config: JSON-able settings that fully define it (part of the resume key); config["engine"]
+        names its adapter.
+    modules: the modules whose source defines it (their hash is the code version).
+    note: a sentence for the tables (subsampling, model card), or "".
+    extra_fingerprint: anything else it depends on (the CircleNet model file's hash).
+    resource: a file the method loads (the model), not part of the key (its hash is).
+    """
+
+    name: str
+    kind: str
+    config: dict
+    modules: tuple[str, ...]
+    note: str = ""
+    extra_fingerprint: str = ""
+    resource: str | None = None
+    outputs: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        if not self.outputs:
+            outs = (self.name, self.name + PAPER_CIRCLE) if self.kind == "3d" else (self.name,)
+            object.__setattr__(self, "outputs", outs)
+
+    def config_json(self) -> str:
+        return json.dumps(self.config, sort_keys=True)
+
+
+# --------------------------------------------------------------------------- specs
+
+def detector_spec(name: str, **overrides) -> MethodSpec:
+    """``improved`` / ``paper`` / ``paper-lstsq``: the 3D detector with that preset (fields overridden,
+    e.g. radius_m for a dataset of another ball)."""
+    cfg = config_for(name, **overrides)
+    return MethodSpec(name=name, kind="3d", config={"engine": "detector", "preset": name, **dataclasses.asdict(cfg)},
+                      modules=_CORE_MODULES + ("spherebench.method",))
+
+
+def pyransac3d_spec(points: int = PYRANSAC3D_POINTS, iterations: int = PYRANSAC3D_ITERATIONS,
+                    thresh_m: float = PYRANSAC3D_THRESH_M, radius_m: float = 0.12) -> MethodSpec:
+    """pyransac3d's sphere fit on a random subsample of ``points`` points of each cloud.
+
+    radius_m (the dataset's R) is not given to it (it fits the radius freely); it is recorded so
+    that the radius error is read against it."""
+    return MethodSpec(name="pyransac3d", kind="3d",
+                      config={"engine": "pyransac3d", "points": int(points), "iterations": int(iterations),
+                              "thresh_m": float(thresh_m), "radius_m": float(radius_m),
+                              "pyransac3d": dist_version("pyransac3d")},
+                      modules=_CORE_MODULES + ("spherebench.baselines.pyransac3d_peer",),
+                      note=f"pyransac3d Sphere().fit on {points:,} points drawn at random from each cloud, "
+                           f"{iterations:,} iterations, threshold {100 * thresh_m:g} cm (at full resolution it "
+                           "takes 2-3 s per frame, beyond the budget)")
+
+
+def hough_spec(config: HoughConfig) -> MethodSpec:
+    """The Hough baseline with a ``HoughConfig`` (tuned on the training split)."""
+    return MethodSpec(name="hough", kind="2d", config={"engine": "hough", **dataclasses.asdict(config)},
+                      modules=_CORE_MODULES + ("spherebench.baselines.hough",))
+
+
+def card_budget(card: dict) -> str:
+    """One line of a CircleNet model card: its training budget and validation score."""
+    val = card.get("val_onnx") or card.get("val_torch") or {}
+    data = card.get("data", {})
+    half = "; weights stored as float16" if (card.get("onnx") or {}).get("weights") == "float16" else ""
+    return (f"trained from scratch on {data.get('train_images', '?')} `{data.get('preset', 'train')}` images, "
+            f"{card.get('epochs', '?')} epochs, {card.get('train_seconds', 0) / 60:.0f} min on {card.get('device', '?')}; "
+            f"validation mAP.50 {val.get('mAP50', float('nan')):.3f}{half}")
+
+
+def circlenet_model_path(name: str = "circlenet") -> Path:
+    """The shipped ONNX file of a CircleNet method of ``CIRCLENET_MODELS`` (it may not exist)."""
+    return CIRCLENET_DIR / CIRCLENET_MODELS[name][0]
+
+
+def circlenet_spec(model_path: str | Path, name: str = "circlenet") -> MethodSpec:
+    """CircleNet from an ONNX file, as method ``name``; raises SphereBenchError if the file is missing or
+    is not a loadable SphereBench CircleNet model."""
+    path = Path(model_path)
+    if not path.is_file():
+        shown = path.resolve().relative_to(REPO_ROOT) if path.resolve().is_relative_to(REPO_ROOT) else path
+        how = CIRCLENET_MODELS.get(name, CIRCLENET_MODELS["circlenet"])[1]
+        raise SphereBenchError(f"CircleNet model {shown} not found (train it with `{how}`)")
+    sha = file_sha256(path)
+    _check_model(str(path.resolve()), sha)
+    card_path = path.with_name("model_card.json")
+    budget = ""
+    if card_path.is_file():  # the training budget belongs next to the numbers (fairness)
+        card = inout.read_json(card_path)
+        budget = "; " + card_budget(card if isinstance(card, dict) else {})
+    return MethodSpec(name=name, kind="2d",
+                      config={"engine": "circlenet", "model": path.name, "min_score": CIRCLENET_MIN_SCORE,
+                              "top_k": CIRCLENET_TOP_K, "scale": "focal_px",
+                              "onnxruntime": dist_version("onnxruntime")},
+                      modules=_CORE_MODULES + ("spherebench.baselines.circlenet",),
+                      extra_fingerprint=sha, resource=str(path.resolve()),
+                      note="ONNX Runtime, CPU, 1 thread; each image is scaled uniformly to the training focal "
+                           "length (the scene's sqrt(fx fy) from intrinsics.json; nearest neighbour, padded to the "
+                           "stride, as in training) and the circles scaled back" + budget
+                           + (f"; {EARLIER_TRAIN[sha]}" if sha in EARLIER_TRAIN else ""))
+
+
+@functools.lru_cache(maxsize=8)
+def _check_model(path: str, sha256: str) -> None:
+    """Load the ONNX model once (per content) before any method runs: a corrupt or foreign file is
+    refused here, not in a worker after the other methods have run."""
+    CircleNetAdapter({}, path)
+
+
+def build_methods(names: Sequence[str] | None = None, hough_config: HoughConfig | None = None,
+                  circlenet_model: str | Path | None = None,
+                  table_note: Callable[[str, str], None] | None = None, radius_m: float = 0.12) -> list[MethodSpec]:
+    """The benchmark's methods (``METHOD_ORDER`` or ``names``), skipping the unavailable ones.
+
+    radius_m: the dataset's ball radius (the 3D methods' R).
+    hough_config: the tuned ``HoughConfig`` (None: OpenCV-tutorial defaults, said in the note).
+    circlenet_model: the ONNX file of ``circlenet`` (None: the shipped one); the other CircleNet
+    methods always use their shipped files (``CIRCLENET_MODELS``).
+    table_note(name, reason) is called for every method skipped, with the reason.
+    Unknown names raise SphereBenchError.
+    """
+    wanted = list(METHOD_ORDER if names is None else names)
+    unknown = [n for n in wanted if n not in METHOD_ORDER]
+    if unknown:
+        raise SphereBenchError(f"unknown method(s) {', '.join(unknown)}: choose from {', '.join(METHOD_ORDER)}")
+    specs = []
+    for name in wanted:
+        try:
+            if name in DETECTOR_PRESETS:
+                specs.append(detector_spec(name, radius_m=float(radius_m)))
+            elif name == "pyransac3d":
+                specs.append(pyransac3d_spec(radius_m=float(radius_m)))
+            elif name == "hough":
+                spec = hough_spec(hough_config or HoughConfig())
+                if hough_config is None:
+                    spec = dataclasses.replace(spec, note="untuned defaults (no tuned configuration given)")
+                specs.append(spec)
+            elif name in CIRCLENET_MODELS:
+                given = circlenet_model if name == "circlenet" else None
+                specs.append(circlenet_spec(given if given is not None else circlenet_model_path(name), name=name))
+        except SphereBenchError as exc:
+            if table_note is None:
+                raise
+            table_note(name, str(exc))
+    return specs
+
+
+# --------------------------------------------------------------------------- adapters (in workers)
+
+class DetectorAdapter:
+    """The 3D detector (``spherebench.method``)."""
+
+    kind = "3d"
+
+    def __init__(self, config: dict, resource: str | None = None):
+        fields = {f.name for f in dataclasses.fields(DetectorConfig)}
+        self.config = DetectorConfig(**{k: v for k, v in config.items() if k in fields})
+        self.estimates_radius = self.config.pipeline == "improved"
+
+    def load(self, scene_dir: Path):
+        return inout.load_cloud(scene_dir)
+
+    def detect(self, cloud, seed: int) -> list[dict]:
+        return [{"score": float(s.score), "center_m": [float(v) for v in s.center_m],
+                 "radius_m": float(s.free_radius_m) if self.estimates_radius else None,
+                 "circle": s.circle_exact, "circle_paper": s.circle_paper}
+                for s in detect(cloud, self.config, seed=seed)]
+
+
+class PyRansac3dAdapter:
+    """The generic peer: pyransac3d's free-radius sphere RANSAC (``Sphere().fit``), used as a user
+    would: on the cloud's points (a seeded random subsample of ``points``), inlier threshold
+    ``thresh_m``, ``iterations`` iterations. Its sphere is reported with its own radius; its score
+    is its inlier fraction; its circles project its own centre and radius by both 2D rules."""
+
+    kind = "3d"
+
+    def __init__(self, config: dict, resource: str | None = None):
+        self.config = config
+
+    def load(self, scene_dir: Path):
+        return inout.load_cloud(scene_dir)
+
+    def detect(self, cloud, seed: int) -> list[dict]:
+        if len(cloud.points) < 4:
+            return []
+        found = pyransac3d_peer.detect(cloud, points=self.config["points"], iterations=self.config["iterations"],
+                                       thresh_m=self.config["thresh_m"], seed=seed)
+        return [{"score": d["score"], "center_m": [float(v) for v in d["center_m"]], "radius_m": float(d["radius_m"]),
+                 "circle": d["circle_exact"], "circle_paper": d["circle_paper"]} for d in found]
+
+
+class HoughAdapter:
+    """OpenCV's Hough circle transform on a scene's image.png."""
+
+    kind = "2d"
+
+    def __init__(self, config: dict, resource: str | None = None):
+        fields = {f.name for f in dataclasses.fields(HoughConfig)}
+        self.config = HoughConfig(**{k: v for k, v in config.items() if k in fields})
+
+    def load(self, scene_dir: Path):
+        return inout.read_image(scene_dir / "image.png")
+
+    def detect(self, image, seed: int) -> list[dict]:
+        return [{"score": s, "circle": (cx, cy, r)} for cx, cy, r, s in detect_circles(image, self.config)]
+
+
+class CircleNetAdapter:
+    """CircleNet on a scene's image.png, scaled by the detector to its training focal length from the
+    scene's own intrinsics (``scene_focal_px``; a scene without intrinsics.json: to the model's
+    width, exact for every D435 mode). One ONNX Runtime session of one thread."""
+
+    kind = "2d"
+
+    def __init__(self, config: dict, resource: str | None = None):
+        # here, not at the top: infer loads onnx and torch (about 2 s), needed only where CircleNet runs
+        from spherebench.baselines.circlenet import infer
+        self.infer = infer
+        self.config = config
+        self.detector = infer.CircleNetDetector(Path(resource), threads=1)
+
+    def load(self, scene_dir: Path):
+        return self.infer.load_image(scene_dir / "image.png"), self.infer.scene_focal_px(scene_dir)  # RGB, as trained
+
+    def detect(self, inputs, seed: int) -> list[dict]:
+        image, focal_px = inputs
+        if self.config.get("scale") != "focal_px":  # a configuration of before the rule: the model's width
+            focal_px = None
+        circles = self.detector.detect(image, min_score=self.config["min_score"], top_k=self.config["top_k"],
+                                       focal_px=focal_px)
+        return [{"score": float(sc), "circle": (float(cx), float(cy), float(r))} for cx, cy, r, sc in circles]
+
+
+#: config["engine"] -> adapter class.
+ADAPTERS = {"detector": DetectorAdapter, "pyransac3d": PyRansac3dAdapter, "hough": HoughAdapter,
+            "circlenet": CircleNetAdapter}
+
+_BUILT: dict[tuple[str, str], object] = {}
+
+
+def warm_adapter(config_json: str, resource: str | None, warm_scene: str | None = None):
+    """The adapter of a configuration in this process, built once; a new one first runs ``warm_scene``
+    untimed, so that compilation and model loading stay out of every timing."""
+    key = (config_json, resource or "")
+    if key not in _BUILT:
+        config = json.loads(config_json)
+        cls = ADAPTERS.get(config.get("engine"))
+        if cls is None:
+            raise SphereBenchError(f"unknown engine {config.get('engine')}")
+        adapter = cls(config, resource)
+        if warm_scene is not None:
+            with contextlib.suppress(SphereBenchError):  # the scene itself reports its own error later
+                adapter.detect(adapter.load(Path(warm_scene)), 0)
+        _BUILT[key] = adapter
+    return _BUILT[key]

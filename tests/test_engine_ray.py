@@ -1,0 +1,43 @@
+"""`--engine ray`: the benchmark's tasks on a local Ray cluster give the same prediction files as the
+local engine (``spherebench.parallel.executor``)."""
+
+from __future__ import annotations
+
+import filecmp
+
+import pytest
+
+from spherebench.baselines.hough import HoughConfig
+from spherebench.datasets import simulate
+from spherebench.errors import SphereBenchError
+from spherebench.eval import registry, runner
+from spherebench.parallel import executor
+
+ray = pytest.importorskip("ray", reason="the `distributed` extra (ray) is not installed")
+
+
+@pytest.fixture(scope="module")
+def three(tmp_path_factory):
+    """Three scenes of the default preset."""
+    return simulate.generate_dataset("default", tmp_path_factory.mktemp("raydata") / "three", n=3, progress=False)
+
+
+def test_ray_and_local_engines_write_the_same_predictions(three, tmp_path):
+    specs = [registry.detector_spec("improved"), registry.pyransac3d_spec(points=500, iterations=40),
+             registry.hough_spec(HoughConfig())]
+    local = runner.run_methods(three, tmp_path / "local", specs, seed=1, workers=1, progress=False, log=lambda m: None)
+    ray_paths = runner.run_methods(three, tmp_path / "ray", specs, seed=1, workers=2, progress=False,
+                                   log=lambda m: None, engine="ray")
+    assert set(local) == set(ray_paths) and len(local) == 5
+    for name, path in local.items():
+        assert filecmp.cmp(path, ray_paths[name], shallow=False), name
+    assert not ray.is_initialized()  # the local cluster it started is shut down
+
+
+def test_engine_arguments_are_checked():
+    with pytest.raises(SphereBenchError, match="--engine"):
+        with executor(1, "spark"):
+            pass
+    with pytest.raises(SphereBenchError, match="--address"):
+        with executor(1, "local", "ray://head:10001"):
+            pass
