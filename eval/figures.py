@@ -96,7 +96,7 @@ def latency(per_dataset: dict, path: Path) -> None:
                 rows.append((f"{s.method} · {label}", s.ms))
     fig, ax = plt.subplots(figsize=(8, 0.45 * len(rows) + 1.5))
     if rows:
-        ax.boxplot([r[1] for r in rows], vert=False, whis=(5, 95), showfliers=True, flierprops={"markersize": 2})
+        ax.boxplot([r[1] for r in rows], orientation="horizontal", whis=(5, 95), showfliers=True, flierprops={"markersize": 2})
         ax.set_yticks(range(1, len(rows) + 1), [r[0] for r in rows], fontsize=8)
         for i, (_, ms) in enumerate(rows, start=1):
             ax.annotate(f"{np.median(ms):.1f}", (np.median(ms), i + 0.3), fontsize=7, ha="center")
