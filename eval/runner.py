@@ -51,6 +51,12 @@ class SceneInfo:
     reference_centre_m: list | None = None  # a recording's reference fit (not ground truth), if any
     sensor_cell: dict | None = None         # a grid preset's sensor condition (gt.json meta.sensor_cell)
 
+    @property
+    def has_frame(self) -> bool:
+        """A cloud can be loaded (``inout.load_cloud``): cloud.ply, or depth.png with intrinsics.json (the
+        `train` preset ships no clouds)."""
+        return self.has_cloud or ((self.path / "depth.png").is_file() and self.resolution is not None)
+
 
 def dataset_scenes(data_dir: str | Path, limit: int | None = None) -> list[SceneInfo]:
     """Every scene of a dataset (the first ``limit``), in scene-id order, with its image id and 3D

@@ -32,7 +32,7 @@ def sweep(datasets: list[str], seeds: list[int], method: str = "improved", overr
     result = {"method": method, "overrides": overrides, "seeds": seeds, "datasets": {}}
     with executor(workers, engine, address) as ex:
         for ds in datasets:
-            scenes = [s for s in dataset_scenes(ds, limit) if s.has_cloud]
+            scenes = [s for s in dataset_scenes(ds, limit) if s.has_frame]
             gts = {s.scene_id: inout.read_json(s.path / "gt.json") for s in scenes}
             meta = inout.read_dataset_meta(ds) if (Path(ds) / "dataset.json").is_file() else {}
             spec = detector_spec(method, **{"radius_m": float(meta.get("ball_radius_m", 0.12)), **overrides})
@@ -58,7 +58,7 @@ def markdown(result: dict) -> str:
     """The sweep's tables: totals per dataset and seed, then balls found (false detections) per family."""
     seeds = result["seeds"]
     head = f"{result['method']}" + (f" with {result['overrides']}" if result["overrides"] else "")
-    lines = [f"### {head}: detections per seed (one seed for all scenes; centre within 2 cm)", "",
+    lines = [f"### {head}: detections per run seed (scene k detected with SeedSequence((seed, k)); centre within 2 cm)", "",
              "| dataset | seed | balls found | false det. | of them clutter (> R off) | det. on negatives | "
              "distractors rejected |", "|---|---|---|---|---|---|---|"]
     for name, d in result["datasets"].items():

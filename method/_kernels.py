@@ -1457,3 +1457,110 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
                 # share of the 1st point's neighbourhood (27 cells, about (3 cell)^3) on the ball
                 needed = iterations_for_support(inliers, float(n), float(total), confidence)
     return it, n_kept
+
+
+# ------------------------------------------------------------------------- outline centring
+
+@kernel
+def _outline_side(points, index_image, r, k, zc, R, k_sig):
+    """A pixel's class for the outline: 1 at the ball's depths (within k_sig of [zc - R, zc]), 2 behind
+    (beyond max(k_sig, R) past zc), 0 neither or no depth."""
+    i = index_image[r, k]
+    if i < 0:
+        return 0
+    z = points[i, 2]
+    if z > zc - R - k_sig and z < zc + k_sig:
+        return 1
+    if z > zc + max(k_sig, R):
+        return 2
+    return 0
+
+
+@kernel
+def outline_residuals(points, index_image, prm, cx, cy, cz, sigma, gap_sigmas, band_px, band_fraction, res, count):
+    """The depth steps of a sphere's outline near its silhouette (``outline_centre``): each 4-neighbour
+    pair of a pixel at the ball's depths and one behind (``_outline_side``; gap_sigmas sigma m),
+    within band_px + band_fraction r px of the outline (r the disc's radius px) and stepping outward
+    (within 60 degrees of the direction from the projected centre), adds to res[s, count[s]] the
+    angle between the ray through the pair's midpoint and the centre's ray, minus the silhouette
+    cone's half-angle (rad; > 0 outside the cone), s the quarter of the outline it lies in: 0 (+u),
+    1 (-u), 2 (+v), 3 (-v). res (4, N); count (4,) is reset. Pinhole rays, as every kernel."""
+    count[:] = 0
+    R = prm[P_R]
+    fx, fy, ppx, ppy = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY]
+    rho = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if cz <= 0.0 or rho <= R:
+        return
+    alpha = math.asin(R / rho)
+    ux, uy, uz = cx / rho, cy / rho, cz / rho
+    u0 = fx * cx / cz + ppx
+    v0 = fy * cy / cz + ppy
+    r_px = fx * math.tan(alpha)
+    band = band_px + band_fraction * r_px
+    m = int(r_px + band + 2.0)
+    h, w = index_image.shape
+    r0, r1 = max(0, int(v0) - m), min(h, int(v0) + m + 1)
+    c0, c1 = max(0, int(u0) - m), min(w, int(u0) + m + 1)
+    k_sig = gap_sigmas * sigma
+    for axis in range(2):
+        for r in range(r0, r1 - axis):
+            for k in range(c0, c1 - 1 + axis):
+                a = _outline_side(points, index_image, r, k, cz, R, k_sig)
+                b = _outline_side(points, index_image, r + axis, k + 1 - axis, cz, R, k_sig)
+                if a == b or a == 0 or b == 0:
+                    continue
+                sign = 1.0 if a == 1 else -1.0  # +1: the ball pixel first, the step outward along +axis
+                pu = k + (0.5 if axis == 0 else 0.0)
+                pv = r + (0.5 if axis == 1 else 0.0)
+                du, dv = pu - u0, pv - v0
+                d = math.sqrt(du * du + dv * dv) + 1e-9
+                if sign * (du if axis == 0 else dv) / d <= 0.5 or abs(d - r_px) >= band:
+                    continue
+                x, y = (pu - ppx) / fx, (pv - ppy) / fy
+                norm = math.sqrt(x * x + y * y + 1.0)
+                cos_a = min(1.0, max(-1.0, (x * ux + y * uy + uz) / norm))
+                if abs(du) >= abs(dv):
+                    q = 0 if du > 0 else 1
+                else:
+                    q = 2 if dv > 0 else 3
+                if count[q] < res.shape[1]:
+                    res[q, count[q]] = math.acos(cos_a) - alpha
+                    count[q] += 1
+
+
+@kernel
+def outline_centre(points, index_image, prm, c, sigma, gap_sigmas, band_px, band_fraction, min_side, iterations,
+                   res, count, out):
+    """``improved.outline_centre``'s rounds: out (3,) gets the centre c (3,) m moved across the line of
+    sight, its range kept. Per image axis with at least min_side pairs (``outline_residuals``) on each
+    of its two sides, half the difference of the two sides' median residuals, over cos 22.5 degrees
+    (a quarter's median pair lies about 22.5 degrees off the axis), is the centre's shift along it."""
+    out[:] = c
+    rho = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
+    gain = math.cos(math.pi / 8.0)
+    for _ in range(iterations):
+        outline_residuals(points, index_image, prm, out[0], out[1], out[2], sigma, gap_sigmas, band_px,
+                          band_fraction, res, count)
+        su = 0.0
+        sv = 0.0
+        if count[0] >= min_side and count[1] >= min_side:
+            su = 0.5 * (np.median(res[0, :count[0]]) - np.median(res[1, :count[1]])) / gain
+        if count[2] >= min_side and count[3] >= min_side:
+            sv = 0.5 * (np.median(res[2, :count[2]]) - np.median(res[3, :count[3]])) / gain
+        if su == 0.0 and sv == 0.0:
+            break
+        ax, ay, az = out[0] / rho, out[1] / rho, out[2] / rho
+        # the tangent directions of the image's +u (e_u) and +v (e_v = a x e_u, its y made positive)
+        eux, euy, euz = 1.0 - ax * ax, -ax * ay, -ax * az
+        nu = math.sqrt(eux * eux + euy * euy + euz * euz)
+        eux, euy, euz = eux / nu, euy / nu, euz / nu
+        evx, evy, evz = ay * euz - az * euy, az * eux - ax * euz, ax * euy - ay * eux
+        if evy < 0.0:
+            evx, evy, evz = -evx, -evy, -evz
+        bx, by, bz = ax + su * eux + sv * evx, ay + su * euy + sv * evy, az + su * euz + sv * evz
+        nb = math.sqrt(bx * bx + by * by + bz * bz)
+        nx, ny, nz = rho * bx / nb, rho * by / nb, rho * bz / nb
+        moved = math.sqrt((nx - out[0]) ** 2 + (ny - out[1]) ** 2 + (nz - out[2]) ** 2)
+        out[0], out[1], out[2] = nx, ny, nz
+        if moved < 1e-5:
+            break

@@ -45,7 +45,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spherebench.camera import pixel_rays, project
 from spherebench.cloud import Cloud
 from spherebench.method import _kernels as K
 from spherebench.method.config import DetectorConfig
@@ -721,106 +720,38 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
                      free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
 
 
-#: A sector of +/- 45 degrees about an axis sees a shift along it as cos(phi) of it: its median outline
-#: pixel, at about 22.5 degrees, sees cos(pi / 8).
-_SECTOR_GAIN = math.cos(math.pi / 8)
-
-
-def outline_pixels(frame: PreparedFrame, c: np.ndarray,
-                   config: DetectorConfig) -> tuple[np.ndarray, tuple[float, float], float]:
-    """The depth steps of a sphere's outline near its current silhouette: (points (K, 2) px (u, v) midway
-    between a pixel at the ball's depths and a 4-neighbour behind it, the projected centre (u0, v0) px,
-    the silhouette cone's half-angle rad). A pixel is at the ball's depths within
-    ``outline_gap_sigmas`` sigma_z of [c_z - R, c_z]; behind, beyond max(that, R) past c_z. A pair
-    counts where it lies within ``outline_band_px`` + ``outline_band_fraction`` r of the outline (r
-    the disc's radius px) and steps outward (within 60 degrees of the centre's direction): the
-    straight side of a holder under the ball steps sideways and is left out."""
-    intr = frame.cloud.intrinsics
-    R = config.radius_m
-    rho = float(np.linalg.norm(c))
-    alpha = math.asin(min(R / rho, 0.999))
-    u0, v0 = project(intr, c[None])[0]
-    r_px = float(intr.fx) * math.tan(alpha)
-    band = config.outline_band_px + config.outline_band_fraction * r_px
-    h, w = frame.index_image.shape
-    m = int(r_px + band + 2)
-    none = np.empty((0, 2))
-    if not (math.isfinite(u0) and math.isfinite(v0)):
-        return none, (u0, v0), alpha
-    r0, r1 = max(0, int(v0) - m), min(h, int(v0) + m + 1)
-    c0, c1 = max(0, int(u0) - m), min(w, int(u0) + m + 1)
-    if r0 >= r1 - 1 or c0 >= c1 - 1:
-        return none, (u0, v0), alpha
-    idx = frame.index_image[r0:r1, c0:c1]
-    z = np.where(idx >= 0, frame.points[np.maximum(idx, 0), 2], np.nan)
-    sigma = frame.noise_a * float(c[2]) ** 2
-    k = config.outline_gap_sigmas * sigma
-    with np.errstate(invalid="ignore"):
-        ball = (z > c[2] - R - k) & (z < c[2] + k)
-        behind = z > c[2] + max(k, R)
-    found = []
-    # (ball side, behind side, the outward step's sign, the image axis: 0 along u, 1 along v)
-    for a, b, sign, axis in ((ball[:, :-1], behind[:, 1:], 1.0, 0), (behind[:, :-1], ball[:, 1:], -1.0, 0),
-                             (ball[:-1, :], behind[1:, :], 1.0, 1), (behind[:-1, :], ball[1:, :], -1.0, 1)):
-        rr, cc = np.nonzero(a & b)
-        pu = cc + c0 + (0.5 if axis == 0 else 0.0)
-        pv = rr + r0 + (0.5 if axis == 1 else 0.0)
-        du, dv = pu - u0, pv - v0
-        d = np.hypot(du, dv) + 1e-9
-        outward = sign * (du if axis == 0 else dv) / d > 0.5
-        keep = outward & (np.abs(d - r_px) < band)
-        found.append(np.stack([pu[keep], pv[keep]], axis=1))
-    return np.concatenate(found), (float(u0), float(v0)), alpha
-
-
 def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorConfig,
                    iterations: int = 3) -> np.ndarray:
     """A sphere's centre (3,) m moved across the line of sight onto its outline, its range kept.
 
     Where one pixel's depth noise nears R, the cap's relief places the centre laterally to several
-    mm; the outline against a background farther behind is a sharp depth step (``outline_pixels``)
-    that places it to about a millimetre at 2-3 m. Per image axis, the outline pixels within 45
-    degrees of each of its two directions give the median angular residual (angle to the centre's
-    ray minus the cone's half-angle); half their difference is the shift along that axis, which a
-    silhouette uniformly a pixel larger or smaller than the sphere's (mixed pixels, edge
-    fattening) leaves alone. An axis with fewer than ``outline_min_side`` outline pixels on either
-    side (a ball on a floor or against a wall there, the stereo shadow) keeps its centre; a move
-    beyond ``outline_max_shift_fraction`` R is not taken."""
+    mm; the outline against a background farther behind is a sharp depth step
+    (``_kernels.outline_residuals``: 4-neighbour pairs of a pixel at the ball's depths and one
+    behind, near the current outline and stepping outward, each with its angular residual, the
+    angle to the centre's ray minus the cone's half-angle) that places it to about a millimetre at
+    2-3 m. Per image axis, the pairs within 45 degrees of each of its two directions give their
+    median residual; half the difference of the two is the shift along that axis
+    (``_kernels.outline_centre``), which a silhouette uniformly a pixel larger or smaller than the
+    sphere's (mixed pixels, edge fattening) leaves alone. An axis with fewer than
+    ``outline_min_side`` pairs on either side (a ball on a floor or against a wall there, the stereo
+    shadow) keeps its centre; a move beyond ``outline_max_shift_fraction`` R is not taken."""
     c_in = np.asarray(centre_m, np.float64)
-    c = c_in.copy()
-    rho = float(np.linalg.norm(c))
-    intr = frame.cloud.intrinsics
-    for _ in range(iterations):
-        pts, (u0, v0), alpha = outline_pixels(frame, c, config)
-        if len(pts) < 2 * config.outline_min_side:
-            break
-        rays = pixel_rays(intr, pts[:, 0], pts[:, 1])
-        rays /= np.linalg.norm(rays, axis=1)[:, None]
-        axis_c = c / rho
-        residual = np.arccos(np.clip(rays @ axis_c, -1.0, 1.0)) - alpha  # > 0: the outline outside the cone
-        phi = np.arctan2(pts[:, 1] - v0, pts[:, 0] - u0)
-        shift = [0.0, 0.0]
-        for j, (plus, minus) in enumerate(((np.abs(phi) < math.pi / 4, np.abs(phi) > 3 * math.pi / 4),
-                                           (np.abs(phi - math.pi / 2) < math.pi / 4,
-                                            np.abs(phi + math.pi / 2) < math.pi / 4))):
-            if plus.sum() >= config.outline_min_side and minus.sum() >= config.outline_min_side:
-                shift[j] = 0.5 * (np.median(residual[plus]) - np.median(residual[minus])) / _SECTOR_GAIN
-        if shift == [0.0, 0.0]:
-            break
-        # the tangent directions of the image's +u and +v at the centre's ray
-        e_u = np.array([1.0, 0.0, 0.0]) - axis_c * axis_c[0]
-        e_u /= np.linalg.norm(e_u)
-        e_v = np.cross(axis_c, e_u)
-        e_v = e_v if e_v[1] >= 0 else -e_v
-        axis_c = axis_c + shift[0] * e_u + shift[1] * e_v
-        c_new = rho * axis_c / np.linalg.norm(axis_c)
-        done = float(np.linalg.norm(c_new - c)) < 1e-5
-        c = c_new
-        if done:
-            break
-    if float(np.linalg.norm(c - c_in)) > config.outline_max_shift_fraction * config.radius_m:
+    R = config.radius_m
+    rho = float(np.linalg.norm(c_in))
+    if not (c_in[2] > 0 and rho > R):
         return c_in
-    return c
+    # a quarter of the outline holds at most two pairs per pixel of the kernel's window
+    r_px = float(frame.prm[K.P_FX]) * math.tan(math.asin(R / rho))
+    side = 2 * int(r_px + config.outline_band_px + config.outline_band_fraction * r_px + 3) + 1
+    res = workspace("outline_res", (4, 2 * side * side), np.float64)
+    count = workspace("outline_count", (4,), np.int64)
+    out = np.empty(3, np.float64)
+    K.outline_centre(frame.points, frame.index_image, frame.prm, c_in, frame.noise_a * float(c_in[2]) ** 2,
+                     config.outline_gap_sigmas, config.outline_band_px, config.outline_band_fraction,
+                     config.outline_min_side, iterations, res, count, out)
+    if float(np.linalg.norm(out - c_in)) > config.outline_max_shift_fraction * R:
+        return c_in
+    return out
 
 
 def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
