@@ -25,8 +25,10 @@ how the detection-rate and the no-false-detection figures trade against each oth
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -38,7 +40,7 @@ from spherebench.eval.metrics3d import detection_counts, scene_counts
 from spherebench.eval.provenance import dist_version, machine_info
 from spherebench.eval.registry import detector_spec, pyransac3d_spec
 from spherebench.eval.runner import SceneInfo, dataset_scenes, run_tasks, tasks_for
-from spherebench.method import config_for
+from spherebench.method import config_for, detect, warm_up
 from spherebench.parallel import executor
 
 NEAR_M = 2.0            # the median centre error is over balls at most this far
@@ -116,6 +118,30 @@ def _summary(rows: list[dict]) -> dict:
         b["rejected"] += int(not d["accepted"])
     out["distractors"] = {"n": counts["distractors"], "rejected": counts["distractors_rejected"], "by_size_range": bins}
     return out
+
+
+@functools.lru_cache(maxsize=None)
+def _warmed(name: str):
+    """A detector configuration by name, its kernels loaded once per worker (``warm_up``)."""
+    config = config_for(name)
+    warm_up(config)
+    return config
+
+
+def frame_best_times(task: tuple[str, tuple[str, ...], int, int]) -> list[float]:
+    """(scene folder, configuration names, seed, passes) -> each configuration's fastest CPU time (ms) on
+    the frame over ``passes`` runs, the configurations taking turns run by run: on a shared machine
+    the interference then falls on all of them alike (in a worker pinned to one thread)."""
+    scene, names, seed, passes = task
+    cloud = inout.load_cloud(scene)
+    configs = [_warmed(n) for n in names]
+    best = [math.inf] * len(configs)
+    for _ in range(passes):
+        for j, config in enumerate(configs):
+            t0 = time.thread_time()
+            detect(cloud, config, seed=seed)
+            best[j] = min(best[j], 1e3 * (time.thread_time() - t0))
+    return best
 
 
 def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subset: int = 12,

@@ -7,8 +7,9 @@ group (balls within 2 m; at 2-3 m), over the run seeds: balls found (the nearest
 verification started about the true centre, its score above every clutter sphere of its frame)
 and the share it accepts at the detector's own threshold, the target and whether it holds. Then
 the overall rate beside `default`'s, false detections, `hard`'s negatives and distractors, and the
-time per 424x240 frame as a ratio to the `paper-lstsq` control (``eval.bench``, same frames), with
-the frame noise estimate's own cost. A false detection lies farther than one radius from every
+time per 424x240 frame as a ratio to the `paper-lstsq` control (``eval.bench.frame_best_times``:
+the two take turns on each frame, the fastest of three runs each), with the frame noise
+estimate's own cost. A false detection lies farther than one radius from every
 ball (``metrics3d``' "clutter"): a detection of a ball 2-3 cm off is a miss of the 2 cm rate, not
 a false detection. Detections and the oracle run on the one task loop (``eval.runner``), scene k of
 run seed s with ``detection_seed(s, k)``, the oracle with ``detection_seed(0, k)`` (as `make eval`'s).
@@ -24,7 +25,7 @@ import numpy as np
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval import robustness as rb
-from spherebench.eval.bench import bench
+from spherebench.eval.bench import frame_best_times
 from spherebench.eval.metrics3d import FOUND_M, detection_counts, scene_counts
 from spherebench.eval.registry import detector_spec
 from spherebench.eval.runner import dataset_scenes, run_tasks, tasks_for
@@ -83,20 +84,25 @@ def _default_figures(rows: list[dict]) -> dict:
             "false_detections": counts["false_detections"]}
 
 
-def _timing(default: str, limit: int | None, overrides: dict) -> dict:
-    """improved's and paper-lstsq's CPU time per 424x240 frame (``scripts.bench``, best of 3), and
-    the frame noise estimate's own median time on the same frames."""
+def _timing(default: str, limit: int | None, overrides: dict, passes: int = 3) -> dict:
+    """improved's and paper-lstsq's CPU time per 424x240 frame of ``default``: on each frame the two
+    take turns ``passes`` times in one worker pinned to one thread (``bench.frame_best_times``), each
+    keeps its fastest run, and the ratio is of the medians over the frames; and the frame noise
+    estimate's own median time on the same frames."""
     if overrides:
         raise SphereBenchError("--set with timing: the timing runs the shipped configuration; add --no-timing")
-    res = bench([default], paper_subset=-1, peer_subset=0, limit=limit, min_scores=(), progress=None)
-    summ = next(iter(res["datasets"].values()))["summary"]
-    imp = summ["improved"]["time"].get("424x240", {}).get("cpu_best_median_ms")
-    ctl = summ["paper-lstsq"]["time"].get("424x240", {}).get("cpu_median_ms")
+    scenes = [s for s in dataset_scenes(default, limit) if s.has_cloud and s.resolution == "424x240"]
+    if not scenes:
+        raise SphereBenchError(f"{default}: no 424x240 scene to time; give the default preset's folder")
+    tasks = [(str(s.path), ("improved", "paper-lstsq"), detection_seed(0, s.index), passes) for s in scenes]
+    with executor(1, isolated=True) as ex:
+        times = np.array(list(ex.map(frame_best_times, tasks)))
+    imp, ctl = float(np.median(times[:, 0])), float(np.median(times[:, 1]))
     config = config_for("improved")
     noise_ms = []
     with single_thread_here():
-        for scene in inout.list_scenes(default)[:limit]:
-            cloud = inout.load_cloud(scene)
+        for scene in scenes:
+            cloud = inout.load_cloud(scene.path)
             frame = prepare_frame(cloud, config)
             t0 = time.thread_time()
             for _ in range(20):
@@ -104,8 +110,9 @@ def _timing(default: str, limit: int | None, overrides: dict) -> dict:
             noise_ms.append((time.thread_time() - t0) / 20 * 1e3)
     ratio = imp / ctl if imp and ctl else None
     limit_ratio = TIME_RATIO_BEFORE * TIME_RATIO_GROWTH
-    return {"improved_ms": imp, "control_ms": ctl, "ratio": ratio, "ratio_limit": limit_ratio,
-            "ok": None if ratio is None else ratio <= limit_ratio, "noise_estimate_ms": float(np.median(noise_ms)),
+    return {"improved_ms": imp, "control_ms": ctl, "ratio": ratio, "ratio_limit": limit_ratio, "frames": len(scenes),
+            "passes": passes, "ok": None if ratio is None else ratio <= limit_ratio,
+            "noise_estimate_ms": float(np.median(noise_ms)),
             "noise_estimate_share": float(np.median(noise_ms)) / imp if imp else None}
 
 
