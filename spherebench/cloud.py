@@ -97,5 +97,8 @@ def cloud_from_depth(depth_m: np.ndarray, intr: Intrinsics, rays: np.ndarray | N
     rows, cols = np.nonzero(valid)
     if rays is None:
         rays = image_rays(intr)
-    pts = rays[rows, cols] * z[rows, cols, None]
-    return Cloud(pts.astype(np.float32), rows.astype(np.int32), cols.astype(np.int32), intr)
+    zv = z[valid].astype(np.float64)
+    pts = np.empty((len(zv), 3), np.float32)
+    for j in range(3):  # per component, in float64: a (N, 3) gather of the rays took twice as long
+        np.multiply(rays[..., j][valid], zv, out=pts[:, j], casting="same_kind")
+    return Cloud(pts, rows.astype(np.int32), cols.astype(np.int32), intr)
