@@ -49,6 +49,7 @@ Conventions of the SDK's writer that the reader relies on:
 
 from __future__ import annotations
 
+import gc
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -290,9 +291,7 @@ def record_with_sdk(path: str | Path, frames: Sequence[np.ndarray], intrinsics: 
     for a .db3 path): a software device with one depth stream, frame k numbered frame_numbers[k]
     (default k) and stamped first_timestamp_ms + number * 1000 / fps. frames: (H, W) uint16 counts
     of ``intrinsics.depth_scale``. Returns ``path``."""
-    import gc
-
-    import pyrealsense2 as rs
+    import pyrealsense2 as rs  # here, not at the top: an extra (realsense), which only recording needs
 
     path = Path(path)
     numbers = list(range(len(frames))) if frame_numbers is None else [int(n) for n in frame_numbers]

@@ -30,7 +30,9 @@ import numpy as np
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets import inout
+from spherebench.datasets.prepare import FrameSelection
 from spherebench.errors import SphereBenchError
+from spherebench.method import detect
 
 #: Recording suffixes that pyrealsense2 plays back (ROS1 bag, ROS2 sqlite).
 RECORDING_SUFFIXES = (".bag", ".db3")
@@ -104,8 +106,6 @@ def recording_frames(path: str | Path, selection=None, real_time: bool = False,
     ``prepare.FrameSelection``; None: every frame). real_time: play at the recording's rate and
     drop what the consumer is too slow for (counted in ``stats.dropped``); else every frame is
     read. Raises SphereBenchError on opening when the file is no recording or has no depth."""
-    from spherebench.datasets.prepare import FrameSelection
-
     recording = inout.BagRecording(path)  # checked here, before the first frame is asked for
     selection = selection or FrameSelection()
     stats = stats if stats is not None else StreamStats()
@@ -210,8 +210,6 @@ def detect_stream(frames: Iterable[inout.BagFrame], config, seed: int = 0,
     """The detector over a stream of depth frames: (frame, spheres, ms) per frame, lazily. Frame
     k's seed is (seed, k), k its index in the stream: the same recording gives the same output. A
     frame with no depth at all gives no sphere."""
-    from spherebench.method import detect
-
     rays = _Rays()
     for frame in frames:
         t = time.perf_counter()

@@ -28,10 +28,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from spherebench import options
+from spherebench import options, viz
 from spherebench.cloud import in_front_of_camera
 from spherebench.datasets import inout, stream
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
+from spherebench.datasets.prepare import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import PRESETS, config_for, detect, warm_up
@@ -256,8 +257,6 @@ def _stream_summary(raw: str, times_ms, stats: stream.StreamStats, real_time: bo
 
 
 def run(args: argparse.Namespace) -> int:
-    from spherebench.datasets.prepare import FrameSelection, scene_id_from
-
     # every argument and input first: nothing is detected, printed or written before all are good
     if args.radius is not None and not (np.isfinite(args.radius) and args.radius > 0):
         raise SphereBenchError(f"--radius {args.radius}: the ball radius must be > 0 metres (e.g. 0.12)")
@@ -301,7 +300,6 @@ def run(args: argparse.Namespace) -> int:
         jobs.append((f"camera {args.camera}".strip(), None, radius, source, eps, (frames, stats)))
     log = None
     if args.rerun or args.rerun_save:
-        from spherebench import viz
         log = viz.RerunLog("spherebench detect", save=args.rerun_save, spawn=args.rerun)
     labelme_ctx = (inout.atomic_directory(args.labelme_out, inout.owned_by_kind(LABELME_KIND)) if args.labelme_out
                    else contextlib.nullcontext())

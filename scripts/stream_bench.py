@@ -23,6 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from spherebench import options
+from spherebench.datasets import inout, simulate, stream
+from spherebench.datasets.bagwrite import write_realsense_bag
+from spherebench.method import config_for, warm_up
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,8 +39,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _recording(folder: Path, size: str, n_frames: int, n_scenes: int, fps: int, seed: int) -> Path:
-    from spherebench.datasets import simulate
-    from spherebench.datasets.bagwrite import write_realsense_bag
 
     families = ("clean", "cluttered")
     scenes = [simulate.simulate_scene("default", k, families[k % 2], seed, size) for k in range(n_scenes)]
@@ -47,8 +48,6 @@ def _recording(folder: Path, size: str, n_frames: int, n_scenes: int, fps: int, 
 
 def measure(path: Path, real_time: bool, seed: int = 0) -> dict:
     """One playback of a recording through the streaming detector: per-frame ms, drops."""
-    from spherebench.datasets import stream
-    from spherebench.method import config_for, warm_up
 
     config = config_for("improved")
     warm_up(config)
@@ -59,7 +58,6 @@ def measure(path: Path, real_time: bool, seed: int = 0) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from spherebench.datasets import inout
 
     if args.out:
         inout.check_report_out(args.out, "stream-bench")

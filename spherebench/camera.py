@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from spherebench.errors import SphereBenchError
+from spherebench.errors import SphereBenchError, require
 
 #: Distortion models understood here (the librealsense names, lower case).
 DISTORTION_MODELS = ("none", "brown_conrady", "modified_brown_conrady", "inverse_brown_conrady")
@@ -128,8 +128,6 @@ class Intrinsics:
     def to_rs(self):
         """As pyrealsense2's ``rs.intrinsics`` (the inverse of ``from_rs``; the depth unit is not one
         of its fields), e.g. for a software device's stream."""
-        from spherebench.errors import require
-
         rs = require("pyrealsense2", "realsense", "an rs.intrinsics")
         ri = rs.intrinsics()
         ri.width, ri.height = self.width, self.height

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spherebench.cloud import cloud_from_depth, depth_to_metres
 from spherebench.errors import require
 
 #: Colours (RGB): the inliers of a sphere, the other points, the spheres and circles.
@@ -78,8 +79,6 @@ class RerunLog:
         """One frame of a stream (an ``inout.BagFrame``) and its spheres."""
         if not self.enabled:
             return
-        from spherebench.cloud import cloud_from_depth, depth_to_metres
-
         rr = self.rr
         rr.set_time("frame", sequence=int(frame.number))
         rr.set_time("camera_time", duration=float(frame.timestamp_ms) / 1000.0)  # seconds

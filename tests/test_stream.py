@@ -109,12 +109,10 @@ def test_camera_without_a_camera_fails_at_once(capsys):
 
 
 def test_real_time_drops_frames_a_slow_detector_cannot_keep_up_with(recording, capsys, monkeypatch):
-    import spherebench.method as method
-
     def slow(cloud, config, seed=0):
         time.sleep(0.2)  # six frame periods at 30 fps
         return []
-    monkeypatch.setattr(method, "detect", slow)
+    monkeypatch.setattr(stream, "detect", slow)
     path, _, _ = recording
     stats = stream.StreamStats()
     got = [f.number for f, _, _ in stream.detect_stream(stream.recording_frames(path, real_time=True, stats=stats),
@@ -191,9 +189,7 @@ def test_intrinsics_from_an_rs_intrinsics():
 def test_memory_stays_bounded_over_a_long_recording(tmp_path, monkeypatch):
     import tracemalloc
 
-    import spherebench.method as method
-
-    monkeypatch.setattr(method, "detect", lambda cloud, config, seed=0: [])  # the stream, not the detector
+    monkeypatch.setattr(stream, "detect", lambda cloud, config, seed=0: [])  # the stream, not the detector
     intr = Intrinsics.d435(160, 120)
     frame = np.full((120, 160), 1500, np.uint16)  # 38 kB a frame: 300 of them held would be 11 MB
     path = write_realsense_bag(tmp_path / "long.bag", [frame] * 300, intr, fps=90)
