@@ -1076,7 +1076,7 @@ def detection_record(score: float, circle_px=None, center_m=None, radius_m: floa
             "radius_m": None if radius_m is None else round(float(radius_m), 6),
             "circle_px": None if circle is None else {"center": [round(circle[0], 3), round(circle[1], 3)],
                                                       "radius": round(circle[2], 3)},
-            "bbox": None if circle is None else [round(v, 3) for v in circle_bbox(*circle)],
+            "bbox": None if circle is None else circle_bbox(*circle, decimals=3),
             "inliers": None if inliers is None else int(inliers)}
 
 

@@ -62,11 +62,6 @@ def _rounded(x, nd: int):
     return None if x is None or not math.isfinite(float(x)) else round(float(x), nd)
 
 
-def _coco_bbox(circle) -> list[float]:
-    """A result's COCO bbox [x, y, w, h] px about its circle: pycocotools' loadRes needs one."""
-    return [round(v, 3) for v in circle_bbox(*circle)]
-
-
 def _circle(c) -> list[float] | None:
     return None if c is None else [round(float(v), 3) for v in c]
 
@@ -89,7 +84,7 @@ def results_and_records(spec: MethodSpec, output: str, scenes: list, records: li
             if scene.image_id is not None and circle is not None and circle[2] > 0:
                 r = {"image_id": scene.image_id, "category_id": category_id,
                      "circle_center": entry["circle"][:2], "circle_radius": entry["circle"][2],
-                     "bbox": _coco_bbox(entry["circle"]), "score": entry["score"], "scene_id": scene.scene_id}
+                     "bbox": circle_bbox(*entry["circle"], decimals=3), "score": entry["score"], "scene_id": scene.scene_id}
                 if spec.kind == "3d":
                     r["center_m"] = entry["center_m"]
                     if entry["radius_m"] is not None:

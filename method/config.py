@@ -144,6 +144,7 @@ class DetectorConfig:
             smaller than the sphere's, as mixed pixels make it).
         outline_max_shift_fraction: a re-centring that moves the centre by more than this fraction of
             R is not taken.
+        outline_iterations: rounds of re-centring (each re-collects the outline about the moved centre).
         multistart_noise_fraction: organised clouds, while no sphere is accepted: a hypothesis whose
             depth noise (one pixel's sigma_z) exceeds this fraction of R is verified from its centre
             and the six ``rescore_starts`` about it, the best kept and its score then taken as the
@@ -278,6 +279,7 @@ class DetectorConfig:
     outline_band_fraction: float = 0.15
     outline_min_side: int = 4
     outline_max_shift_fraction: float = 0.5
+    outline_iterations: int = 3
     fit_max_points: int = 400
     score_max_points: int = 400
     refine_iterations: int = 4
@@ -379,7 +381,7 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "refine_iterations", "min_inliers", "max_spheres", "max_points", "search_width_px",
                  "verify_candidates", "verify_candidates_if_none", "fit_max_points", "search_candidates",
                  "noise_estimate_lag_px", "noise_estimate_samples", "noise_estimate_min_samples", "descent_steps",
-                 "pretest_max_continued", "first_steps", "outline_min_side"):
+                 "pretest_max_continued", "first_steps", "outline_min_side", "outline_iterations"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int):
             out.append(f"{name}={v!r} must be an integer")
@@ -443,16 +445,19 @@ def _problems(c: DetectorConfig) -> list[str]:
         out.append("ring_front_min_fraction must be >= 0 and below ring_front_max_fraction")
     if finite("ring_factor") and not 1.0 < c.ring_factor <= 3.0:
         out.append(f"ring_factor={c.ring_factor} must be within (1, 3] (the outline ring's outer radius / R)")
-    for name in ("multistart_noise_fraction", "outline_noise_fraction"):
-        v = getattr(c, name)
-        least = 0.0 if name == "outline_noise_fraction" else math.ulp(0.0)  # 0: always; inf: never
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= least:
-            out.append(f"{name}={v!r} must be {'>=' if least == 0 else '>'} 0 (a fraction of R; inf for never)")
+    v = c.multistart_noise_fraction
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:  # inf: never
+        out.append(f"multistart_noise_fraction={v!r} must be > 0 (a fraction of R; inf for never)")
+    v = c.outline_noise_fraction
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:  # 0: always; inf: never
+        out.append(f"outline_noise_fraction={v!r} must be >= 0 (a fraction of R; inf for never)")
     for name in ("outline_gap_sigmas", "outline_band_px", "outline_band_fraction", "outline_max_shift_fraction"):
         if finite(name) and not getattr(c, name) > 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")
     if isinstance(c.outline_min_side, int) and not 1 <= c.outline_min_side <= 1000:
         out.append(f"outline_min_side={c.outline_min_side} must be 1-1000 (outline pixels on each side of an axis)")
+    if isinstance(c.outline_iterations, int) and not 1 <= c.outline_iterations <= 20:
+        out.append(f"outline_iterations={c.outline_iterations} must be 1-20")
     if finite("zscore_threshold") and c.zscore_threshold == 0:
         out.append("zscore_threshold must be > 0 (the paper uses 1.5)")
     if c.pipeline == "paper" and c.sampling != "global":

@@ -15,8 +15,9 @@ n pixels have sigma / sqrt(n). The distinct survivors are kept by score. The str
 the standard RANSAC bound for the smallest ball the frame can hold (``strata``).
 (The paper's three-point samples in a ball diameter are here a five-box stencil about the first
 pixel, and the known radius enters as the cap's curvature: a box-mean sample gives a centre only
-when all its boxes lie inside the disc, the descent from anywhere on it. Off the optical axis the
-stencil is stretched as the silhouette is, ``_kernels.stencil_stretch``.)
+when all its boxes lie inside the disc, the descent from anywhere on it. ``search_off_axis``
+stretches the stencil as a silhouette off the optical axis is, ``_kernels.stencil_stretch``; off
+by default.)
 Unorganised clouds: three-point local samples in a spatial grid (``_kernels.search_unorganised``).
 
 Verification (compiled, one call per candidate, best first, at most ``verify_candidates``, or
@@ -720,8 +721,7 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
                      free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
 
 
-def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorConfig,
-                   iterations: int = 3) -> np.ndarray:
+def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorConfig) -> np.ndarray:
     """A sphere's centre (3,) m moved across the line of sight onto its outline, its range kept.
 
     Where one pixel's depth noise nears R, the cap's relief places the centre laterally to several
@@ -740,15 +740,16 @@ def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorC
     rho = float(np.linalg.norm(c_in))
     if not (c_in[2] > 0 and rho > R):
         return c_in
-    # a quarter of the outline holds at most two pairs per pixel of the kernel's window
+    # a quarter of the outline holds at most two pairs per pixel of the kernel's window; the capacity
+    # is rounded up to a power of two, so that balls of every size share a few reused buffers
     r_px = float(frame.prm[K.P_FX]) * math.tan(math.asin(R / rho))
     side = 2 * int(r_px + config.outline_band_px + config.outline_band_fraction * r_px + 3) + 1
-    res = workspace("outline_res", (4, 2 * side * side), np.float64)
+    res = workspace("outline_res", (4, 1 << (2 * side * side - 1).bit_length()), np.float64)
     count = workspace("outline_count", (4,), np.int64)
     out = np.empty(3, np.float64)
     K.outline_centre(frame.points, frame.index_image, frame.prm, c_in, frame.noise_a * float(c_in[2]) ** 2,
                      config.outline_gap_sigmas, config.outline_band_px, config.outline_band_fraction,
-                     config.outline_min_side, iterations, res, count, out)
+                     config.outline_min_side, config.outline_iterations, res, count, out)
     if float(np.linalg.norm(out - c_in)) > config.outline_max_shift_fraction * R:
         return c_in
     return out
@@ -813,11 +814,11 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         if len(kept) == config.max_spheres:
             break
     if frame is not None:
-        for v in kept:  # where the noise nears R, the outline places the centre across the line of sight
+        for v in kept:
+            # where the noise nears R, the outline places the centre across the line of sight
             if frame.noise_a * float(v.center_m[2]) ** 2 >= config.outline_noise_fraction * config.radius_m:
                 v.center_m = outline_centre(frame, v.center_m, config)
-        # verification visited strided windows: collect every inlier of the reported ones
-        for v in kept:
+            # verification visited strided windows: collect every inlier of the reported ones
             n, v.rmse_m = K.final_inliers(frame.points, frame.index_image, v.center_m, frame.prm, v.eps_m, buf)
             v.inliers = buf[:n].copy()
     return kept

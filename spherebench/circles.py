@@ -23,10 +23,11 @@ import numpy as np
 
 from spherebench.camera import Intrinsics, pixel_rays, project
 
-def circle_bbox(cx: float, cy: float, r: float) -> list[float]:
+def circle_bbox(cx: float, cy: float, r: float, decimals: int | None = None) -> list[float]:
     """The box [x, y, w, h] px round a circle (COCO's bbox), so that a circle result loads in any
-    COCO tool (pycocotools' loadRes needs a bbox or a segmentation)."""
-    return [float(cx) - float(r), float(cy) - float(r), 2.0 * float(r), 2.0 * float(r)]
+    COCO tool (pycocotools' loadRes needs a bbox or a segmentation); rounded to ``decimals`` if given."""
+    box = [float(cx) - float(r), float(cy) - float(r), 2.0 * float(r), 2.0 * float(r)]
+    return box if decimals is None else [round(v, decimals) for v in box]
 
 
 def mask_circle(mask: np.ndarray) -> tuple[float, float, float] | None:
