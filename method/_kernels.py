@@ -325,7 +325,10 @@ P_H_FRAC, P_D_FRAC, P_RING_FRAC, P_RING_H_FRAC, P_PREFILTER_FRAC, P_DESCENT_STEP
 P_MEAN_NOISE = 35
 # the search's stencil follows the silhouette's off-axis stretch (1: on; 0: square, as on the axis)
 P_OFF_AXIS = 36
-N_PRM = 37
+# the descent leaves out side boxes more than R in front of the centre box, an occluder (1: on,
+# ``improved``'s second search of a frame where none was accepted; 0: off)
+P_OCCLUDER_BOUND = 37
+N_PRM = 38
 #: The packed table's count field starts at this bit; the depth sum (mm) takes the bits below.
 COUNT_SHIFT = 40
 _DEPTH_MASK = (1 << COUNT_SHIFT) - 1
@@ -469,15 +472,16 @@ def sums_range(prm, v, u, s, n, a):
 
 
 @kernel
-def descent_step(m0, mA, mB, d, k, off, lim):
+def descent_step(m0, mA, mB, d, k, off, lim, near):
     """Step (cells) toward the sphere's front point along one axis, from the mean ranges m0 at the
     current cell and mA, mB at -d and +d cells, with the sphere's known curvature k (metres per
     cell^2: near its front point a cap's range is front + k x^2). A side mean that is missing or
-    more than ``off`` metres above m0 (off the cap: the background) is not used; none usable: no
+    more than ``off`` metres above m0 (off the cap: the background), or more than ``near`` metres
+    below it (in front of the cap: an occluder; inf: no such bound), is not used; none usable: no
     step. (A free parabola through the three means overshoots when one of them is off the cap,
     and then oscillates.) Clamped to +/- lim."""
-    okA = not math.isnan(mA) and mA - m0 <= off
-    okB = not math.isnan(mB) and mB - m0 <= off
+    okA = not math.isnan(mA) and mA - m0 <= off and m0 - mA <= near
+    okB = not math.isnan(mB) and mB - m0 <= off and m0 - mB <= near
     if okA and okB:
         x = (mA - mB) / (4.0 * k * d)
     elif okB:
@@ -652,8 +656,14 @@ def front_hypothesis(tab, prm, v, u, out):
         if step == steps:
             break
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
-        iu = int(math.floor(descent_step(m0, mL, mR, du, 0.5 * R / (rr * su) ** 2, off, 0.5 * rr * su) + 0.5))
-        iv = int(math.floor(descent_step(m0, mU, mD, dv, 0.5 * R / (rr * sv) ** 2, off, 0.5 * rr * sv) + 0.5))
+        ku, kv = 0.5 * R / (rr * su) ** 2, 0.5 * R / (rr * sv) ** 2
+        # a side box more than R (and the noise) in front of the centre box lies on no cap through it:
+        # an occluder, which pulls the descent off a partly hidden ball. (Beside a ball, on the
+        # background, the ball's box is nearer by as much: there the bound stops the descent that
+        # would reach the ball, so it is only for ``improved``'s second search)
+        near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[P_OCCLUDER_BOUND] != 0.0 else np.inf
+        iu = int(math.floor(descent_step(m0, mL, mR, du, ku, off, 0.5 * rr * su, near) + 0.5))
+        iv = int(math.floor(descent_step(m0, mU, mD, dv, kv, off, 0.5 * rr * sv, near) + 0.5))
         if iu == 0 and iv == 0:
             break
         u += iu

@@ -180,8 +180,17 @@ class DetectorConfig:
         box_offset_fraction: offset of the four side boxes from the centre box.
         search_off_axis: stretch the stencil's offsets (side boxes, ring boxes, prefilter) along each
             image axis as the ball's silhouette is off the optical axis (1 / cos^2 of its angle radially,
-            1 / cos tangentially). Off: square, as on the axis; on `train` the stretched stencil loses
-            partly hidden balls, while it finds low-noise balls 40 degrees off the axis.
+            1 / cos tangentially). Off: the first search's stencil is square, as on the axis (on `train`
+            a stretched first search loses partly hidden balls); ``retry_off_axis`` stretches it.
+        retry_occluder: while no sphere is accepted, search the frame again with the descent leaving
+            out side boxes more than R in front of the centre box (an occluder pulls the descent off a
+            partly hidden ball; beside a ball the ball's own box is nearer by as much, so the first
+            search keeps them), and verify the hypotheses not verified before. A frame with a ball found
+            pays nothing for it.
+        retry_off_axis: ... then, while still none is accepted, search again with the stencil stretched
+            off the axis (``search_off_axis``'s), likewise.
+        retry_new_fraction: a retry's hypothesis within this fraction of R of a start already verified
+            is not verified again.
         ring_offset_fraction, ring_half_fraction: offset and half-side of the 8 outline-ring boxes.
         prefilter_offset_fraction: the plane prefilter's boxes lie this far from the first cell.
         descent_steps: steps from the first cell toward the range's local minimum (the front point).
@@ -299,6 +308,9 @@ class DetectorConfig:
     box_half_fraction: float = 0.25
     box_offset_fraction: float = 0.5
     search_off_axis: bool = False
+    retry_occluder: bool = True
+    retry_off_axis: bool = True
+    retry_new_fraction: float = 0.25
     ring_offset_fraction: float = 1.5
     ring_half_fraction: float = 0.25
     prefilter_offset_fraction: float = 2.0
@@ -451,6 +463,8 @@ def _problems(c: DetectorConfig) -> list[str]:
     v = c.outline_noise_fraction
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:  # 0: always; inf: never
         out.append(f"outline_noise_fraction={v!r} must be >= 0 (a fraction of R; inf for never)")
+    if finite("retry_new_fraction") and not 0.0 <= c.retry_new_fraction <= 2.0:
+        out.append(f"retry_new_fraction={c.retry_new_fraction} must be within [0, 2] (a fraction of R)")
     for name in ("outline_gap_sigmas", "outline_band_px", "outline_band_fraction", "outline_max_shift_fraction"):
         if finite(name) and not getattr(c, name) > 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")

@@ -419,12 +419,22 @@ class PreparedFrame:
         self.vstats = np.empty(K.N_STATS, np.float64)
 
 
-def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int,
+                 occluder_bound: bool = False, off_axis: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,), occluded (M,)
-    bool: passed the pretest with a side hidden by an occluder, ``_kernels.front_hypothesis``), best first."""
+    bool: passed the pretest with a side hidden by an occluder, ``_kernels.front_hypothesis``), best first.
+    occluder_bound: the descent leaves out side boxes in front of a cap (``_kernels.P_OCCLUDER_BOUND``);
+    off_axis: the stencil follows the silhouette's stretch off the optical axis (``_kernels.stencil_stretch``)."""
     hyp = np.zeros((config.search_candidates, 6), np.float64)
     counters = np.zeros(2, np.int64)
-    m = K.search_organised(frame.tab, frame.prm, np.uint64(seed), hyp, counters)
+    prm = frame.prm
+    if occluder_bound or off_axis:
+        prm = prm.copy()
+        if occluder_bound:
+            prm[K.P_OCCLUDER_BOUND] = 1.0
+        if off_axis:
+            prm[K.P_OFF_AXIS] = 1.0
+    m = K.search_organised(frame.tab, prm, np.uint64(seed), hyp, counters)
     frame.counters = counters  # diagnostics (see _kernels.search_organised)
     frame.hypotheses = hyp[:m]
     centres = K.cell_centres(frame.prm, hyp[:m])
@@ -557,56 +567,78 @@ def noise_shares(stats: dict, config: DetectorConfig) -> tuple[float, float]:
     return max(math.erf(z) / math.erf(z_full), 1e-6), 0.5 * (math.erfc(z) - math.erfc(z_full))
 
 
-def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
-               organised: bool) -> tuple[float, bool]:
-    """A confidence in [0, 1] and the size check's verdict.
+def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
+                       organised: bool) -> dict[str, float]:
+    """The confidence's factors, each in [0, 1], by name (``confidence`` multiplies them).
 
-    Factors (each in [0, 1]): support n / (n + min_inliers); for organised clouds the share of the
-    silhouette's valid pixels that are inliers (coverage: occlusion lowers it) over the share the
-    noise leaves a ball (``noise_shares``), (1 - behind share beyond the noise's)^2 (the ball
-    would hide what is seen through it) and (1 - share hugging the sphere just in front
-    of it)^2 (a cylinder or another non-spherical surface), (1 - share of the outline ring where
-    the surface continues at the ball's depth)^2 (a wall or a plane) and (1 - a)^ring_front_power, a
-    the share where a surface attached in front of it continues (a cylinder's body, a corner) beyond
-    ring_front_free, (1 - ``see_through_excess``)^4 (seen through the inner disc: a cylinder's flat
-    top, a smaller ball), (1 - ``edge_behind_excess``)^4 (seen through the silhouette's edge band: a smaller
-    ball), the ``relief_agreement`` of the inner and outer zones (a surface flatter than the
-    ball), (1 - (ring spread - ring_spread_free))^ring_spread_power beyond the free share (the
-    ring spread, ``_kernels.ring_spread``: the share of the outline ring attached outside the half
-    ring that holds most of it; a ball touches its support on one side, embedded clutter on several);
-    for unorganised clouds (1 - min(1, q))^2, q the
-    density of points in the ball's inner half over that in its shell (a wall it cuts, volumetric
-    noise: a real ball hides its interior); the size agreement exp(-d^2 / 2) with d the free
-    radius's deviation from R in units of (``size_tolerance`` + its standard error). Every exponent
-    and allowance is a ``DetectorConfig`` field (Evidence).
-    """
-    R = config.radius_m
-    score = n_inliers / (n_inliers + config.min_inliers)
+    support: n / (n + min_inliers). Organised clouds: coverage, the share of the silhouette's valid
+    pixels that are inliers (occlusion lowers it) over the share the noise leaves a ball
+    (``noise_shares``); behind, (1 - share seen behind the sphere beyond the noise's)^behind_power (the
+    ball would hide it); hug, (1 - share hugging the sphere just in front of it)^hug_power (a cylinder
+    or another non-spherical surface); ring_continued, (1 - share of the outline ring where the surface
+    continues at the ball's depth)^ring_continued_power (a wall or a plane); ring_front, (1 - a)^
+    ring_front_power, a the share where a surface attached in front of it continues (a cylinder's
+    body, a corner) beyond ring_front_free; see_through, (1 - ``see_through_excess``)^see_through_power
+    (seen through the inner disc: a cylinder's flat top, a smaller ball); edge_behind, (1 -
+    ``edge_behind_excess``)^edge_behind_power (seen through the silhouette's edge band: a smaller
+    ball); relief, ``relief_agreement`` of the inner and outer zones (a surface flatter than the
+    ball); ring_spread, (1 - (ring spread - ring_spread_free))^ring_spread_power beyond the free share
+    (``_kernels.ring_spread``: the share of the outline ring attached outside the half ring that holds
+    most of it; a ball touches its support on one side, embedded clutter on several). Unorganised
+    clouds: interior, (1 - min(1, q))^interior_density_power, q the density of points in the ball's
+    inner half over that in its shell (a wall it cuts, volumetric noise: a real ball hides its
+    interior). size (with ``size_check``): exp(-d^2 / 2), d the free radius's deviation from R in
+    units of (``size_tolerance`` + its standard error). Every exponent and allowance is a
+    ``DetectorConfig`` field (Evidence)."""
+    f = {"support": n_inliers / (n_inliers + config.min_inliers)}
     if organised:
         vd = max(stats["valid_disc"], 1.0)
         p_in, q_behind = noise_shares(stats, config)
-        coverage = min(1.0, stats["inlier"] / vd / p_in)
         behind = max(0.0, min(1.0, stats["behind"] / vd) - q_behind)
         hug = min(1.0, stats["front_near"] / vd)
         ring = stats["ring_continued"] / max(stats["ring"], 1.0)
         attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - config.ring_front_free)
-        score *= (coverage * (1.0 - behind) ** config.behind_power * (1.0 - hug) ** config.hug_power
-                  * (1.0 - ring) ** config.ring_continued_power * (1.0 - attached) ** config.ring_front_power)
         seen = see_through_excess(stats, config.see_through_free, config.see_through_sigmas)
         edge = edge_behind_excess(stats, config.edge_behind_free, config.edge_behind_sigmas)
-        score *= (1.0 - seen) ** config.see_through_power * (1.0 - edge) ** config.edge_behind_power
-        score *= relief_agreement(stats, config)
         spread = max(0.0, stats.get("ring_spread", 0.0) - config.ring_spread_free)
-        score *= (1.0 - spread) ** config.ring_spread_power
+        f.update(coverage=min(1.0, stats["inlier"] / vd / p_in),
+                 behind=(1.0 - behind) ** config.behind_power,
+                 hug=(1.0 - hug) ** config.hug_power,
+                 ring_continued=(1.0 - ring) ** config.ring_continued_power,
+                 ring_front=(1.0 - attached) ** config.ring_front_power,
+                 see_through=(1.0 - seen) ** config.see_through_power,
+                 edge_behind=(1.0 - edge) ** config.edge_behind_power,
+                 relief=relief_agreement(stats, config),
+                 ring_spread=(1.0 - spread) ** config.ring_spread_power)
     elif "interior_density_ratio" in stats:  # unorganised: a ball's interior holds no points
-        score *= (1.0 - min(1.0, stats["interior_density_ratio"])) ** config.interior_density_power
+        f["interior"] = (1.0 - min(1.0, stats["interior_density_ratio"])) ** config.interior_density_power
+    if config.size_check:
+        se = free_se if math.isfinite(free_se) else config.radius_m
+        d = (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
+        f["size"] = math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
+    return f
+
+
+def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
+               organised: bool) -> tuple[float, bool]:
+    """A confidence in [0, 1], the product of ``confidence_factors``, and the size check's verdict:
+    the free radius consistent with R given its standard error, and never beyond
+    ``size_limit_fraction`` R whatever the error says."""
+    f = confidence_factors(stats, n_inliers, free_r, free_se, config, organised)
+    score = f["support"]
+    if organised:  # grouped as the product always was: the scores stay bit-identical
+        score *= f["coverage"] * f["behind"] * f["hug"] * f["ring_continued"] * f["ring_front"]
+        score *= f["see_through"] * f["edge_behind"]
+        score *= f["relief"]
+        score *= f["ring_spread"]
+    elif "interior" in f:
+        score *= f["interior"]
     size_ok = True
     if config.size_check:
+        R = config.radius_m
         se = free_se if math.isfinite(free_se) else R
         tol = size_tolerance(config)
-        d = (free_r - R) / (tol + se) if math.isfinite(free_r) else math.inf
-        score *= math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
-        # consistent with R given the noise, and never beyond a quarter of R whatever the error says
+        score *= f["size"]
         size_ok = (math.isfinite(free_r) and abs(free_r - R) <= tol + config.size_sigmas * se
                    and abs(free_r - R) <= config.size_limit_fraction * R)
     return float(min(max(score, 0.0), 1.0)), size_ok
@@ -755,27 +787,16 @@ def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorC
     return out
 
 
-def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
-                 seed: int) -> list[Candidate]:
-    """Search, verify the best candidates, drop the failed ones, suppress duplicates. Best first.
-
-    frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
-    """
-    if frame is not None:
-        cands, quals, occluded = search_frame(frame, config, seed)
-        # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
-        # cloud, so that frames of one stream reuse it (a fresh 7 MB buffer per 1280x720 frame cost
-        # more in page faults than the detection)
-        buf = workspace("inliers", (frame.index_image.size + 1,), np.int64)
-    else:
-        cands, quals = search_unorganised(points, config, seed)
-        occluded = np.zeros(len(cands), bool)
-    found: list[Candidate] = []
-    # while none is accepted, an organised frame verifies up to verify_candidates_if_none, and the
-    # hypotheses that passed the search's pretest only by an occluded side: a frame with a ball pays
-    # nothing for either
+def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: np.ndarray, quals: np.ndarray,
+                       occluded: np.ndarray, config: DetectorConfig, buf: np.ndarray | None,
+                       found: list[Candidate]) -> list[np.ndarray]:
+    """Verify the search's candidates (M, 3) m, best first, appending the accepted ones to ``found``;
+    returns the starts verified. While none is accepted, an organised frame verifies up to
+    ``verify_candidates_if_none``, and the hypotheses that passed the search's pretest only by an
+    occluded side: a frame with a ball pays nothing for either."""
     limit_none = max(config.verify_candidates, config.verify_candidates_if_none if frame is not None else 0)
     q_accepted = -math.inf  # the best search score among the accepted
+    verified: list[np.ndarray] = []
     for k, (c0, q) in enumerate(zip(cands, quals)):
         if k >= (config.verify_candidates if found else limit_none):
             break
@@ -790,6 +811,7 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
         if any(math.dist(c0, v.center_m) < config.radius_m for v in found):
             continue
+        verified.append(c0)
         if frame is None:
             v = verify_unorganised(points, c0, config)
         elif not found and frame.prm[K.P_NOISE_A] * c0[2] ** 2 > config.multistart_noise_fraction * config.radius_m:
@@ -805,6 +827,38 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
             continue
         found.append(v)
         q_accepted = max(q_accepted, float(q))
+    return verified
+
+
+def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
+                 seed: int) -> list[Candidate]:
+    """Search, verify the best candidates, drop the failed ones, suppress duplicates. Best first.
+
+    frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
+    """
+    if frame is not None:
+        cands, quals, occluded = search_frame(frame, config, seed)
+        # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
+        # cloud, so that frames of one stream reuse it (a fresh 7 MB buffer per 1280x720 frame cost
+        # more in page faults than the detection)
+        buf = workspace("inliers", (frame.index_image.size + 1,), np.int64)
+    else:
+        cands, quals = search_unorganised(points, config, seed)
+        occluded = np.zeros(len(cands), bool)
+        buf = None
+    found: list[Candidate] = []
+    verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found)
+    retries = ([{"occluder_bound": True}] if config.retry_occluder else []) + (
+        [{"off_axis": True}] if config.retry_off_axis and not config.search_off_axis else [])
+    for retry in retries if frame is not None else ():
+        # none accepted yet: search again, the descent past occluders, then the stencil stretched off
+        # the axis, and verify the hypotheses not verified before (a frame with a ball found pays nothing)
+        if found:
+            break
+        cands, quals, occluded = search_frame(frame, config, seed, **retry)
+        new = [k for k, c in enumerate(cands)
+               if all(math.dist(c, c1) > config.retry_new_fraction * config.radius_m for c1 in verified)]
+        verified += _verify_candidates(points, frame, cands[new], quals[new], occluded[new], config, buf, found)
     found.sort(key=lambda v: -v.score)
     kept: list[Candidate] = []
     min_sep = config.nms_distance_fraction * 2.0 * config.radius_m

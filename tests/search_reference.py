@@ -127,10 +127,11 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     return planar == 0
 
 
-def descent_step(m0, mA, mB, d, k, off, lim) -> float:
-    """``_kernels.descent_step``: the front point's offset along one axis, from known curvature k."""
-    okA = not math.isnan(mA) and mA - m0 <= off
-    okB = not math.isnan(mB) and mB - m0 <= off
+def descent_step(m0, mA, mB, d, k, off, lim, near) -> float:
+    """``_kernels.descent_step``: the front point's offset along one axis, from known curvature k; side
+    means more than ``off`` behind or ``near`` in front of m0 are not used."""
+    okA = not math.isnan(mA) and mA - m0 <= off and m0 - mA <= near
+    okB = not math.isnan(mB) and mB - m0 <= off and m0 - mB <= near
     if okA and okB:
         x = (mA - mB) / (4.0 * k * d)
     elif okB:
@@ -190,10 +191,12 @@ def front_hypothesis(g: Grid, v: int, u: int):
         if step == int(prm[K.P_DESCENT_STEPS]):
             break
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
+        # the occluder bound (``improved``'s retry): a side box more than R in front is left out
+        near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[K.P_OCCLUDER_BOUND] else math.inf
         iu = int(math.floor(descent_step(m0, sides[0][0], sides[1][0], du, 0.5 * R / (rr * su) ** 2, off,
-                                         0.5 * rr * su) + 0.5))
+                                         0.5 * rr * su, near) + 0.5))
         iv = int(math.floor(descent_step(m0, sides[2][0], sides[3][0], dv, 0.5 * R / (rr * sv) ** 2, off,
-                                         0.5 * rr * sv) + 0.5))
+                                         0.5 * rr * sv, near) + 0.5))
         if iu == 0 and iv == 0:
             break
         u, v = u + iu, v + iv

@@ -29,19 +29,25 @@ def test_splitmix_replay_matches_kernel():
     assert [K.next_u01(state) for _ in range(50)] == [gen.u01() for _ in range(50)]
 
 
-@pytest.mark.parametrize("ball, noise, seed, width, off_axis", [((0.1, -0.05, 1.6), 0.01, 99, 120, False),
-                                                                ((-0.05, 0.02, 0.9), 0.003, 5, 120, False),
-                                                                ((0.05, 0.0, 1.2), 0.004, 7, 260, False),
-                                                                ((-0.75, 0.3, 1.4), 0.004, 3, 260, True)])
-def test_compiled_search_equals_reference(ball, noise, seed, width, off_axis):
-    # a small, noisy frame; the 260-pixel one is binned 2x2 (search_width_px=130); the last ball is
-    # 30 degrees off the optical axis, searched with the stencil stretched as its silhouette is
+@pytest.mark.parametrize("ball, noise, seed, width, off_axis, occluder",
+                         [((0.1, -0.05, 1.6), 0.01, 99, 120, False, False),
+                          ((-0.05, 0.02, 0.9), 0.003, 5, 120, False, False),
+                          ((0.05, 0.0, 1.2), 0.004, 7, 260, False, False),
+                          ((-0.75, 0.3, 1.4), 0.004, 3, 260, True, False),
+                          ((0.1, -0.05, 1.6), 0.01, 99, 120, False, True),
+                          ((0.05, 0.0, 1.2), 0.004, 7, 260, True, True)])
+def test_compiled_search_equals_reference(ball, noise, seed, width, off_axis, occluder):
+    # a small, noisy frame; the 260-pixel one is binned 2x2 (search_width_px=130); the fourth ball is
+    # 30 degrees off the optical axis, searched with the stencil stretched as its silhouette is; the
+    # last two searched as the detector's retries do (the descent's occluder bound)
     cloud = scene(ball_c=ball, noise=noise, width=width, height=width * 3 // 4, seed=seed)
     cfg = config_for("improved", iterations=2000, adaptive=False, search_width_px=130, search_off_axis=off_axis)
     frame = det.prepare_frame(cloud, cfg)
     assert frame.bin == max(1, width // 130)
-    cands, quals, _ = imp.search_frame(frame, cfg, seed)
-    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, frame.prm, seed, cfg.search_candidates)
+    cands, quals, _ = imp.search_frame(frame, cfg, seed, occluder_bound=occluder)
+    prm = frame.prm.copy()
+    prm[K.P_OCCLUDER_BOUND] = 1.0 if occluder else 0.0
+    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed, cfg.search_candidates)
     assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
     assert np.array_equal(frame.hypotheses, hyp)
     # and the best hypothesis is the ball (unrefined: from box means)
