@@ -131,13 +131,16 @@ def _warmed(name: str):
 def frame_best_times(task: tuple[str, tuple[str, ...], int, int]) -> list[float]:
     """(scene folder, configuration names, seed, passes) -> each configuration's fastest CPU time (ms) on
     the frame over ``passes`` runs, the configurations taking turns run by run: on a shared machine
-    the interference then falls on all of them alike (in a worker pinned to one thread)."""
+    the interference then falls on all of them alike (in a worker pinned to one thread). The turns'
+    order reverses from one pass to the next: a run right after another configuration's finds the
+    caches holding that one's data, and reads 5-10 % slower than one after its own."""
     scene, names, seed, passes = task
     cloud = inout.load_cloud(scene)
     configs = [_warmed(n) for n in names]
     best = [math.inf] * len(configs)
-    for _ in range(passes):
-        for j, config in enumerate(configs):
+    for p in range(passes):
+        order = list(enumerate(configs))
+        for j, config in (order if p % 2 == 0 else order[::-1]):
             t0 = time.thread_time()
             detect(cloud, config, seed=seed)
             best[j] = min(best[j], 1e3 * (time.thread_time() - t0))

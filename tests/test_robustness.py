@@ -115,3 +115,18 @@ def test_reports_never_overwrite_a_file_they_did_not_write(tiny_robust, tmp_path
     capsys.readouterr()
     assert script.main([*args, "--limit", "-3"]) == 2
     assert "give 1 or more" in capsys.readouterr().err
+
+
+def test_timing_turns_alternate_their_order(tiny_robust, monkeypatch):
+    """``bench.frame_best_times``: the configurations take turns in an order that reverses every pass
+    (a run right after the other configuration's reads slower), and each keeps its fastest run."""
+    from spherebench.eval import bench
+
+    _, default = tiny_robust
+    seen = []
+    monkeypatch.setattr(bench, "_warmed", lambda name: name)
+    monkeypatch.setattr(bench, "detect", lambda cloud, config, seed: seen.append(config))
+    scene = inout.list_scenes(default)[0]
+    best = bench.frame_best_times((str(scene), ("improved", "paper-lstsq"), 0, 3))
+    assert seen == ["improved", "paper-lstsq", "paper-lstsq", "improved", "improved", "paper-lstsq"]
+    assert len(best) == 2 and all(0.0 <= t < 1e3 for t in best)
