@@ -142,15 +142,22 @@ def machine_info() -> dict:
             "blas": blas_info()}
 
 
-def git_state(repo: Path) -> dict:
-    """{commit, dirty} of the repository (None when git is unavailable)."""
+def git_state(repo: Path, outputs: tuple = ()) -> dict:
+    """{commit, dirty} of the repository (None when git is unavailable); dirty: tracked files changed,
+    leaving out ``outputs`` (the run's own output folders, which a run rewrites as it goes)."""
     def run(*args):
         try:
             return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=20).stdout.strip()
         except (OSError, subprocess.SubprocessError):
             return None
     commit = run("rev-parse", "HEAD")
-    status = run("status", "--porcelain", "--untracked-files=no")
+    excluded = []
+    for out in outputs:
+        try:
+            excluded.append(f":(exclude){Path(out).resolve().relative_to(Path(repo).resolve()).as_posix()}")
+        except ValueError:  # outside the repository: git does not see it anyway
+            pass
+    status = run("status", "--porcelain", "--untracked-files=no", "--", ".", *excluded)
     return {"commit": commit or None, "dirty": None if status is None else bool(status)}
 
 
@@ -163,8 +170,9 @@ def now_utc() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def provenance(repo: Path, seeds: dict, configs: dict, extra: dict | None = None) -> dict:
-    """provenance.json's content: versions, git state, machine, seeds, configurations, date."""
-    return json_safe({"spherebench": __version__, "git": git_state(repo), "python": platform.python_version(),
+def provenance(repo: Path, seeds: dict, configs: dict, extra: dict | None = None, outputs: tuple = ()) -> dict:
+    """provenance.json's content: versions, git state (``outputs``: the run's output folders, left out
+    of its dirty check), machine, seeds, configurations, date."""
+    return json_safe({"spherebench": __version__, "git": git_state(repo, outputs), "python": platform.python_version(),
                       "packages": package_versions(), "machine": machine_info(), "seeds": seeds,
                       "configurations": configs, "date": now_utc(), **(extra or {})})

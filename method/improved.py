@@ -669,6 +669,10 @@ def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfi
     stats["sigma_m"] = frame.prm[K.P_NOISE_A] * float(out[K.V_CZ]) ** 2
     stats["sigma_measured_m"] = float(out[K.V_SIGMA])
     stats["eps_m"] = float(out[K.V_EPS])
+    # the share of the silhouette's pixels with depth that no nearer surface hides (an occluder: more
+    # than R / 2 in front of the sphere; ``_kernels.window_stats``' FRONT less FRONT_NEAR)
+    vd = stats["valid_disc"]
+    stats["visible_fraction"] = 1.0 - max(0.0, stats["front"] - stats["front_near"]) / vd if vd > 0 else 0.0
     score, size_ok = confidence(stats, n, out[K.V_FR], out[K.V_FSE], config, True)
     # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
     return Candidate(center_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),

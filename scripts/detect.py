@@ -219,7 +219,8 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _spheres_json(spheres) -> list[dict]:
-    return [inout.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices))
+    return [inout.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices),
+                                   s.evidence.get("visible_fraction"))
             for s in spheres]
 
 

@@ -316,3 +316,24 @@ def test_engine_options_are_checked_before_any_work(small_default, tmp_path, cap
     assert cli.main([*base, "--address", "ray://head:10001"]) == 2
     err = capsys.readouterr().err
     assert "--address is the Ray cluster's: give it with --engine ray" in err
+
+
+def test_provenance_dirty_means_changed_code_not_the_runs_own_outputs(tmp_path):
+    """git_state: a tracked file changed in the run's output folder leaves the tree clean; one
+    elsewhere makes it dirty."""
+    import subprocess
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "table.md").write_text("old\n")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "init")
+    (tmp_path / "results" / "table.md").write_text("new\n")
+    assert provenance.git_state(tmp_path, outputs=(tmp_path / "results",))["dirty"] is False
+    assert provenance.git_state(tmp_path)["dirty"] is True
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert provenance.git_state(tmp_path, outputs=(tmp_path / "results",))["dirty"] is True

@@ -22,7 +22,7 @@ def test_detect_command_json_ply_png(paper_dataset, tmp_path, capsys):
         if gt["center_m"][2] > 2.0:
             continue  # E3's ball at 2.4 m: a known miss of the current search with seed 0 (see make bench)
         s = rec["detections"][0]
-        assert set(s) == {"center_m", "radius_m", "score", "inliers", "circle_px", "bbox"}
+        assert set(s) == {"center_m", "radius_m", "score", "inliers", "circle_px", "bbox", "visible_fraction"}
         assert np.linalg.norm(np.array(s["center_m"]) - gt["center_m"]) < 0.02
         assert np.linalg.norm(np.array(s["circle_px"]["center"]) - gt["circle"][:2]) < 3.0
     ply, png = tmp_path / "out.ply", tmp_path / "out.png"

@@ -368,6 +368,18 @@ def test_descent_leaves_out_an_occluder_only_when_bounded():
     assert pulled < -4.0  # toward the occluder, far past the front point
 
 
+def test_visible_fraction_measures_the_occluded_share():
+    """evidence["visible_fraction"]: about 1 for a free ball; for one 30-50 % hidden across its width
+    by a nearer box (25-50 % of its disc's area), between 0.45 and 0.8."""
+    free = detect(scene(ball_c=(0.1, -0.05, 1.2), width=424, height=240), seed=0)
+    assert len(free) == 1 and free[0].evidence["visible_fraction"] > 0.97
+    seen = []
+    for c, cloud in _occluded_frames(10, (0.3, 0.5), 2.0):
+        got = [s for s in detect(cloud, seed=0) if np.linalg.norm(s.center_m - c) < 0.02]
+        seen += [s.evidence["visible_fraction"] for s in got]
+    assert len(seen) >= 7 and all(0.45 < v < 0.8 for v in seen)
+
+
 def test_retries_find_more_of_the_hidden_balls():
     """While none is accepted the detector searches again (the descent past occluders, then the stencil
     off the axis): it finds more of these half-hidden balls (7 of 16 against 4 when written), and
