@@ -190,7 +190,7 @@ class DetectorConfig:
         retry_off_axis: ... then, while still none is accepted, search again with the stencil stretched
             off the axis (``search_off_axis``'s), likewise.
         retry_new_fraction: a retry's hypothesis within this fraction of R of a start already verified
-            is not verified again.
+            is not verified again; of the others, the best ``verify_candidates`` are, each from one start.
         ring_offset_fraction, ring_half_fraction: offset and half-side of the 8 outline-ring boxes.
         prefilter_offset_fraction: the plane prefilter's boxes lie this far from the first cell.
         descent_steps: steps from the first cell toward the range's local minimum (the front point).

@@ -394,6 +394,28 @@ def test_retries_find_more_of_the_hidden_balls():
     assert len(found[True]) >= len(found[False]) + 2
 
 
+def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
+    """Each retry verifies at most verify_candidates (6) of its hypotheses not verified before, each from
+    one start, even far ones whose noise would call for the multistart in the first search."""
+    from spherebench.method import improved as I
+
+    cloud = scene(ball_c=None, width=424, height=240)
+    searches = iter([np.empty((0, 3))] + [np.array([[x, y, 4.5] for x in (-1.0, -0.5, 0.0, 0.5, 1.0)
+                                                     for y in (-0.3 + 0.1 * k, 0.3 + 0.1 * k)]) for k in range(2)])
+
+    def fake_search(frame, config, seed, **retry):
+        starts = next(searches)
+        return starts, np.arange(len(starts), 0, -1.0), np.zeros(len(starts), bool)
+
+    calls = []
+    verify = I.verify_organised
+    monkeypatch.setattr(I, "search_frame", fake_search)
+    monkeypatch.setattr(I, "verify_organised", lambda *a, **kw: calls.append(a[1]) or verify(*a, **kw))
+    config = config_for("improved")
+    assert config.verify_candidates == 6 and 0.0075 * 4.5 ** 2 > config.multistart_noise_fraction * R
+    assert detect(cloud, config, seed=0) == [] and len(calls) == 12
+
+
 def test_retries_only_while_none_is_accepted(monkeypatch):
     """A frame whose first search gives a ball is searched once; an empty wall three times (the first
     search and both retries), and without the retries once."""
