@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from spherebench.camera import Intrinsics, pixel_rays
-from spherebench.circles import sphere_circle_amodal
+from spherebench.circles import norm3, sphere_circle_amodal
 from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere
 
 #: Radii (m) of the balls the hard preset puts beside the basketball: soccer ball (size 5),
@@ -148,7 +148,7 @@ def tripod(rng: np.random.Generator, layout: Layout, ball_center_m: np.ndarray, 
         a = phase + 2 * math.pi * k / 3
         foot = np.array([top[0] + spread * math.cos(a), floor, top[2] + spread * math.sin(a)])
         axis = top - foot
-        length = float(np.linalg.norm(axis))
+        length = norm3(axis)
         if length > 0.05:
             layout.add(Cylinder(foot, axis / length, 0.012, length), "support")
 
@@ -163,7 +163,7 @@ def ball_in_view(rng: np.random.Generator, intr: Intrinsics, radius_m: float, di
         d = rng.uniform(*dist_m)
         u, v = rng.uniform(0, intr.width), rng.uniform(0, intr.height)
         ray = pixel_rays(intr, np.array([u]), np.array([v]))[0]
-        centre = ray / np.linalg.norm(ray) * (d + radius_m)
+        centre = ray / norm3(ray) * (d + radius_m)
         if not inside:
             return centre
         circ = sphere_circle_amodal(intr, centre, radius_m)
@@ -196,4 +196,4 @@ def ball_partly_out(rng: np.random.Generator, intr: Intrinsics, radius_m: float,
     else:
         u, v = rng.uniform(r_px, intr.width - r_px), intr.height - 0.5 - offset
     ray = pixel_rays(intr, np.array([u]), np.array([v]))[0]
-    return ray / np.linalg.norm(ray) * (d + radius_m)
+    return ray / norm3(ray) * (d + radius_m)

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from spherebench.camera import Intrinsics, project
+from spherebench.circles import norm3
 
 _MISS = np.inf
 #: ``planar_face`` of a point on a curved surface; planar faces are 0 .. FACES_PER_OBJECT - 2.
@@ -119,7 +120,7 @@ class Cylinder:
 
     def intersect(self, rays: np.ndarray) -> np.ndarray:
         a = np.asarray(self.axis, np.float64)
-        a = a / np.linalg.norm(a)
+        a = a / norm3(a)
         w = -np.asarray(self.base_m, np.float64)  # origin relative to the base
         ra = rays @ a
         r_perp = rays - ra[:, None] * a
@@ -144,17 +145,17 @@ class Cylinder:
         return _nearest(*sides, *caps)
 
     def corners(self) -> np.ndarray:
-        a = np.asarray(self.axis, np.float64) / np.linalg.norm(self.axis)
+        a = np.asarray(self.axis, np.float64) / norm3(self.axis)
         b = np.asarray(self.base_m, np.float64)
         centre = b + 0.5 * self.height_m * a
         half = np.array([self.radius_m, self.radius_m, 0.5 * self.height_m])
         u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        u /= np.linalg.norm(u)
+        u /= norm3(u)
         return _box_corners(centre, np.stack([u, np.cross(a, u), a], axis=1), half)
 
     def planar_face(self, points_m: np.ndarray) -> np.ndarray:
         """0 on the base cap, 1 on the top cap, CURVED on the side (a point of the rim: a cap)."""
-        a = np.asarray(self.axis, np.float64) / np.linalg.norm(self.axis)
+        a = np.asarray(self.axis, np.float64) / norm3(self.axis)
         s = (np.asarray(points_m, np.float64) - np.asarray(self.base_m, np.float64)) @ a
         tol = 1e-7 * max(1.0, self.height_m)  # a cap hit's axial coordinate is the cap's up to rounding
         return np.where(np.abs(s) <= tol, 0, np.where(np.abs(s - self.height_m) <= tol, 1, CURVED)).astype(np.int32)

@@ -23,6 +23,14 @@ import numpy as np
 
 from spherebench.camera import Intrinsics, pixel_rays, project
 
+
+def norm3(v) -> float:
+    """|v| of a 3-vector in plain float arithmetic: numpy's norm of a vector is a BLAS dot product,
+    whose rounding depends on the CPU's kernel (ground truth written on two machines would differ in
+    its last bits)."""
+    x, y, z = float(v[0]), float(v[1]), float(v[2])
+    return math.sqrt(x * x + y * y + z * z)
+
 def circle_bbox(cx: float, cy: float, r: float, decimals: int | None = None) -> list[float]:
     """The box [x, y, w, h] px round a circle (COCO's bbox), so that a circle result loads in any
     COCO tool (pycocotools' loadRes needs a bbox or a segmentation); rounded to ``decimals`` if given."""
@@ -62,7 +70,7 @@ def sphere_silhouette_mask(intr: Intrinsics, center_m, radius_m: float) -> np.nd
     """
     c = np.asarray(center_m, dtype=np.float64).reshape(3)
     mask = np.zeros(intr.shape, dtype=bool)
-    dist = float(np.linalg.norm(c))
+    dist = norm3(c)
     if dist <= radius_m:  # camera inside the ball: every forward ray meets it
         mask[:] = True
         return mask
@@ -72,7 +80,7 @@ def sphere_silhouette_mask(intr: Intrinsics, center_m, radius_m: float) -> np.nd
     u0, v0, u1, v1 = box
     v, u = np.mgrid[v0:v1 + 1, u0:u1 + 1]
     rays = pixel_rays(intr, u.astype(np.float64), v.astype(np.float64))
-    cos_ray = (rays @ c) / (np.linalg.norm(rays, axis=-1) * dist)
+    cos_ray = (rays[..., 0] * c[0] + rays[..., 1] * c[1] + rays[..., 2] * c[2]) / (np.linalg.norm(rays, axis=-1) * dist)
     mask[v0:v1 + 1, u0:u1 + 1] = cos_ray >= math.sqrt(1.0 - (radius_m / dist) ** 2)
     return mask
 
@@ -82,7 +90,7 @@ def _silhouette_box(intr: Intrinsics, c: np.ndarray, radius_m: float):
     if c[2] <= radius_m:  # the silhouette reaches the image border or beyond: scan the whole image
         return 0, 0, intr.width - 1, intr.height - 1
     # extreme points of the sphere seen from the camera, sampled round the limb, projected
-    dist = np.linalg.norm(c)
+    dist = norm3(c)
     axis = c / dist
     a = np.cross(axis, [0.0, 1.0, 0.0] if abs(axis[1]) < 0.9 else [1.0, 0.0, 0.0])
     a /= np.linalg.norm(a)
@@ -136,7 +144,7 @@ def sphere_circle_amodal(intr: Intrinsics, center_m, radius_m: float) -> tuple[f
     an enlarged canvas instead. None when the ball is not wholly in front of the camera.
     """
     c = np.asarray(center_m, dtype=np.float64).reshape(3)
-    dist = float(np.linalg.norm(c))
+    dist = norm3(c)
     if dist <= radius_m:
         return None
     alpha = math.asin(radius_m / dist)

@@ -5,13 +5,15 @@ from __future__ import annotations
 import filecmp
 import json
 import math
+import os
+import platform
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from spherebench.camera import Intrinsics, image_rays
-from spherebench.circles import mask_circle, sphere_circle_amodal, sphere_silhouette_mask
+from spherebench.circles import mask_circle, norm3, sphere_circle_amodal, sphere_silhouette_mask
 from spherebench.datasets import inout, simulate
 from spherebench.datasets.layouts import Layout
 from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, raycast
@@ -179,3 +181,31 @@ def test_sensor_range_limits_invalidate_out_of_range_depth():
     near = apply_sensor(np.full(intr.shape, 0.05), intr, QUIET, np.random.default_rng(0))
     far = apply_sensor(np.full(intr.shape, 12.0), intr, replace(QUIET, subpixel=0.0), np.random.default_rng(0))
     assert (near == 0).all() and (far == 0).all()
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="OpenBLAS core types are x86's")
+def test_generated_scenes_do_not_depend_on_the_blas_kernel(tmp_path):
+    """The same seed gives the same bytes whichever kernel OpenBLAS picks for the CPU (machines differ
+    in it): the simulator's geometry uses no BLAS product (``circles.norm3``). Two kernels every
+    x86-64 CPU of this century runs, forced in fresh processes."""
+    import subprocess
+    import sys
+
+    outs = []
+    for core in ("Haswell", "Prescott"):
+        out = tmp_path / core
+        code = ("from spherebench.datasets import simulate\n"
+                f"simulate.generate_dataset('train', {str(out)!r}, n=30, progress=False)\n")
+        subprocess.run([sys.executable, "-c", code], check=True, env={**os.environ, "OPENBLAS_CORETYPE": core})
+        outs.append(out / "scenes")
+    names = sorted(p.name for p in outs[0].iterdir())
+    assert names == sorted(p.name for p in outs[1].iterdir()) and len(names) == 30
+    for name in names:
+        for f in sorted((outs[0] / name).iterdir()):
+            assert filecmp.cmp(f, outs[1] / name / f.name, shallow=False), f"{name}/{f.name}"
+
+
+def test_norm3_is_the_vector_norm():
+    rng = np.random.default_rng(3)
+    for v in rng.normal(size=(100, 3)) * 10.0 ** rng.integers(-3, 3, size=(100, 1)):
+        assert norm3(v) == pytest.approx(float(np.linalg.norm(v)), rel=1e-15)
