@@ -855,12 +855,13 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         buf = None
     found: list[Candidate] = []
     verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found)
-    retries = ([{"occluder_bound": True}] if config.retry_occluder else []) + (
-        [{"off_axis": True}] if config.retry_off_axis and not config.search_off_axis else [])
-    for retry in retries if frame is not None else ():
-        # none accepted yet: search again, the descent past occluders, then the stencil stretched off
-        # the axis, and verify the hypotheses not verified before (a frame with a ball found pays nothing)
-        if found:
+    # organised frames where none is accepted: search again, the descent past occluders, then the
+    # stencil stretched off the axis, and verify the hypotheses not verified before
+    retries = [] if frame is None else (
+        ([{"occluder_bound": True}] if config.retry_occluder else [])
+        + ([{"off_axis": True}] if config.retry_off_axis and not config.search_off_axis else []))
+    for retry in retries:
+        if found:  # a frame with a ball found pays nothing for the retries
             break
         cands, quals, occluded = search_frame(frame, config, seed, **retry)
         new = [k for k, c in enumerate(cands)

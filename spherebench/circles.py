@@ -31,6 +31,7 @@ def norm3(v) -> float:
     x, y, z = float(v[0]), float(v[1]), float(v[2])
     return math.sqrt(x * x + y * y + z * z)
 
+
 def circle_bbox(cx: float, cy: float, r: float, decimals: int | None = None) -> list[float]:
     """The box [x, y, w, h] px round a circle (COCO's bbox), so that a circle result loads in any
     COCO tool (pycocotools' loadRes needs a bbox or a segmentation); rounded to ``decimals`` if given."""
@@ -80,7 +81,8 @@ def sphere_silhouette_mask(intr: Intrinsics, center_m, radius_m: float) -> np.nd
     u0, v0, u1, v1 = box
     v, u = np.mgrid[v0:v1 + 1, u0:u1 + 1]
     rays = pixel_rays(intr, u.astype(np.float64), v.astype(np.float64))
-    cos_ray = (rays[..., 0] * c[0] + rays[..., 1] * c[1] + rays[..., 2] * c[2]) / (np.linalg.norm(rays, axis=-1) * dist)
+    along = rays[..., 0] * c[0] + rays[..., 1] * c[1] + rays[..., 2] * c[2]  # no BLAS product (``norm3``)
+    cos_ray = along / (np.linalg.norm(rays, axis=-1) * dist)
     mask[v0:v1 + 1, u0:u1 + 1] = cos_ray >= math.sqrt(1.0 - (radius_m / dist) ** 2)
     return mask
 
