@@ -117,13 +117,13 @@ def _second_difference_ratio(length_px: float, lag_px: int) -> float:
 
 def correlation_from_ratio(ratio: float, lag_px: int, max_px: float) -> float:
     """The correlation length (pixels) whose ``_second_difference_ratio`` is ``ratio``, by bisection
-    (the ratio falls from 1 with the length); 0 for a ratio near 1, ``max_px`` at most."""
+    (the ratio falls from 1 with the length) to 1e-4 px; 0 for a ratio near 1, ``max_px`` at most."""
     if not ratio < 0.97:  # white noise reads 1 within the estimates' scatter
         return 0.0
     lo, hi = 0.0, float(max_px)
     if _second_difference_ratio(hi, lag_px) >= ratio:
         return hi
-    for _ in range(40):
+    while hi - lo > 1e-4:  # far below the ratio's scatter; each step is a Python call
         mid = 0.5 * (lo + hi)
         if _second_difference_ratio(mid, lag_px) > ratio:
             lo = mid
