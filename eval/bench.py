@@ -106,7 +106,8 @@ def _summary(rows: list[dict]) -> dict:
     fam = {}
     for f in sorted({r["family"] for r in rows}):
         c = detection_counts([r for r in rows if r["family"] == f])
-        fam[f] = {"balls": c["balls"], "found": c["found"], "false": c["false_detections"]}
+        fam[f] = {"balls": c["balls"], "found": c["found"], "found_far_rule": c["found_far_rule"],
+                  "false": c["false_detections"]}
     out["families"] = fam
     dist = [d for r in rows for d in r["distractors"]]
     bins = {}
@@ -126,6 +127,12 @@ def _warmed(name: str):
     config = config_for(name)
     warm_up(config)
     return config
+
+
+def _far_rule(counts: dict) -> str:
+    """The far rule's count in brackets, where it differs from the 2 cm one (``metrics3d.FOUND_FAR_M``)."""
+    far = counts.get("found_far_rule", counts["found"])
+    return f" ({far} within 3 cm beyond 3 m)" if far != counts["found"] else ""
 
 
 def frame_best_times(task: tuple[str, tuple[str, ...], int, int]) -> list[float]:
@@ -251,7 +258,8 @@ def markdown(result: dict) -> str:
         s = d["summary"]["improved"]
         if len(s["families"]) > 1:
             lines.append(f"improved on {ds}, per family: " + "; ".join(
-                f"{f} {v['found']}/{v['balls']} found, {v['false']} false" for f, v in s["families"].items()))
+                f"{f} {v['found']}/{v['balls']} found" + _far_rule(v) + f", {v['false']} false"
+                for f, v in s["families"].items()))
         for kind, bins in s["distractors"]["by_size_range"].items():
             lines.append(f"improved on {ds}, distractors {kind} rejected by depth: " + "; ".join(
                 f"{rng} {v['rejected']}/{v['n']}" for rng, v in sorted(bins.items())))

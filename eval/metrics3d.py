@@ -26,6 +26,9 @@ Summary (``summarize_3d``), over all scenes:
 "false", one farther than ``MATCH_GATE_M`` from every ball in "clutter" (what the matched rule
 calls a false detection; `robustness` reports this one). The two can differ on a ball with
 several detections about it (matched: the best-scored one within the gate; nearest: the nearest).
+Beside it, **the far rule** (issue 20's): within ``FOUND_M``, or within ``FOUND_FAR_M`` (3 cm) for
+a ball whose centre lies deeper than ``FAR_RULE_FROM_M`` (3 m), where one pixel's depth noise is
+10 cm or more (``detection_counts``' found_far_rule).
 """
 
 from __future__ import annotations
@@ -205,6 +208,9 @@ def error_vs_distance(matches: Sequence[SceneMatch]) -> tuple[np.ndarray, np.nda
 
 #: The nearest-within rule: a basketball is found when a detection's centre is within this of its centre.
 FOUND_M = 0.02
+#: The far rule: a ball whose centre's depth (camera z) exceeds FAR_RULE_FROM_M is found within FOUND_FAR_M.
+FOUND_FAR_M = 0.03
+FAR_RULE_FROM_M = 3.0
 #: A detection this close to a distractor ball's centre accepts it (reports it as a basketball).
 DISTRACTOR_HIT_M = 0.05
 
@@ -235,11 +241,14 @@ def scene_counts(det_centres_m, gt: dict) -> dict:
 
 def detection_counts(rows: Sequence[dict]) -> dict:
     """Totals over ``scene_counts`` rows that also carry their scene's "family": balls, found (within
-    FOUND_M), false_detections, clutter_detections (``scene_counts``' clutter), detections_on_negatives and negative_scenes (family "negative"),
+    FOUND_M), found_far_rule (within FOUND_M, or FOUND_FAR_M beyond FAR_RULE_FROM_M deep), false_detections, clutter_detections (``scene_counts``' clutter), detections_on_negatives and negative_scenes (family "negative"),
     distractors and distractors_rejected."""
     errs = [e for r in rows for e in r["errs"]]
+    depths = [z for r in rows for z in r["z"]]
     dist = [d for r in rows for d in r["distractors"]]
     return {"balls": len(errs), "found": int(sum(e <= FOUND_M for e in errs)),
+            "found_far_rule": int(sum(e <= (FOUND_FAR_M if z > FAR_RULE_FROM_M else FOUND_M)
+                                      for e, z in zip(errs, depths))),
             "false_detections": int(sum(r["false"] for r in rows)),
             "clutter_detections": int(sum(r.get("clutter", r["false"]) for r in rows)),
             "detections_on_negatives": int(sum(r["false"] for r in rows if r["family"] == "negative")),

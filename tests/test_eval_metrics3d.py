@@ -91,5 +91,16 @@ def test_scene_counts_and_their_totals():
     assert off["false"] == 1 and off["clutter"] == 0 and off["errs"][0] == pytest.approx(0.04)
     neg = {**scene_counts([[1.0, 1.0, 1.0]], {"balls": []}), "family": "negative"}
     tot = detection_counts([{**row, "family": "clean"}, neg, {**off, "family": "clean"}])
-    assert tot == {"balls": 4, "found": 1, "false_detections": 3, "clutter_detections": 2, "detections_on_negatives": 1,
-                   "negative_scenes": 1, "distractors": 2, "distractors_rejected": 1}
+    assert tot == {"balls": 4, "found": 1, "found_far_rule": 1, "false_detections": 3, "clutter_detections": 2,
+                   "detections_on_negatives": 1, "negative_scenes": 1, "distractors": 2, "distractors_rejected": 1}
+
+
+def test_the_far_rule_takes_3_cm_only_beyond_3_m():
+    from spherebench.eval.metrics3d import detection_counts, scene_counts
+    gt = {"balls": [{"center_m": [0.0, 0.0, 2.9]}, {"center_m": [0.5, 0.0, 3.2]}, {"center_m": [-0.5, 0.0, 4.5]}]}
+    # 2.5 cm off each ball; 3.5 cm off the farthest too
+    near = scene_counts([[0.025, 0.0, 2.9], [0.5, 0.025, 3.2], [-0.5, 0.0, 4.535]], gt)
+    c = detection_counts([{**near, "family": "far"}])
+    assert c["found"] == 0 and c["found_far_rule"] == 1  # the 3.2 m ball only: 2.9 m is not beyond 3 m
+    exact = scene_counts([[0.0, 0.0, 2.9], [0.5, 0.0, 3.2], [-0.5, 0.0, 4.5]], gt)
+    assert detection_counts([{**exact, "family": "far"}])["found_far_rule"] == 3
