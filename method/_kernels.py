@@ -743,6 +743,62 @@ def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, occluded, radius):
 
 
 @kernel
+def disc_hypotheses(tab, prm, z_min_m, inner_fraction, side_offset_fraction, side_half_fraction, gap_min_m,
+                    gap_sigmas, min_behind, step, cands):
+    """Hypotheses of balls whose cap's relief is below the noise: discs that stand out of what is
+    behind them. Every ``step``-th cell in both directions whose 3 x 3 box lies beyond z_min_m is a
+    first cell; r is the disc radius (cells) of a ball at the range m_in of the box of half-side
+    inner_fraction r about it (the middle of a ball's disc), and four side boxes (half-side
+    side_half_fraction r) at side_offset_fraction r along the image axes lie off that disc. A side is
+    *behind* when its mean range exceeds m_in by gap_min_m and by gap_sigmas standard errors of the
+    two means; at least min_behind of the four (the fourth may be the floor the ball stands on, or an
+    occluder). The score is the behind sides' gaps in standard errors (each at most 10), less a
+    thousandth of m_in. Kept as
+    ``search_organised`` keeps its (cands (K, 6): v, u, front m, r cells, score, 0), best first, the
+    front range m_in less the cap's relief over the inner box. Returns the number kept.
+    """
+    R = prm[P_R]
+    fc = prm[P_FX] / prm[P_BIN]
+    na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    n_kept = 0
+    for v in range(0, hc, step):
+        for u in range(0, wc, step):
+            m0, _ = box_range(tab, prm, v, u, 1)
+            if math.isnan(m0) or m0 < z_min_m:
+                continue
+            r = fc * R / m0
+            hi = max(1, int(inner_fraction * r))
+            mi, ni = box_range(tab, prm, v, u, hi)
+            if math.isnan(mi) or mi < z_min_m:
+                continue
+            r = fc * R / mi
+            d = int(side_offset_fraction * r + 0.5)
+            hs = max(1, int(side_half_fraction * r))
+            var_i = (na * mi * mi) ** 2 / ni
+            behind = 0
+            q = 0.0
+            for k in range(4):
+                dv = -d if k == 0 else (d if k == 1 else 0)
+                du = -d if k == 2 else (d if k == 3 else 0)
+                ms, ns = box_range(tab, prm, v + dv, u + du, hs)
+                if math.isnan(ms):
+                    continue
+                se = math.sqrt(var_i + (na * ms * ms) ** 2 / ns)
+                gap = ms - mi
+                if gap >= gap_min_m and gap >= gap_sigmas * se:
+                    behind += 1
+                    q += min(gap / se, 10.0)
+            if behind < min_behind:
+                continue
+            # the inner box's mean squared offset is 2/3 (hi / r)^2 of r^2: the cap's relief there
+            front = mi - R * cap_relief(2.0 * (hi / r) ** 2 / 3.0)
+            # ties (sides far behind all reach the cap) go to the nearest inner mean, the cap's middle
+            n_kept = _keep_hypothesis(cands, n_kept, float(v), float(u), front, r, q - 1e-3 * mi, 0.0, R)
+    return n_kept
+
+
+@kernel
 def cell_centres(prm, hyp):
     """The sphere centres (M, 3) of hypotheses hyp (M, >= 3) rows (v, u, front m, ...): on the ray
     through cell (v, u)'s centre pixel, at front range + R (the front point of a sphere lies on the

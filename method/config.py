@@ -191,6 +191,19 @@ class DetectorConfig:
             off the axis (``search_off_axis``'s), likewise.
         retry_new_fraction: a retry's hypothesis within this fraction of R of a start already verified
             is not verified again; of the others, the best ``verify_candidates`` are, each from one start.
+        retry_disc: ... then, while still none is accepted, look for discs that stand out of what is
+            behind them (``_kernels.disc_hypotheses``: a far ball whose cap's relief is below the noise
+            is lost by the descent and its pretest), likewise.
+        disc_noise_fraction: the disc search starts where one pixel's depth noise reaches this
+            fraction of R (2 m at 424x240 for the D435 model; on `train` 0.25 found more balls than
+            0.35 and 0.5, with no more clutter).
+        disc_inner_fraction, disc_side_offset_fraction, disc_side_half_fraction: its inner box's
+            half-side, and its four side boxes' offset and half-side (fractions of the disc radius r).
+        disc_gap_fraction, disc_gap_sigmas, disc_min_behind: a side box is behind the disc when its
+            mean range exceeds the inner box's by this fraction of R and this many standard errors;
+            at least this many of the four.
+        disc_step_fraction: the disc search visits every k-th cell, k this fraction of the disc
+            radius of a ball at ``max_range_m``.
         ring_offset_fraction, ring_half_fraction: offset and half-side of the 8 outline-ring boxes.
         prefilter_offset_fraction: the plane prefilter's boxes lie this far from the first cell.
         descent_steps: steps from the first cell toward the range's local minimum (the front point).
@@ -311,6 +324,15 @@ class DetectorConfig:
     retry_occluder: bool = True
     retry_off_axis: bool = True
     retry_new_fraction: float = 0.25
+    retry_disc: bool = True
+    disc_noise_fraction: float = 0.25
+    disc_inner_fraction: float = 0.5
+    disc_side_offset_fraction: float = 1.7
+    disc_side_half_fraction: float = 0.35
+    disc_gap_fraction: float = 1.0
+    disc_gap_sigmas: float = 3.0
+    disc_min_behind: int = 3
+    disc_step_fraction: float = 0.5
     ring_offset_fraction: float = 1.5
     ring_half_fraction: float = 0.25
     prefilter_offset_fraction: float = 2.0
@@ -393,7 +415,8 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "refine_iterations", "min_inliers", "max_spheres", "max_points", "search_width_px",
                  "verify_candidates", "verify_candidates_if_none", "fit_max_points", "search_candidates",
                  "noise_estimate_lag_px", "noise_estimate_samples", "noise_estimate_min_samples", "descent_steps",
-                 "pretest_max_continued", "first_steps", "outline_min_side", "outline_iterations"):
+                 "pretest_max_continued", "first_steps", "outline_min_side", "outline_iterations",
+                 "disc_min_behind"):
         v = getattr(c, name)
         if isinstance(v, bool) or not isinstance(v, int):
             out.append(f"{name}={v!r} must be an integer")
@@ -414,6 +437,8 @@ def _problems(c: DetectorConfig) -> list[str]:
                        "noise_estimate_samples <= 1,000,000")
         if not (0 <= c.descent_steps <= 20 and 0 <= c.pretest_max_continued <= 8 and 1 <= c.first_steps <= 20):
             out.append("descent_steps must be 0-20, pretest_max_continued 0-8 (of the 8 ring boxes), first_steps 1-20")
+        if not 1 <= c.disc_min_behind <= 4:
+            out.append(f"disc_min_behind={c.disc_min_behind} must be 1-4 (of the disc search's four side boxes)")
     if finite("max_eps_fraction") and not 0.0 < c.max_eps_fraction <= 2.0:
         out.append(f"max_eps_fraction={c.max_eps_fraction} must be within (0, 2] (the band's cap over R)")
     for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction",
@@ -438,12 +463,14 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "ring_continued_power", "ring_front_power", "see_through_power", "edge_behind_power",
                  "ring_spread_power", "interior_density_power", "relief_floor_fraction", "relief_free_sigmas",
                  "rescore_offset_xy", "rescore_offset_z", "interior_bands", "see_through_sigmas",
-                 "edge_behind_sigmas"):
+                 "edge_behind_sigmas", "disc_noise_fraction", "disc_gap_fraction",
+                 "disc_gap_sigmas"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
     for name in ("box_half_fraction", "box_offset_fraction", "ring_offset_fraction", "ring_half_fraction",
                  "prefilter_offset_fraction", "first_band_fraction", "coarse_band_fraction", "size_limit_fraction",
-                 "noise_estimate_keep", "radius_se_s_min_fraction"):
+                 "noise_estimate_keep", "radius_se_s_min_fraction", "disc_inner_fraction", "disc_side_offset_fraction",
+                 "disc_side_half_fraction", "disc_step_fraction"):
         if finite(name) and not 0.0 < getattr(c, name) <= 4.0:
             out.append(f"{name}={getattr(c, name)} must be within (0, 4] (a fraction of the radius)")
     if finite("noise_estimate_keep") and c.noise_estimate_keep > 1.0:

@@ -441,6 +441,21 @@ def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int,
     return centres, hyp[:m, 4].copy(), hyp[:m, 5] > 0.0
 
 
+def disc_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run ``_kernels.disc_hypotheses`` on the frame beyond the depth where one pixel's noise reaches
+    ``disc_noise_fraction`` R; returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
+    R = config.radius_m
+    z_min = math.sqrt(config.disc_noise_fraction * R / frame.noise_a) if frame.noise_a > 0 else math.inf
+    fc = frame.prm[K.P_FX] / frame.bin
+    step = max(1, int(config.disc_step_fraction * fc * R / config.max_range_m))
+    hyp = np.zeros((config.search_candidates, 6), np.float64)
+    m = K.disc_hypotheses(frame.tab, frame.prm, z_min, config.disc_inner_fraction, config.disc_side_offset_fraction,
+                          config.disc_side_half_fraction, config.disc_gap_fraction * R, config.disc_gap_sigmas,
+                          config.disc_min_behind, step, hyp)
+    frame.hypotheses = hyp[:m]
+    return K.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)
+
+
 def search_unorganised(points: np.ndarray, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Run the compiled unorganised search. Returns (candidate centres (M, 3), qualities (M,))."""
     k = max(2 * config.max_spheres, 4)
@@ -856,14 +871,17 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     found: list[Candidate] = []
     verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found)
     # organised frames where none is accepted: search again, the descent past occluders, then the
-    # stencil stretched off the axis, and verify the hypotheses not verified before
+    # stencil stretched off the axis, then for discs standing out of their background, and verify the
+    # hypotheses not verified before
     retries = [] if frame is None else (
-        ([{"occluder_bound": True}] if config.retry_occluder else [])
-        + ([{"off_axis": True}] if config.retry_off_axis and not config.search_off_axis else []))
+        ([lambda: search_frame(frame, config, seed, occluder_bound=True)] if config.retry_occluder else [])
+        + ([lambda: search_frame(frame, config, seed, off_axis=True)]
+           if config.retry_off_axis and not config.search_off_axis else [])
+        + ([lambda: disc_search(frame, config)] if config.retry_disc else []))
     for retry in retries:
         if found:  # a frame with a ball found pays nothing for the retries
             break
-        cands, quals, occluded = search_frame(frame, config, seed, **retry)
+        cands, quals, occluded = retry()
         new = [k for k, c in enumerate(cands)
                if all(math.dist(c, c1) > config.retry_new_fraction * config.radius_m for c1 in verified)]
         # the best verify_candidates of a retry's new hypotheses, each verified from one start: on `train`
