@@ -233,6 +233,16 @@ class DetectorConfig:
         behind_power, hug_power, ring_continued_power: exponents of (1 - share) for the silhouette's
             pixels behind the sphere, those hugging it just in front, and the outline ring continued
             at the ball's depth.
+        occlusion_discount, occlusion_ring_max: the coverage is taken over the visible share of the
+            silhouette (``visible_fraction``) to this power (1: a pixel hidden by a nearer surface counts
+            neither for nor against; 0: against, as a missing inlier), where at most this share of the
+            outline ring continues at the ball's depth (a ball standing free; a sphere fit into a wall
+            or a corner keeps the full penalty) ...
+        occlusion_min_visible: ... and at least this share of the silhouette is visible (a sphere
+            fit to a small patch behind a nearer object is all inliers where it is seen) ...
+        occlusion_size_sigmas: ... and the free radius lies within the size tolerance and this many
+            standard errors of R (a partly hidden smaller ball, which the coverage rejected, has only
+            its size left against it).
         ring_front_free, ring_front_power: the ring's share attached in front of the ball that costs
             nothing (a floor, a holder, a hand), and the exponent of (1 - excess) beyond it.
         see_through_free, see_through_power, see_through_sigmas: ``improved.see_through_excess``'s
@@ -357,6 +367,10 @@ class DetectorConfig:
     profile_inner_sq: float = 0.3
     profile_outer_sq: float = 0.8
     behind_power: float = 2.0
+    occlusion_discount: float = 1.0
+    occlusion_ring_max: float = 0.05
+    occlusion_min_visible: float = 0.35
+    occlusion_size_sigmas: float = 0.5
     hug_power: float = 2.0
     ring_continued_power: float = 2.0
     ring_front_free: float = 0.15
@@ -444,6 +458,7 @@ def _problems(c: DetectorConfig) -> list[str]:
     for name in ("pretest_min_fraction", "min_score", "nms_distance_fraction",
                  "bound_visible_fraction", "size_tolerance_fraction", "box_min_valid", "ring_front_free",
                  "see_through_free", "edge_behind_free", "ring_spread_free", "verify_quality_fraction",
+                 "occlusion_discount", "occlusion_ring_max", "occlusion_min_visible",
                  "ray_s_min_fraction"):
         if finite(name) and not 0.0 <= getattr(c, name) <= 1.0:
             out.append(f"{name}={getattr(c, name)} must be within [0, 1]")
@@ -463,7 +478,7 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "ring_continued_power", "ring_front_power", "see_through_power", "edge_behind_power",
                  "ring_spread_power", "interior_density_power", "relief_floor_fraction", "relief_free_sigmas",
                  "rescore_offset_xy", "rescore_offset_z", "interior_bands", "see_through_sigmas",
-                 "edge_behind_sigmas", "disc_noise_fraction", "disc_gap_fraction",
+                 "edge_behind_sigmas", "occlusion_size_sigmas", "disc_noise_fraction", "disc_gap_fraction",
                  "disc_gap_sigmas"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")

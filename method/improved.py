@@ -587,9 +587,12 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
     """The confidence's factors, each in [0, 1], by name (``confidence`` multiplies them).
 
     support: n / (n + min_inliers). Organised clouds: coverage, the share of the silhouette's valid
-    pixels that are inliers (occlusion lowers it) over the share the noise leaves a ball
-    (``noise_shares``); behind, (1 - share seen behind the sphere beyond the noise's)^behind_power (the
-    ball would hide it); hug, (1 - share hugging the sphere just in front of it)^hug_power (a cylinder
+    pixels that are inliers over the share the noise leaves a ball (``noise_shares``), and over the
+    visible share (``visible_fraction``) to the power occlusion_discount where at most
+    occlusion_ring_max of the outline ring continues at the ball's depth, at least
+    occlusion_min_visible is seen and the free radius lies within occlusion_size_sigmas of R (units
+    of the size tolerance and its standard error; elsewhere occlusion lowers it); behind, (1 - share seen behind the sphere beyond the noise's)^behind_power (the ball would
+    hide it); hug, (1 - share hugging the sphere just in front of it)^hug_power (a cylinder
     or another non-spherical surface); ring_continued, (1 - share of the outline ring where the surface
     continues at the ball's depth)^ring_continued_power (a wall or a plane); ring_front, (1 - a)^
     ring_front_power, a the share where a surface attached in front of it continues (a cylinder's
@@ -606,6 +609,9 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
     units of (``size_tolerance`` + its standard error). Every exponent and allowance is a
     ``DetectorConfig`` field (Evidence)."""
     f = {"support": n_inliers / (n_inliers + config.min_inliers)}
+    # the free radius's deviation from R in units of the size tolerance and its standard error
+    se = free_se if math.isfinite(free_se) else config.radius_m
+    size_d = (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
     if organised:
         vd = max(stats["valid_disc"], 1.0)
         p_in, q_behind = noise_shares(stats, config)
@@ -616,7 +622,13 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
         seen = see_through_excess(stats, config.see_through_free, config.see_through_sigmas)
         edge = edge_behind_excess(stats, config.edge_behind_free, config.edge_behind_sigmas)
         spread = max(0.0, stats.get("ring_spread", 0.0) - config.ring_spread_free)
-        f.update(coverage=min(1.0, stats["inlier"] / vd / p_in),
+        # a ball standing free (its outline ring not continued at its depth), seen enough and of the
+        # right size: the pixels a nearer surface hides count neither for nor against (discount 1)
+        visible = stats.get("visible_fraction", 1.0)
+        if (ring > config.occlusion_ring_max or visible < config.occlusion_min_visible
+                or not (config.size_check and abs(size_d) <= config.occlusion_size_sigmas)):
+            visible = 1.0
+        f.update(coverage=min(1.0, stats["inlier"] / vd / p_in / max(visible, 1e-6) ** config.occlusion_discount),
                  behind=(1.0 - behind) ** config.behind_power,
                  hug=(1.0 - hug) ** config.hug_power,
                  ring_continued=(1.0 - ring) ** config.ring_continued_power,
@@ -628,9 +640,7 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
     elif "interior_density_ratio" in stats:  # unorganised: a ball's interior holds no points
         f["interior"] = (1.0 - min(1.0, stats["interior_density_ratio"])) ** config.interior_density_power
     if config.size_check:
-        se = free_se if math.isfinite(free_se) else config.radius_m
-        d = (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
-        f["size"] = math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
+        f["size"] = math.exp(-0.5 * size_d * size_d) if math.isfinite(size_d) else 0.0
     return f
 
 

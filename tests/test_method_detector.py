@@ -380,6 +380,29 @@ def test_visible_fraction_measures_the_occluded_share():
     assert len(seen) >= 7 and all(0.45 < v < 0.8 for v in seen)
 
 
+def test_hidden_pixels_count_neither_for_nor_against_a_ball_standing_free():
+    """The coverage is taken over the visible share (occlusion_discount 1) where the outline ring does not
+    continue at the ball's depth, at least occlusion_min_visible is seen and the free radius agrees with R;
+    otherwise the hidden pixels count against it as missing inliers."""
+    from spherebench.method import improved as I
+
+    cfg = config_for("improved")
+    stats = {"valid_disc": 400.0, "inlier": 200.0, "behind": 0.0, "front_near": 0.0, "ring": 100.0,
+             "ring_continued": 0.0, "ring_front": 0.0, "visible_fraction": 0.5, "sigma_m": 0.005}
+    tol = I.size_tolerance(cfg)
+
+    def coverage(st, free_r=R, se=0.001, config=cfg):
+        return I.confidence_factors(st, 500, free_r, se, config, True)["coverage"]
+
+    assert coverage(stats) == pytest.approx(1.0)  # 200 inliers of the 200 pixels seen
+    assert coverage(stats, config=config_for("improved", occlusion_discount=0.0)) == pytest.approx(0.5)
+    assert coverage({**stats, "ring_continued": 20.0}) == pytest.approx(0.5)  # a wall about it
+    assert coverage({**stats, "visible_fraction": 0.3, "inlier": 120.0}) == pytest.approx(0.3)  # mostly hidden
+    # the free radius within occlusion_size_sigmas (0.5) of (tolerance + standard error) from R, or not
+    assert coverage(stats, free_r=R + 0.4 * (tol + 0.001)) == pytest.approx(1.0)
+    assert coverage(stats, free_r=R - 0.6 * (tol + 0.001)) == pytest.approx(0.5)  # a smaller ball
+
+
 def test_retries_find_more_of_the_hidden_balls():
     """While none is accepted the detector searches again (the descent past occluders, then the stencil
     off the axis): it finds more of these half-hidden balls (7 of 16 against 4 when written), and
