@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from spherebench.circles import sphere_circle_exact, sphere_circle_paper
+from spherebench.circles import sphere_circle_exact, sphere_circle_paper, sphere_circle_visible
 from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import _kernels as K
@@ -34,7 +34,8 @@ class Sphere:
         error free_radius_se_m (the size check). inlier_indices (K,): indices into cloud.points.
     score: confidence in [0, 1], comparable across frames (ranks detections for mAP).
     rmse_m: RMS of ||p - c|| - R over the inliers (the RMSE of Table 2, as this project defines it).
-    circle_paper, circle_exact: (cx, cy, r) pixels by the paper's rule and by the exact silhouette
+    circle_paper, circle_exact: (cx, cy, r) pixels by the paper's rule and by the exact silhouette,
+        clipped to the image and, for a partly hidden sphere, to its visible pixels
         (``spherebench.circles``); None without intrinsics.
     evidence: the verification counts (silhouette pixels, coverage...) of the improved pipeline.
     trace: the paper pipeline's intermediate values (``PaperTrace``), else None.
@@ -114,10 +115,27 @@ def prepare_frame(cloud: Cloud, config: DetectorConfig) -> PreparedFrame:
     return frame
 
 
-def _circles(cloud: Cloud, c: np.ndarray, R: float) -> tuple[Circle | None, Circle | None]:
+#: A sphere seen over less than this share of its silhouette (``visible_fraction``) gets the circle of its
+#: visible pixels (``circles.sphere_circle_visible``), as its ground truth is drawn; one seen whole keeps the
+#: exact silhouette's, computed without the depth image.
+VISIBLE_CIRCLE_BELOW = 0.9
+
+
+def _circles(cloud: Cloud, c: np.ndarray, R: float,
+             evidence: dict | None = None) -> tuple[Circle | None, Circle | None]:
+    """(paper's circle, exact circle) px of a sphere; the exact one is of the visible silhouette where an
+    occluder hides part of it (evidence: the improved pipeline's, with visible_fraction and sigma_m)."""
     if cloud.intrinsics is None or not c[2] > 0:
         return None, None
-    return sphere_circle_paper(cloud.intrinsics, c, R), sphere_circle_exact(cloud.intrinsics, c, R)
+    intr = cloud.intrinsics
+    exact = sphere_circle_exact(intr, c, R)
+    if evidence and cloud.rows is not None and evidence.get("visible_fraction", 1.0) < VISIBLE_CIRCLE_BELOW:
+        depth = np.full(intr.shape, np.nan, np.float32)
+        depth[cloud.rows, cloud.cols] = cloud.points[:, 2]
+        # an occluder is what visible_fraction counts: more than R / 2 in front, and beyond the noise
+        seen = sphere_circle_visible(intr, c, R, depth, max(0.5 * R, 3.0 * evidence.get("sigma_m", 0.0)))
+        exact = seen if seen is not None else exact
+    return sphere_circle_paper(intr, c, R), exact
 
 
 def _all_inliers(cloud: Cloud, c: np.ndarray, R: float, band: float) -> np.ndarray:
@@ -215,7 +233,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
             inl = _all_inliers(cloud, v.center_m, R, v.eps_m)
         else:
             inl = v.inliers if index is None else index[v.inliers]
-        cp, ce = _circles(cloud, v.center_m, R)
+        cp, ce = _circles(cloud, v.center_m, R, v.stats)
         spheres.append(Sphere(center_m=v.center_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
                               score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
                               circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))

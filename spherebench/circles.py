@@ -136,6 +136,29 @@ def sphere_circle_exact(intr: Intrinsics, center_m, radius_m: float) -> tuple[fl
     return mask_circle(sphere_silhouette_mask(intr, c, radius_m))
 
 
+def sphere_circle_visible(intr: Intrinsics, center_m, radius_m: float, depth_m: np.ndarray,
+                          margin_m: float) -> tuple[float, float, float] | None:
+    """The smallest enclosing circle of the silhouette's pixels that no nearer surface hides (the
+    ground truth's rule for a partly hidden ball: its visible mask): the silhouette clipped to the
+    image and to the pixels whose measured depth ``depth_m`` (H, W) metres lies no more than
+    ``margin_m`` in front of the sphere's near surface on the pixel's ray (a pixel without depth,
+    NaN or 0, counts as seen). None when none is seen."""
+    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    mask = sphere_silhouette_mask(intr, c, radius_m)
+    v, u = np.nonzero(mask)
+    if len(v) == 0:
+        return None
+    rays = pixel_rays(intr, u.astype(np.float64), v.astype(np.float64))  # z = 1: t is the depth
+    along = rays[:, 0] * c[0] + rays[:, 1] * c[1] + rays[:, 2] * c[2]
+    r2 = rays[:, 0] * rays[:, 0] + rays[:, 1] * rays[:, 1] + 1.0
+    c2 = c[0] * c[0] + c[1] * c[1] + c[2] * c[2]
+    z_near = (along - np.sqrt(np.maximum(along * along - r2 * (c2 - radius_m * radius_m), 0.0))) / r2
+    z = np.asarray(depth_m, np.float64)[v, u]
+    hidden = np.isfinite(z) & (z > 0) & (z < z_near - margin_m)
+    mask[v[hidden], u[hidden]] = False
+    return mask_circle(mask)
+
+
 def sphere_circle_amodal(intr: Intrinsics, center_m, radius_m: float) -> tuple[float, float, float] | None:
     """Smallest enclosing circle of the whole silhouette ellipse, not clipped to the image.
 
