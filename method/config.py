@@ -405,7 +405,9 @@ class DetectorConfig:
 
 
 def _problems(c: DetectorConfig) -> list[str]:
-    out = []
+    # a switch is true or false: --set retry_disc=maybe (a string, truthy) must not pass as on
+    out = [f"{f.name}={getattr(c, f.name)!r} must be true or false" for f in dataclasses.fields(c)
+           if f.type in ("bool", bool) and not isinstance(getattr(c, f.name), bool)]
 
     def finite(name):
         v = getattr(c, name)

@@ -310,6 +310,20 @@ def test_benchmark_subcommands_refuse_bad_input_in_one_line(tmp_path, capsys, ar
     assert not (tmp_path / "out").exists() and not (tmp_path / "out.md").exists()
 
 
+@pytest.mark.parametrize("setting, says", [
+    ("retry_disc=maybe", "retry_disc='maybe' must be true or false"),  # a string would pass as on
+    ("size_check=1", "size_check=1 must be true or false"),
+    ("disc_min_behind=0", "disc_min_behind=0 must be 1-4"),
+    ("occlusion_discount=2", "occlusion_discount=2 must be within [0, 1]"),
+])
+def test_sweep_refuses_a_bad_setting_in_one_line(small_default, tmp_path, capsys, setting, says):
+    argv = ["sweep", str(small_default), "--seeds", "0", "--set", setting, "--out", str(tmp_path / "out")]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("spherebench sweep: error:") and len(err.strip().splitlines()) == 1 and says in err
+    assert not (tmp_path / "out.md").exists() and not (tmp_path / "out.json").exists()
+
+
 def test_engine_options_are_checked_before_any_work(small_default, tmp_path, capsys):
     base = ["evaluate", "--data", str(small_default), "--out", str(tmp_path / "out"), "--methods", "improved"]
     assert cli.main([*base, "--engine", "spark"]) == 2  # argparse's choices
