@@ -591,10 +591,11 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
     visible share (``visible_fraction``) to the power occlusion_discount where at most
     occlusion_ring_max of the outline ring continues at the ball's depth, at least
     occlusion_min_visible is seen and the free radius lies within occlusion_size_sigmas of R (units
-    of the size tolerance and its standard error; elsewhere occlusion lowers it); behind, (1 - share seen behind the sphere beyond the noise's)^behind_power (the ball would
-    hide it); hug, (1 - share hugging the sphere just in front of it)^hug_power (a cylinder
-    or another non-spherical surface); ring_continued, (1 - share of the outline ring where the surface
-    continues at the ball's depth)^ring_continued_power (a wall or a plane); ring_front, (1 - a)^
+    of the size tolerance and its standard error; elsewhere occlusion lowers it); behind, (1 - share
+    seen behind the sphere beyond the noise's)^behind_power (the ball would hide it); hug, (1 - share
+    hugging the sphere just in front of it)^hug_power (a cylinder or another non-spherical surface);
+    ring_continued, (1 - share of the outline ring where the surface continues at the ball's
+    depth)^ring_continued_power (a wall or a plane); ring_front, (1 - a)^
     ring_front_power, a the share where a surface attached in front of it continues (a cylinder's
     body, a corner) beyond ring_front_free; see_through, (1 - ``see_through_excess``)^see_through_power
     (seen through the inner disc: a cylinder's flat top, a smaller ball); edge_behind, (1 -
