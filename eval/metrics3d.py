@@ -241,8 +241,9 @@ def scene_counts(det_centres_m, gt: dict) -> dict:
 
 def detection_counts(rows: Sequence[dict]) -> dict:
     """Totals over ``scene_counts`` rows that also carry their scene's "family": balls, found (within
-    FOUND_M), found_far_rule (within FOUND_M, or FOUND_FAR_M beyond FAR_RULE_FROM_M deep), false_detections, clutter_detections (``scene_counts``' clutter), detections_on_negatives and negative_scenes (family "negative"),
-    distractors and distractors_rejected."""
+    FOUND_M), found_far_rule (within FOUND_M, or FOUND_FAR_M beyond FAR_RULE_FROM_M deep),
+    false_detections, clutter_detections (``scene_counts``' clutter), detections_on_negatives and
+    negative_scenes (family "negative"), distractors and distractors_rejected."""
     errs = [e for r in rows for e in r["errs"]]
     depths = [z for r in rows for z in r["z"]]
     dist = [d for r in rows for d in r["distractors"]]

@@ -207,7 +207,8 @@ def markdown(res: dict) -> str:
     if "timing" in res:
         t = res["timing"]
         lines.append(f"| 424x240 frame / paper-lstsq (median of the frames' ratios; medians "
-                     f"{t['improved_ms']:.2f} / {t['control_ms']:.2f} ms) | {t['ratio']:.2f} | <= {t['ratio_limit']:.2f} ({TIME_RATIO_BEFORE} x {TIME_RATIO_GROWTH}) | "
+                     f"{t['improved_ms']:.2f} / {t['control_ms']:.2f} ms) | {t['ratio']:.2f} | "
+                     f"<= {t['ratio_limit']:.2f} ({TIME_RATIO_BEFORE} x {TIME_RATIO_GROWTH}) | "
                      f"{_verdict(t['ok'])} |")
         lines.append(f"| frame noise measurement (sigma_z and correlation) | {1e3 * t['noise_estimate_ms']:.0f} us "
                      f"({_pct(t['noise_estimate_share'])} of the frame) | a small fraction | - |")

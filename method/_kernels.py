@@ -753,9 +753,9 @@ def disc_hypotheses(tab, prm, z_min_m, inner_fraction, side_offset_fraction, sid
     *behind* when its mean range exceeds m_in by gap_min_m and by gap_sigmas standard errors of the
     two means; at least min_behind of the four (the fourth may be the floor the ball stands on, or an
     occluder). The score is the behind sides' gaps in standard errors (each at most 10), less a
-    thousandth of m_in. Kept as
-    ``search_organised`` keeps its (cands (K, 6): v, u, front m, r cells, score, 0), best first, the
-    front range m_in less the cap's relief over the inner box. Returns the number kept.
+    thousandth of m_in. Kept as ``search_organised`` keeps its (cands (K, 6): v, u, front m, r cells,
+    score, 0), best first, the front range m_in less the cap's relief over the inner box. Returns
+    the number kept.
     """
     R = prm[P_R]
     fc = prm[P_FX] / prm[P_BIN]
