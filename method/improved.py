@@ -46,6 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from spherebench.circles import norm3
 from spherebench.cloud import Cloud
 from spherebench.method import _kernels as K
 from spherebench.method.config import DetectorConfig
@@ -728,6 +729,25 @@ def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConf
     return best
 
 
+def verify_pushed(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
+                  buf: np.ndarray) -> Candidate | None:
+    """A hypothesis that passed the search's pretest by an occluded side, verified from its centre and,
+    while that fails, from starts pushed back along its ray (``occluded_push_fraction`` R each, at most
+    ``occluded_push_starts``, only where one pixel's noise is below ``occluded_push_noise_fraction`` R):
+    the occluder's pixels in its centre box pull the front range, and the start, towards the camera,
+    by up to the occluder's gap. The first verification that passes the size check within
+    ``rescore_band`` of min_score is returned, else the last."""
+    R = config.radius_m
+    ray = c0 / max(norm3(c0), 1e-9)
+    quiet = frame.prm[K.P_NOISE_A] * c0[2] ** 2 < config.occluded_push_noise_fraction * R
+    v = None
+    for j in range(1 + (config.occluded_push_starts if quiet else 0)):
+        v = verify_organised(frame, c0 + j * config.occluded_push_fraction * R * ray, config, buf)
+        if v is not None and v.size_ok and v.score >= config.min_score - config.rescore_band:
+            break
+    return v
+
+
 def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
     """A candidate near the score threshold, verified again from each of ``rescore_starts`` about its centre
     (without the kernel's early stop, so that each start's whole score and size verdict count): its
@@ -853,7 +873,9 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
             v = verify_multistart(frame, np.asarray(c0, np.float64), config, buf)
             v = rescore(frame, v, config, buf) if v is not None else None
         else:
-            v = verify_organised(frame, c0, config, buf)
+            # a hypothesis with an occluded side (verified only while none is accepted): pushed back too
+            v = (verify_pushed(frame, np.asarray(c0, np.float64), config, buf) if occluded[k]
+                 else verify_organised(frame, c0, config, buf))
             if v is not None and abs(v.score - config.min_score) < config.rescore_band:
                 v = rescore(frame, v, config, buf)
         if v is None or not v.size_ok or v.score < config.min_score:

@@ -452,6 +452,33 @@ def test_retries_find_more_of_the_hidden_balls():
     assert len(found[True]) >= len(found[False]) + 2
 
 
+def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray():
+    """A start 1-1.5 R too near along the ray (the occluder's pixels in the search's centre box pull it
+    there) fails verification; ``verify_pushed`` tries starts pushed back by occluded_push_fraction R
+    and finds the ball, unless the pushes are off or the noise there reaches the bound."""
+    from spherebench.method import improved as I
+
+    cfg = config_for("improved")
+    off = config_for("improved", occluded_push_starts=0)
+    loud = config_for("improved", occluded_push_noise_fraction=0.01)
+    plain = pushed = 0
+    for c, cloud in _occluded_frames(8, (0.5, 0.65), 2.0):
+        frame = I.PreparedFrame(cloud, cfg)
+        buf = I.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+        start = c - 1.2 * R * c / np.linalg.norm(c)
+
+        def found(v):
+            return v is not None and v.size_ok and v.score >= cfg.min_score and np.linalg.norm(v.center_m - c) < 0.02
+
+        plain += found(I.verify_organised(frame, start, cfg, buf))
+        pushed += found(I.verify_pushed(frame, start, cfg, buf))
+        for other in (off, loud):
+            again = I.verify_pushed(frame, start, other, buf)
+            first = I.verify_organised(frame, start, other, buf)
+            assert (again is None) == (first is None) and (again is None or again.score == first.score)
+    assert plain <= 2 and pushed >= 7
+
+
 def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
     """Each retry verifies at most verify_candidates (6) of its hypotheses not verified before, each from
     one start, even far ones whose noise would call for the multistart in the first search."""
