@@ -223,3 +223,34 @@ def test_huge_cloud_is_bounded_by_max_points():
     spheres = detect(cloud, config_for("improved", max_points=20_000), seed=0)
     assert spheres and np.linalg.norm(spheres[0].center_m - [0.2, 0.1, 2.0]) < 0.005
     assert len(spheres[0].inlier_indices) > 30_000
+
+
+def test_preparation_matches_numpy_in_any_point_order():
+    """``prepare_organised`` on a 424-wide frame (a pixel per cell), the cloud in raster order and
+    reversed: the same index image, counts and summed-area table, the table equal to numpy's
+    cumulative sums of the packed depth and count, every stale entry overwritten; NaN points and
+    points at z <= 0 get no pixel."""
+    cloud = scene(ball_c=(0.1, -0.05, 1.2), width=424, height=240)
+    h, w = cloud.intrinsics.height, cloud.intrinsics.width
+    pts = cloud.points.copy()
+    pts[::97, 0] = np.nan
+    pts[5::89, 2] = -1.0
+    row_cell, col_cell = imp.cell_lookup(h, w, 1)
+    results = []
+    for order in (np.arange(len(pts)), np.arange(len(pts))[::-1]):
+        img = np.zeros((h, w), np.int32)
+        tab = np.full((h + 1, w + 1), 7, np.uint64)  # stale contents: every entry must be written
+        hist = np.zeros(imp.HIST_BINS, np.int64)
+        n_ok, n_big = K.prepare_organised(pts[order], cloud.rows[order], cloud.cols[order], img, tab, row_cell,
+                                          col_cell, np.float32(50.0), hist, np.float32(1.0 / imp.HIST_STEP_M))
+        results.append((n_ok, n_big, np.where(img >= 0, order[np.maximum(img, 0)], -1), tab))
+    (ok1, big1, img1, tab1), (ok2, big2, img2, tab2) = results
+    good = np.isfinite(pts).all(axis=1) & (pts[:, 2] > 0)
+    assert ok1 == ok2 == np.isfinite(pts).all(axis=1).sum() and big1 == big2 == 0
+    assert np.array_equal(img1, img2) and (img1 >= 0).sum() == good.sum()
+    packed = np.zeros((h, w), np.uint64)
+    z_mm = (pts[good, 2] * np.float32(1000.0) + np.float32(0.5)).astype(np.int64).astype(np.uint64)
+    packed[cloud.rows[good], cloud.cols[good]] = z_mm + (np.uint64(1) << np.uint64(K.COUNT_SHIFT))
+    expected = np.zeros((h + 1, w + 1), np.uint64)
+    expected[1:, 1:] = packed.cumsum(axis=0, dtype=np.uint64).cumsum(axis=1, dtype=np.uint64)
+    assert np.array_equal(tab1, expected) and np.array_equal(tab2, expected)
