@@ -64,7 +64,8 @@ def parse_seeds(text: str) -> list[int]:
 
 def parse_overrides(items: list[str]) -> dict:
     """["min_score=0.3", "adaptive=false"] -> {"min_score": 0.3, "adaptive": False}: --set values, each
-    read as JSON (numbers, true/false, null), else kept as a string."""
+    read as JSON (numbers, true/false, null), or as infinity ("inf", "-inf": the fields whose
+    meaning says "inf for never"), else kept as a string."""
     out = {}
     for item in items:
         name, sep, value = item.partition("=")
@@ -73,7 +74,8 @@ def parse_overrides(items: list[str]) -> dict:
         try:
             out[name.strip()] = json.loads(value)
         except json.JSONDecodeError:
-            out[name.strip()] = value
+            infinite = value.strip().lower().lstrip("+-") in ("inf", "infinity")
+            out[name.strip()] = float(value.strip()) if infinite else value
     return out
 
 

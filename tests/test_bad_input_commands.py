@@ -7,6 +7,7 @@ printed or written before the error, and that nothing outside the command's own 
 from __future__ import annotations
 
 import json
+import math
 import random
 import shutil
 
@@ -20,6 +21,7 @@ from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, in_front_of_camera
 from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
+from spherebench.method import config_for
 from spherebench.eval import provenance, registry, report, seeds
 from conftest import markdown_cells  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -315,6 +317,8 @@ def test_benchmark_subcommands_refuse_bad_input_in_one_line(tmp_path, capsys, ar
     ("size_check=1", "size_check=1 must be true or false"),
     ("disc_min_behind=0", "disc_min_behind=0 must be 1-4"),
     ("occlusion_discount=2", "occlusion_discount=2 must be within [0, 1]"),
+    ("occluded_push_starts=11", "occluded_push_starts=11 must be 0-10"),
+    ("outline_noise_fraction=-inf", "outline_noise_fraction=-inf must be >= 0"),
 ])
 def test_sweep_refuses_a_bad_setting_in_one_line(small_default, tmp_path, capsys, setting, says):
     argv = ["sweep", str(small_default), "--seeds", "0", "--set", setting, "--out", str(tmp_path / "out")]
@@ -322,6 +326,18 @@ def test_sweep_refuses_a_bad_setting_in_one_line(small_default, tmp_path, capsys
     err = capsys.readouterr().err
     assert err.startswith("spherebench sweep: error:") and len(err.strip().splitlines()) == 1 and says in err
     assert not (tmp_path / "out.md").exists() and not (tmp_path / "out.json").exists()
+
+
+def test_set_reads_infinity_where_a_field_means_never():
+    """"inf for never" (multistart_noise_fraction, outline_noise_fraction) is what --set takes: inf and
+    -inf are numbers, as JSON's Infinity is; other words stay strings for the configuration to refuse."""
+    from spherebench.options import parse_overrides
+
+    got = parse_overrides(["outline_noise_fraction=inf", "multistart_noise_fraction=+Inf", "a=-inf",
+                           "b=Infinity", "c=nan", "d=infinite"])
+    assert got["outline_noise_fraction"] == got["multistart_noise_fraction"] == got["b"] == math.inf
+    assert got["a"] == -math.inf and got["c"] == "nan" and got["d"] == "infinite"
+    config_for("improved", outline_noise_fraction=got["outline_noise_fraction"])  # accepted
 
 
 def test_engine_options_are_checked_before_any_work(small_default, tmp_path, capsys):
