@@ -1601,12 +1601,15 @@ def outline_residuals(points, index_image, prm, cx, cy, cz, sigma, gap_sigmas, b
 
 
 @kernel
-def outline_centre(points, index_image, prm, c, sigma, gap_sigmas, band_px, band_fraction, min_side, iterations,
-                   res, count, out):
+def outline_centre(points, index_image, prm, c, sigma, gap_sigmas, band_px, band_fraction, min_side, max_bias_px,
+                   iterations, res, count, out):
     """``improved.outline_centre``'s rounds: out (3,) gets the centre c (3,) m moved across the line of
     sight, its range kept. Per image axis with at least min_side pairs (``outline_residuals``) on each
     of its two sides, half the difference of the two sides' median residuals, over cos 22.5 degrees
-    (a quarter's median pair lies about 22.5 degrees off the axis), is the centre's shift along it."""
+    (a quarter's median pair lies about 22.5 degrees off the axis), is the centre's shift along it;
+    unless half their sum, the silhouette's size along the axis against the sphere's, is more than
+    max_bias_px pixels off (mixed pixels make it a pixel at most: a surface the ball rests on or
+    touches, seen behind it at a grazing angle, puts one side's steps beyond the outline)."""
     out[:] = c
     rho = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
     gain = math.cos(math.pi / 8.0)
@@ -1616,9 +1619,13 @@ def outline_centre(points, index_image, prm, c, sigma, gap_sigmas, band_px, band
         su = 0.0
         sv = 0.0
         if count[0] >= min_side and count[1] >= min_side:
-            su = 0.5 * (np.median(res[0, :count[0]]) - np.median(res[1, :count[1]])) / gain
+            ma, mb = np.median(res[0, :count[0]]), np.median(res[1, :count[1]])
+            if abs(0.5 * (ma + mb)) * prm[P_FX] <= max_bias_px:
+                su = 0.5 * (ma - mb) / gain
         if count[2] >= min_side and count[3] >= min_side:
-            sv = 0.5 * (np.median(res[2, :count[2]]) - np.median(res[3, :count[3]])) / gain
+            ma, mb = np.median(res[2, :count[2]]), np.median(res[3, :count[3]])
+            if abs(0.5 * (ma + mb)) * prm[P_FY] <= max_bias_px:
+                sv = 0.5 * (ma - mb) / gain
         if su == 0.0 and sv == 0.0:
             break
         ax, ay, az = out[0] / rho, out[1] / rho, out[2] / rho

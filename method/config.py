@@ -144,6 +144,10 @@ class DetectorConfig:
             smaller than the sphere's, as mixed pixels make it).
         outline_max_shift_fraction: a re-centring that moves the centre by more than this fraction of
             R is not taken.
+        outline_max_bias_px: an image axis is not re-centred where the outline's two sides, on average,
+            lie more than this many pixels outside (or inside) the sphere's silhouette: mixed pixels
+            make it a pixel at most, and more means one side's depth steps are not the ball's outline
+            (a surface it rests on, seen behind it at a grazing angle). inf: never held back.
         outline_iterations: rounds of re-centring (each re-collects the outline about the moved centre).
         multistart_noise_fraction: organised clouds, while no sphere is accepted: a hypothesis whose
             depth noise (one pixel's sigma_z) exceeds this fraction of R is verified from its centre
@@ -319,6 +323,7 @@ class DetectorConfig:
     outline_band_fraction: float = 0.15
     outline_min_side: int = 4
     outline_max_shift_fraction: float = 0.5
+    outline_max_bias_px: float = 1.0
     outline_iterations: int = 3
     fit_max_points: int = 400
     score_max_points: int = 400
@@ -522,6 +527,9 @@ def _problems(c: DetectorConfig) -> list[str]:
         out.append(f"occluded_push_starts={c.occluded_push_starts!r} must be 0-10 (0: off)")
     if finite("retry_new_fraction") and not 0.0 <= c.retry_new_fraction <= 2.0:
         out.append(f"retry_new_fraction={c.retry_new_fraction} must be within [0, 2] (a fraction of R)")
+    v = c.outline_max_bias_px
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:  # inf: never held back
+        out.append(f"outline_max_bias_px={v!r} must be > 0 (pixels; inf for never)")
     for name in ("outline_gap_sigmas", "outline_band_px", "outline_band_fraction", "outline_max_shift_fraction"):
         if finite(name) and not getattr(c, name) > 0:
             out.append(f"{name}={getattr(c, name)} must be > 0")

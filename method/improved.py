@@ -831,7 +831,7 @@ def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorC
     out = np.empty(3, np.float64)
     K.outline_centre(frame.points, frame.index_image, frame.prm, c_in, frame.noise_a * float(c_in[2]) ** 2,
                      config.outline_gap_sigmas, config.outline_band_px, config.outline_band_fraction,
-                     config.outline_min_side, config.outline_iterations, res, count, out)
+                     config.outline_min_side, config.outline_max_bias_px, config.outline_iterations, res, count, out)
     if float(np.linalg.norm(out - c_in)) > config.outline_max_shift_fraction * R:
         return c_in
     return out

@@ -896,13 +896,21 @@ def test_outcome_constants_refuse_absurd_values():
 
 # ------------------------------------------------------------------------------ outline centring
 
-def _far_ball_frame(ball_c, noise_m, seed=0, left_wall=False, holder=False):
+def _far_ball_frame(ball_c, noise_m, seed=0, left_wall=False, holder=False, ledge_px=0.0):
     """A 424x240 frame: a wall 2 m behind the ball, the ball with per-pixel depth noise noise_m;
-    optionally a surface at the ball's depth along its left side, or a holder (a bar) under it."""
+    optionally a surface at the ball's depth along its left side, a holder (a bar) under it, or a
+    ledge: a band ledge_px pixels wide at its depth just outside the lower quarter of its outline (a
+    surface it rests on, seen at a grazing angle)."""
     intr = Intrinsics.d435(424, 240)
     rays = image_rays(intr)
     c = np.asarray(ball_c)
     z = np.full(rays.shape[:2], c[2] + 2.0)
+    if ledge_px:
+        v, u = np.mgrid[0:intr.height, 0:intr.width]
+        u0, v0 = intr.fx * c[0] / c[2] + intr.ppx, intr.fy * c[1] / c[2] + intr.ppy
+        r_px = intr.fx * math.tan(math.asin(R / np.linalg.norm(c)))
+        d = np.hypot(u - u0, v - v0)
+        z = np.where((d > r_px) & (d < r_px + ledge_px) & (v - v0 > np.abs(u - u0)), c[2], z)
     if left_wall:  # a plane at the ball's centre depth left of its centre: the ball's left half stands on it
         z = np.where(rays[..., 0] < c[0] / c[2], c[2], z)
     if holder:  # a bar as wide as R, from the ball's bottom down, at its centre depth
@@ -943,6 +951,23 @@ def test_outline_centring_leaves_an_axis_without_two_sides():
     moved = I.outline_centre(frame, start, config)
     assert abs(moved[0] - start[0]) < 0.002  # horizontal: kept (up to the range's rescaling)
     assert abs(moved[1] - truth[1]) < 0.004  # vertical: centred
+
+
+def test_outline_centring_holds_back_an_axis_whose_outline_lies_beyond_the_sphere():
+    """A ledge at the ball's depth 3 px wide below its lower outline puts that side's depth steps 3 px
+    out: on average the vertical axis's two sides lie 1.5 px outside the sphere's silhouette, more
+    than mixed pixels make (outline_max_bias_px, 1 px). That axis keeps its start; without the bound
+    the ledge pulls the centre down by several mm. The horizontal axis is centred either way."""
+    from spherebench.method import improved as I
+
+    truth = np.array([0.3, -0.1, 2.6])
+    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, ledge_px=3.0), config)
+    start = truth + np.array([0.010, 0.0, 0.0])
+    held = I.outline_centre(frame, start, config)
+    pulled = I.outline_centre(frame, start, dataclasses.replace(config, outline_max_bias_px=math.inf))
+    assert abs(held[1] - truth[1]) < 0.002 and pulled[1] - truth[1] > 0.004
+    assert abs(held[0] - truth[0]) < 0.004 and abs(pulled[0] - truth[0]) < 0.004
 
 
 def test_detect_recentres_only_where_the_noise_nears_r():
