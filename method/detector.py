@@ -188,6 +188,9 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
             pass
     # outline centring runs only where the depth noise nears R, which this frame's ball does not reach
     outline_centre(prepare_frame(organised, config), centre, config)
+    # the paper pipeline's candidate counting runs only where its global draws found a candidate, which
+    # on this small frame they may not
+    K.shell_counts(organised.points, centre.reshape(1, 3), config.radius_m, config.eps_m)
 
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0) -> list[Sphere]:
