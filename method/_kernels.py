@@ -1601,6 +1601,19 @@ def outline_residuals(points, index_image, prm, cx, cy, cz, sigma, gap_sigmas, b
 
 
 @kernel
+def _axis_shift(res, count, s, f_px, min_side, max_bias_px):
+    """One image axis of ``outline_centre``: half the difference of its sides' (quarters s and s + 1)
+    median residuals (rad), or 0 where a side has fewer than min_side pairs or half their sum exceeds
+    max_bias_px pixels (f_px: the axis's focal length)."""
+    if count[s] < min_side or count[s + 1] < min_side:
+        return 0.0
+    ma, mb = np.median(res[s, :count[s]]), np.median(res[s + 1, :count[s + 1]])
+    if abs(0.5 * (ma + mb)) * f_px > max_bias_px:
+        return 0.0
+    return 0.5 * (ma - mb)
+
+
+@kernel
 def outline_centre(points, index_image, prm, c, sigma, gap_sigmas, band_px, band_fraction, min_side, max_bias_px,
                    iterations, res, count, out):
     """``improved.outline_centre``'s rounds: out (3,) gets the centre c (3,) m moved across the line of
@@ -1616,16 +1629,8 @@ def outline_centre(points, index_image, prm, c, sigma, gap_sigmas, band_px, band
     for _ in range(iterations):
         outline_residuals(points, index_image, prm, out[0], out[1], out[2], sigma, gap_sigmas, band_px,
                           band_fraction, res, count)
-        su = 0.0
-        sv = 0.0
-        if count[0] >= min_side and count[1] >= min_side:
-            ma, mb = np.median(res[0, :count[0]]), np.median(res[1, :count[1]])
-            if abs(0.5 * (ma + mb)) * prm[P_FX] <= max_bias_px:
-                su = 0.5 * (ma - mb) / gain
-        if count[2] >= min_side and count[3] >= min_side:
-            ma, mb = np.median(res[2, :count[2]]), np.median(res[3, :count[3]])
-            if abs(0.5 * (ma + mb)) * prm[P_FY] <= max_bias_px:
-                sv = 0.5 * (ma - mb) / gain
+        su = _axis_shift(res, count, 0, prm[P_FX], min_side, max_bias_px) / gain
+        sv = _axis_shift(res, count, 2, prm[P_FY], min_side, max_bias_px) / gain
         if su == 0.0 and sv == 0.0:
             break
         ax, ay, az = out[0] / rho, out[1] / rho, out[2] / rho
