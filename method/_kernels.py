@@ -943,7 +943,7 @@ def window_stride(cx, cy, cz, radius, fx, max_visits):
 
 @kernel
 def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
-                     idx, out, stats):
+                     hold_direction, idx, out, stats):
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
 
     Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
@@ -967,6 +967,8 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     support and size factors of the confidence are already below the least score, gets
     out[V_N] = -1 and no statistics (most candidates fail here, and the statistics' pass over the
     window is the costliest). inf tolerance: no gate.
+    hold_direction: no refinement rounds, and both fits keep the centre on c0's ray (``fit_range``):
+    c0 is a centre placed across the line of sight by other evidence (the outline).
     """
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
     budget = 4.0 * max_fit_points
@@ -976,7 +978,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     out[V_N] = 0.0
     first_band, coarse_band = prm[P_FIRST_BAND] * radius, prm[P_COARSE_BAND] * radius
     moved = coarse_band
-    for it in range(refine_iterations):
+    for it in range(0 if hold_direction else refine_iterations):
         if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
             return
         e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
@@ -1031,8 +1033,12 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
                 if n < 3:
                     return
                 rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
-    c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
-    fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
+    if hold_direction:
+        c, _, _, rms = fit_range(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
+        fc, fr, fse, _ = fit_range(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
+    else:
+        c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
+        fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
     out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
     if math.isfinite(size_gate[0]):
         se = fse if math.isfinite(fse) else radius
@@ -1363,6 +1369,43 @@ def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min, se_s_min):
         var_r = cholesky_solve(A, g, 4, step)
         se = math.sqrt(max(sse / max(n - 4, 1) * var_r, 0.0)) if var_r > 0.0 else math.inf
     return x[:3].copy(), x[3], se, math.sqrt(sse / max(n, 1))
+
+
+@kernel
+def fit_range(rays, cx, cy, cz, radius, free_radius, iterations, s_min, se_s_min):
+    """``fit_ray`` with the centre held on its ray, c = t a (a = c / |c|): Gauss-Newton on the range t
+    (and r where free_radius), the normal equations projected on a. Same returns as ``fit_ray``."""
+    t, r = math.sqrt(cx * cx + cy * cy + cz * cz), radius
+    ax, ay, az = cx / t, cy / t, cz / t
+    for _ in range(iterations):
+        A, g, _ = ray_normal_equations(rays, t * ax, t * ay, t * az, r, max(s_min * abs(r), 1e-12), free_radius)
+        a_tt = (ax * ax * A[0, 0] + ay * ay * A[1, 1] + az * az * A[2, 2]
+                + 2.0 * (ax * ay * A[1, 0] + ax * az * A[2, 0] + ay * az * A[2, 1]))
+        g_t = ax * g[0] + ay * g[1] + az * g[2]
+        if not free_radius:
+            if not a_tt > 0.0:
+                break
+            t += g_t / a_tt
+            continue
+        a_tr = ax * A[3, 0] + ay * A[3, 1] + az * A[3, 2]
+        det = a_tt * A[3, 3] - a_tr * a_tr
+        if not det > 0.0:
+            break
+        t += (A[3, 3] * g_t - a_tr * g[3]) / det
+        r += (a_tt * g[3] - a_tr * g_t) / det
+    s_floor = max(max(s_min, se_s_min) * abs(r), 1e-12)
+    A, g, sse = ray_normal_equations(rays, t * ax, t * ay, t * az, r, s_floor, free_radius)
+    n = rays.shape[0]
+    se = math.nan
+    if free_radius:
+        a_tt = (ax * ax * A[0, 0] + ay * ay * A[1, 1] + az * az * A[2, 2]
+                + 2.0 * (ax * ay * A[1, 0] + ax * az * A[2, 0] + ay * az * A[2, 1]))
+        a_tr = ax * A[3, 0] + ay * A[3, 1] + az * A[3, 2]
+        det = a_tt * A[3, 3] - a_tr * a_tr
+        se = math.sqrt(max(sse / max(n - 2, 1) * a_tt / det, 0.0)) if det > 0.0 else math.inf
+    c = np.empty(3)
+    c[0], c[1], c[2] = t * ax, t * ay, t * az
+    return c, r, se, math.sqrt(sse / max(n, 1))
 
 
 @kernel

@@ -135,6 +135,18 @@ class DetectorConfig:
             sight on its outline (``improved.outline_centre``): where the noise nears R the cap's
             relief places the centre laterally to several mm, the outline's depth step to about one.
             Below it the depth fit is the better (on `train`). inf: never.
+        outline_evidence: organised clouds: a hypothesis verified where one pixel's depth noise is at
+            least outline_evidence_noise_fraction R is measured again on its outline: re-centred
+            there (``improved.outline_centre``) and verified with its centre held on that ray (range,
+            and for the size check range and radius, fitted along it: ``_kernels.fit_range``); that
+            verification is its evidence and score. At such noise the cap's relief drifts the centre
+            by a pixel or more, and the silhouette, ring and size tests then look beside the ball.
+        outline_evidence_noise_fraction: see outline_evidence (a fraction of R; a nominal unit's
+            frames reach 0.5 beyond 2.8 m). inf: never.
+        outline_evidence_min_move_px: ... not where the outline moves the centre by less than this
+            many pixels (few of the silhouette's pixels change class).
+        outline_evidence_min_score: ... nor where the first verification scores below this (clutter
+            far below min_score; half the re-verifications of `train` are saved).
         outline_gap_sigmas: an outline is a step to a pixel farther than max(this * sigma_z, R) behind
             the centre from one within this * sigma_z of the ball's depths.
         outline_band_px, outline_band_fraction: the outline's pixels are taken within this many pixels
@@ -318,6 +330,10 @@ class DetectorConfig:
     rescore_band: float = 0.15
     multistart_noise_fraction: float = 0.5
     outline_noise_fraction: float = 0.25
+    outline_evidence: bool = True
+    outline_evidence_noise_fraction: float = 0.5
+    outline_evidence_min_move_px: float = 0.25
+    outline_evidence_min_score: float = 0.05
     outline_gap_sigmas: float = 3.0
     outline_band_px: float = 2.0
     outline_band_fraction: float = 0.15
@@ -477,7 +493,7 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "bound_visible_fraction", "size_tolerance_fraction", "box_min_valid", "ring_front_free",
                  "see_through_free", "edge_behind_free", "ring_spread_free", "verify_quality_fraction",
                  "occlusion_discount", "occlusion_ring_max", "occlusion_min_visible",
-                 "ray_s_min_fraction"):
+                 "ray_s_min_fraction", "outline_evidence_min_score"):
         if finite(name) and not 0.0 <= getattr(c, name) <= 1.0:
             out.append(f"{name}={getattr(c, name)} must be within [0, 1]")
     for name in ("confidence", "sample_success"):
@@ -497,7 +513,7 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "ring_spread_power", "interior_density_power", "relief_floor_fraction", "relief_free_sigmas",
                  "rescore_offset_xy", "rescore_offset_z", "interior_bands", "see_through_sigmas",
                  "edge_behind_sigmas", "occlusion_size_sigmas", "disc_noise_fraction", "disc_gap_fraction",
-                 "disc_gap_sigmas", "occluded_push_noise_fraction"):
+                 "disc_gap_sigmas", "occluded_push_noise_fraction", "outline_evidence_min_move_px"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
     for name in ("box_half_fraction", "box_offset_fraction", "ring_offset_fraction", "ring_half_fraction",
@@ -520,9 +536,10 @@ def _problems(c: DetectorConfig) -> list[str]:
     v = c.multistart_noise_fraction
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:  # inf: never
         out.append(f"multistart_noise_fraction={v!r} must be > 0 (a fraction of R; inf for never)")
-    v = c.outline_noise_fraction
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:  # 0: always; inf: never
-        out.append(f"outline_noise_fraction={v!r} must be >= 0 (a fraction of R; inf for never)")
+    for name in ("outline_noise_fraction", "outline_evidence_noise_fraction"):
+        v = getattr(c, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:  # 0: always; inf: never
+            out.append(f"{name}={v!r} must be >= 0 (a fraction of R; inf for never)")
     if isinstance(c.occluded_push_starts, int) and not 0 <= c.occluded_push_starts <= 10:
         out.append(f"occluded_push_starts={c.occluded_push_starts!r} must be 0-10 (0: off)")
     if finite("retry_new_fraction") and not 0.0 <= c.retry_new_fraction <= 2.0:

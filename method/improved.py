@@ -672,14 +672,33 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
 
 
 def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
-                     gate: np.ndarray | None = None) -> Candidate | None:
+                     gate: np.ndarray | None = None, hold_direction: bool = False) -> Candidate | None:
     """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it.
-    gate: the kernel's early stop (default ``frame.gate``)."""
+    Where one pixel's noise at the refined centre is at least ``outline_evidence_noise_fraction`` R
+    (``DetectorConfig.outline_evidence``), the candidate is then re-centred on its outline and
+    verified again from there with its direction held: the cap's relief leaves the refined centre a
+    pixel or more beside the ball, and the evidence is taken where the outline says the ball is.
+    gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
+    fits move the centre along its ray only (``_kernels.fit_range``)."""
+    v = _verify_once(frame, c0, config, buf, gate, hold_direction)
+    if (v is None or hold_direction or not config.outline_evidence or v.score < config.outline_evidence_min_score
+            or frame.noise_a * float(v.center_m[2]) ** 2 < config.outline_evidence_noise_fraction * config.radius_m):
+        return v
+    oc = outline_centre(frame, v.center_m, config)
+    # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
+    if float(np.linalg.norm(oc - v.center_m)) * frame.prm[K.P_FX] / float(oc[2]) < config.outline_evidence_min_move_px:
+        return v
+    return _verify_once(frame, oc, config, buf, gate, True)
+
+
+def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+                 gate: np.ndarray | None, hold_direction: bool) -> Candidate | None:
+    """One pass of the verification kernel (``_kernels.verify_organised``) from c0, scored."""
     out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
                        config.refine_iterations, config.fit_max_points, config.ray_s_min_fraction,
                        config.noise_from_data,
-                       frame.gate if gate is None else gate, buf, out, st)
+                       frame.gate if gate is None else gate, hold_direction, buf, out, st)
     n = int(out[K.V_N])
     if n < config.min_inliers:  # too few, or failed the size check (-1)
         return None
