@@ -147,6 +147,12 @@ class DetectorConfig:
             many pixels (few of the silhouette's pixels change class).
         outline_evidence_min_score: ... nor where the first verification scores below this (clutter
             far below min_score; half the re-verifications of `train` are saved).
+        outline_size: ... and where all four quarters of its outline are seen, the size check takes the
+            outline's radius (``improved.outline_size``: its angular radius at the centre's distance)
+            for the depth fit's: where one pixel's noise is half of R or more the outline places
+            the silhouette's size to a few mm, the cap's relief to several cm.
+        outline_size_floor_px: the outline radius's standard error is never below this many pixels
+            (mixed pixels and the pixel grid), added in quadrature to the residuals' own.
         outline_gap_sigmas: an outline is a step to a pixel farther than max(this * sigma_z, R) behind
             the centre from one within this * sigma_z of the ball's depths.
         outline_band_px, outline_band_fraction: the outline's pixels are taken within this many pixels
@@ -334,6 +340,8 @@ class DetectorConfig:
     outline_evidence_noise_fraction: float = 0.5
     outline_evidence_min_move_px: float = 0.25
     outline_evidence_min_score: float = 0.05
+    outline_size: bool = True
+    outline_size_floor_px: float = 0.25
     outline_gap_sigmas: float = 3.0
     outline_band_px: float = 2.0
     outline_band_fraction: float = 0.15
@@ -513,7 +521,8 @@ def _problems(c: DetectorConfig) -> list[str]:
                  "ring_spread_power", "interior_density_power", "relief_floor_fraction", "relief_free_sigmas",
                  "rescore_offset_xy", "rescore_offset_z", "interior_bands", "see_through_sigmas",
                  "edge_behind_sigmas", "occlusion_size_sigmas", "disc_noise_fraction", "disc_gap_fraction",
-                 "disc_gap_sigmas", "occluded_push_noise_fraction", "outline_evidence_min_move_px"):
+                 "disc_gap_sigmas", "occluded_push_noise_fraction", "outline_evidence_min_move_px",
+                 "outline_size_floor_px"):
         if finite(name) and getattr(c, name) < 0:
             out.append(f"{name}={getattr(c, name)} must be >= 0")
     for name in ("box_half_fraction", "box_offset_fraction", "ring_offset_fraction", "ring_half_fraction",

@@ -685,15 +685,56 @@ def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfi
             or frame.noise_a * float(v.center_m[2]) ** 2 < config.outline_evidence_noise_fraction * config.radius_m):
         return v
     oc = outline_centre(frame, v.center_m, config)
+    size = outline_size(frame, oc, config) if config.outline_size else None
     # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
-    if float(np.linalg.norm(oc - v.center_m)) * frame.prm[K.P_FX] / float(oc[2]) < config.outline_evidence_min_move_px:
+    if size is None and (float(np.linalg.norm(oc - v.center_m)) * frame.prm[K.P_FX] / float(oc[2])
+                         < config.outline_evidence_min_move_px):
         return v
-    return _verify_once(frame, oc, config, buf, gate, True)
+    # the kernel's early stop judges the depth fit's radius, which the outline's replaces
+    return _verify_once(frame, oc, config, buf, gate if size is None else frame.no_gate, True, size)
+
+
+def _outline_buffers(frame: PreparedFrame, rho: float, config: DetectorConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``_kernels.outline_residuals``' buffers for a sphere at distance rho (m): a quarter of the outline
+    holds at most two pairs per pixel of the kernel's window; the capacity is rounded up to a power of
+    two, so that balls of every size share a few reused buffers."""
+    r_px = float(frame.prm[K.P_FX]) * math.tan(math.asin(config.radius_m / rho))
+    side = 2 * int(r_px + config.outline_band_px + config.outline_band_fraction * r_px + 3) + 1
+    return (workspace("outline_res", (4, 1 << (2 * side * side - 1).bit_length()), np.float64),
+            workspace("outline_count", (4,), np.int64))
+
+
+def outline_size(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorConfig) -> tuple[float, float] | None:
+    """The angular radius (rad) of the silhouette's outline about centre_m (3,) m, and its standard
+    error: the sphere's cone half-angle asin(R / |c|) plus the mean of the four quarters' median
+    residuals (``_kernels.outline_residuals``; about a centre on the outline, their difference is
+    the centre's error, their mean the silhouette's size against the sphere's). The standard error
+    is the pooled residuals' (normal-consistent MAD, as a median over all pairs) with
+    ``outline_size_floor_px`` added in quadrature (mixed pixels and the outline's pixel grid). None
+    unless every quarter holds ``outline_min_side`` pairs: a ball on a floor or against a wall has
+    a side whose steps are not its outline."""
+    c = np.asarray(centre_m, np.float64)
+    rho = float(np.linalg.norm(c))
+    if not (c[2] > 0 and rho > config.radius_m):
+        return None
+    res, count = _outline_buffers(frame, rho, config)
+    K.outline_residuals(frame.points, frame.index_image, frame.prm, c[0], c[1], c[2], frame.noise_a * float(c[2]) ** 2,
+                        config.outline_gap_sigmas, config.outline_band_px, config.outline_band_fraction, res, count)
+    if int(count.min()) < config.outline_min_side:
+        return None
+    pooled = np.concatenate([res[q, :count[q]] for q in range(4)])
+    spread = 1.4826 * float(np.median(np.abs(pooled - np.median(pooled))))
+    angle = math.asin(config.radius_m / rho) + float(np.mean([np.median(res[q, :count[q]]) for q in range(4)]))
+    se = math.hypot(1.2533 * spread / math.sqrt(pooled.size), config.outline_size_floor_px / float(frame.prm[K.P_FX]))
+    return angle, se
 
 
 def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
-                 gate: np.ndarray | None, hold_direction: bool) -> Candidate | None:
-    """One pass of the verification kernel (``_kernels.verify_organised``) from c0, scored."""
+                 gate: np.ndarray | None, hold_direction: bool,
+                 size: tuple[float, float] | None = None) -> Candidate | None:
+    """One pass of the verification kernel (``_kernels.verify_organised``) from c0, scored. size: the
+    outline's angular radius and its standard error (``outline_size``), which then give the size
+    check's radius in place of the depth fit's (at the verified centre's distance)."""
     out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
                        config.refine_iterations, config.fit_max_points, config.ray_s_min_fraction,
@@ -719,11 +760,15 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
     # than R / 2 in front of the sphere; ``_kernels.window_stats``' FRONT less FRONT_NEAR)
     vd = stats["valid_disc"]
     stats["visible_fraction"] = 1.0 - max(0.0, stats["front"] - stats["front_near"]) / vd if vd > 0 else 0.0
-    score, size_ok = confidence(stats, n, out[K.V_FR], out[K.V_FSE], config, True)
+    free_r, free_se = float(out[K.V_FR]), float(out[K.V_FSE])
+    if size is not None:
+        rho = float(np.linalg.norm(out[K.V_CX:K.V_CZ + 1]))
+        free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
+    score, size_ok = confidence(stats, n, free_r, free_se, config, True)
     # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
     return Candidate(center_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),
-                     free_center_m=out[K.V_FCX:K.V_FCZ + 1].copy(), free_radius_m=float(out[K.V_FR]),
-                     free_radius_se_m=float(out[K.V_FSE]), rmse_m=float(out[K.V_RMSE]), stats=stats, score=score,
+                     free_center_m=out[K.V_FCX:K.V_FCZ + 1].copy(), free_radius_m=free_r,
+                     free_radius_se_m=free_se, rmse_m=float(out[K.V_RMSE]), stats=stats, score=score,
                      size_ok=size_ok)
 
 
@@ -841,12 +886,7 @@ def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorC
     rho = float(np.linalg.norm(c_in))
     if not (c_in[2] > 0 and rho > R):
         return c_in
-    # a quarter of the outline holds at most two pairs per pixel of the kernel's window; the capacity
-    # is rounded up to a power of two, so that balls of every size share a few reused buffers
-    r_px = float(frame.prm[K.P_FX]) * math.tan(math.asin(R / rho))
-    side = 2 * int(r_px + config.outline_band_px + config.outline_band_fraction * r_px + 3) + 1
-    res = workspace("outline_res", (4, 1 << (2 * side * side - 1).bit_length()), np.float64)
-    count = workspace("outline_count", (4,), np.int64)
+    res, count = _outline_buffers(frame, rho, config)
     out = np.empty(3, np.float64)
     K.outline_centre(frame.points, frame.index_image, frame.prm, c_in, frame.noise_a * float(c_in[2]) ** 2,
                      config.outline_gap_sigmas, config.outline_band_px, config.outline_band_fraction,

@@ -917,7 +917,7 @@ def test_outcome_constants_refuse_absurd_values():
 
 # ------------------------------------------------------------------------------ outline centring
 
-def _far_ball_frame(ball_c, noise_m, seed=0, left_wall=False, holder=False, ledge_px=0.0):
+def _far_ball_frame(ball_c, noise_m, seed=0, left_wall=False, holder=False, ledge_px=0.0, radius=R):
     """A 424x240 frame: a wall 2 m behind the ball, the ball with per-pixel depth noise noise_m;
     optionally a surface at the ball's depth along its left side, a holder (a bar) under it, or a
     ledge: a band ledge_px pixels wide at its depth just outside the lower quarter of its outline (a
@@ -937,7 +937,7 @@ def _far_ball_frame(ball_c, noise_m, seed=0, left_wall=False, holder=False, ledg
     if holder:  # a bar as wide as R, from the ball's bottom down, at its centre depth
         below = (np.abs(rays[..., 0] * c[2] - c[0]) < 0.5 * R) & (rays[..., 1] * c[2] > c[1])
         z = np.where(below, c[2], z)
-    z = with_sphere(z, rays, c, R) + np.random.default_rng(seed).normal(size=z.shape) * noise_m
+    z = with_sphere(z, rays, c, radius) + np.random.default_rng(seed).normal(size=z.shape) * noise_m
     return cloud_from_depth(z.astype(np.float32), intr)
 
 
@@ -1013,6 +1013,26 @@ def test_noisy_far_ball_is_measured_on_its_outline():
         assert across(off.center_m) > 0.003 and across(on.center_m) < 0.002
         gains.append(on.score - off.score)
     assert np.mean(gains) > 0.05
+
+
+def test_outline_size_tells_a_ball_of_another_radius_where_depth_cannot():
+    """At 2.6 m with 7 cm of depth noise per pixel the outline's angular radius, at the centre's
+    distance, places the ball's radius to a few mm (its standard error, a quarter pixel at least,
+    about 3 mm): the basketball reads R, a 0.15 m ball 3 cm more. Without a side's outline (a wall
+    at the ball's depth) there is no outline size."""
+    from spherebench.method import improved as I
+
+    truth = np.array([0.3, -0.1, 2.6])
+    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    rho = float(np.linalg.norm(truth))
+    for radius in (R, 0.15):
+        for seed in range(2):
+            frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed, radius=radius), config)
+            angle, se = I.outline_size(frame, truth, config)
+            assert abs(rho * math.sin(angle) - radius) < 0.006
+            assert 0.002 < rho * se < 0.006
+    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, left_wall=True), config)
+    assert I.outline_size(frame, truth, config) is None
 
 
 def test_detect_recentres_only_where_the_noise_nears_r():
