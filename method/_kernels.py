@@ -1372,6 +1372,15 @@ def fit_ray(rays, cx, cy, cz, radius, free_radius, iterations, s_min, se_s_min):
 
 
 @kernel
+def _on_ray(A, ax, ay, az):
+    """The normal matrix A (4, 4, lower triangle; ``ray_normal_equations``) projected on the unit
+    direction a: (a^T A_cc a, a^T A_cr), the range's own entry and its entry with the radius."""
+    a_tt = (ax * ax * A[0, 0] + ay * ay * A[1, 1] + az * az * A[2, 2]
+            + 2.0 * (ax * ay * A[1, 0] + ax * az * A[2, 0] + ay * az * A[2, 1]))
+    return a_tt, ax * A[3, 0] + ay * A[3, 1] + az * A[3, 2]
+
+
+@kernel
 def fit_range(rays, cx, cy, cz, radius, free_radius, iterations, s_min, se_s_min):
     """``fit_ray`` with the centre held on its ray, c = t a (a = c / |c|): Gauss-Newton on the range t
     (and r where free_radius), the normal equations projected on a. Same returns as ``fit_ray``."""
@@ -1379,15 +1388,13 @@ def fit_range(rays, cx, cy, cz, radius, free_radius, iterations, s_min, se_s_min
     ax, ay, az = cx / t, cy / t, cz / t
     for _ in range(iterations):
         A, g, _ = ray_normal_equations(rays, t * ax, t * ay, t * az, r, max(s_min * abs(r), 1e-12), free_radius)
-        a_tt = (ax * ax * A[0, 0] + ay * ay * A[1, 1] + az * az * A[2, 2]
-                + 2.0 * (ax * ay * A[1, 0] + ax * az * A[2, 0] + ay * az * A[2, 1]))
+        a_tt, a_tr = _on_ray(A, ax, ay, az)
         g_t = ax * g[0] + ay * g[1] + az * g[2]
         if not free_radius:
             if not a_tt > 0.0:
                 break
             t += g_t / a_tt
             continue
-        a_tr = ax * A[3, 0] + ay * A[3, 1] + az * A[3, 2]
         det = a_tt * A[3, 3] - a_tr * a_tr
         if not det > 0.0:
             break
@@ -1398,9 +1405,7 @@ def fit_range(rays, cx, cy, cz, radius, free_radius, iterations, s_min, se_s_min
     n = rays.shape[0]
     se = math.nan
     if free_radius:
-        a_tt = (ax * ax * A[0, 0] + ay * ay * A[1, 1] + az * az * A[2, 2]
-                + 2.0 * (ax * ay * A[1, 0] + ax * az * A[2, 0] + ay * az * A[2, 1]))
-        a_tr = ax * A[3, 0] + ay * A[3, 1] + az * A[3, 2]
+        a_tt, a_tr = _on_ray(A, ax, ay, az)
         det = a_tt * A[3, 3] - a_tr * a_tr
         se = math.sqrt(max(sse / max(n - 2, 1) * a_tt / det, 0.0)) if det > 0.0 else math.inf
     c = np.empty(3)

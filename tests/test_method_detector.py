@@ -1001,15 +1001,14 @@ def test_noisy_far_ball_is_measured_on_its_outline():
     truth = np.array([0.3, -0.1, 2.6])
     u = truth / np.linalg.norm(truth)
     across = lambda c: float(np.linalg.norm((c - truth) - ((c - truth) @ u) * u))
+    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    plain = dataclasses.replace(config, outline_evidence=False)
     gains = []
     for seed in range(3):
-        frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed),
-                                config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2))
+        frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed), config)
         buf = I.workspace("inliers", (frame.index_image.size + 1,), np.int64)
-        on = I.verify_organised(frame, truth, config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2), buf,
-                                frame.no_gate)
-        off = I.verify_organised(frame, truth, config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2,
-                                                          outline_evidence=False), buf, frame.no_gate)
+        on = I.verify_organised(frame, truth, config, buf, frame.no_gate)
+        off = I.verify_organised(frame, truth, plain, buf, frame.no_gate)
         assert across(off.center_m) > 0.003 and across(on.center_m) < 0.002
         gains.append(on.score - off.score)
     assert np.mean(gains) > 0.05
