@@ -349,6 +349,54 @@ HIST_SAMPLES = 32768
 
 
 @kernel
+def _pixels_one_cell(points, rows, cols, img1, tab1, width, height, mm_limit):
+    """``prepare_organised``'s pass where a table cell is one pixel: index and packed depth stored
+    (img1, tab1: flat views). Returns (non-finite count, count of |z| > mm_limit)."""
+    wc = width + 1
+    one = np.uint64(1) << np.uint64(COUNT_SHIFT)
+    z_cap = np.float32(2.0 ** 32)  # a term's bound (mm): depths beyond 4,000 km saturate instead of wrapping
+    n_bad = 0
+    n_big = 0
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not math.isfinite(x + y + z):  # NaN or inf anywhere (a huge finite sum too: no such point is sane)
+            n_bad += 1
+            continue
+        if abs(z) > mm_limit:  # a branch, rarely taken: adding the comparison's bool cost a sixth of the pass
+            n_big += 1
+        r, c = rows[i], cols[i]
+        if z > 0.0 and np.uint32(r) < np.uint32(height) and np.uint32(c) < np.uint32(width):
+            img1[r * width + c] = i
+            # through int64: numba's float-to-uint32 conversion cost a tenth of the pass
+            tab1[(r + 1) * wc + c + 1] = np.uint64(np.int64(min(z * np.float32(1000.0) + np.float32(0.5), z_cap))) + one
+    return n_bad, n_big
+
+
+@kernel
+def _pixels_to_cells(points, rows, cols, img1, tab1, width, height, wc, row_cell, col_cell, mm_limit):
+    """``_pixels_one_cell`` where a table cell sums several pixels: the packed depth added to the
+    pixel's cell (a read-modify-write; a cell's sum kept in a register was no faster)."""
+    one = np.uint64(1) << np.uint64(COUNT_SHIFT)
+    z_cap = np.float32(2.0 ** 32)
+    n_bad = 0
+    n_big = 0
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not math.isfinite(x + y + z):
+            n_bad += 1
+            continue
+        if abs(z) > mm_limit:
+            n_big += 1
+        r, c = rows[i], cols[i]
+        if z > 0.0 and np.uint32(r) < np.uint32(height) and np.uint32(c) < np.uint32(width):
+            img1[r * width + c] = i
+            if row_cell[r] >= 0:
+                tab1[row_cell[r] * wc + col_cell[c]] += (
+                    np.uint64(np.int64(min(z * np.float32(1000.0) + np.float32(0.5), z_cap))) + one)
+    return n_bad, n_big
+
+
+@kernel
 def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit, hist, hist_per_m):
     """One pass over an organised cloud, then the table's prefix sums.
 
@@ -364,53 +412,34 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
     """
     height, width = img.shape
     hc, wc = tab.shape[0], tab.shape[1]
-    one_cell = hc == height + 1 and wc == width + 1
     # flat views and unsigned bounds tests: no negative-index wraparound per 2D access
     img1 = img.reshape(img.size)  # views (contiguous arrays only: numba raises otherwise)
     tab1 = tab.reshape(tab.size)
     img1[:] = -1
     tab1[:] = 0
+    # one loop per table layout, and the histogram in a pass of its own: a branch on either inside
+    # the loop cost a third of the frame pass
+    if hc == height + 1 and wc == width + 1:
+        n_bad, n_big = _pixels_one_cell(points, rows, cols, img1, tab1, width, height, mm_limit)
+    else:
+        n_bad, n_big = _pixels_to_cells(points, rows, cols, img1, tab1, width, height, wc, row_cell, col_cell,
+                                        mm_limit)
     hist[:] = 0
     nb = hist.shape[0]
     n = points.shape[0]
-    # the histogram samples every hstride-th point (i = 0, hstride, ...) in this pass, not in a
-    # separate strided pass that read the cold cloud once more
-    hstride = max(HIST_STRIDE, n // HIST_SAMPLES)
-    next_h = 0
-    one = np.uint64(1) << np.uint64(COUNT_SHIFT)
-    z_cap = np.float32(2.0 ** 32)  # a term's bound (mm): depths beyond 4,000 km saturate instead of wrapping
-    n_ok = 0
-    n_big = 0
-    for i in range(n):
-        sample = i == next_h
-        if sample:
-            next_h += hstride
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        if not math.isfinite(x + y + z):  # NaN or inf anywhere (a huge finite sum too: no such point is sane)
-            continue
-        n_ok += 1
-        n_big += abs(z) > mm_limit
-        r, c = rows[i], cols[i]
-        if z > 0.0 and np.uint32(r) < np.uint32(height) and np.uint32(c) < np.uint32(width):
-            img1[r * width + c] = i
-            if sample:
-                hist[min(int(z * hist_per_m), nb - 1)] += 1
-            # through int64: numba's float-to-uint32 conversion cost a tenth of the pass
-            packed = np.uint64(np.int64(min(z * np.float32(1000.0) + np.float32(0.5), z_cap))) + one
-            if one_cell:  # a store
-                tab1[(r + 1) * wc + c + 1] = packed
-            elif row_cell[r] >= 0:  # a read-modify-write (a cell's sum kept in a register was no faster)
-                tab1[row_cell[r] * wc + col_cell[c]] += packed
-    # row by row: a running sum along the row (serial), then the row above added (vectorised)
+    for i in range(0, n, max(HIST_STRIDE, n // HIST_SAMPLES)):
+        z = points[i, 2]
+        if (math.isfinite(points[i, 0] + points[i, 1] + z) and z > 0.0 and np.uint32(rows[i]) < np.uint32(height)
+                and np.uint32(cols[i]) < np.uint32(width)):
+            hist[min(int(z * hist_per_m), nb - 1)] += 1
+    # row by row: a running sum along the row (serial) plus the row above's prefix sums
     for r in range(1, hc):
         row, above = tab[r], tab[r - 1]
         a = np.uint64(0)
         for c in range(1, wc):
             a += row[c]
-            row[c] = a
-        for c in range(1, wc):
-            row[c] += above[c]
-    return n_ok, n_big
+            row[c] = a + above[c]
+    return n - n_bad, n_big
 
 
 @kernel

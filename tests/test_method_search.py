@@ -225,32 +225,46 @@ def test_huge_cloud_is_bounded_by_max_points():
     assert len(spheres[0].inlier_indices) > 30_000
 
 
-def test_preparation_matches_numpy_in_any_point_order():
-    """``prepare_organised`` on a 424-wide frame (a pixel per cell), the cloud in raster order and
-    reversed: the same index image, counts and summed-area table, the table equal to numpy's
-    cumulative sums of the packed depth and count, every stale entry overwritten; NaN points and
-    points at z <= 0 get no pixel."""
-    cloud = scene(ball_c=(0.1, -0.05, 1.2), width=424, height=240)
+@pytest.mark.parametrize("width, height", [(424, 240), (848, 480), (1280, 720)])
+def test_preparation_matches_numpy_in_any_point_order(width, height):
+    """``prepare_organised`` for each table layout (a pixel per cell at 424 px wide, 2 x 2 pixels at 848,
+    the middle row of 3 x 3 at 1280), the cloud in raster order and reversed: the same index image,
+    counts, histogram and summed-area table, the table equal to numpy's cumulative sums of the packed
+    depth and count over the cells, every stale entry overwritten, the histogram numpy's over every
+    k-th point that gets a pixel; NaN points and points at z <= 0 get no pixel, depths in millimetres
+    are counted."""
+    cloud = scene(ball_c=(0.1, -0.05, 1.2), width=width, height=height)
     h, w = cloud.intrinsics.height, cloud.intrinsics.width
+    b = max(1, w // 424)
+    hc, wc = -(-h // b), -(-w // b)
     pts = cloud.points.copy()
     pts[::97, 0] = np.nan
     pts[5::89, 2] = -1.0
-    row_cell, col_cell = imp.cell_lookup(h, w, 1)
+    pts[7::101, 2] = 1500.0  # millimetres
+    row_cell, col_cell = imp.cell_lookup(h, w, b)
     results = []
     for order in (np.arange(len(pts)), np.arange(len(pts))[::-1]):
         img = np.zeros((h, w), np.int32)
-        tab = np.full((h + 1, w + 1), 7, np.uint64)  # stale contents: every entry must be written
-        hist = np.zeros(imp.HIST_BINS, np.int64)
+        tab = np.full((hc + 1, wc + 1), 7, np.uint64)  # stale contents: every entry must be written
+        hist = np.ones(imp.HIST_BINS, np.int64)
         n_ok, n_big = K.prepare_organised(pts[order], cloud.rows[order], cloud.cols[order], img, tab, row_cell,
                                           col_cell, np.float32(50.0), hist, np.float32(1.0 / imp.HIST_STEP_M))
+        stride = max(K.HIST_STRIDE, len(pts) // K.HIST_SAMPLES)
+        sampled = order[::stride]
+        sampled = sampled[np.isfinite(pts[sampled]).all(axis=1) & (pts[sampled, 2] > 0)]
+        bins = np.minimum((pts[sampled, 2] * np.float32(1.0 / imp.HIST_STEP_M)).astype(np.int64), imp.HIST_BINS - 1)
+        assert np.array_equal(hist, np.bincount(bins, minlength=imp.HIST_BINS))
         results.append((n_ok, n_big, np.where(img >= 0, order[np.maximum(img, 0)], -1), tab))
     (ok1, big1, img1, tab1), (ok2, big2, img2, tab2) = results
-    good = np.isfinite(pts).all(axis=1) & (pts[:, 2] > 0)
-    assert ok1 == ok2 == np.isfinite(pts).all(axis=1).sum() and big1 == big2 == 0
+    finite = np.isfinite(pts).all(axis=1)
+    good = finite & (pts[:, 2] > 0)
+    assert ok1 == ok2 == finite.sum() and big1 == big2 == (finite & (np.abs(pts[:, 2]) > 50.0)).sum() > 0
     assert np.array_equal(img1, img2) and (img1 >= 0).sum() == good.sum()
-    packed = np.zeros((h, w), np.uint64)
-    z_mm = (pts[good, 2] * np.float32(1000.0) + np.float32(0.5)).astype(np.int64).astype(np.uint64)
-    packed[cloud.rows[good], cloud.cols[good]] = z_mm + (np.uint64(1) << np.uint64(K.COUNT_SHIFT))
-    expected = np.zeros((h + 1, w + 1), np.uint64)
-    expected[1:, 1:] = packed.cumsum(axis=0, dtype=np.uint64).cumsum(axis=1, dtype=np.uint64)
+    z_mm = (np.minimum(pts[good, 2] * np.float32(1000.0) + np.float32(0.5), np.float32(2.0 ** 32))
+            .astype(np.int64).astype(np.uint64))
+    packed = z_mm + (np.uint64(1) << np.uint64(K.COUNT_SHIFT))
+    cells = np.zeros((hc + 1, wc + 1), np.uint64)
+    r, c = row_cell[cloud.rows[good]], col_cell[cloud.cols[good]]
+    np.add.at(cells, (r[r >= 0], c[r >= 0]), packed[r >= 0])
+    expected = cells.cumsum(axis=0, dtype=np.uint64).cumsum(axis=1, dtype=np.uint64)
     assert np.array_equal(tab1, expected) and np.array_equal(tab2, expected)
