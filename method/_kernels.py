@@ -443,6 +443,24 @@ def prepare_organised(points, rows, cols, img, tab, row_cell, col_cell, mm_limit
 
 
 @kernel
+def hist_percentile(hist, q, step_m):
+    """The q-th percentile (0-100) of the values counted in hist (B,) int64 (bins of step_m), to a
+    bin's upper edge: the first bin whose cumulative count reaches q % of the total; nan when empty."""
+    total = 0
+    for b in range(hist.shape[0]):
+        total += hist[b]
+    if total == 0:
+        return math.nan
+    target = q / 100.0 * total
+    k = 0
+    run = hist[0]
+    while run < target and k < hist.shape[0] - 1:
+        k += 1
+        run += hist[k]
+    return (k + 1) * step_m
+
+
+@kernel
 def noise_samples(points, img, lag, row_step, col_step, z_min, out):
     """Second differences of depth along image rows, as a frame's own noise sample.
 

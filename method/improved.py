@@ -317,12 +317,9 @@ HIST_BINS = 400
 
 def hist_percentile(hist: np.ndarray, q: float, step_m: float = HIST_STEP_M) -> float:
     """The q-th percentile (0-100) of the depths counted in hist (B,) (bins of step_m), to a bin's
-    upper edge; nan when empty."""
-    total = int(hist.sum())
-    if total == 0:
-        return math.nan
-    k = int(np.searchsorted(np.cumsum(hist), q / 100.0 * total))
-    return (min(k, len(hist) - 1) + 1) * step_m
+    upper edge; nan when empty (``_kernels.hist_percentile``: numpy's cumulative sum and search cost
+    a frame 15-20 us)."""
+    return float(K.hist_percentile(hist, float(q), float(step_m)))
 
 
 _WORKSPACE: dict = {}
