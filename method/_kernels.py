@@ -362,7 +362,7 @@ def _pixels_one_cell(points, rows, cols, img1, tab1, width, height, mm_limit):
         if not math.isfinite(x + y + z):  # NaN or inf anywhere (a huge finite sum too: no such point is sane)
             n_bad += 1
             continue
-        if abs(z) > mm_limit:  # a branch, rarely taken: adding the comparison's bool cost a sixth of the pass
+        if abs(z) > mm_limit:  # a branch, rarely taken: adding the comparison's bool cost 7-13 % of the pass
             n_big += 1
         r, c = rows[i], cols[i]
         if z > 0.0 and np.uint32(r) < np.uint32(height) and np.uint32(c) < np.uint32(width):
