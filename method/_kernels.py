@@ -349,12 +349,20 @@ HIST_SAMPLES = 32768
 
 
 @kernel
+def _packed(z):
+    """One pixel's entry of the summed-area table: its depth z (float32 m) in mm, plus a count of one
+    (``prepare_organised``)."""
+    # a term's bound (mm): depths beyond 4,000 km saturate instead of wrapping; through int64:
+    # numba's float-to-uint32 conversion cost a tenth of the pass
+    mm = min(z * np.float32(1000.0) + np.float32(0.5), np.float32(2.0 ** 32))
+    return np.uint64(np.int64(mm)) + (np.uint64(1) << np.uint64(COUNT_SHIFT))
+
+
+@kernel
 def _pixels_one_cell(points, rows, cols, img1, tab1, width, height, mm_limit):
     """``prepare_organised``'s pass where a table cell is one pixel: index and packed depth stored
     (img1, tab1: flat views). Returns (non-finite count, count of |z| > mm_limit)."""
     wc = width + 1
-    one = np.uint64(1) << np.uint64(COUNT_SHIFT)
-    z_cap = np.float32(2.0 ** 32)  # a term's bound (mm): depths beyond 4,000 km saturate instead of wrapping
     n_bad = 0
     n_big = 0
     for i in range(points.shape[0]):
@@ -367,8 +375,7 @@ def _pixels_one_cell(points, rows, cols, img1, tab1, width, height, mm_limit):
         r, c = rows[i], cols[i]
         if z > 0.0 and np.uint32(r) < np.uint32(height) and np.uint32(c) < np.uint32(width):
             img1[r * width + c] = i
-            # through int64: numba's float-to-uint32 conversion cost a tenth of the pass
-            tab1[(r + 1) * wc + c + 1] = np.uint64(np.int64(min(z * np.float32(1000.0) + np.float32(0.5), z_cap))) + one
+            tab1[(r + 1) * wc + c + 1] = _packed(z)
     return n_bad, n_big
 
 
@@ -376,8 +383,6 @@ def _pixels_one_cell(points, rows, cols, img1, tab1, width, height, mm_limit):
 def _pixels_to_cells(points, rows, cols, img1, tab1, width, height, wc, row_cell, col_cell, mm_limit):
     """``_pixels_one_cell`` where a table cell sums several pixels: the packed depth added to the
     pixel's cell (a read-modify-write; a cell's sum kept in a register was no faster)."""
-    one = np.uint64(1) << np.uint64(COUNT_SHIFT)
-    z_cap = np.float32(2.0 ** 32)
     n_bad = 0
     n_big = 0
     for i in range(points.shape[0]):
@@ -391,8 +396,7 @@ def _pixels_to_cells(points, rows, cols, img1, tab1, width, height, wc, row_cell
         if z > 0.0 and np.uint32(r) < np.uint32(height) and np.uint32(c) < np.uint32(width):
             img1[r * width + c] = i
             if row_cell[r] >= 0:
-                tab1[row_cell[r] * wc + col_cell[c]] += (
-                    np.uint64(np.int64(min(z * np.float32(1000.0) + np.float32(0.5), z_cap))) + one)
+                tab1[row_cell[r] * wc + col_cell[c]] += _packed(z)
     return n_bad, n_big
 
 

@@ -317,8 +317,7 @@ HIST_BINS = 400
 
 def hist_percentile(hist: np.ndarray, q: float, step_m: float = HIST_STEP_M) -> float:
     """The q-th percentile (0-100) of the depths counted in hist (B,) (bins of step_m), to a bin's
-    upper edge; nan when empty (``_kernels.hist_percentile``: numpy's cumulative sum and search cost
-    a frame 15-20 us)."""
+    upper edge; nan when empty (``_kernels.hist_percentile``)."""
     return float(K.hist_percentile(hist, float(q), float(step_m)))
 
 
