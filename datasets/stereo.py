@@ -47,6 +47,8 @@ SGBM_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "hh": cv2.STEREO_SGBM_MODE_HH,
 MIN_DOTS_PER_WINDOW = 0.2
 #: A point is lit when the emitter's ray there reaches this close (relative depth) to it.
 LIT_TOLERANCE = 0.005
+#: Steps of the auto-exposure loop (each: exposure x target / mean); 8 settle within 1 %.
+AE_STEPS = 8
 #: Gaussian smoothing (px) of the pair before the subpixel refinement.
 REFINE_BLUR_PX = 0.8
 
@@ -82,11 +84,16 @@ class StereoSensor:
     dot_power_spread: float = _param(0.2, 0.0, 1.0, "relative RMS of the dots' powers (VCSEL emitters differ)")
     # light
     dot_peak_e_per_ms: float = _param(1500.0, 0.0, 1e6, "a dot's peak signal, e-/ms (calibrated)")
-    ambient_e_per_ms: float = _param(10.0, 0.0, 1e6, "ambient infrared signal, e-/ms (dim room, calibrated)")
+    ambient_e_per_ms: float = _param(40.0, 0.0, 1e6, "ambient infrared signal, e-/ms (indoor, calibrated)")
     albedo: tuple[float, float] = _param((0.3, 0.9), 0.0, 1.0, "infrared albedo range, each primitive's "
                                          "drawn uniformly (indoor surfaces at 850 nm)", "pair")
     # imager (OmniVision OV2740-class global shutter)
-    exposure_ms: float = _param(8.5, 0.02, 166.0, "exposure, ms (librealsense's default 8500 us)")
+    exposure_ms: float = _param(8.5, 0.02, 166.0, "exposure without auto-exposure, ms (librealsense's 8500 us)")
+    auto_exposure: bool = _param(True, 0, 1, "set the exposure per frame from the left image's mean "
+                                 "(the D435's default)", "bool")
+    ae_mean_counts: float = _param(400.0, 10.0, 1000.0, "auto-exposure's target mean, 10-bit counts "
+                                   "(librealsense advanced mode meanIntensitySetPoint, 400)")
+    ae_max_exposure_ms: float = _param(33.0, 0.02, 166.0, "auto-exposure's longest exposure, ms (a 30 fps frame)")
     gain: float = _param(1.0, 1.0, 16.0, "analogue gain, x (D435 gain 16 = 1x, Intel tuning paper)")
     counts_per_e: float = _param(0.25, 1e-3, 10.0, "10-bit counts per electron at gain 1 (full well ~4000 e-)")
     read_noise_e: float = _param(4.0, 0.0, 100.0, "read noise, e- RMS (typical of the class)")
@@ -134,11 +141,16 @@ def _check(f, value) -> None:
     kind, (lo, hi) = meta["kind"], meta["range"]
     bad = SphereBenchError(f"stereo sensor {f.name}={value!r}: must be "
                            + ({"choice": f"one of {', '.join(SGBM_MODES)}",
-                               "pair": f"a range (LO, HI) with {lo:g} <= LO <= HI <= {hi:g}"}.get(kind)
+                               "pair": f"a range (LO, HI) with {lo:g} <= LO <= HI <= {hi:g}",
+                               "bool": "True or False"}.get(kind)
                               or f"{'an integer' if kind == 'int' else 'a number'} from {lo:g} to {hi:g}")
                            + f" ({meta['doc']})")
     if kind == "choice":
         if value not in SGBM_MODES:
+            raise bad
+        return
+    if kind == "bool":
+        if not isinstance(value, (bool, np.bool_)):
             raise bad
         return
     values = tuple(value) if kind == "pair" and isinstance(value, (tuple, list)) and len(value) == 2 else (value,)
@@ -307,10 +319,26 @@ def _irradiance(objects: list, z_m: np.ndarray, label: np.ndarray, rays: np.ndar
     return out
 
 
-def _expose(signal_e_per_ms: np.ndarray, sensor: StereoSensor, rng: np.random.Generator) -> np.ndarray:
-    """Electrons per ms -> 10-bit counts (uint16): shot noise (Gaussian approximation of the
-    Poisson count), read noise, gain, rounding and clipping to the full scale."""
-    e = signal_e_per_ms * sensor.exposure_ms
+def exposure_ms(left_signal_e_per_ms: np.ndarray, sensor: StereoSensor) -> float:
+    """The frame's exposure: fixed, or auto-exposure's, which brings the left image's mean (noise
+    free, clipped at full scale as the imager clips) to ae_mean_counts within [0.02 ms,
+    ae_max_exposure_ms], as the camera's loop settles over frames; both imagers share it."""
+    if not sensor.auto_exposure:
+        return sensor.exposure_ms
+    counts_per_ms = left_signal_e_per_ms * (sensor.counts_per_e * sensor.gain)
+    exposure = sensor.ae_max_exposure_ms
+    for _ in range(AE_STEPS):
+        mean = float(np.mean(np.minimum(counts_per_ms * exposure, FULL_SCALE)))
+        if mean <= 0:
+            break
+        exposure = min(max(exposure * sensor.ae_mean_counts / mean, 0.02), sensor.ae_max_exposure_ms)
+    return exposure
+
+
+def _expose(signal_e_per_ms: np.ndarray, exposure: float, sensor: StereoSensor, rng: np.random.Generator) -> np.ndarray:
+    """Electrons per ms -> 10-bit counts (uint16) over ``exposure`` ms: shot noise (Gaussian
+    approximation of the Poisson count), read noise, gain, rounding and clipping to the full scale."""
+    e = signal_e_per_ms * exposure
     noisy = e + np.sqrt(e) * rng.standard_normal(e.shape) + sensor.read_noise_e * rng.standard_normal(e.shape)
     counts = np.round(noisy * sensor.counts_per_e * sensor.gain)
     return np.clip(counts, 0, FULL_SCALE).astype(np.uint16)
@@ -367,11 +395,12 @@ def stereo_frame(scene, intr: Intrinsics, sensor: StereoSensor, rng: np.random.G
     e_at = np.array([sensor.emitter_x_m, 0.0, 0.0])
     lit_z, _ = raycast([_shifted(o, e_at) for o in objects], _rays(emitter.intr), emitter.intr)
     albedo = rng.uniform(*sensor.albedo, size=len(objects))
-    images = []
+    signals = []
     for origin in (np.zeros(3), right_at):
         z, label = raycast([_shifted(o, origin) for o in objects] if origin.any() else objects, rays, intr)
-        signal = _irradiance(objects, z, label, rays, origin, sensor, emitter, lit_z, albedo)
-        images.append(_expose(signal, sensor, rng))
+        signals.append(_irradiance(objects, z, label, rays, origin, sensor, emitter, lit_z, albedo))
+    exposure = exposure_ms(signals[0], sensor)
+    images = [_expose(signal, exposure, sensor, rng) for signal in signals]
     disparity = match(images[0], images[1], sensor)
     fb = intr.fx * sensor.baseline_m
     with np.errstate(divide="ignore", invalid="ignore"):
