@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from spherebench.camera import Intrinsics, float32_decimal
+from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics, float32_decimal
 from spherebench.circles import circle_bbox
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets.reproject import colorize_depth
@@ -287,6 +287,102 @@ def atomic_directory(final: str | Path, is_ours):
         raise
 
 
+# --------------------------------------------------------------------------- schemas
+#
+# Every JSON file the tool reads is checked against its schema here (check_schema), so that a
+# damaged or hand-edited file is refused in one line naming the file and the field, never met
+# later as a TypeError. A schema is a dict of fields (a name ending in "?" may be absent or null),
+# a one-item list (a list of such items) or the name of a kind of value (_KINDS).
+
+#: Ball radii (m) taken anywhere (--radius, dataset.json, gt.json): from a 5 mm bead, at a depth
+#: camera's nearest range still several pixels wide, to a 2 m balloon, twice the largest inflatable
+#: ball made. Beyond these the number is a unit slip (mm for m), not a ball.
+BALL_RADIUS_RANGE_M = (0.005, 2.0)
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _integer(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _numbers(v, n: int) -> bool:
+    return isinstance(v, list) and len(v) == n and all(_finite(x) for x in v)
+
+
+def is_ball_radius(v) -> bool:
+    return _finite(v) and BALL_RADIUS_RANGE_M[0] <= v <= BALL_RADIUS_RANGE_M[1]
+
+
+_KINDS = {
+    "text": (lambda v: isinstance(v, str), "a string"),
+    "bool": (lambda v: isinstance(v, bool), "true or false"),
+    "int": (_integer, "an integer"),
+    "positive": (lambda v: _finite(v) and v > 0, "a finite number > 0"),
+    "length": (lambda v: _finite(v) and v >= 0, "a finite number >= 0"),
+    "fraction": (lambda v: _finite(v) and 0 <= v <= 1, "a number from 0 to 1"),
+    "size": (lambda v: _integer(v) and 0 < v <= MAX_IMAGE_SIDE_PX,
+             f"a whole number of pixels from 1 to {MAX_IMAGE_SIDE_PX}"),
+    "radius": (is_ball_radius, "a ball radius in metres, {:g} to {:g}".format(*BALL_RADIUS_RANGE_M)),
+    "xy": (lambda v: _numbers(v, 2), "[x, y], two finite numbers"),
+    "xyz": (lambda v: _numbers(v, 3), "[x, y, z], three finite numbers"),
+    "circle": (lambda v: _numbers(v, 3) and v[2] >= 0, "[cx, cy, r], three finite numbers, r >= 0"),
+    "object": (lambda v: isinstance(v, dict), "a JSON object"),
+    "list": (lambda v: isinstance(v, list), "a list"),
+}
+
+
+def _shown(value) -> str:
+    """A value as the file spells it, or what it is where that is long."""
+    text = json.dumps(value)
+    if len(text) <= 40:
+        return text
+    return "a JSON object" if isinstance(value, dict) else "a list" if isinstance(value, list) else text[:37] + "..."
+
+
+def check_schema(path: str | Path, value, schema, fix: str = "fix the file or rebuild the dataset", field: str = ""):
+    """``value``, read from ``path``, checked against ``schema`` (above); returned as it is. A
+    SphereBenchError names the file, the first wrong field (as balls[0].radius_m) and ``fix``."""
+    where = field or "the file"
+    if isinstance(schema, dict):
+        if not isinstance(value, dict):
+            raise SphereBenchError(f"{path}: {where} must be a JSON object, not {_shown(value)}; {fix}")
+        for key, sub in schema.items():
+            name = key.rstrip("?")
+            inner = (f"{name} of {field}" if " " in field else f"{field}.{name}") if field else name
+            if value.get(name) is None:
+                if key.endswith("?"):
+                    continue
+                raise SphereBenchError(f"{path}: {inner} is missing; {fix}")
+            check_schema(path, value[name], sub, fix, inner)
+    elif isinstance(schema, list):
+        if not isinstance(value, list):
+            raise SphereBenchError(f"{path}: {where} must be a list, not {_shown(value)}; {fix}")
+        for i, item in enumerate(value):
+            check_schema(path, item, schema[0], fix, f"{field}[{i}]")
+    else:
+        ok, what = _KINDS[schema]
+        if not ok(value):
+            raise SphereBenchError(f"{path}: {where} must be {what}, not {_shown(value)}; {fix}")
+    return value
+
+
+def read_checked_json(path: str | Path, schema, fix: str = "fix the file or rebuild the dataset"):
+    """A JSON file (``read_json``) checked against ``schema`` (``check_schema``)."""
+    return check_schema(path, read_json(path), schema, fix)
+
+
+def check_ball_radius(value: float, what: str = "--radius") -> float:
+    """A ball radius given on the command line (m), within BALL_RADIUS_RANGE_M, or a one-line error."""
+    if not is_ball_radius(value):
+        lo, hi = BALL_RADIUS_RANGE_M
+        raise SphereBenchError(f"{what} {value:g}: a ball radius is {lo:g} to {hi:g} metres (e.g. 0.12 for a "
+                               "basketball)")
+    return float(value)
+
+
 # --------------------------------------------------------------------------- images
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
@@ -297,14 +393,74 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
     atomic_write_bytes(path, buf.tobytes())
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) px from a PNG's IHDR or a JPEG's frame header; None for another format or
+    a header cut short (OpenCV then says what it makes of the file)."""
+    if data[:8] == _PNG_SIGNATURE and data[12:16] == b"IHDR" and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    i = 2 if data[:2] == b"\xff\xd8" else len(data)
+    while i + 9 <= len(data) and data[i] == 0xFF:
+        marker = data[i + 1]
+        if marker == 0xFF or 0xD0 <= marker <= 0xD8 or marker == 0x01:  # fill byte, markers with no length
+            i += 1 if marker == 0xFF else 2
+            continue
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # a start of frame
+            return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
+        i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+    return None
+
+
+def _check_frame_size(path: Path, width: int, height: int) -> None:
+    if max(width, height) > MAX_IMAGE_SIDE_PX:
+        raise SphereBenchError(f"{path}: the image header says {width}x{height} px, beyond any depth camera's "
+                               f"({MAX_IMAGE_SIDE_PX} px a side at most): the file is damaged or not a camera frame")
+
+
 def _imread(path: Path, flags: int) -> np.ndarray:
     if not path.is_file():
         raise SphereBenchError(f"{path}: file not found")
     data = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(data, flags) if data.size else None
+    size = _header_size(data[:1 << 16].tobytes())
+    if size is not None:
+        _check_frame_size(path, *size)  # before OpenCV allocates the frame
+    try:
+        img = cv2.imdecode(data, flags) if data.size else None
+    except cv2.error:  # e.g. an unknown format's header promising more than CV_IO_MAX_IMAGE_PIXELS
+        img = None
     if img is None:
         raise SphereBenchError(f"{path}: not a readable image (corrupt or truncated?)")
     return img
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) px of an image file, from its header where it is a PNG or JPEG (nothing
+    decoded), else from the image read."""
+    path = Path(path)
+    if not path.is_file():
+        raise SphereBenchError(f"{path}: file not found")
+    with open(path, "rb") as f:
+        size = _header_size(f.read(1 << 16))
+    if size is None:
+        img = _imread(path, cv2.IMREAD_UNCHANGED)
+        return img.shape[1], img.shape[0]
+    _check_frame_size(path, *size)
+    return size
+
+
+def check_scene_image(scene_dir: str | Path, intr: Intrinsics) -> None:
+    """A scene's image.png is there and of its intrinsics' size (its circles are in those pixels):
+    read from the header, nothing decoded."""
+    path = Path(scene_dir) / "image.png"
+    if not path.is_file():
+        raise SphereBenchError(f"{scene_dir}: image.png is missing though the scene has an image (its gt.json, "
+                               "coco_gt.json): the folder is damaged; rebuild the dataset with the command that wrote it")
+    w, h = image_size(path)
+    if (h, w) != intr.shape:
+        raise SphereBenchError(f"{scene_dir}: image.png is {w}x{h} but the intrinsics say {intr.width}x{intr.height}: "
+                               "the circles would be off the image; rebuild the dataset with the command that wrote it")
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -314,6 +470,11 @@ def read_image(path: str | Path) -> np.ndarray:
         path = path / "image.png"
     img = _imread(path, cv2.IMREAD_COLOR)
     return img
+
+
+def read_image_as_stored(path: str | Path) -> np.ndarray:
+    """An image file as it is stored: any bit depth and channels (OpenCV's order: BGR, BGRA)."""
+    return _imread(Path(path), cv2.IMREAD_UNCHANGED)
 
 
 def write_depth_png(path: str | Path, depth: np.ndarray) -> None:
@@ -530,10 +691,23 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
     return final
 
 
+#: gt.json (write_scene): what the readers of a scene rely on.
+BALL_SCHEMA = {"radius_m": "positive", "center_m?": "xyz", "circle?": "circle", "amodal_circle?": "circle",
+               "visible_fraction?": "fraction", "mask?": "text", "silhouette?": "text", "center_source?": "text",
+               "center_se_m?": "xyz"}
+GT_SCHEMA = {"scene_id": "text", "family": "text", "annotated?": "bool", "has_image?": "bool",
+             "ball_radius_m?": "radius", "balls": [BALL_SCHEMA], "meta?": "object"}
+
+
+def read_scene_gt(scene_dir: str | Path) -> dict:
+    """A scene folder's gt.json, checked against GT_SCHEMA."""
+    return read_checked_json(Path(scene_dir) / "gt.json", GT_SCHEMA)
+
+
 def read_scene(scene_dir: str | Path, load_masks: bool = True) -> Scene:
     """A scene folder -> Scene (depth, intrinsics, balls with masks)."""
     scene_dir = Path(scene_dir)
-    gt = read_json(scene_dir / "gt.json")
+    gt = read_scene_gt(scene_dir)
     intr = read_intrinsics(scene_dir / "intrinsics.json") if (scene_dir / "intrinsics.json").is_file() else None
     depth = read_depth_png(scene_dir / "depth.png") if (scene_dir / "depth.png").is_file() else None
     if depth is not None and intr is not None and depth.shape != intr.shape:
@@ -568,8 +742,13 @@ def list_scenes(dataset_dir: str | Path) -> list[Path]:
     return sorted(p for p in scenes.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
+#: dataset.json (finish_dataset): the fields its readers use.
+DATASET_SCHEMA = {"name?": "text", "preset?": "text", "category?": "text", "ball_radius_m?": "radius"}
+
+
 def read_dataset_meta(dataset_dir: str | Path) -> dict:
-    return read_json(Path(dataset_dir) / "dataset.json")
+    """A dataset's dataset.json, checked against DATASET_SCHEMA."""
+    return read_checked_json(Path(dataset_dir) / "dataset.json", DATASET_SCHEMA)
 
 
 def build_coco_gt(dataset_dir: str | Path, category: str = DEFAULT_CATEGORY, name: str | None = None) -> dict:
@@ -583,7 +762,7 @@ def build_coco_gt(dataset_dir: str | Path, category: str = DEFAULT_CATEGORY, nam
     """
     images, annotations = [], []
     for scene_dir in list_scenes(dataset_dir):
-        gt = read_json(scene_dir / "gt.json")
+        gt = read_scene_gt(scene_dir)
         if not gt.get("annotated", True) or not gt.get("has_image", True):
             continue
         intr = read_intrinsics(scene_dir / "intrinsics.json")
@@ -617,11 +796,20 @@ def finish_dataset(dataset_dir: str | Path, meta: dict) -> None:
     write_json(Path(dataset_dir) / "dataset.json", meta)
 
 
+#: coco_gt.json (build_coco_gt): COCO's lists with CircleNet's circle fields.
+COCO_GT_SCHEMA = {"images": [{"id": "int", "width": "size", "height": "size", "file_name?": "text",
+                              "scene_id?": "text"}],
+                  "annotations": [{"image_id": "int", "category_id?": "int", "circle_center": "xy",
+                                   "circle_radius": "length"}],
+                  "categories": [{"id": "int", "name?": "text"}]}
+
+
 def read_coco_gt(dataset_dir: str | Path) -> dict:
+    """A dataset's coco_gt.json, checked against COCO_GT_SCHEMA."""
     path = Path(dataset_dir) / "coco_gt.json"
     if not path.is_file():
         raise SphereBenchError(f"{dataset_dir}: no coco_gt.json: the dataset is incomplete; rebuild it")
-    return read_json(path)
+    return read_checked_json(path, COCO_GT_SCHEMA)
 
 
 # --------------------------------------------------------------------------- recorded-data readers
@@ -695,7 +883,9 @@ def read_camera_json(path: str | Path) -> Intrinsics:
 # HEIGHT, which say whether the cloud is an organised depth grid.
 
 def _pcd_header(path: Path) -> tuple[int, int]:
-    """(WIDTH, HEIGHT) of a PCD file's header, checked: x, y, z fields and POINTS = WIDTH x HEIGHT."""
+    """(WIDTH, HEIGHT) of a PCD file's header, checked before any point is read: x, y, z fields,
+    POINTS = WIDTH x HEIGHT within a camera's frame (MAX_IMAGE_SIDE_PX a side), and data holding
+    that many points (Open3D pads a file cut short with zeros)."""
     if not path.is_file():
         raise SphereBenchError(f"{path}: file not found")
     header: dict[str, list[str]] = {}
@@ -711,11 +901,14 @@ def _pcd_header(path: Path) -> tuple[int, int]:
             header[key.upper()] = values
             if len(header) == 1 and key.upper() not in ("VERSION", "FIELDS"):
                 raise SphereBenchError(f"{path}: not a PCD file (it starts with '{line[:40]}')")
+        offset = f.tell()
     try:
         names = header["FIELDS"]
         width, height = int(header["WIDTH"][0]), int(header["HEIGHT"][0])
         n_points = int(header.get("POINTS", [width * height])[0])
         mode = header["DATA"][0].lower()
+        counts = [int(c) for c in header.get("COUNT", ["1"] * len(names))]
+        point_bytes = sum(int(b) * c for b, c in zip(header.get("SIZE", []), counts, strict=True))
     except (KeyError, IndexError, ValueError) as exc:
         raise SphereBenchError(f"{path}: PCD header is incomplete or malformed ({exc})") from None
     if not {"x", "y", "z"} <= set(names):
@@ -724,7 +917,34 @@ def _pcd_header(path: Path) -> tuple[int, int]:
         raise SphereBenchError(f"{path}: PCD says POINTS {n_points} but WIDTH x HEIGHT = {width}x{height}")
     if mode not in ("ascii", "binary", "binary_compressed"):
         raise SphereBenchError(f"{path}: unknown PCD DATA type '{mode}' (ascii, binary or binary_compressed)")
+    if n_points > MAX_IMAGE_SIDE_PX ** 2 or (height > 1 and max(width, height) > MAX_IMAGE_SIDE_PX):
+        raise SphereBenchError(f"{path}: PCD header promises {width}x{height} points, beyond any depth camera's "
+                               f"frame ({MAX_IMAGE_SIDE_PX} px a side at most): the file is damaged")
+    held = _pcd_points_held(path, mode, offset, point_bytes)
+    if held < n_points:
+        raise SphereBenchError(f"{path}: PCD data holds {held} points, the header promises {n_points}: the file "
+                               "is truncated or corrupt")
     return width, height
+
+
+def _pcd_points_held(path: Path, mode: str, offset: int, point_bytes: int) -> int:
+    """How many points a PCD file's data (from ``offset``) holds: its non-blank lines (ascii), its
+    bytes (binary) or its stated uncompressed size (binary_compressed, whose compressed bytes
+    must all be there)."""
+    size = path.stat().st_size - offset
+    if mode == "ascii":
+        with open(path, "rb") as f:
+            f.seek(offset)
+            return sum(1 for line in f if line.strip())
+    if point_bytes <= 0:
+        raise SphereBenchError(f"{path}: PCD header gives no SIZE of its fields, needed for {mode} data")
+    if mode == "binary":
+        return size // point_bytes
+    with open(path, "rb") as f:
+        f.seek(offset)
+        stated = f.read(8)
+    packed, unpacked = (int.from_bytes(stated[:4], "little"), int.from_bytes(stated[4:], "little"))
+    return unpacked // point_bytes if len(stated) == 8 and size - 8 >= packed else 0
 
 
 def _read_pcd(path: Path) -> tuple[Cloud, int, int]:
@@ -767,6 +987,11 @@ def read_pcd(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
 CLOUD_READERS[".pcd"] = read_pcd
 
 
+#: A LabelMe file and each of its shapes: the keys SphereBench uses.
+LABELME_SCHEMA = {"imagePath?": "text", "imageWidth": "size", "imageHeight": "size", "shapes": ["object"]}
+LABELME_SHAPE_SCHEMA = {"label?": "text", "shape_type?": "text", "points": "list"}
+
+
 def read_labelme(path: str | Path) -> dict:
     """A LabelMe annotation file -> its JSON object, checked for the keys SphereBench uses
     (imagePath, imageWidth, imageHeight, shapes with label, shape_type, points)."""
@@ -774,17 +999,13 @@ def read_labelme(path: str | Path) -> dict:
     d = read_json(path)
     if not isinstance(d, dict) or not isinstance(d.get("shapes"), list):
         raise SphereBenchError(f"{path}: not a LabelMe file (no 'shapes' list)")
-    for key in ("imageWidth", "imageHeight"):
-        if not isinstance(d.get(key), int):
-            raise SphereBenchError(f"{path}: LabelMe file lacks an integer '{key}'")
+    fix = "fix the shape in LabelMe or remove it"
+    check_schema(path, d, LABELME_SCHEMA, fix)
     for i, shape in enumerate(d["shapes"]):
-        pts = shape.get("points") if isinstance(shape, dict) else None
-        try:
-            ok = np.asarray(pts, dtype=np.float64).ndim == 2 and np.asarray(pts).shape[1] == 2
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise SphereBenchError(f"{path}: LabelMe shape {i} has no list of [x, y] points")
+        name = f"LabelMe shape {i} ({shape.get('shape_type') or 'polygon'} {shape.get('label')!r})"
+        check_schema(path, shape, LABELME_SHAPE_SCHEMA, fix, name)
+        for k, point in enumerate(shape["points"]):
+            check_schema(path, point, "xy", fix, f"point {k} of {name}")
     return d
 
 

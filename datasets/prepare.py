@@ -42,12 +42,11 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from spherebench import __version__
-from spherebench.camera import Intrinsics, align_to_depth, project
+from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics, align_to_depth, project
 from spherebench.cloud import Cloud, depth_to_metres
 from spherebench.datasets import inout
 from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
@@ -176,8 +175,9 @@ class RawFormat:
         if not size:
             return cls(None, None, dtype, byte_order)
         m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", size)
-        if not m or int(m.group(1)) == 0 or int(m.group(2)) == 0:
-            raise SphereBenchError(f"{option} must be WIDTHxHEIGHT in pixels, e.g. 640x480, got '{size}'")
+        if not m or not all(0 < int(v) <= MAX_IMAGE_SIDE_PX for v in m.groups()):
+            raise SphereBenchError(f"{option} must be WIDTHxHEIGHT in pixels, 1 to {MAX_IMAGE_SIDE_PX} a side, e.g. "
+                                   f"640x480, got '{size}'")
         return cls(int(m.group(1)), int(m.group(2)), dtype, byte_order)
 
 
@@ -198,8 +198,7 @@ class PrepareOptions:
     label: str | None = None
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.ball_radius_m) and self.ball_radius_m > 0):
-            raise SphereBenchError(f"--radius must be a positive number of metres, got {self.ball_radius_m}")
+        inout.check_ball_radius(self.ball_radius_m)
         if self.depth_scale is not None and not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
             raise SphereBenchError(f"--depth-scale must be > 0 metres per unit, got {self.depth_scale}")
 
@@ -806,9 +805,7 @@ def note_to_stderr(text: str) -> None:
 
 def _check_colour(path: Path, shape: tuple[int, int]) -> None:
     """A colour frame must be a readable image of the depth's size (it is registered to it)."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise SphereBenchError(f"{path}: the colour image is not a readable JPEG or PNG")
+    image = inout.read_image_as_stored(path)
     if image.shape[:2] != tuple(shape):
         raise SphereBenchError(f"{path}: the colour image is {image.shape[1]}x{image.shape[0]} but the depth is "
                                f"{shape[1]}x{shape[0]}: give colour registered to the depth (the same pixel grid)")

@@ -391,8 +391,7 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
     2D consumers read image.png only: 2,000 clouds would take several GB)."""
     if clouds is None:
         clouds = preset_name != "train"
-    if not (0.01 <= radius_m <= 2.0):
-        raise SphereBenchError(f"--radius {radius_m} m is not a ball radius (0.01-2 m); the basketball is 0.12")
+    inout.check_ball_radius(radius_m)
     overrides = dict(sensor_overrides or {})
     for name, value in overrides.items():
         check_setting(name, value)

@@ -164,7 +164,7 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
     with executor(1, isolated=True) as ex:  # one worker process, one thread: the times are the detector's own
         for ds in datasets:
             scenes = [s for s in dataset_scenes(ds, limit) if s.has_cloud]
-            gts = {s.scene_id: inout.read_json(s.path / "gt.json") for s in scenes}
+            gts = {s.scene_id: inout.read_scene_gt(s.path) for s in scenes}
             meta = inout.read_dataset_meta(ds) if (Path(ds) / "dataset.json").is_file() else {}
             R = float(meta.get("ball_radius_m", 0.12))
             runs = {"improved": list(range(len(scenes))), "paper": subset(len(scenes), paper_subset),

@@ -19,7 +19,6 @@ hg/model.onnx); otherwise the tables say it was skipped.
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 from typing import Sequence
@@ -71,17 +70,17 @@ BENCHMARK_INTRO = [
 
 def check_dataset(data_dir: Path) -> float:
     """A dataset's ball radius (m), once the files that say what it holds (dataset.json, coco_gt.json,
-    every gt.json) have been read: a damaged one is refused before any method runs."""
+    every gt.json, intrinsics.json, the size of every image.png) have been read: a damaged one is
+    refused before any method runs."""
     if not (data_dir / "scenes").is_dir():
         raise SphereBenchError(f"{data_dir}: not a dataset (no scenes/ folder); build one with "
                                "'spherebench generate' or 'spherebench prepare'")
     meta = inout.read_dataset_meta(data_dir) if (data_dir / "dataset.json").is_file() else {}
-    radius = meta.get("ball_radius_m", 0.12) if isinstance(meta, dict) else None
-    if not (isinstance(radius, (int, float)) and math.isfinite(radius) and radius > 0):
-        raise SphereBenchError(f"{data_dir / 'dataset.json'}: ball_radius_m must be the ball's radius in metres, "
-                               f"not {radius!r}; rebuild the dataset")
-    dataset_scenes(data_dir)
-    return float(radius)
+    for s in dataset_scenes(data_dir):
+        # a 2D method's input must be the image its circles are scored in
+        if s.image_id is not None or (s.has_image and s.resolution is not None):
+            inout.check_scene_image(s.path, inout.read_intrinsics(s.path))
+    return float(meta.get("ball_radius_m") or 0.12)
 
 
 def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None = None, seed: int = 0,

@@ -118,7 +118,7 @@ def facts(data_dir: str | Path) -> dict | None:
     for s in scenes:
         if not s.annotated:
             continue
-        gt = inout.read_json(s.path / "gt.json")
+        gt = inout.read_scene_gt(s.path)
         intr = inout.read_intrinsics(s.path) if (s.path / "intrinsics.json").is_file() else None
         for b in gt.get("balls", []):
             n_balls += 1

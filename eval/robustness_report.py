@@ -48,7 +48,7 @@ TIME_RATIO_GROWTH = 1.1
 def _run(ex, dataset: str, seeds: list[int], overrides: dict, oracle: bool, limit: int | None) -> dict:
     """Per-seed scene counts of one dataset, and (oracle=True) per-ball rows with the oracle's ceiling."""
     scenes = [s for s in dataset_scenes(dataset, limit) if s.has_cloud]
-    gts = {s.scene_id: inout.read_json(s.path / "gt.json") for s in scenes}
+    gts = {s.scene_id: inout.read_scene_gt(s.path) for s in scenes}
     radius = float((inout.read_dataset_meta(dataset) or {}).get("ball_radius_m", 0.12))
     spec = detector_spec("improved", **{"radius_m": radius, **overrides})
     ceilings = {}

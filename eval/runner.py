@@ -66,11 +66,11 @@ def dataset_scenes(data_dir: str | Path, limit: int | None = None) -> list[Scene
     image_ids = {img.get("scene_id"): img["id"] for img in coco["images"]}
     out = []
     for k, scene in enumerate(inout.list_scenes(root)[:limit]):
-        gt = inout.read_json(scene / "gt.json")
+        gt = inout.read_scene_gt(scene)
         res = None
         if (scene / "intrinsics.json").is_file():
-            intr = inout.read_json(scene / "intrinsics.json")
-            res = f"{intr.get('width')}x{intr.get('height')}"
+            intr = inout.read_intrinsics(scene / "intrinsics.json")
+            res = f"{intr.width}x{intr.height}"
         visible = [b for b in gt.get("balls", []) if b.get("circle") is not None or not (scene / "image.png").is_file()]
         balls = [b for b in visible if b.get("center_m") is not None]
         out.append(SceneInfo(index=k, scene_id=str(gt.get("scene_id", scene.name)), path=scene,

@@ -73,7 +73,7 @@ def oracle_scene(task: tuple) -> list[dict]:
     """``oracle_balls``' rows of one scene (in a worker): task (config JSON, scene folder, seed)."""
     config_json, scene_dir, seed = task
     config = DetectorConfig(**json.loads(config_json))
-    gt = inout.read_json(Path(scene_dir) / "gt.json")
+    gt = inout.read_scene_gt(scene_dir)
     balls = [(k, b) for k, b in enumerate(gt.get("balls", [])) if b.get("center_m") is not None]
     if not balls:
         return []

@@ -34,7 +34,7 @@ def sweep(datasets: list[str], seeds: list[int], method: str = "improved", overr
     with executor(workers, engine, address) as ex:
         for ds in datasets:
             scenes = [s for s in dataset_scenes(ds, limit) if s.has_frame]
-            gts = {s.scene_id: inout.read_json(s.path / "gt.json") for s in scenes}
+            gts = {s.scene_id: inout.read_scene_gt(s.path) for s in scenes}
             meta = inout.read_dataset_meta(ds) if (Path(ds) / "dataset.json").is_file() else {}
             spec = detector_spec(method, **{"radius_m": float(meta.get("ball_radius_m", 0.12)), **overrides})
             tasks = [t for seed in seeds for t in tasks_for(spec, scenes, seed)]

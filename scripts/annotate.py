@@ -26,7 +26,6 @@ import math
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from spherebench.cloud import depth_to_metres
@@ -77,9 +76,7 @@ def _load(scene: Path, colour_path: Path):
     """(colour BGR, depth m, intrinsics) of a scene, the colour checked against the depth's size."""
     intr = inout.read_intrinsics(scene / "intrinsics.json")
     depth = inout.read_depth_png(scene / "depth.png")
-    colour = cv2.imread(str(colour_path), cv2.IMREAD_COLOR)
-    if colour is None:
-        raise SphereBenchError(f"{colour_path}: not a readable colour image")
+    colour = inout.read_image(colour_path)
     if colour.shape[:2] != depth.shape:
         raise SphereBenchError(f"{colour_path}: the colour frame is {colour.shape[1]}x{colour.shape[0]} but the depth is "
                                f"{depth.shape[1]}x{depth.shape[0]}: it is not registered to the depth")
@@ -129,9 +126,10 @@ def run(args: argparse.Namespace) -> int:
     hsv = parse_hsv(args.hsv)
     if not inout.is_dataset_dir(args.dataset):
         raise SphereBenchError(f"{args.dataset}: not a dataset (no dataset.json); prepare one with `spherebench prepare`")
-    radius = args.radius if args.radius is not None else inout.read_dataset_meta(args.dataset).get("ball_radius_m")
-    if radius is None or not (math.isfinite(radius) and radius > 0):
-        raise SphereBenchError(f"the ball radius must be a positive number of metres, got {radius}; give --radius")
+    radius = (inout.check_ball_radius(args.radius) if args.radius is not None
+              else inout.read_dataset_meta(args.dataset).get("ball_radius_m"))
+    if radius is None:
+        raise SphereBenchError(f"{args.dataset}/dataset.json gives no ball_radius_m: give --radius")
     if not args.label.strip():
         raise SphereBenchError("--label is empty: give the ball's label, e.g. ball")
     scenes = _scenes_with_colour(args.dataset)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from spherebench import options
 from spherebench.datasets import inout
 from spherebench.datasets.annotate import ball_point_colors, draw_detections, draw_ground_truth
 from spherebench.errors import SphereBenchError
@@ -33,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the same, from RESULTS/predictions/<dataset>/<NAME>.json (e.g. improved, circlenet)")
     p.add_argument("--results", type=Path, default=Path("results"), metavar="RESULTS",
                    help="the results folder of --method (default: results)")
-    p.add_argument("--min-score", type=float, default=0.3, metavar="S",
+    p.add_argument("--min-score", type=options.fraction, default=0.3, metavar="S",
                    help="draw detections scoring at least S (default 0.3; mAP files hold every score)")
 
 
@@ -71,11 +72,11 @@ def run(args: argparse.Namespace) -> int:
     scene_dir = args.scene
     if not (scene_dir / "gt.json").is_file():
         raise SphereBenchError(f"{scene_dir}: not a scene folder (no gt.json); give DIR/scenes/<scene_id>")
-    if inout.read_json(scene_dir / "gt.json").get("has_image", True) and not (scene_dir / "depth.png").is_file():
+    if inout.read_scene_gt(scene_dir).get("has_image", True) and not (scene_dir / "depth.png").is_file():
         raise SphereBenchError(f"depth.png is missing in {scene_dir}: gt.json says the scene has an image, so the "
                                "folder is damaged; rebuild the dataset with the command that wrote it")
     scene = inout.read_scene(scene_dir)
-    radius = inout.read_json(scene_dir / "gt.json").get("ball_radius_m")
+    radius = inout.read_scene_gt(scene_dir).get("ball_radius_m")
     image = None if scene.depth is None else inout.read_image(scene_dir)
     if image is not None and image.shape[:2] != scene.depth.shape:  # the circles are in depth.png's pixels
         raise SphereBenchError(f"{scene_dir}: image.png is {image.shape[1]}x{image.shape[0]} but depth.png and the "

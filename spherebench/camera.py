@@ -32,6 +32,12 @@ D435_DEPTH_SCALE_M = 0.001
 FOCAL_PER_SIZE_RANGE = (0.04, 60.0)
 #: The largest fx / fy (or fy / fx) accepted: pixels about square, as every depth camera's are.
 MAX_FOCAL_RATIO = 3.0
+#: The largest image side (px) read anywhere (intrinsics, depth and colour images, organised
+#: clouds): twice the widest frame of a depth camera's streams (4096 px, the Azure Kinect's colour;
+#: depth streams are at most 2448 px wide). A frame of 8192 x 8192 is 128 MiB of depth and 1.5 GiB
+#: as a float64 cloud; a header promising more is damaged or not a camera's, and is refused before
+#: anything is allocated for it.
+MAX_IMAGE_SIDE_PX = 8192
 
 
 @dataclass(frozen=True)
@@ -57,8 +63,9 @@ class Intrinsics:
         object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
         object.__setattr__(self, "model", str(self.model).lower().removeprefix("rs2_distortion_").removeprefix("distortion."))
         problems = []
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            problems.append(f"image size {self.width}x{self.height} must be positive")
+        if not all(float(v).is_integer() and 0 < v <= MAX_IMAGE_SIDE_PX for v in (self.width, self.height)):
+            problems.append(f"image size {self.width}x{self.height} must be whole numbers of pixels from 1 to "
+                            f"{MAX_IMAGE_SIDE_PX} a side (no depth camera's frame is larger)")
         for name in ("ppx", "ppy", "fx", "fy", "depth_scale"):
             if not math.isfinite(float(getattr(self, name))):
                 problems.append(f"{name} is not a finite number")
@@ -107,7 +114,7 @@ class Intrinsics:
             raise SphereBenchError(f"intrinsics lack {', '.join(missing)}: give width, height, ppx, ppy, fx, fy "
                                    "(and optionally model, coeffs, depth_scale)")
         try:
-            return cls(width=int(d["width"]), height=int(d["height"]), ppx=float(d["ppx"]), ppy=float(d["ppy"]),
+            return cls(width=_pixels(d["width"]), height=_pixels(d["height"]), ppx=float(d["ppx"]), ppy=float(d["ppy"]),
                        fx=float(d["fx"]), fy=float(d["fy"]), model=d.get("model", "none") or "none",
                        coeffs=tuple(d.get("coeffs") or (0.0,) * 5),
                        depth_scale=float(d.get("depth_scale", D435_DEPTH_SCALE_M)))
@@ -141,6 +148,14 @@ class Intrinsics:
         return Intrinsics(width=width, height=height, ppx=(self.ppx + 0.5) * sx - 0.5,
                           ppy=(self.ppy + 0.5) * sy - 0.5, fx=self.fx * sx, fy=self.fy * sy,
                           model=self.model, coeffs=self.coeffs, depth_scale=self.depth_scale)
+
+
+def _pixels(value) -> int | float:
+    """An image side from JSON: an int, a float kept as it is (424.7 is then refused, not cut to 424)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise TypeError(f"an image side must be a number, not {value!r}")
+    value = float(value)
+    return int(value) if value.is_integer() else value
 
 
 def float32_decimal(value: float) -> float:

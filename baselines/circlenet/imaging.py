@@ -28,6 +28,7 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 
 from spherebench.camera import D435_FOCAL_PER_WIDTH
+from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
 # The exported model's contract (onnx_export writes it, infer checks it), here so that inference
@@ -73,9 +74,7 @@ def load_image(path, expected_size: tuple[int, int] | None = None) -> np.ndarray
     path = Path(path)
     if not path.is_file():
         raise SphereBenchError(f"image {path} not found")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise SphereBenchError(f"{path} is not a readable image; pass a scene's colourised image.png")
+    raw = inout.read_image_as_stored(path)
     if raw.dtype != np.uint8 or raw.ndim != 3 or raw.shape[2] != 3:
         kind = f"{raw.dtype} with {1 if raw.ndim == 2 else raw.shape[2]} channel(s)"
         hint = " (a depth image? pass the colourised image.png)" if raw.dtype == np.uint16 else ""

@@ -87,7 +87,7 @@ def real_study(dataset, model=DEFAULT_MODEL) -> dict:
     detector = CircleNetDetector(model, threads=1)
     items = []
     for scene in inout.list_scenes(dataset):
-        gt = inout.read_json(scene / "gt.json")
+        gt = inout.read_scene_gt(scene)
         if not gt.get("annotated") or not (scene / "image.png").is_file():
             continue
         circles = np.asarray([b["circle"] for b in gt["balls"] if b.get("circle")], np.float64).reshape(-1, 3)
