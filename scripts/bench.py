@@ -21,15 +21,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("datasets", nargs="*", default=["data/default", "data/hard"], help="dataset folders")
     p.add_argument("--out", default=None, help="write OUT.md and OUT.json (atomically)")
     p.add_argument("--seed", type=options.seed, default=0, help="run seed (scene k: SeedSequence((seed, k)))")
-    p.add_argument("--paper-subset", type=int, default=-1,
+    p.add_argument("--paper-subset", type=options.subset, default=-1,
                    help="scenes per dataset for paper and paper-lstsq (evenly spaced; 0: none, -1: all)")
-    p.add_argument("--peer-subset", type=int, default=12, help="scenes per dataset for pyransac3d (as above)")
-    p.add_argument("--peer-points", type=int, default=10_000, help="pyransac3d's random subsample per cloud")
-    p.add_argument("--peer-iterations", type=int, default=1000, help="pyransac3d's iterations")
+    p.add_argument("--peer-subset", type=options.subset, default=12, help="scenes per dataset for pyransac3d (as above)")
+    p.add_argument("--peer-points", type=options.count, default=10_000, help="pyransac3d's random subsample per cloud")
+    p.add_argument("--peer-iterations", type=options.count, default=1000, help="pyransac3d's iterations")
     p.add_argument("--limit", type=options.count, default=None, help="at most this many scenes per dataset (quick runs)")
     p.add_argument("--min-scores", default=",".join(f"{t:g}" for t in MIN_SCORES),
                    help="improved's operating points: min_score thresholds, comma-separated ('' for none)")
-    p.add_argument("--passes", type=int, default=3,
+    p.add_argument("--passes", type=options.count, default=3,
                    help="timing passes of improved over each dataset (>= 1; 'best of N' in the table)")
 
 
@@ -38,8 +38,6 @@ def run(args: argparse.Namespace) -> int:
         inout.list_scenes(ds)  # a clear error for a missing dataset before any work
     if args.out:
         inout.check_report_out(args.out, "bench")
-    if args.passes < 1:
-        raise SphereBenchError(f"--passes {args.passes}: give at least 1 timing pass")
     try:
         min_scores = tuple(sorted({float(t) for t in args.min_scores.split(",") if t.strip()}))
     except ValueError:

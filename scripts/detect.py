@@ -9,8 +9,11 @@ without, a short summary. A stream ends with a summary on stderr: frames, median
 percentile time per frame, frames dropped (--real-time, a camera: detection fell behind) and
 missing (the recording lost them). The ball radius is --radius, else the dataset's (dataset.json
 two levels above a scene folder), else the scene's (gt.json), else 0.12 m (a basketball);
-radius_source says which ("--radius", "dataset", "scene", "default"). Every argument and input
-is checked before the first detection. Files are read and written only through
+radius_source says which ("--radius", "dataset", "scene", "default"). Every argument is checked
+before the first detection, and every input as far as it can be unread (it exists, its format,
+its radius). An input that turns out bad (missing, damaged, refused by the detector) gets one line
+on stderr, ``spherebench detect: error: PATH: what is wrong``, and is skipped: the others are
+detected and printed, and the exit status is then 2. Files are read and written only through
 ``spherebench.datasets.inout``; streams come from ``spherebench.datasets.stream``.
 """
 
@@ -19,7 +22,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
 import sys
 import time
 from array import array
@@ -29,6 +31,7 @@ import cv2
 import numpy as np
 
 from spherebench import options, viz
+from spherebench.cli import os_error_message
 from spherebench.cloud import in_front_of_camera
 from spherebench.datasets import inout, stream
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
@@ -100,17 +103,6 @@ def _scene_dir(path: Path) -> Path | None:
     return folder if (folder / "gt.json").is_file() and (path.is_dir() or path.name == "cloud.ply") else None
 
 
-def _radius_of(value, where: Path) -> float:
-    try:
-        r = float(value)
-    except (TypeError, ValueError):
-        r = math.nan
-    if not (math.isfinite(r) and r > 0):
-        raise SphereBenchError(f"{where}: ball_radius_m {value!r} is not a radius in metres; fix the file or "
-                               "give --radius")
-    return r
-
-
 def ball_radius(path: Path, given: float | None) -> tuple[float, str]:
     """(radius m, its source) for one input: --radius, the dataset's, the scene's or the default."""
     if given is not None:
@@ -118,15 +110,12 @@ def ball_radius(path: Path, given: float | None) -> tuple[float, str]:
     scene = _scene_dir(path)
     if scene is None:
         return DEFAULT_RADIUS_M, "default"
-    meta = scene.parent.parent / "dataset.json"
-    if scene.parent.name == "scenes" and meta.is_file():
-        d = inout.read_json(meta)
-        if isinstance(d, dict) and d.get("ball_radius_m") is not None:
-            return _radius_of(d["ball_radius_m"], meta), "dataset"
-    gt = inout.read_json(scene / "gt.json")
-    if isinstance(gt, dict) and gt.get("ball_radius_m") is not None:
-        return _radius_of(gt["ball_radius_m"], scene / "gt.json"), "scene"
-    return DEFAULT_RADIUS_M, "default"
+    if scene.parent.name == "scenes" and (scene.parent.parent / "dataset.json").is_file():
+        radius = inout.read_dataset_meta(scene.parent.parent).get("ball_radius_m")
+        if radius is not None:
+            return radius, "dataset"
+    radius = inout.read_scene_gt(scene).get("ball_radius_m")
+    return (radius, "scene") if radius is not None else (DEFAULT_RADIUS_M, "default")
 
 
 def _check_input(path: Path) -> None:
@@ -192,12 +181,9 @@ def _tolerance(args: argparse.Namespace, radius: float, source: str, raw: str) -
 def _image_for(path: Path, cloud) -> np.ndarray:
     """The reprojected image: a scene folder's image.png, else the organised cloud's depth colourised."""
     if path.is_dir() and (path / "image.png").is_file():
-        image = inout.read_image(path / "image.png")
-        intr = cloud.intrinsics
-        if intr is not None and image.shape[:2] != intr.shape:
-            raise SphereBenchError(f"{path}: image.png is {image.shape[1]}x{image.shape[0]} but the intrinsics say "
-                                   f"{intr.width}x{intr.height}: the circles would be drawn off the image")
-        return image
+        if cloud.intrinsics is not None:
+            inout.check_scene_image(path, cloud.intrinsics)
+        return inout.read_image(path / "image.png")
     if not cloud.organised:
         raise SphereBenchError(f"{path}: --out-png needs an organised cloud with intrinsics (rows, cols) "
                                "or a scene folder with image.png")
@@ -259,10 +245,15 @@ def _stream_summary(raw: str, times_ms, stats: stream.StreamStats, real_time: bo
 
 def run(args: argparse.Namespace) -> int:
     # every argument and input first: nothing is detected, printed or written before all are good
-    if args.radius is not None and not (np.isfinite(args.radius) and args.radius > 0):
-        raise SphereBenchError(f"--radius {args.radius}: the ball radius must be > 0 metres (e.g. 0.12)")
+    if args.radius is not None:
+        inout.check_ball_radius(args.radius)
+        _tolerance(args, args.radius, "--radius", "--radius")
     if args.depth_noise is not None and not (np.isfinite(args.depth_noise) and args.depth_noise >= 0):
         raise SphereBenchError(f"--depth-noise {args.depth_noise}: give sigma_z / z^2 in 1/m, >= 0 (e.g. 0.0015)")
+    camera = args.camera or ""
+    if camera and ("/" in camera or Path(camera).suffix or Path(camera).exists()):
+        raise SphereBenchError(f"--camera {camera}: --camera takes a serial number; give the file as a PATH argument "
+                               f"(spherebench detect {camera})")
     if args.camera is not None and args.paths:
         raise SphereBenchError("--camera reads the camera: give no PATH with it")
     if args.camera is None and not args.paths:
@@ -278,18 +269,31 @@ def run(args: argparse.Namespace) -> int:
     selection = FrameSelection.parse(args.every, args.frames, args.time_range)
     extra = {} if args.depth_noise is None else {"noise_z2_per_m": args.depth_noise}
     intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
+    failed = []
+
+    def skip(raw: str, exc: Exception) -> None:
+        """A bad input's one line; the others go on."""
+        if isinstance(exc, BrokenPipeError):  # the reader of stdout has gone: nothing more to say
+            raise exc
+        failed.append(raw)
+        text = os_error_message(exc) if isinstance(exc, OSError) else str(exc)
+        print(f"spherebench detect: error: {text}", file=sys.stderr, flush=True)
+
     jobs = []
     for raw in args.paths:
         path = Path(raw)
-        _check_input(path)
-        radius, source = ball_radius(path, args.radius)
-        eps = _tolerance(args, radius, source, raw)
-        if stream.is_recording(path):  # opened now: a recording without depth is refused before any work
-            stats = stream.StreamStats()
-            jobs.append((raw, path, radius, source, eps,
-                         (stream.recording_frames(path, selection, args.real_time, stats), stats)))
-        else:
-            jobs.append((raw, path, radius, source, eps, None))
+        try:
+            _check_input(path)
+            radius, source = ball_radius(path, args.radius)
+            eps = _tolerance(args, radius, source, raw)
+            if stream.is_recording(path):  # opened now: a recording without depth is refused before any work
+                stats = stream.StreamStats()
+                jobs.append((raw, path, radius, source, eps,
+                             (stream.recording_frames(path, selection, args.real_time, stats), stats)))
+            else:
+                jobs.append((raw, path, radius, source, eps, None))
+        except (SphereBenchError, OSError) as exc:
+            skip(raw, exc)
     if args.camera is not None:
         width, height = _size(args.size)
         radius, source = (args.radius, "--radius") if args.radius is not None else (DEFAULT_RADIUS_M, "default")
@@ -318,47 +322,50 @@ def run(args: argparse.Namespace) -> int:
                 inout.write_json(Path(labelme_dir) / inout.OWNER_MARKER, {"kind": LABELME_KIND,
                                                                            "written_by": "spherebench"})
             for raw, path, radius, source, eps, streamed in jobs:
-                if streamed is not None:
-                    frames, stats = streamed
-                    stem = scene_id_from(path.stem) if path is not None else f"camera{args.camera or ''}"
-                    times = array("d")  # floats, not frames: bounded over an hour-long recording
-                    for frame, spheres, ms in stream.detect_stream(frames, config(radius, eps), args.seed, stats):
+                try:
+                    if streamed is not None:
+                        frames, stats = streamed
+                        stem = scene_id_from(path.stem) if path is not None else f"camera{args.camera or ''}"
+                        times = array("d")  # floats, not frames: bounded over an hour-long recording
+                        for frame, spheres, ms in stream.detect_stream(frames, config(radius, eps), args.seed, stats):
+                            stream.print_notes(stats, f"note: {raw}")
+                            times.append(ms)
+                            _print_result(args, raw, spheres, ms, radius, source, frame)
+                            _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
+                            if log is not None:
+                                log.frame(raw, frame, spheres)
                         stream.print_notes(stats, f"note: {raw}")
-                        times.append(ms)
-                        _print_result(args, raw, spheres, ms, radius, source, frame)
-                        _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
-                        if log is not None:
-                            log.frame(raw, frame, spheres)
-                    stream.print_notes(stats, f"note: {raw}")
-                    _stream_summary(raw, times, stats, args.real_time or path is None)
-                    continue
-                cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)
-                if behind:
-                    print(f"note: {raw}: {behind} points at z <= 0 left out (a depth camera sees only z > 0)",
-                          file=sys.stderr)
-                image = _image_for(path, cloud) if args.out_png else None  # before the work: it may be refused
-                if labelme_dir is not None and not cloud.organised:
-                    raise SphereBenchError(f"{raw}: --labelme-out needs an image: an organised cloud with intrinsics")
-                cfg = config(radius, eps)
-                t = time.perf_counter()
-                spheres = detect(cloud, cfg, seed=args.seed)
-                ms = (time.perf_counter() - t) * 1e3
-                _print_result(args, raw, spheres, ms, radius, source)
-                if labelme_dir is not None:
-                    _labelme(labelme_dir, scene_id_from(path.name if path.is_dir() else path.stem), spheres,
-                             cloud.intrinsics.shape)
-                if log is not None:
-                    log.cloud(raw, cloud, spheres)
-                if args.out_ply:
-                    colours = np.tile(np.array(OTHER_RGB, np.uint8), (len(cloud.points), 1))
-                    for s in spheres:
-                        colours[s.inlier_indices] = INLIER_RGB
-                    keep = np.isfinite(cloud.points).all(axis=1)
-                    inout.write_ply(args.out_ply, cloud.points[keep], colours[keep])
-                if args.out_png:
-                    inout.write_png(args.out_png, draw_detections(image, [s.circle_exact for s in spheres],
-                                                                  [s.score for s in spheres]))
+                        _stream_summary(raw, times, stats, args.real_time or path is None)
+                        continue
+                    cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)
+                    if behind:
+                        print(f"note: {raw}: {behind} points at z <= 0 left out (a depth camera sees only z > 0)",
+                              file=sys.stderr)
+                    image = _image_for(path, cloud) if args.out_png else None  # before the work: it may be refused
+                    if labelme_dir is not None and not cloud.organised:
+                        raise SphereBenchError(f"{raw}: --labelme-out needs an image: an organised cloud with intrinsics")
+                    cfg = config(radius, eps)
+                    t = time.perf_counter()
+                    spheres = detect(cloud, cfg, seed=args.seed)
+                    ms = (time.perf_counter() - t) * 1e3
+                    _print_result(args, raw, spheres, ms, radius, source)
+                    if labelme_dir is not None:
+                        _labelme(labelme_dir, scene_id_from(path.name if path.is_dir() else path.stem), spheres,
+                                 cloud.intrinsics.shape)
+                    if log is not None:
+                        log.cloud(raw, cloud, spheres)
+                    if args.out_ply:
+                        colours = np.tile(np.array(OTHER_RGB, np.uint8), (len(cloud.points), 1))
+                        for s in spheres:
+                            colours[s.inlier_indices] = INLIER_RGB
+                        keep = np.isfinite(cloud.points).all(axis=1)
+                        inout.write_ply(args.out_ply, cloud.points[keep], colours[keep])
+                    if args.out_png:
+                        inout.write_png(args.out_png, draw_detections(image, [s.circle_exact for s in spheres],
+                                                                      [s.score for s in spheres]))
+                except (SphereBenchError, OSError) as exc:
+                    skip(raw, exc)
     finally:
         if log is not None:
             log.close()
-    return 0
+    return 2 if failed else 0

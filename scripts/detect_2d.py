@@ -24,6 +24,7 @@ import sys
 import time
 from pathlib import Path
 
+from spherebench import options
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
@@ -36,11 +37,11 @@ def add_arguments(parser) -> None:
                         help="the images' focal length in pixels (default: each scene's intrinsics.json; "
                              "without one, the D435's field of view)")
     parser.add_argument("--json", action="store_true", help="one JSON line per input")
-    parser.add_argument("--min-score", type=float, default=0.3, metavar="S",
+    parser.add_argument("--min-score", type=options.fraction, default=0.3, metavar="S",
                         help="drop circles scoring below S (default 0.3, CenterNet's display threshold; "
                              "use 0 for mAP)")
-    parser.add_argument("--top-k", type=int, default=100, metavar="K", help="at most K circles per image (default 100)")
-    parser.add_argument("--threads", type=int, default=None, metavar="N", help="ONNX Runtime threads (default: all)")
+    parser.add_argument("--top-k", type=options.count, default=100, metavar="K", help="at most K circles per image (default 100)")
+    parser.add_argument("--threads", type=options.count, default=None, metavar="N", help="ONNX Runtime threads (default: all)")
     parser.add_argument("--provider", default=None, metavar="NAME",
                         help="ONNX Runtime execution provider: cpu (default), cuda (needs onnxruntime-gpu), or a "
                              "full name such as CUDAExecutionProvider")
@@ -62,8 +63,6 @@ def run(args) -> int:
     from spherebench.baselines.circlenet.imaging import load_image
     from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector, scene_focal_px
 
-    if args.top_k < 1:
-        raise SphereBenchError("--top-k must be at least 1")
     if args.focal_px is not None and not (math.isfinite(args.focal_px) and args.focal_px > 0):
         raise SphereBenchError(f"--focal-px must be a positive number of pixels, got {args.focal_px:g}")
     images = [_image_path(Path(p)) for p in args.paths]  # all checked before the model loads

@@ -29,6 +29,22 @@ def count(text: str) -> int:
     return _integer(text, 1, "", "give 1 or more")
 
 
+def subset(text: str) -> int:
+    """A number of scenes to take: a count, 0 for none or -1 for all."""
+    return _integer(text, -1, "", "give a count of scenes, 0 for none or -1 for all")
+
+
+def fraction(text: str) -> float:
+    """A score threshold: a number from 0 to 1 (NaN would compare false with every score)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text}: give a score from 0 to 1")
+    return value
+
+
 def out_path(text: str) -> str:
     """An output path: never empty (an unset shell variable in `--out "$OUT"` would mean the current
     folder)."""
@@ -48,18 +64,27 @@ def add_executor_arguments(p: argparse.ArgumentParser, workers_help: str = "work
                         "default: start a local one)")
 
 
+#: The most run seeds one --seeds may name: every seed is a run over every scene (the benchmark
+#: takes 4 to 8, a minute or more each on a small preset), so a thousand is days of work and more
+#: is a typo (0-99999999), refused before the list is built.
+MAX_SEEDS = 1000
+
+
 def parse_seeds(text: str) -> list[int]:
     """"0-3" -> [0, 1, 2, 3]; "0,2,5" -> [0, 2, 5] (ranges and lists mix: "0-2,7"): a --seeds value."""
-    seeds: list[int] = []
+    bounds: list[tuple[int, int]] = []
     try:
         for part in (p.strip() for p in text.split(",") if p.strip()):
             lo, _, hi = part.partition("-")
-            seeds += list(range(int(lo), int(hi) + 1)) if hi else [int(lo)]
+            bounds.append((int(lo), int(hi) if hi else int(lo)))
     except ValueError:
-        seeds = []
-    if not seeds or any(s < 0 for s in seeds):
+        bounds = []
+    if not bounds or any(lo < 0 or hi < lo for lo, hi in bounds):
         raise SphereBenchError(f"--seeds {text!r}: give non-negative seeds, e.g. 0-3 or 0,1,5")
-    return sorted(set(seeds))
+    if sum(hi - lo + 1 for lo, hi in bounds) > MAX_SEEDS:
+        raise SphereBenchError(f"--seeds {text!r}: more than {MAX_SEEDS} seeds, each a run over every "
+                               "scene: give fewer, e.g. 0-7")
+    return sorted({s for lo, hi in bounds for s in range(lo, hi + 1)})
 
 
 def parse_overrides(items: list[str]) -> dict:

@@ -115,10 +115,14 @@ def test_detect_out_png_without_intrinsics_fails_before_any_result(big_ball, tmp
     _fails(capsys, ["detect", cloud, "--out-ply", tmp_path], "is a folder")
     _fails(capsys, ["detect", cloud, "--out-ply", cloud], "is the input")
     _fails(capsys, ["detect", cloud, "--out-ply", tmp_path / "x", "--out-png", tmp_path / "x"], "same file")
-    # a missing or unknown input among several: refused before the first is detected
-    _fails(capsys, ["detect", cloud, tmp_path / "missing.ply"], "missing.ply", "not found")
+    # a missing or unknown input among several: one line for it, the others detected, exit 2
+    # (tests/test_bad_input_files.py has the batch)
     (tmp_path / "notes.txt.bak").write_text("x")
-    _fails(capsys, ["detect", cloud, tmp_path / "notes.txt.bak"], "unknown point-cloud format")
+    for bad, says in (("missing.ply", "not found"), ("notes.txt.bak", "unknown point-cloud format")):
+        assert cli.main(["detect", str(cloud), str(tmp_path / bad)]) == 2
+        cap = capsys.readouterr()
+        assert cap.out.startswith(f"{cloud}: ") and len(cap.out.splitlines()) == 1
+        assert len(cap.err.splitlines()) == 1 and bad in cap.err and says in cap.err
     assert _listing(tmp_path) == {**before, "notes.txt.bak": b"x"}
 
 
