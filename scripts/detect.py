@@ -56,7 +56,8 @@ OTHER_RGB = (128, 128, 128)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("paths", nargs="*", metavar="PATH",
-                   help="PLY/PCD/XYZ clouds, scene folders or RealSense recordings (.bag, .db3)")
+                   help="PLY/PCD/XYZ clouds, scene folders or RealSense recordings (.bag, .db3); a bad one gets one "
+                        "line on stderr and is skipped, the others are detected, and the exit status is then 2")
     p.add_argument("--radius", type=float, default=None,
                    help="ball radius, metres (default: a scene's or its dataset's ball_radius_m, else 0.12: a "
                         "basketball)")
