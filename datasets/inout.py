@@ -33,6 +33,7 @@ import socket
 import tempfile
 import threading
 import warnings
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,41 +70,193 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename. The file
-    gets the mode an ordinary write would (0666 less the umask), not mkstemp's 0600."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".tmp-{path.name}.", dir=path.parent)
+def check_folders(path: str | Path, what: str = "--out") -> None:
+    """A one-line error when a part of the folders above ``path`` is a file (where making them would
+    only say "File exists" about that part)."""
+    for parent in Path(path).parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise SphereBenchError(f"{what} {path}: {parent} is a file, not a folder: give a path under a folder")
+            return
+
+
+def named_error(exc: OSError, path: str | Path) -> OSError:
+    """``exc`` naming ``path``, the destination the user gave, rather than a temporary's name (or none,
+    as a full disk's write error has)."""
+    if exc.errno is None:
+        return exc
+    return OSError(exc.errno, exc.strerror or str(exc), str(path))
+
+
+def _stage(path: Path, data: bytes) -> Path:
+    """``data`` in a new temporary sibling of ``path``, with the mode an ordinary write would give
+    (0666 less the umask), not mkstemp's 0600; its name."""
+    check_folders(path, "output")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".tmp-{path.name}.", dir=path.parent)
+    except OSError as exc:
+        raise named_error(exc, path) from None
     try:
         with os.fdopen(fd, "wb") as f:
             os.fchmod(f.fileno(), 0o666 & ~_umask())
             f.write(data)
+    except BaseException as exc:
+        os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise named_error(exc, path) from None
+        raise
+    return Path(tmp)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename; an error
+    names ``path``."""
+    path = Path(path)
+    tmp = _stage(path, data)
+    try:
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise named_error(exc, path) from None
         raise
 
 
+def replace_files(files: dict[Path, bytes]) -> None:
+    """Write several files all or nothing: each is staged beside its destination, then renamed over
+    it, a replaced file kept (a hard link, else a copy) until every one is in place; on any failure
+    every destination is put back as it was. An error names the destination."""
+    staged: dict[Path, Path] = {}
+    done: list[tuple[Path, Path | None]] = []  # (destination, the file it replaced, set aside)
+    current = None
+    try:
+        for current, data in files.items():
+            staged[Path(current)] = _stage(Path(current), data)
+        for current, tmp in staged.items():
+            backup = None
+            if current.is_file():
+                backup = current.with_name(f".tmp-{current.name}.old-{os.getpid()}")
+                try:
+                    os.link(current, backup)
+                except OSError:  # a file system without hard links
+                    shutil.copy2(current, backup)
+            try:
+                os.replace(tmp, current)
+            except BaseException:
+                if backup is not None:  # a second link to the file still in place
+                    backup.unlink()
+                raise
+            done.append((current, backup))
+    except BaseException as exc:
+        for path, backup in reversed(done):
+            if backup is not None:
+                os.replace(backup, path)
+            else:
+                path.unlink(missing_ok=True)
+        for tmp in staged.values():
+            tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise named_error(exc, current) from None
+        raise
+    for _, backup in done:
+        if backup is not None:
+            backup.unlink(missing_ok=True)
+
+
+# A file a command writes for the user to look at (show, detect: --out-png, --out-ply) carries a
+# mark, so that a later run may replace it, and no file that lacks it: a PNG's tEXt chunk right after
+# the header, a PLY header's comment line.
+_MARK = b"written by spherebench"
+_PNG_MARK_CHUNK = (len(b"Software\x00" + _MARK).to_bytes(4, "big") + b"tEXtSoftware\x00" + _MARK
+                   + zlib.crc32(b"tEXtSoftware\x00" + _MARK).to_bytes(4, "big"))
+_PNG_HEADER_END = 33  # the signature (8 bytes) and the IHDR chunk (25)
+
+
+def is_marked(path: Path) -> bool:
+    """A PNG or PLY that a command wrote with the mark (``mark=True``)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    if head.startswith(_PNG_SIGNATURE):
+        return head[_PNG_HEADER_END:_PNG_HEADER_END + len(_PNG_MARK_CHUNK)] == _PNG_MARK_CHUNK
+    if head.startswith(b"ply"):
+        return b"\ncomment " + _MARK + b"\n" in head.split(b"end_header")[0].replace(b"\r\n", b"\n")
+    return False
+
+
+def check_output_file(path, what: str, inputs=(), force: bool = False) -> Path:
+    """``path`` as a file for the user (a picture, a cloud to view), or a one-line SphereBenchError:
+    refused are an empty path, a folder, an input of the command or a file inside an input folder, a
+    file inside any dataset (a folder with dataset.json at or above it: only generate and prepare
+    write there), and an existing file without the mark of ours (``is_marked``) unless ``force``."""
+    if path is None or not str(path).strip():
+        raise SphereBenchError(f"{what} is empty (an unset shell variable?): give a file name")
+    path = Path(path)
+    if path.is_dir():
+        raise SphereBenchError(f"{what} {path} is a folder: give a file name")
+    check_folders(path, what)
+    resolved = path.resolve()
+    for source in inputs:
+        src = Path(source).resolve()
+        if resolved == src:
+            raise SphereBenchError(f"{what} {path} is the input: give another file name")
+        if src in resolved.parents:
+            raise SphereBenchError(f"{what} {path} is inside the input scene folder {source}: write it elsewhere")
+    for folder in resolved.parents:
+        if is_dataset_dir(folder):
+            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}: its files are written only by "
+                                   "generate and prepare; write it elsewhere")
+    if path.exists() and not force and not is_marked(path):
+        raise SphereBenchError(f"{what} {path} exists and was not written by SphereBench: give a new name, or pass "
+                               "--force to replace it")
+    return path
+
+
+def check_output_files(named: dict, inputs=(), force: bool = False) -> dict:
+    """check_output_file for each {option: path}, and no two naming the same file."""
+    checked = {what: check_output_file(p, what, inputs, force) for what, p in named.items()}
+    seen: dict = {}
+    for what, p in checked.items():
+        if p.resolve() in seen:
+            raise SphereBenchError(f"{seen[p.resolve()]} and {what} name the same file {p}: give two names")
+        seen[p.resolve()] = what
+    return checked
+
+
+def check_not_in_dataset(path: str | Path, what: str = "--out") -> None:
+    """A one-line error when ``path`` lies inside an existing dataset (below a folder holding
+    dataset.json): writing there would break it."""
+    for folder in Path(path).resolve().parents:
+        if is_dataset_dir(folder):
+            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}: write it elsewhere")
+
+
 def _report_is_ours(js: Path, kind: str) -> bool:
-    """An existing OUT.json written by the same report: it names the kind, or (written before the
-    kind was recorded) is a JSON object holding the report's seed or seeds."""
+    """An existing OUT.json written by the same report: it names the kind ("report": kind, which only
+    write_report writes; a key such as "seed" any JSON file may hold)."""
     try:
         old = json.loads(js.read_text())
     except (OSError, ValueError, UnicodeDecodeError):
         return False
-    if not isinstance(old, dict):
-        return False
-    return old["report"] == kind if "report" in old else bool({"seed", "seeds"} & set(old))
+    return isinstance(old, dict) and old.get("report") == kind
 
 
 def check_report_out(out: str | Path, kind: str) -> tuple[Path, Path]:
     """OUT.md and OUT.json for a report of this kind, refused (SphereBenchError) before any work when
     either is a folder or a link, or when an existing pair is not recognisably this report's
     (``_report_is_ours``): a file the user put there is never overwritten."""
+    if not str(out).strip():
+        raise SphereBenchError("--out is empty (an unset shell variable?): give a path for the report, e.g. "
+                               f"results/{kind}")
     out = Path(out)
+    if out.name in ("", ".", ".."):
+        raise SphereBenchError(f"--out {out} is a folder; give a path for the report's two files in it, e.g. "
+                               f"{out / kind} (writes {kind}.md and {kind}.json)")
     md, js = out.with_suffix(".md"), out.with_suffix(".json")
+    check_folders(out)
     for path in (md, js):
         if path.is_symlink() or path.is_dir():
             raise SphereBenchError(f"{path}: is a folder or a link: give --out a path for the report's two files")
@@ -118,8 +271,8 @@ def write_report(out: str | Path, markdown: str, data: dict, kind: str) -> tuple
     infinities as null), each written atomically, after ``check_report_out``. Returns the two paths."""
     md, js = check_report_out(out, kind)
     data = {"report": kind, **data}
-    atomic_write_bytes(md, markdown.encode())
-    atomic_write_bytes(js, json.dumps(data, indent=1, default=lambda x: None if x == math.inf else x).encode())
+    replace_files({md: markdown.encode(),
+                   js: json.dumps(data, indent=1, default=lambda x: None if x == math.inf else x).encode()})
     return md, js
 
 
@@ -385,12 +538,19 @@ def check_ball_radius(value: float, what: str = "--radius") -> float:
 
 # --------------------------------------------------------------------------- images
 
-def write_png(path: str | Path, image: np.ndarray) -> None:
-    """uint8/uint16 image (grey or BGR) -> PNG, atomically."""
+def encode_png(image: np.ndarray, what: str, mark: bool = False) -> bytes:
+    """uint8/uint16 image (grey or BGR) -> PNG bytes; ``mark``: with the mark of a file written for
+    the user (``is_marked``)."""
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(image))
     if not ok:
-        raise SphereBenchError(f"{path}: OpenCV could not encode this image as PNG")
-    atomic_write_bytes(path, buf.tobytes())
+        raise SphereBenchError(f"{what}: OpenCV could not encode this image as PNG")
+    data = buf.tobytes()
+    return data[:_PNG_HEADER_END] + _PNG_MARK_CHUNK + data[_PNG_HEADER_END:] if mark else data
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """uint8/uint16 image (grey or BGR) -> PNG, atomically."""
+    atomic_write_bytes(path, encode_png(image, str(path)))
 
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -545,8 +705,9 @@ def write_cloud_ply(path: str | Path, cloud: Cloud) -> None:
     _write_ply_vertices(path, v)
 
 
-def write_ply(path: str | Path, points_m: np.ndarray, colors: np.ndarray | None = None) -> None:
-    """Binary PLY of points (N, 3) m with optional colours (N, 3) uint8 RGB, for MeshLab."""
+def encode_ply(points_m: np.ndarray, colors: np.ndarray | None = None) -> bytes:
+    """Binary PLY of points (N, 3) m with optional colours (N, 3) uint8 RGB, for MeshLab, with the
+    mark of a file written for the user (``is_marked``)."""
     p = np.asarray(points_m, dtype=np.float32).reshape(-1, 3)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if colors is not None:
@@ -556,13 +717,22 @@ def write_ply(path: str | Path, points_m: np.ndarray, colors: np.ndarray | None 
     if colors is not None:
         c = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
         v["red"], v["green"], v["blue"] = c[:, 0], c[:, 1], c[:, 2]
-    _write_ply_vertices(path, v)
+    return _ply_bytes(v, comments=[_MARK.decode()])
+
+
+def write_ply(path: str | Path, points_m: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """encode_ply, written atomically."""
+    atomic_write_bytes(path, encode_ply(points_m, colors))
 
 
 def _write_ply_vertices(path: str | Path, vertices: np.ndarray) -> None:
+    atomic_write_bytes(path, _ply_bytes(vertices))
+
+
+def _ply_bytes(vertices: np.ndarray, comments=()) -> bytes:
     buf = io.BytesIO()
-    PlyData([PlyElement.describe(vertices, "vertex")], byte_order="<").write(buf)
-    atomic_write_bytes(path, buf.getvalue())
+    PlyData([PlyElement.describe(vertices, "vertex")], byte_order="<", comments=list(comments)).write(buf)
+    return buf.getvalue()
 
 
 def read_ply(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:

@@ -19,6 +19,8 @@ temporary name, then swapped in), so an interrupted run never leaves a half-writ
 
 from __future__ import annotations
 
+import contextlib
+import json
 import shutil
 from collections import Counter
 from dataclasses import dataclass, field
@@ -28,6 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from spherebench.datasets import inout
+from spherebench.errors import SphereBenchError
 from spherebench.eval import figures as figs
 from spherebench.eval import recorded
 from spherebench.eval.cache import read_predictions
@@ -454,7 +457,9 @@ is_results_dir = inout.owned_by_kind(RESULTS_KIND, RESULTS_LEGACY_FILE)
 
 
 def claim_results_dir(out: str | Path) -> Path:
-    """``out`` as a results folder (new, empty or a previous one of ours), or a one-line error."""
+    """``out`` as a results folder (new, empty or a previous one of ours, not inside a dataset), or a
+    one-line error."""
+    inout.check_not_in_dataset(out)
     return inout.claim_output_dir(out, RESULTS_KIND, RESULTS_LEGACY_FILE)
 
 
@@ -463,22 +468,42 @@ def _in_results_dir(folder: Path) -> bool:
     return is_results_dir(folder.parent)
 
 
-def _keep_subfolders(old: Path, tmp: Path) -> list[str]:
-    """Copy the sub-folders of an existing figures folder into its replacement ``tmp`` (the report
-    writes files only; a sub-folder is another tool's, e.g. `annotate --sheet`); their names."""
-    if not old.is_dir():
-        return []
-    kept = []
-    for d in sorted(old.iterdir()):
-        if d.is_dir() and not d.is_symlink() and not d.name.startswith("."):
-            shutil.copytree(d, tmp / d.name, symlinks=True)
-            kept.append(d.name)
-    return kept
+#: In tables/ and figures/: the names of the files the report wrote there, the only ones a rerun replaces.
+WRITTEN_LIST = ".spherebench-files.json"
+
+
+@contextlib.contextmanager
+def report_folder(folder: Path):
+    """tables/ or figures/ built anew in a temporary folder that then replaces ``folder`` (atomic):
+    the files the report wrote there before (WRITTEN_LIST; a folder without the list: the names it
+    writes now) are replaced, anything else (a user's table, another tool's sub-folder such as
+    `annotate --sheet`'s) is carried over, and one clashing with a name the report writes now is
+    refused, naming it. Yields (the temporary folder, a list that holds the carried names after)."""
+    kept: list[str] = []
+    with inout.atomic_directory(folder, _in_results_dir) as tmp:
+        yield tmp, kept
+        ours = sorted(p.name for p in tmp.iterdir() if not p.name.startswith("."))
+        before = set(ours)
+        with contextlib.suppress(OSError, ValueError):
+            listed = json.loads((folder / WRITTEN_LIST).read_text())
+            before = set(listed) if isinstance(listed, list) else before
+        for entry in sorted(folder.iterdir()) if folder.is_dir() else ():
+            if entry.name in before or entry.name == WRITTEN_LIST:
+                continue
+            if (tmp / entry.name).exists():
+                raise SphereBenchError(f"{entry} was not written by evaluate and this report writes that name: move "
+                                       f"it out of {folder} (nothing was replaced)")
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.copytree(entry, tmp / entry.name, symlinks=True)
+            else:
+                shutil.copy2(entry, tmp / entry.name, follow_symlinks=False)
+            kept.append(entry.name)
+        inout.write_json(tmp / WRITTEN_LIST, ours)
 
 
 def write_tables(folder: Path, tables: Sequence[Table]) -> None:
-    """Every table as CSV and Markdown, into ``folder`` replaced as a whole (atomic)."""
-    with inout.atomic_directory(folder, _in_results_dir) as tmp:
+    """Every table as CSV and Markdown, into ``folder`` (report_folder)."""
+    with report_folder(folder) as (tmp, _):
         for t in tables:
             (tmp / f"{t.name}.csv").write_text(t.csv())
             (tmp / f"{t.name}.md").write_text(t.markdown())
@@ -738,8 +763,7 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     metrics = metrics_json(sets_by)
     fig_paths: dict[str, str | None] = {}
     if figures:
-        with inout.atomic_directory(out / "figures", _in_results_dir) as tmp:
-            kept = _keep_subfolders(out / "figures", tmp)
+        with report_folder(out / "figures") as (tmp, kept):
             for label, (data_dir, coco, sets) in per_dataset.items():
                 f = facts[label]
                 if any(s.pr50 is not None for s in sets):
@@ -768,8 +792,9 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
                     fig_paths[caption] = f"figures/robustness_{label}.png"
             figs.latency(sets_by, tmp / "latency.png")
             fig_paths["Latency per method"] = "figures/latency.png"
-            for name in kept:
-                fig_paths[f"[`figures/{name}/`](figures/{name}/): kept from another tool (not drawn by `evaluate`)"] = None
+        for name in kept:
+            link = f"figures/{name}" + ("/" if (out / "figures" / name).is_dir() else "")
+            fig_paths[f"[`{link}`]({link}): kept from another tool (not drawn by `evaluate`)"] = None
     write_tables(out / "tables", tables)
     inout.write_json(out / "metrics.json", metrics)
     if t2:

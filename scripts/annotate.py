@@ -150,15 +150,9 @@ def run(args: argparse.Namespace) -> int:
                 continue
             docs[scene / "colour.json"] = labelme_from_mask(mask, colour_path.name, args.label, description)
         kept = [p for p in existing if p not in docs]  # this rule found no ball there: the earlier file stays
-        written = []
-        try:
-            for path, doc in docs.items():
-                inout.atomic_write_bytes(path, labelme_text(doc).encode())
-                written.append(path)
-        except BaseException:
-            for path in written:
-                path.unlink(missing_ok=True)
-            raise
+        # all or nothing: a failed write puts every file back as it was (a replaced one with a person's
+        # corrections included)
+        inout.replace_files({path: labelme_text(doc).encode() for path, doc in docs.items()})
         print(f"annotated {len(docs)} of {len(scenes)} frames from colour -> {args.dataset}/scenes/<id>/colour.json")
         if none_found:
             print(f"note: {len(none_found)} frame(s) where no component of the colour range fits the ball (e.g. "

@@ -36,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
         inout.list_scenes(ds)  # a clear error for a missing dataset before any work
-    if args.out:
+    if args.out is not None:
         inout.check_report_out(args.out, "bench")
     try:
         min_scores = tuple(sorted({float(t) for t in args.min_scores.split(",") if t.strip()}))
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     result.update(info)
     md = markdown(result)
     print(md)
-    if args.out:
+    if args.out is not None:
         slim = {k: v for k, v in result.items() if k != "datasets"}
         slim["datasets"] = {ds: {k: v for k, v in d.items() if k != "rows"} for ds, d in result["datasets"].items()}
         slim["rows"] = {ds: d["rows"] for ds, d in result["datasets"].items()}

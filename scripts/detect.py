@@ -75,6 +75,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out-png", default=None,
                    help="draw every sphere's circle and score on the reprojected image (one input only; needs "
                         "intrinsics)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing --out-ply/--out-png that SphereBench did not write")
     g = p.add_argument_group("streams: recordings and a live camera")
     g.add_argument("--camera", nargs="?", const="", default=None, metavar="SERIAL",
                    help="detect in a live RealSense camera's depth (the one with this serial number, else the "
@@ -135,29 +137,25 @@ def _check_input(path: Path) -> None:
 
 
 def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
-    outs = {name: Path(p) for name, p in (("--out-ply", args.out_ply), ("--out-png", args.out_png)) if p}
+    outs = {name: p for name, p in (("--out-ply", args.out_ply), ("--out-png", args.out_png)) if p is not None}
     if outs and streaming:
         raise SphereBenchError("--out-ply and --out-png take one cloud, not a stream of frames: use --labelme-out "
                                "DIR or --rerun-save FILE.rrd for recordings and cameras")
     if outs and len(args.paths) != 1:
         raise SphereBenchError("--out-ply and --out-png take one input: give one PATH")
     sources = [Path(p).resolve() for p in args.paths]
-    named = {**outs, **({"--rerun-save": Path(args.rerun_save)} if args.rerun_save else {})}
-    for name, out in named.items():
+    inout.check_output_files(outs, sources, args.force)
+    if args.rerun_save:
+        out = Path(args.rerun_save)
         if out.is_dir():
-            raise SphereBenchError(f"{name} {out} is a folder: give a file name")
-        for source in sources:
-            if out.resolve() == source:
-                raise SphereBenchError(f"{name} {out} is the input: give another file name")
-            if source.is_dir() and source in out.resolve().parents:  # a scene's own files are not ours to write
-                raise SphereBenchError(f"{name} {out} is inside the input scene folder: write it elsewhere")
-    if len(outs) == 2 and outs["--out-ply"].resolve() == outs["--out-png"].resolve():
-        raise SphereBenchError("--out-ply and --out-png name the same file: give two names")
+            raise SphereBenchError(f"--rerun-save {out} is a folder: give a file name")
+        if any(out.resolve() == src or src in out.resolve().parents for src in sources):
+            raise SphereBenchError(f"--rerun-save {out} is an input or inside one: write it elsewhere")
     if args.rerun_save and Path(args.rerun_save).suffix != ".rrd":
         raise SphereBenchError(f"--rerun-save {args.rerun_save}: give a file name ending in .rrd")
     if args.rerun_save and Path(args.rerun_save).exists() and Path(args.rerun_save).stat().st_size:
         raise SphereBenchError(f"--rerun-save {args.rerun_save} exists; it is never overwritten: give a new name")
-    if args.labelme_out:
+    if args.labelme_out is not None:
         inout.check_output_dir(args.labelme_out, inout.owned_by_kind(LABELME_KIND), "--labelme-out", args.paths)
 
 
@@ -307,8 +305,8 @@ def run(args: argparse.Namespace) -> int:
     log = None
     if args.rerun or args.rerun_save:
         log = viz.RerunLog("spherebench detect", save=args.rerun_save, spawn=args.rerun)
-    labelme_ctx = (inout.atomic_directory(args.labelme_out, inout.owned_by_kind(LABELME_KIND)) if args.labelme_out
-                   else contextlib.nullcontext())
+    labelme_ctx = (inout.atomic_directory(args.labelme_out, inout.owned_by_kind(LABELME_KIND))
+                   if args.labelme_out is not None else contextlib.nullcontext())
     configs: dict = {}
 
     def config(radius, eps):
@@ -355,15 +353,17 @@ def run(args: argparse.Namespace) -> int:
                                  cloud.intrinsics.shape)
                     if log is not None:
                         log.cloud(raw, cloud, spheres)
+                    files = {}  # both written or neither
                     if args.out_ply:
                         colours = np.tile(np.array(OTHER_RGB, np.uint8), (len(cloud.points), 1))
                         for s in spheres:
                             colours[s.inlier_indices] = INLIER_RGB
                         keep = np.isfinite(cloud.points).all(axis=1)
-                        inout.write_ply(args.out_ply, cloud.points[keep], colours[keep])
+                        files[Path(args.out_ply)] = inout.encode_ply(cloud.points[keep], colours[keep])
                     if args.out_png:
-                        inout.write_png(args.out_png, draw_detections(image, [s.circle_exact for s in spheres],
-                                                                      [s.score for s in spheres]))
+                        drawn = draw_detections(image, [s.circle_exact for s in spheres], [s.score for s in spheres])
+                        files[Path(args.out_png)] = inout.encode_png(drawn, args.out_png, mark=True)
+                    inout.replace_files(files)
                 except (SphereBenchError, OSError) as exc:
                     skip(raw, exc)
     finally:

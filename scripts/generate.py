@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from spherebench import options
-from spherebench.datasets import simulate
+from spherebench.datasets import inout, simulate
 from spherebench.datasets.sensor import PARAMETERS, parse_settings
 
 
@@ -31,6 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    inout.check_not_in_dataset(args.out)
     overrides = parse_settings(args.sensor)
     spec = simulate.PRESETS[args.preset].sensor
     for name in sorted(set(overrides) & (spec.grid_parameters if spec else set())):

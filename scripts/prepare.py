@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     if args.preset_source and not args.inputs:
         sources.append(prep.default_realdata_dir() / prep.PRESET_SOURCES[args.preset_source][1])
     inout.check_output_dir(args.out, inout.is_dataset_dir, inputs=sources)
+    inout.check_not_in_dataset(args.out)
     selection = prep.FrameSelection.parse(args.every, args.frames, args.time_range)
     common = dict(depth_scale=args.depth_scale, unit_check=not args.skip_unit_check, selection=selection,
                   masks_dir=args.masks, labelme_dir=args.labelme, label=args.label, name=args.name)

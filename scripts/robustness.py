@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     for ds in (args.robust, args.default, args.hard):
         if ds:
             inout.list_scenes(ds)
-    if args.out:
+    if args.out is not None:
         inout.check_report_out(args.out, "robustness")
     if not ((inout.read_dataset_meta(args.robust).get("sensor_ranges") or {}).get("grid")):
         raise SphereBenchError(f"{args.robust}: no grid of sensor cells in its dataset.json: give the robust "
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
                      engine=args.engine, address=args.address)
     md = markdown(res)
     print(md)
-    if args.out:
+    if args.out is not None:
         print("wrote {} and {}".format(*inout.write_report(args.out, md, res, "robustness")), file=sys.stderr)
     return 0
 

@@ -22,8 +22,8 @@ from spherebench.errors import SphereBenchError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", type=Path, help="a scene folder, DIR/scenes/<scene_id>")
-    p.add_argument("--out-png", type=Path, help="image with circles (default ./<scene_id>_gt.png)")
-    p.add_argument("--out-ply", type=Path, help="coloured cloud (default ./<scene_id>_gt.ply)")
+    p.add_argument("--out-png", help="image with circles (default ./<scene_id>_gt.png)")
+    p.add_argument("--out-ply", help="coloured cloud (default ./<scene_id>_gt.ply)")
     p.add_argument("--tolerance", type=float, default=0.02,
                    help="image-less scenes: metres beyond the radius round a centre that count as the ball")
     g = p.add_mutually_exclusive_group()
@@ -36,6 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the results folder of --method (default: results)")
     p.add_argument("--min-score", type=options.fraction, default=0.3, metavar="S",
                    help="draw detections scoring at least S (default 0.3; mAP files hold every score)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing --out-png/--out-ply that SphereBench did not write")
 
 
 def _predictions_file(args, scene_dir: Path) -> Path | None:
@@ -88,15 +90,21 @@ def run(args: argparse.Namespace) -> int:
     detections = [] if pred_file is None else scene_predictions(pred_file, scene.scene_id, args.min_score)
     if pred_file is not None and image is None:
         raise SphereBenchError(f"{scene_dir}: an image-less scene has no image to draw detections on")
+    # checked before any work: never a file of a dataset or the user's; both written or neither
+    outs = {"--out-ply": Path(f"{scene.scene_id}_gt.ply") if args.out_ply is None else args.out_ply}
+    if image is not None:
+        outs = {"--out-png": Path(f"{scene.scene_id}_gt.png") if args.out_png is None else args.out_png, **outs}
+    outs = inout.check_output_files(outs, [scene_dir, *([pred_file] if pred_file else [])], args.force)
+    files = {}
     status = "annotated" if scene.annotated else "unannotated (no ground truth)"
     print(f"scene {scene.scene_id}: {status}, {len(scene.balls)} ball(s)")
     if image is not None:
-        out_png = args.out_png or Path(f"{scene.scene_id}_gt.png")
+        out_png = outs["--out-png"]
         drawn = draw_ground_truth(image, scene)
         if pred_file is not None:
             label = args.method or ""
             drawn = draw_detections(drawn, [c for c, _ in detections], [s for _, s in detections], label=label)
-        inout.write_png(out_png, drawn)
+        files[out_png] = inout.encode_png(drawn, str(out_png), mark=True)
         for k, b in enumerate(scene.balls):
             if b.circle_px is not None:
                 print(f"  ball {k}: circle ({b.circle_px[0]:.1f}, {b.circle_px[1]:.1f}) r {b.circle_px[2]:.1f} px")
@@ -104,11 +112,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"  detection {k}: circle ({c[0]:.1f}, {c[1]:.1f}) r {c[2]:.1f} px, score {score:.2f}")
         if pred_file is not None:
             print(f"  {len(detections)} detection(s) of {pred_file} scoring >= {args.min_score:g}")
-        print(f"wrote {out_png}")
     else:
         print("image-less scene: no image to draw on, writing the PLY only")
     points, colors, how = ball_point_colors(scene, radius, args.tolerance)
-    out_ply = args.out_ply or Path(f"{scene.scene_id}_gt.ply")
-    inout.write_ply(out_ply, points, colors)
+    out_ply = outs["--out-ply"]
+    files[out_ply] = inout.encode_ply(points, colors)
+    inout.replace_files(files)
+    if image is not None:
+        print(f"wrote {out_png}")
     print(f"wrote {out_ply} ({len(points)} points; {how})")
     return 0

@@ -30,13 +30,13 @@ def run(args: argparse.Namespace) -> int:
     options.check_executor(args)
     for ds in args.datasets:
         inout.list_scenes(ds)  # a clear error for a missing dataset before any work
-    if args.out:
+    if args.out is not None:
         inout.check_report_out(args.out, "sweep")
     result = sweep(args.datasets, options.parse_seeds(args.seeds), args.method, options.parse_overrides(args.overrides),
                    args.workers, args.limit, engine=args.engine, address=args.address)
     md = markdown(result)
     print(md)
-    if args.out:
+    if args.out is not None:
         print("wrote {} and {}".format(*inout.write_report(args.out, md, result, "sweep")), file=sys.stderr)
     return 0
 
