@@ -372,6 +372,7 @@ def check_output_dir(path: str | Path, is_ours, what: str = "--out", inputs=()) 
         if resolved == src or resolved in src.parents or src in resolved.parents:
             raise SphereBenchError(f"{what} {text} is the input {source}, or a folder above or inside it: "
                                    "write the output somewhere else")
+    check_folders(path, what)
     if path.exists():
         if not path.is_dir():
             raise SphereBenchError(f"{what} {text} is a file, not a folder: give a folder to write")
@@ -389,6 +390,28 @@ def claim_output_dir(path: str | Path, kind: str, legacy: str | None = None, wha
     if not (path / OWNER_MARKER).is_file():
         write_json(path / OWNER_MARKER, {"kind": kind, "written_by": "spherebench"})
     return path
+
+
+@contextlib.contextmanager
+def output_run(path: str | Path, kind: str, resumable=(), resume: str = "rerun the same command to resume",
+               legacy: str | None = None, inputs=()):
+    """claim_output_dir for the length of a run. On a failure or an interruption, the folder is removed
+    if this run made it and it holds none of ``resumable`` (the names of the files or sub-folders a
+    rerun reuses: evaluate's finished predictions, a training checkpoint); else the exception says
+    what was kept (its ``kept``, which cli.run_guarded prints), so that no message claims a clean
+    slate that is not there."""
+    made = not Path(path).exists()
+    path = claim_output_dir(path, kind, legacy, inputs=inputs)
+    try:
+        yield path
+    except BaseException as exc:
+        kept = [path / name for name in resumable
+                if (path / name).is_file() or any(p.is_file() for p in (path / name).rglob("*"))]
+        if kept:
+            exc.kept = f"completed work is kept in {', '.join(map(str, kept))}: {resume}"
+        elif made:
+            shutil.rmtree(path, ignore_errors=True)
+        raise
 
 
 def _stale_temporaries(final: Path):
@@ -1179,6 +1202,10 @@ def read_labelme(path: str | Path) -> dict:
     return d
 
 
+#: The first bytes of a recording by suffix, and what they are.
+RECORDING_MAGIC = {".bag": (b"#ROSBAG V2.0\n", "ROS1 bag"), ".db3": (b"SQLite format 3\x00", "ROS2 SQLite")}
+
+
 def _import_pyrealsense2():
     return require("pyrealsense2", "realsense", "reading RealSense recordings and cameras (also: apt-get install "
                    "libusb-1.0-0)")
@@ -1246,10 +1273,16 @@ class BagRecording:
     """
 
     def __init__(self, path: str | Path):
-        rs = _import_pyrealsense2()
         self.path = path = Path(path)
         if not path.is_file():
             raise SphereBenchError(f"{path}: file not found")
+        magic, kind = RECORDING_MAGIC.get(path.suffix.lower(), (b"", ""))
+        with path.open("rb") as f:
+            head = f.read(len(magic))
+        if head != magic:  # refused before librealsense starts (it writes ~/.rum/rum.json)
+            raise SphereBenchError(f"{path}: not a RealSense recording (no {kind} header): "
+                                   "give a .bag or .db3 file recorded by a RealSense camera")
+        rs = _import_pyrealsense2()
         try:
             self._device = rs.context().load_device(str(path))
             sensors = self._device.query_sensors()

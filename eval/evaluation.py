@@ -28,7 +28,7 @@ from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval.provenance import REPO_ROOT, dataset_fingerprint, provenance
 from spherebench.eval.registry import build_methods
-from spherebench.eval.report import claim_results_dir, score_set, write_results
+from spherebench.eval.report import results_run, score_set, write_results
 from spherebench.eval.runner import dataset_scenes, run_methods
 from spherebench.eval.seeds import DETECTION_SEED_RULE
 from spherebench.eval.sensor_grid import ceiling_by_cell
@@ -192,7 +192,12 @@ def run_benchmark(data: Path, out: Path, seed: int = 0, workers: int = 2, force:
         if not (data / name / "coco_gt.json").is_file():
             raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust` "
                                    f"(spherebench generate --preset {name} --out {data / name})")
-    claim_results_dir(out)
+    with results_run(out):
+        return _benchmark(data, out, seed, workers, force, methods, progress, command, engine, address, log)
+
+
+def _benchmark(data, out, seed, workers, force, methods, progress, command, engine, address, log) -> dict:
+    """run_benchmark's work, in a results folder claimed for it."""
     hough = None
     t0 = time.perf_counter()
     if methods is None or "hough" in methods:

@@ -463,6 +463,19 @@ def claim_results_dir(out: str | Path) -> Path:
     return inout.claim_output_dir(out, RESULTS_KIND, RESULTS_LEGACY_FILE)
 
 
+#: What a rerun of an evaluation reuses: finished prediction sets, the Hough tuning and its training
+#: subset, the oracle's balls.
+RESULTS_RESUMABLE = ("predictions", "hough_config.json", "train-hough", "oracle_robust.json")
+
+
+def results_run(out: str | Path):
+    """claim_results_dir for the length of an evaluation (``inout.output_run``): a failed or stopped
+    run removes a folder it made and holds nothing a rerun reuses (RESULTS_RESUMABLE), and says what
+    it kept otherwise."""
+    inout.check_not_in_dataset(out)
+    return inout.output_run(out, RESULTS_KIND, RESULTS_RESUMABLE, legacy=RESULTS_LEGACY_FILE)
+
+
 def _in_results_dir(folder: Path) -> bool:
     """tables/ and figures/ are replaced whole, only inside a results folder of ours."""
     return is_results_dir(folder.parent)

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     # took 2.4 s with them, about 1 s without
     from spherebench.eval.evaluation import check_dataset, console_line, dataset_label, evaluate
     from spherebench.eval.recorded import load_beside
-    from spherebench.eval.report import claim_results_dir
+    from spherebench.eval.report import results_run
 
     options.check_executor(args)
     out = Path(args.out)
@@ -84,15 +84,15 @@ def run(args: argparse.Namespace) -> int:
     if args.model and (args.methods is None or "circlenet" in args.methods):
         circlenet_spec(args.model)  # a corrupt model is refused now, not after the other methods have run
     beside, beside_record = load_beside(args.beside, args.beside_label) if args.beside else (None, None)
-    claim_results_dir(out)  # before anything is written under it (Hough tuning included)
     progress = not args.quiet
-    hough = hough_config_for_run(args.methods, args.hough_config, out, args.workers, progress,
-                                 engine=args.engine, address=args.address)
-    metrics = evaluate(datasets, out, methods=args.methods, seed=args.seed, workers=args.workers, force=args.force,
-                       hough_config=hough, model=args.model, figures=not args.no_figures, progress=progress,
-                       title="SphereBench evaluation", paper_rows_for=(), beside=beside,
-                       extra_provenance={"beside": beside_record} if beside else None,
-                       engine=args.engine, address=args.address)
+    with results_run(out):  # claimed before anything is written under it (Hough tuning included)
+        hough = hough_config_for_run(args.methods, args.hough_config, out, args.workers, progress,
+                                     engine=args.engine, address=args.address)
+        metrics = evaluate(datasets, out, methods=args.methods, seed=args.seed, workers=args.workers,
+                           force=args.force, hough_config=hough, model=args.model, figures=not args.no_figures,
+                           progress=progress, title="SphereBench evaluation", paper_rows_for=(), beside=beside,
+                           extra_provenance={"beside": beside_record} if beside else None,
+                           engine=args.engine, address=args.address)
     for label in datasets:
         for method, by in metrics.items():
             line = console_line(method, by.get(label))

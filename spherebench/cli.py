@@ -13,9 +13,11 @@ import contextlib
 import errno
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from spherebench import __version__
 from spherebench.errors import SphereBenchError
@@ -113,30 +115,55 @@ _OS_ADVICE = {
 }
 
 
+def _real_name(path) -> str:
+    """``path`` with each temporary name (.tmp-<name>.<suffix>, inout's atomic writes) as the name it
+    stands for: a message names what the user asked for, never a file that is gone when it is read."""
+    return os.sep.join(_TMP_NAME.sub(r"\1", part) for part in str(path).split(os.sep))
+
+
+_TMP_NAME = re.compile(r"^\.tmp-(.+)\.[^.]+$")
+
+
+def _file_above(path) -> str | None:
+    """The first part of ``path`` that exists and is not a folder (mkdir says "File exists" of it)."""
+    parts = Path(path).parts
+    for k in range(1, len(parts) + 1):
+        part = Path(*parts[:k])
+        if not part.exists():
+            return None
+        if not part.is_dir():
+            return str(part)
+    return None
+
+
 def os_error_message(exc: OSError) -> str:
     """One line for a failed read or write: the path, what the system said, what to do."""
-    where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None) or "a file"
+    where = " -> ".join(_real_name(f) for f in (exc.filename, exc.filename2) if f is not None) or "a file"
     advice = _OS_ADVICE.get(exc.errno, exc.strerror or str(exc))
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST) and exc.filename is not None:
+        part = _file_above(_real_name(exc.filename))
+        if part is not None:
+            advice = f"{part} is a file, not a folder: give a path under a folder (or move the file)"
     return f"{where}: {advice}"
 
 
 def run_guarded(prog: str, work) -> int:
     """Run ``work()`` as a command: bad input (SphereBenchError) and failed reads or writes (OSError)
     as one line on stderr with exit 2; Ctrl-C, SIGTERM and SIGHUP as one "interrupted" line with exit
-    128 + the signal (the work's own cleanup has removed its partial output); a closed pipe on stdout
-    (`| head`) quietly."""
+    128 + the signal (the work's own cleanup has removed its partial output, or the exception's
+    ``kept`` says what it kept for a rerun); a closed pipe on stdout (`| head`) quietly."""
     with _signals_as_interrupts():
         try:
             status = int(work() or 0)
             sys.stdout.flush()  # here, not at exit, so that a closed pipe is caught below
             return status
         except SphereBenchError as exc:
-            print(f"{prog}: error: {exc}", file=sys.stderr)
+            print(f"{prog}: error: {exc}{_kept(exc)}", file=sys.stderr)
             return 2
         except KeyboardInterrupt as exc:
             signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
             what = "interrupted" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
-            print(f"{prog}: {what}; no partial output is left", file=sys.stderr)
+            print(f"{prog}: {what}; {getattr(exc, 'kept', 'no partial output is left')}", file=sys.stderr)
             return 128 + int(signum)
         except BrokenPipeError:
             # the reader has gone (e.g. `| head`): send what is still buffered nowhere, exit as by SIGPIPE
@@ -145,8 +172,15 @@ def run_guarded(prog: str, work) -> int:
                 os.dup2(devnull, sys.stdout.fileno())
             return 128 + int(getattr(signal, "SIGPIPE", 13))
         except OSError as exc:
-            print(f"{prog}: error: {os_error_message(exc)}", file=sys.stderr)
+            print(f"{prog}: error: {os_error_message(exc)}{_kept(exc)}", file=sys.stderr)
             return 2
+
+
+def _kept(exc: BaseException) -> str:
+    """What a failed command kept for a rerun (``exc.kept``, set by inout.output_run), as the end of
+    its one line."""
+    kept = getattr(exc, "kept", None)
+    return f"; {kept}" if kept else ""
 
 
 def run_module(name: str, driver, argv: list[str] | None = None) -> int:

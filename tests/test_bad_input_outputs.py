@@ -207,3 +207,82 @@ def test_empty_or_doubled_file_outputs_are_refused(dataset, user, capsys, argv, 
     scene = str(inout.list_scenes(dataset)[0])
     _fails(capsys, [a.format(scene=scene) for a in argv], *words)
     assert _tree(user) == before
+
+
+# --------------------------------------------------------------------------- what a failure leaves
+
+def _evaluate(ds, out, *extra) -> list:
+    return ["evaluate", "--data", ds, "--out", out, "--methods", "improved", "--quiet", "--workers", "1", *extra]
+
+
+def test_failed_evaluate_removes_the_folder_it_made(dataset, user, capsys, monkeypatch):
+    (user / "bad.json").write_text("{")
+    _fails(capsys, [*_evaluate(dataset, "ev"), "--methods", "hough", "--hough-config", "bad.json"], "bad.json")
+    assert not (user / "ev").exists()
+    real, calls = os.fchmod, []
+
+    def fchmod(fd, mode):  # the owner marker goes through; the first prediction set meets a full disk
+        calls.append(fd)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write's error: naming no file
+        return real(fd, mode)
+    monkeypatch.setattr(inout.os, "fchmod", fchmod)
+    _fails(capsys, _evaluate(dataset, "ev"), "ev/predictions/ds/improved.json", "disk is full")
+    assert not (user / "ev").exists()
+
+
+def test_stopped_evaluate_says_what_it_kept(dataset, ds, user, capsys, monkeypatch):
+    from spherebench.eval import evaluation
+    real, calls = evaluation.run_methods, []
+
+    def run_methods(*args, **kwargs):  # the second dataset is stopped: the first's predictions are done
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+    monkeypatch.setattr(evaluation, "run_methods", run_methods)
+    assert cli.main([str(a) for a in _evaluate(dataset, "ev", "--data", ds)]) == 130
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no partial output" not in err, err
+    assert "interrupted" in err and "ev/predictions" in err and "rerun" in err, err
+    assert any((user / "ev/predictions").rglob("*.json"))
+    calls[:] = [1]  # a new folder stopped before any set is done: nothing is left, and it says so
+    assert cli.main([str(a) for a in _evaluate(dataset, "ev2")]) == 130
+    assert "no partial output is left" in capsys.readouterr().err and not (user / "ev2").exists()
+
+
+def test_failed_training_keeps_only_a_checkpoint(dataset, user, capsys, monkeypatch):
+    from spherebench.baselines.circlenet import train
+
+    def fails(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(user / "run/curve.png"))
+    monkeypatch.setattr(train, "_train", fails)
+    _fails(capsys, ["train", "--data", dataset, "--out", "run", "--device", "cpu"], "run/curve.png", "disk is full")
+    assert not (user / "run").exists()
+
+    def stopped(config, device, seed, out, *rest):
+        (out / "checkpoint.pt").write_bytes(b"state")
+        raise KeyboardInterrupt
+    monkeypatch.setattr(train, "_train", stopped)
+    assert cli.main(["train", "--data", str(dataset), "--out", "run", "--device", "cpu"]) == 130
+    err = capsys.readouterr().err
+    assert "run/checkpoint.pt" in err and "--resume" in err and (user / "run/checkpoint.pt").is_file()
+
+
+def test_write_errors_name_the_destination_not_a_temporary(dataset, user, capsys, monkeypatch):
+    (user / "userfile.txt").write_text("mine")
+    scene = inout.list_scenes(dataset)[0]
+    _fails(capsys, ["show", scene, "--out-png", "userfile.txt/a.png", "--out-ply", "a.ply"],
+           "userfile.txt is a file, not a folder")
+    _fails(capsys, ["evaluate", "--data", dataset, "--out", "userfile.txt/ev"], "userfile.txt is a file, not a folder")
+    _fail_on(monkeypatch, 1, err=errno.EACCES)  # os.replace's error names the temporary and the destination
+    _fails(capsys, ["show", scene, "--out-png", "a.png", "--out-ply", "a.ply"], "a.png", "permission denied")
+    assert sorted(p.name for p in user.iterdir()) == ["my_scan.ply", "photo.png", "userfile.txt"]
+
+
+def test_os_error_message_names_the_file_in_the_way_and_no_temporary(tmp_path):
+    (tmp_path / "userfile.txt").write_text("x")
+    msg = cli.os_error_message(FileExistsError(errno.EEXIST, "File exists", str(tmp_path / "userfile.txt")))
+    assert "userfile.txt is a file, not a folder" in msg
+    msg = cli.os_error_message(OSError(errno.ENOSPC, "No space", str(tmp_path / ".tmp-ds.abc123" / "cloud.ply")))
+    assert ".tmp-" not in msg and str(tmp_path / "ds" / "cloud.ply") in msg

@@ -248,17 +248,12 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
     config = config or TrainConfig()
     device = check_config(config)  # before the output folder exists: a refused run leaves nothing
     train_recs, val_recs = split_scenes(records, config.val_fraction, seed)
-    created = not out.exists()
-    # a new, empty or earlier training folder only: a run never overwrites files it did not write
-    inout.claim_output_dir(out, TRAINING_RUN_KIND, legacy="checkpoint.pt")
-    try:
+    # a new, empty or earlier training folder only: a run never overwrites files it did not write; a
+    # failed run removes the folder it made unless a checkpoint is there to resume from
+    with inout.output_run(out, TRAINING_RUN_KIND, resumable=("checkpoint.pt",),
+                          resume="rerun with --resume to continue", legacy="checkpoint.pt"):
         return _train(config, device, seed, out, ckpt_path, train_dir, records, train_recs, val_recs, state,
                       progress, command)
-    except BaseException:
-        if created and {p.name for p in out.iterdir()} <= {inout.OWNER_MARKER}:  # nothing to resume from
-            (out / inout.OWNER_MARKER).unlink(missing_ok=True)
-            out.rmdir()
-        raise
 
 
 def check_config(config: TrainConfig) -> torch.device:
