@@ -145,12 +145,15 @@ def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
         raise SphereBenchError("--out-ply and --out-png take one input: give one PATH")
     sources = [Path(p).resolve() for p in args.paths]
     inout.check_output_files(outs, sources, args.force)
-    if args.rerun_save:
+    if args.rerun_save is not None:
+        if not args.rerun_save.strip():
+            raise SphereBenchError("--rerun-save is empty (an unset shell variable?): give a file name ending in .rrd")
         out = Path(args.rerun_save)
         if out.is_dir():
             raise SphereBenchError(f"--rerun-save {out} is a folder: give a file name")
         if any(out.resolve() == src or src in out.resolve().parents for src in sources):
             raise SphereBenchError(f"--rerun-save {out} is an input or inside one: write it elsewhere")
+        inout.check_not_in_dataset(out, "--rerun-save")
     if args.rerun_save and Path(args.rerun_save).suffix != ".rrd":
         raise SphereBenchError(f"--rerun-save {args.rerun_save}: give a file name ending in .rrd")
     if args.rerun_save and Path(args.rerun_save).exists() and Path(args.rerun_save).stat().st_size:
@@ -366,6 +369,10 @@ def run(args: argparse.Namespace) -> int:
                     inout.replace_files(files)
                 except (SphereBenchError, OSError) as exc:
                     skip(raw, exc)
+    except BaseException as exc:
+        if args.rerun_save and Path(args.rerun_save).exists():  # streamed as it went: what it has is readable
+            exc.kept = f"{args.rerun_save} holds what was logged before the stop"
+        raise
     finally:
         if log is not None:
             log.close()

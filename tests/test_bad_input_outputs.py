@@ -286,3 +286,23 @@ def test_os_error_message_names_the_file_in_the_way_and_no_temporary(tmp_path):
     assert "userfile.txt is a file, not a folder" in msg
     msg = cli.os_error_message(OSError(errno.ENOSPC, "No space", str(tmp_path / ".tmp-ds.abc123" / "cloud.ply")))
     assert ".tmp-" not in msg and str(tmp_path / "ds" / "cloud.ply") in msg
+
+
+def test_stopped_detect_says_its_recording_is_kept(dataset, user, capsys, monkeypatch):
+    pytest.importorskip("rerun")
+    from spherebench.scripts import detect as detect_script
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(detect_script, "detect", stopped)
+    scene = inout.list_scenes(dataset)[0]
+    assert cli.main(["detect", str(scene), "--rerun-save", "run.rrd"]) == 130
+    err = capsys.readouterr().err
+    assert "run.rrd holds what was logged" in err and "no partial output" not in err, err
+
+
+@pytest.mark.parametrize("target, words", [("", ("--rerun-save is empty",)), ("{ds}/x.rrd", ("inside the dataset",))])
+def test_rerun_save_refuses_an_empty_path_or_one_inside_a_dataset(dataset, user, capsys, target, words):
+    before = _tree(dataset)
+    _fails(capsys, ["detect", inout.list_scenes(dataset)[0], "--rerun-save", target.format(ds=dataset)], *words)
+    assert _tree(dataset) == before
