@@ -395,12 +395,13 @@ def claim_output_dir(path: str | Path, kind: str, legacy: str | None = None, wha
 @contextlib.contextmanager
 def output_run(path: str | Path, kind: str, resumable=(), resume: str = "rerun the same command to resume",
                legacy: str | None = None, inputs=()):
-    """claim_output_dir for the length of a run. On a failure or an interruption, the folder is removed
+    """claim_output_dir, refused inside a dataset, for the length of a run. On a failure or an interruption, the folder is removed
     if this run made it and it holds none of ``resumable`` (the names of the files or sub-folders a
     rerun reuses: evaluate's finished predictions, a training checkpoint); else the exception says
     what was kept (its ``kept``, which cli.run_guarded prints), so that no message claims a clean
     slate that is not there."""
     made = not Path(path).exists()
+    check_not_in_dataset(path)
     path = claim_output_dir(path, kind, legacy, inputs=inputs)
     try:
         yield path
@@ -458,8 +459,10 @@ def atomic_directory(final: str | Path, is_ours):
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, final)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OSError) and exc.filename is None:  # a write's error (a full disk) names no file
+            raise named_error(exc, final) from None
         raise
 
 

@@ -472,7 +472,6 @@ def results_run(out: str | Path):
     """claim_results_dir for the length of an evaluation (``inout.output_run``): a failed or stopped
     run removes a folder it made and holds nothing a rerun reuses (RESULTS_RESUMABLE), and says what
     it kept otherwise."""
-    inout.check_not_in_dataset(out)
     return inout.output_run(out, RESULTS_KIND, RESULTS_RESUMABLE, legacy=RESULTS_LEGACY_FILE)
 
 

@@ -306,3 +306,23 @@ def test_rerun_save_refuses_an_empty_path_or_one_inside_a_dataset(dataset, user,
     before = _tree(dataset)
     _fails(capsys, ["detect", inout.list_scenes(dataset)[0], "--rerun-save", target.format(ds=dataset)], *words)
     assert _tree(dataset) == before
+
+
+def test_a_full_disk_in_the_report_names_the_folder_and_what_was_kept(dataset, user, capsys, monkeypatch):
+    real = Path.write_text
+
+    def write_text(self, *args, **kwargs):
+        if self.suffix == ".csv":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write's error: naming no file
+        return real(self, *args, **kwargs)
+    monkeypatch.setattr(Path, "write_text", write_text)
+    _fails(capsys, _evaluate(dataset, "ev", "--no-figures"), "ev/tables: the disk is full",
+           "completed work is kept in ev/predictions")
+    assert not (user / "ev/tables").exists() and any((user / "ev/predictions").rglob("*.json"))
+
+
+def test_training_refuses_an_output_inside_a_dataset(dataset, user, capsys):
+    before = _tree(dataset)
+    _fails(capsys, ["train", "--data", dataset, "--out", dataset / "scenes/run", "--device", "cpu"],
+           "inside the dataset")
+    assert _tree(dataset) == before
