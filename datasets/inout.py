@@ -395,11 +395,11 @@ def claim_output_dir(path: str | Path, kind: str, legacy: str | None = None, wha
 @contextlib.contextmanager
 def output_run(path: str | Path, kind: str, resumable=(), resume: str = "rerun the same command to resume",
                legacy: str | None = None, inputs=()):
-    """claim_output_dir, refused inside a dataset, for the length of a run. On a failure or an interruption, the folder is removed
-    if this run made it and it holds none of ``resumable`` (the names of the files or sub-folders a
-    rerun reuses: evaluate's finished predictions, a training checkpoint); else the exception says
-    what was kept (its ``kept``, which cli.run_guarded prints), so that no message claims a clean
-    slate that is not there."""
+    """claim_output_dir, refused inside a dataset, for the length of a run. On a failure or an
+    interruption, the folder is removed if this run made it and it holds none of ``resumable`` (the
+    names of the files or sub-folders a rerun reuses: evaluate's finished predictions, a training
+    checkpoint); else the exception says what was kept (its ``kept``, which cli.run_guarded prints),
+    so that no message claims a clean slate that is not there."""
     made = not Path(path).exists()
     check_not_in_dataset(path)
     path = claim_output_dir(path, kind, legacy, inputs=inputs)
