@@ -55,9 +55,12 @@ DEFAULT_CATEGORY = "basketball"
 # --------------------------------------------------------------------------- atomic, owned writes
 #
 # The tool replaces only what it wrote: an output folder is replaced when it is empty or holds the
-# marker of its kind (a dataset's dataset.json, a results or training folder's OWNER_MARKER), and
-# refused otherwise. Temporaries are siblings named .tmp-<name>.*; a temporary folder records the
-# process that made it, so that a later run can remove one whose process died (SIGKILL, power).
+# marker of its kind (a dataset's dataset.json, a results or training folder's OWNER_MARKER), a
+# report's OUT.json when it names the report's kind, a file for the user to look at when it carries
+# the mark (is_marked), and each is refused otherwise; nothing is written inside a dataset but by
+# generate and prepare. Several files are written all or nothing (replace_files). Temporaries are
+# siblings named .tmp-<name>.*; a temporary folder records the process that made it, so that a
+# later run can remove one whose process died (SIGKILL, power).
 
 #: Written into a folder that a command fills over time (evaluate's results, a training run).
 OWNER_MARKER = ".spherebench-output.json"
