@@ -249,8 +249,9 @@ def _report_is_ours(js: Path, kind: str) -> bool:
 
 def check_report_out(out: str | Path, kind: str) -> tuple[Path, Path]:
     """OUT.md and OUT.json for a report of this kind, refused (SphereBenchError) before any work when
-    either is a folder or a link, or when an existing pair is not recognisably this report's
-    (``_report_is_ours``): a file the user put there is never overwritten."""
+    OUT names a folder, lies inside a dataset, either file is a folder or a link, or an existing pair
+    is not recognisably this report's (``_report_is_ours``): a file the user put there is never
+    overwritten."""
     if not str(out).strip():
         raise SphereBenchError("--out is empty (an unset shell variable?): give a path for the report, e.g. "
                                f"results/{kind}")
@@ -260,6 +261,7 @@ def check_report_out(out: str | Path, kind: str) -> tuple[Path, Path]:
                                f"{out / kind} (writes {kind}.md and {kind}.json)")
     md, js = out.with_suffix(".md"), out.with_suffix(".json")
     check_folders(out)
+    check_not_in_dataset(md)
     for path in (md, js):
         if path.is_symlink() or path.is_dir():
             raise SphereBenchError(f"{path}: is a folder or a link: give --out a path for the report's two files")

@@ -143,7 +143,7 @@ def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
                                "DIR or --rerun-save FILE.rrd for recordings and cameras")
     if outs and len(args.paths) != 1:
         raise SphereBenchError("--out-ply and --out-png take one input: give one PATH")
-    sources = [Path(p).resolve() for p in args.paths]
+    sources = [Path(p).resolve() for p in (*args.paths, *([args.intrinsics] if args.intrinsics else []))]
     inout.check_output_files(outs, sources, args.force)
     if args.rerun_save is not None:
         if not args.rerun_save.strip():

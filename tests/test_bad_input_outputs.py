@@ -326,3 +326,13 @@ def test_training_refuses_an_output_inside_a_dataset(dataset, user, capsys):
     _fails(capsys, ["train", "--data", dataset, "--out", dataset / "scenes/run", "--device", "cpu"],
            "inside the dataset")
     assert _tree(dataset) == before
+
+
+def test_report_and_detect_outputs_respect_datasets_and_every_input(dataset, user, capsys):
+    before = _tree(dataset)
+    _fails(capsys, ["sweep", dataset, "--out", dataset / "run"], "inside the dataset")
+    scene = inout.list_scenes(dataset)[0]
+    shutil.copy(scene / "intrinsics.json", user / "intr.json")
+    shutil.copy(scene / "cloud.ply", user / "c.ply")
+    _fails(capsys, ["detect", "c.ply", "--intrinsics", "intr.json", "--out-ply", "intr.json", "--force"], "is the input")
+    assert _tree(dataset) == before and (user / "intr.json").read_bytes() == (scene / "intrinsics.json").read_bytes()
