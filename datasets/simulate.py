@@ -17,13 +17,11 @@ scene's gt.json then records its sensor (and its grid cell), the dataset.json th
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from spherebench import __version__
 from spherebench.camera import Intrinsics, image_rays
@@ -35,7 +33,8 @@ from spherebench.datasets.primitives import Box, Cylinder, SolidSphere, raycast,
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.datasets.sensor import D435Sensor, SensorRanges, apply_sensor, check_setting, draw_sensor
 from spherebench.errors import SphereBenchError
-from spherebench.parallel import process_pool
+from spherebench.parallel import pool_size, process_pool, usable_cpus
+from spherebench.progress import bar as progress_bar
 
 BASKETBALL_RADIUS_M = 0.12
 RESOLUTIONS = {"424x240": (424, 240), "848x480": (848, 480), "1280x720": (1280, 720)}
@@ -403,9 +402,10 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         scenes_dir = tmp / "scenes"
         scenes_dir.mkdir()
         tasks = [(preset_name, i, f, seed, r, radius_m, sensor, overrides, scenes_dir, clouds) for i, f, r in jobs]
-        bar = tqdm(total=len(tasks), desc=f"generate {preset_name}", unit="scene", disable=not progress)
-        if workers > 1:
-            with process_pool(workers) as pool:
+        bar = progress_bar(total=len(tasks), desc=f"generate {preset_name}", unit="scene", enabled=progress)
+        processes = pool_size(workers, len(tasks))  # no more than the scenes or the CPUs
+        if processes > 1:
+            with process_pool(processes) as pool:
                 for _ in pool.map(_build_one, tasks, chunksize=4):
                     bar.update()
         else:
@@ -427,4 +427,4 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
 
 
 def default_workers() -> int:
-    return max(1, min(4, os.cpu_count() or 1))
+    return min(4, usable_cpus())

@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--n", type=int, default=None, help="number of scenes (default: the preset's)")
     p.add_argument("--seed", type=options.seed, default=0, help="run seed; scene k's seed derives from (preset, seed, k)")
     p.add_argument("--radius", type=float, default=simulate.BASKETBALL_RADIUS_M, help="ball radius, metres")
-    p.add_argument("--workers", type=int, default=simulate.default_workers(),
+    p.add_argument("--workers", type=options.workers, default=simulate.default_workers(),
                    help="processes (output is identical for any number)")
     p.add_argument("--clouds", action=argparse.BooleanOptionalAction, default=None,
                    help="write cloud.ply per scene (default: yes, except for the train preset)")

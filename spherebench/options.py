@@ -29,6 +29,17 @@ def count(text: str) -> int:
     return _integer(text, 1, "", "give 1 or more")
 
 
+def workers(text: str) -> int:
+    """A number of worker processes: an integer from 1 (more than the CPUs or the tasks are not
+    started, ``spherebench.parallel.pool_size``)."""
+    return _integer(text, 1, "", "give 1 or more worker processes")
+
+
+def loader_workers(text: str) -> int:
+    """Data-loading processes: 0 (load in the main process) or more."""
+    return _integer(text, 0, "", "give 0 (load in the main process) or more processes")
+
+
 def subset(text: str) -> int:
     """A number of scenes to take: a count, 0 for none or -1 for all."""
     return _integer(text, -1, "", "give a count of scenes, 0 for none or -1 for all")
@@ -55,7 +66,7 @@ def out_path(text: str) -> str:
 
 def add_executor_arguments(p: argparse.ArgumentParser, workers_help: str = "worker processes") -> None:
     """--workers, --engine and --address: where a command's tasks run (``spherebench.parallel.executor``)."""
-    p.add_argument("--workers", type=int, default=2,
+    p.add_argument("--workers", type=workers, default=2,
                    help=f"{workers_help} (with --engine ray and no --address: the local cluster's CPUs)")
     p.add_argument("--engine", choices=("local", "ray"), default="local",
                    help="local processes (default) or a Ray cluster (the `distributed` extra)")

@@ -10,6 +10,10 @@ Every worker, local or Ray, is pinned to one thread (``SINGLE_THREAD_ENV``, ``pi
 the benchmark's times are single-threaded, and the output of a task depends on its arguments only,
 so the results are the same whichever engine runs them.
 
+No more processes are started than there are CPUs to run them (``usable_cpus``) or tasks to give
+them. A local worker dies with its parent (``die_with_parent``): a parent killed outright (SIGKILL,
+the OOM killer) leaves no worker running on into its abandoned temporary output.
+
 Ctrl-C in a terminal signals the whole process group. Local workers ignore SIGINT, so that only
 the parent reacts (one "interrupted" line, no worker tracebacks); when the parent's work stops
 for any reason, pending tasks are cancelled and running workers terminated before the caller's
@@ -24,6 +28,8 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor
 from typing import Callable, Iterable, Iterator
 
@@ -36,6 +42,50 @@ SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_N
                      "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
 #: The executors of ``executor``.
 ENGINES = ("local", "ray")
+#: How long joining a Ray cluster (--address) may take before it is given up, seconds.
+RAY_CONNECT_TIMEOUT_S = 30.0
+#: How often a worker without a parent-death signal (not Linux) checks that its parent lives, seconds.
+PARENT_POLL_S = 1.0
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity mask, e.g. under taskset or a batch scheduler)."""
+    with contextlib.suppress(AttributeError, OSError):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def pool_size(workers: int, tasks: int | None = None) -> int:
+    """The processes worth starting for ``tasks`` tasks (None: unknown) on ``workers`` asked for:
+    never more than the tasks or the CPUs (more only compete for the same cores)."""
+    return max(1, min(workers, usable_cpus(), tasks if tasks is not None else workers))
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """End this worker when the process ``parent_pid`` that started it ends, however it ends.
+
+    Linux: the kernel's parent-death signal (SIGKILL; it fires when the thread that started this
+    process exits, which for a pool is the parent's thread that lives as long as the pool). The
+    parent may have died before the signal was set: then this process has already been reparented,
+    and it exits now. Elsewhere: a daemon thread polls the parent's pid."""
+    try:
+        import ctypes  # here, not at the top: only a worker's start needs it
+        libc = ctypes.CDLL(None, use_errno=True)
+        armed = libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        armed = False
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    if armed:
+        return
+
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
 
 
 def ignore_interrupts() -> None:
@@ -83,7 +133,8 @@ def single_thread_here():
         numba.set_num_threads(saved[1])
 
 
-def _worker_start(initializer: Callable | None, initargs: tuple) -> None:
+def _worker_start(parent_pid: int, initializer: Callable | None, initargs: tuple) -> None:
+    die_with_parent(parent_pid)
     ignore_interrupts()
     if initializer is not None:
         initializer(*initargs)
@@ -94,10 +145,11 @@ def process_pool(workers: int, initializer: Callable | None = None, initargs: tu
                  start_method: str | None = None):
     """A ProcessPoolExecutor of ``workers`` processes whose workers ignore SIGINT; on leaving the block
     by an exception (KeyboardInterrupt, SIGTERM turned into one by the CLI), pending tasks are
-    cancelled and the workers terminated at once instead of finishing the queue."""
+    cancelled and the workers terminated at once instead of finishing the queue. ``workers`` is
+    capped at the CPUs (``pool_size``); each worker dies with this process (``die_with_parent``)."""
     context = multiprocessing.get_context(start_method) if start_method else None
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_worker_start,
-                               initargs=(initializer, initargs))
+    pool = ProcessPoolExecutor(max_workers=pool_size(workers), mp_context=context, initializer=_worker_start,
+                               initargs=(os.getpid(), initializer, initargs))
     try:
         yield pool
     except BaseException:
@@ -157,6 +209,7 @@ class RayTasks:
 
 @contextlib.contextmanager
 def _local(workers: int, isolated: bool = False):
+    workers = pool_size(workers)  # spawned workers start as tasks come, so no more than the tasks
     if workers <= 1 and not isolated:
         with single_thread_here():
             yield InProcess()
@@ -178,11 +231,45 @@ def _local(workers: int, isolated: bool = False):
                 os.environ[k] = v
 
 
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def check_reachable(address: str, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """A Ray address (``ray://HOST:PORT`` or ``HOST:PORT``) whose port takes a TCP connection within
+    ``timeout_s``: Ray itself retries a dead address for minutes. ``auto`` and ``local`` (found by
+    Ray) are left to Ray."""
+    if address.strip() in ("auto", "local"):
+        return
+    from urllib.parse import urlsplit  # here, not at the top: only --address needs it
+    parts = urlsplit(address if "://" in address else f"//{address}")
+    try:
+        host, port = parts.hostname, parts.port
+    except ValueError:  # a port that is not a number
+        host = port = None
+    if not host or port is None:
+        raise SphereBenchError(f"--address {address}: give HOST:PORT or ray://HOST:PORT (or auto)")
+    import socket  # here, not at the top: only --address needs it
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as exc:
+        why = f"no answer within {timeout_s:g} s" if isinstance(exc, TimeoutError) else \
+            (exc.strerror or _first_line(exc)).lower()
+        raise SphereBenchError(f"--address {address}: no Ray cluster there ({why}): start it "
+                               "(ray start --head) or check the address") from None
+
+
 @contextlib.contextmanager
 def _ray(workers: int, address: str | None):
-    import ray  # here, not at the top: an optional dependency (the `distributed` extra), for this engine only
+    try:
+        import ray  # here, not at the top: an optional dependency (the `distributed` extra), for this engine only
+    except Exception as exc:  # found (check_engine) but broken: any error of its own import
+        raise SphereBenchError(f"--engine ray: Ray is installed but does not load ({_first_line(exc)}): "
+                               "reinstall it (pip install 'spherebench[distributed]')") from None
     started = not ray.is_initialized()
     if started:
+        if address:
+            check_reachable(address)
         # every Ray worker starts single-threaded, as a local worker does
         runtime_env = {"env_vars": dict(SINGLE_THREAD_ENV)}
         try:
@@ -191,8 +278,9 @@ def _ray(workers: int, address: str | None):
             else:
                 ray.init(num_cpus=max(1, workers), include_dashboard=False, runtime_env=runtime_env,
                          log_to_driver=False)
-        except ConnectionError as exc:
-            raise SphereBenchError(f"--address {address}: no Ray cluster there ({exc})") from None
+        except Exception as exc:  # e.g. ConnectionError, ValueError (ray:// without ray[client]), RuntimeError
+            where = f"--address {address}" if address else "--engine ray (a local cluster)"
+            raise SphereBenchError(f"{where}: Ray did not start: {_first_line(exc)}") from None
     try:
         yield RayTasks(ray, max(1, int(ray.cluster_resources().get("CPU", workers))))
     finally:

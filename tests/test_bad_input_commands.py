@@ -252,7 +252,7 @@ def train_data(tmp_path_factory):
 
 @pytest.mark.parametrize("option, words", [(["--device", "tpu7"], ("tpu7", "auto, cpu, cuda")),
                                            (["--device", "cuda:x"], ("cuda:x",)),
-                                           (["--workers", "-1"], ("workers", "got -1"))])
+                                           (["--workers", "-1"], ("--workers", "-1", "give 0"))])
 def test_train_refuses_a_bad_device_or_worker_count_before_creating_its_folder(train_data, tmp_path, capsys,
                                                                                option, words):
     before = _listing(train_data)
@@ -303,7 +303,7 @@ def test_provenance_names_what_the_peers_arithmetic_depends_on():
 
 @pytest.mark.parametrize("argv, says", [
     (["eval", "--data", "{tmp}/none"], "is missing"),
-    (["eval", "--data", "{tmp}/none", "--workers", "0"], "--workers 0"),
+    (["eval", "--data", "{tmp}/none", "--workers", "0"], "--workers: 0: give 1 or more"),
     (["sweep", "{tmp}/none"], "none"),
     (["robustness", "{tmp}/none"], "none"),
     (["bench", "{tmp}/none"], "none"),
