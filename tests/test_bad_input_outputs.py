@@ -190,7 +190,7 @@ def test_no_output_folder_inside_a_dataset(dataset, user, capsys, argv, words):
 def test_report_out_that_names_no_file_is_refused(dataset, user, capsys, command, out):
     before = _tree(user.parent)
     argv = [command, dataset]
-    _fails(capsys, [*argv, "--out", out], "--out")
+    _fails(capsys, [*argv, "--out", out], "--out", "is empty" if out == "" else "is a folder")
     assert _tree(user.parent) == before
 
 
