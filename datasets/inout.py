@@ -281,9 +281,14 @@ def write_report(out: str | Path, markdown: str, data: dict, kind: str) -> tuple
     return md, js
 
 
+def json_bytes(obj, indent: int | None = 1) -> bytes:
+    """JSON text as write_json writes it; floats as Python writes them (shortest repr: byte-stable)."""
+    return (json.dumps(obj, indent=indent, sort_keys=False) + "\n").encode()
+
+
 def write_json(path: str | Path, obj, indent: int | None = 1) -> None:
-    """JSON, atomically; floats as Python writes them (shortest repr: byte-stable)."""
-    atomic_write_bytes(path, (json.dumps(obj, indent=indent, sort_keys=False) + "\n").encode())
+    """JSON (json_bytes), atomically."""
+    atomic_write_bytes(path, json_bytes(obj, indent))
 
 
 def read_json(path: str | Path):

@@ -808,11 +808,11 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
             link = f"figures/{name}" + ("/" if (out / "figures" / name).is_dir() else "")
             fig_paths[f"[`{link}`]({link}): kept from another tool (not drawn by `evaluate`)"] = None
     write_tables(out / "tables", tables)
-    inout.write_json(out / "metrics.json", metrics)
-    if t2:
-        inout.write_json(out / "table2.json", json_safe(list(t2)))
-    inout.atomic_write_bytes(out / "README.md", readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
-                                                    about).encode())
-    inout.write_json(out / "provenance.json", prov)
+    # the summary files together: a failed write leaves the earlier set, never a mix of two runs'
+    inout.replace_files({out / "metrics.json": inout.json_bytes(metrics),
+                         **({out / "table2.json": inout.json_bytes(json_safe(list(t2)))} if t2 else {}),
+                         out / "README.md": readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
+                                                   about).encode(),
+                         out / "provenance.json": inout.json_bytes(prov)})
     return {"metrics": out / "metrics.json", "tables": out / "tables", "figures": out / "figures",
             "readme": out / "README.md", "provenance": out / "provenance.json"}

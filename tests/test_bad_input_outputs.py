@@ -336,3 +336,18 @@ def test_report_and_detect_outputs_respect_datasets_and_every_input(dataset, use
     shutil.copy(scene / "cloud.ply", user / "c.ply")
     _fails(capsys, ["detect", "c.ply", "--intrinsics", "intr.json", "--out-ply", "intr.json", "--force"], "is the input")
     assert _tree(dataset) == before and (user / "intr.json").read_bytes() == (scene / "intrinsics.json").read_bytes()
+
+
+def test_evaluate_summary_files_are_written_together(dataset, user, capsys, monkeypatch):
+    argv = [str(a) for a in _evaluate(dataset, "ev", "--no-figures")]
+    assert cli.main(argv) == 0
+    before = {n: (user / "ev" / n).read_bytes() for n in ("metrics.json", "README.md", "provenance.json")}
+    for name in ("metrics.json", "provenance.json"):  # to tell the earlier set from a new one
+        (user / "ev" / name).write_bytes(b'{"edited": 1}\n')
+        before[name] = b'{"edited": 1}\n'
+    _fail_on(monkeypatch, 1, "README.md", errno.EIO)
+    capsys.readouterr()
+    assert cli.main(argv) == 2
+    assert "ev/README.md" in capsys.readouterr().err
+    assert {n: (user / "ev" / n).read_bytes() for n in before} == before
+    _no_temporaries(user)
