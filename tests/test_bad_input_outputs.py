@@ -42,7 +42,8 @@ def _no_temporaries(*roots: Path) -> None:
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("data") / "ds"
-    assert cli.main(["generate", "--preset", "default", "--n", "2", "--workers", "1", "--quiet", "--out", str(out)]) == 0
+    argv = ["generate", "--preset", "default", "--n", "2", "--workers", "1", "--quiet", "--out", str(out)]
+    assert cli.main(argv) == 0
     return out
 
 
@@ -173,7 +174,7 @@ def test_robustness_checks_its_report_the_same_way(dataset, user, capsys):
 
 @pytest.mark.parametrize("argv, words", [
     (["generate", "--n", "1", "--workers", "1", "--quiet", "--out", "{ds}/scenes/new"], ("inside the dataset",)),
-    (["prepare", "{ds}/scenes/{scene}/depth.png", "--out", "{ds}/scenes/new"], ("--out",)),
+    (["prepare", "{ds}/scenes/{scene}/depth.png", "--out", "{ds}/scenes/new"], ("inside the dataset",)),
     (["evaluate", "--data", "{ds}", "--out", "{ds}/scenes/ev", "--methods", "improved"], ("inside the dataset",)),
 ])
 def test_no_output_folder_inside_a_dataset(dataset, user, capsys, argv, words):
@@ -334,7 +335,8 @@ def test_report_and_detect_outputs_respect_datasets_and_every_input(dataset, use
     scene = inout.list_scenes(dataset)[0]
     shutil.copy(scene / "intrinsics.json", user / "intr.json")
     shutil.copy(scene / "cloud.ply", user / "c.ply")
-    _fails(capsys, ["detect", "c.ply", "--intrinsics", "intr.json", "--out-ply", "intr.json", "--force"], "is the input")
+    _fails(capsys, ["detect", "c.ply", "--intrinsics", "intr.json", "--out-ply", "intr.json", "--force"],
+           "is the input")
     assert _tree(dataset) == before and (user / "intr.json").read_bytes() == (scene / "intrinsics.json").read_bytes()
 
 
