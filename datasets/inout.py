@@ -177,7 +177,7 @@ _PNG_HEADER_END = 33  # the signature (8 bytes) and the IHDR chunk (25)
 
 
 def is_marked(path: Path) -> bool:
-    """A PNG or PLY that a command wrote with the mark (``mark=True``)."""
+    """A PNG or PLY that a command wrote with the mark (encode_png's ``mark``, encode_ply)."""
     try:
         with open(path, "rb") as f:
             head = f.read(4096)
@@ -208,10 +208,7 @@ def check_output_file(path, what: str, inputs=(), force: bool = False) -> Path:
             raise SphereBenchError(f"{what} {path} is the input: give another file name")
         if src in resolved.parents:
             raise SphereBenchError(f"{what} {path} is inside the input scene folder {source}: write it elsewhere")
-    for folder in resolved.parents:
-        if is_dataset_dir(folder):
-            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}: its files are written only by "
-                                   "generate and prepare; write it elsewhere")
+    check_not_in_dataset(path, what)
     if path.exists() and not force and not is_marked(path):
         raise SphereBenchError(f"{what} {path} exists and was not written by SphereBench: give a new name, or pass "
                                "--force to replace it")
@@ -234,7 +231,8 @@ def check_not_in_dataset(path: str | Path, what: str = "--out") -> None:
     dataset.json): writing there would break it."""
     for folder in Path(path).resolve().parents:
         if is_dataset_dir(folder):
-            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}: write it elsewhere")
+            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}: its files are written only by "
+                                   "generate and prepare; write it elsewhere")
 
 
 def _report_is_ours(js: Path, kind: str) -> bool:
