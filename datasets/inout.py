@@ -231,8 +231,8 @@ def check_not_in_dataset(path: str | Path, what: str = "--out") -> None:
     dataset.json): writing there would break it."""
     for folder in Path(path).resolve().parents:
         if is_dataset_dir(folder):
-            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}: its files are written only by "
-                                   "generate and prepare; write it elsewhere")
+            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}, which generate and prepare "
+                                   "write only whole: write it elsewhere")
 
 
 def _report_is_ours(js: Path, kind: str) -> bool:
