@@ -230,7 +230,11 @@ def check_not_in_dataset(path: str | Path, what: str = "--out") -> None:
     """A one-line error when ``path`` lies inside an existing dataset (below a folder holding
     dataset.json): writing there would break it."""
     for folder in Path(path).resolve().parents:
-        if is_dataset_dir(folder):
+        try:
+            inside = is_dataset_dir(folder)
+        except OSError:  # a folder above that this user may not read: no dataset of theirs
+            inside = False
+        if inside:
             raise SphereBenchError(f"{what} {path} is inside the dataset {folder}, which generate and prepare "
                                    "write only whole: write it elsewhere")
 
