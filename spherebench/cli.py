@@ -151,7 +151,14 @@ def run_guarded(prog: str, work) -> int:
     """Run ``work()`` as a command: bad input (SphereBenchError) and failed reads or writes (OSError)
     as one line on stderr with exit 2; Ctrl-C, SIGTERM and SIGHUP as one "interrupted" line with exit
     128 + the signal (the work's own cleanup has removed its partial output, or the exception's
-    ``kept`` says what it kept for a rerun); a closed pipe on stdout (`| head`) quietly."""
+    ``kept`` says what it kept for a rerun); a closed pipe on stdout (`| head`) quietly; stdout closed
+    (`>&-`) refused before any work, since the next file opened would take its descriptor and receive
+    what is printed (a one-line error; none if stderr is closed too)."""
+    if sys.stdout is None:
+        if sys.stderr is not None:
+            print(f"{prog}: error: stdout is closed: run with stdout open, or send it to a file "
+                  "(> FILE, > /dev/null)", file=sys.stderr)
+        return 2
     with _signals_as_interrupts():
         try:
             status = int(work() or 0)
