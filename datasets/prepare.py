@@ -43,7 +43,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from spherebench import __version__
 from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics, align_to_depth, project
@@ -52,6 +51,7 @@ from spherebench.datasets import inout
 from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
 from spherebench.datasets.scene import Scene
 from spherebench.errors import SphereBenchError
+from spherebench.progress import bar as progress_bar
 
 DEFAULT_BALL_RADIUS_M = 0.12
 #: metres per depth.png count for inputs whose depth is not integer counts (clouds, float32 raw).
@@ -795,7 +795,8 @@ def _input_scale(frame: RecordedFrame, options: PrepareOptions) -> float:
 
 
 def _progress(frames: Iterable[RecordedFrame], total: int | None):
-    return tqdm(frames, total=total, desc="prepare", unit="frame", leave=False, disable=None)
+    # on a terminal only: the summary on stdout says what was prepared
+    return progress_bar(frames, total=total, desc="prepare", unit="frame", leave=False, enabled=None)
 
 
 def note_to_stderr(text: str) -> None:

@@ -12,14 +12,10 @@ from pathlib import Path
 from typing import Sequence
 
 import cv2
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from spherebench.eval.circle_iou import circle_iou_matrix  # noqa: E402
-from spherebench.eval.sensor_grid import ceiling_key, level_label  # noqa: E402
+from spherebench.eval.circle_iou import circle_iou_matrix
+from spherebench.eval.sensor_grid import ceiling_key, level_label
 
 RECALL = np.linspace(0.0, 1.0, 101)
 #: Methods drawn on the example scenes, with their colours (matplotlib names).
@@ -27,19 +23,30 @@ EXAMPLE_METHODS = (("improved", "red"), ("paper+paper-circle", "orange"), ("circ
                    ("circlenet-full", "black"), ("hough", "magenta"))
 
 
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files only), imported at the first figure drawn: its
+    import builds matplotlib's font cache in the user's cache folder (``~/.cache/matplotlib``), which
+    a command that refuses its input, or draws nothing, has no reason to do."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
 def _colours(n: int):
-    cmap = plt.get_cmap("tab10" if n <= 10 else "tab20")
+    cmap = pyplot().get_cmap("tab10" if n <= 10 else "tab20")
     return [cmap(i % cmap.N) for i in range(n)]
 
 
 def _save(fig, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    pyplot().close(fig)
 
 
 def pr_curves(label: str, sets: Sequence, path: Path) -> None:
     """Precision against recall at IoU .50 and .75 (COCO's interpolated precision, area all, maxDets 1000)."""
+    plt = pyplot()
     sets = [s for s in sets if s.pr50 is not None]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
     colours = {}
@@ -65,6 +72,7 @@ def pr_curves(label: str, sets: Sequence, path: Path) -> None:
 def plot_error_vs_distance(label: str, sets: Sequence, path: Path, reference: bool = False) -> None:
     """Centre error (mm, log scale) against the ball centre's distance from the camera; misses at the top.
     reference: the centres are a recording's reference fits, not true centres (said on the axis)."""
+    plt = pyplot()
     sets = [s for s in sets if s.distance_m is not None and s.rule != "paper"]
     fig, ax = plt.subplots(figsize=(8, 4.8))
     cols = _colours(len(sets))
@@ -89,6 +97,7 @@ def plot_error_vs_distance(label: str, sets: Sequence, path: Path, reference: bo
 
 def latency(per_dataset: dict, path: Path) -> None:
     """Time per frame (ms, log scale) per method, one box per dataset."""
+    plt = pyplot()
     rows = []
     for label, sets in per_dataset.items():
         for s in sets:
@@ -130,6 +139,7 @@ def examples(label: str, data_dir: Path, sets: Sequence, coco_gt: dict, path: Pa
     scene). Green: ground truth; each method's k best circles (k = the number of true balls, at
     least 1) in its colour, their scores listed in the corner. A scene with a colour frame is shown
     in colour (the masks were drawn there), others as the image the 2D methods see."""
+    plt = pyplot()
     by_name = {s.output: s for s in sets}
     primary = by_name.get("improved") or (sets[0] if sets else None)
     if primary is None:
@@ -215,6 +225,7 @@ def robustness(label: str, rows_by_method: dict, path: Path, ceiling: dict | Non
     correlation, dropouts, band label e.g. "0-1 m"): rate in 0-1} (``sensor_grid.ceiling_key``),
     drawn as a grey marker beside ``ceiling_method``'s rate in its 3D panels; None: none drawn.
     """
+    plt = pyplot()
     methods = [m for m, rows in rows_by_method.items() if rows]
     bands = list(dict.fromkeys(r["band"] for m in methods for r in rows_by_method[m]))
     levels = sorted({r["subpixel"] for m in methods for r in rows_by_method[m]})

@@ -21,8 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-from tqdm import tqdm
-
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval.cache import is_finished, prediction_key, write_prediction_set
@@ -30,6 +28,7 @@ from spherebench.eval.provenance import code_version, dataset_fingerprint
 from spherebench.eval.registry import MethodSpec, warm_adapter
 from spherebench.eval.seeds import detection_seed
 from spherebench.parallel import executor
+from spherebench.progress import bar as progress_bar
 
 
 @dataclass
@@ -177,7 +176,7 @@ def run_methods(data_dir: str | Path, out_dir: str | Path, specs: Sequence[Metho
     if not pending:
         return paths
     tasks = [t for spec, chosen, _, _ in pending for t in tasks_for(spec, chosen, seed)]
-    bar = tqdm(total=len(tasks), desc=f"run {data_dir.name}", unit="frame", disable=not progress)
+    bar = progress_bar(total=len(tasks), desc=f"run {data_dir.name}", unit="frame", enabled=progress)
     try:
         with executor(workers, engine, address) as ex:
             records = run_tasks(ex, tasks, progress=bar.update)

@@ -23,13 +23,14 @@ def _terminal() -> bool:
 
 
 def bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str = "", unit: str = "it",
-        enabled: bool = True, initial: int = 0, leave: bool = True):
+        enabled: bool | None = True, initial: int = 0, leave: bool = True):
     """A progress bar (tqdm's ``update``, ``set_postfix``, ``set_postfix_str``, ``close``, iteration)
-    for a stage of ``total`` steps of ``unit``; nothing at all when not ``enabled``."""
-    if enabled and _terminal():
+    for a stage of ``total`` steps of ``unit``; nothing at all when not ``enabled``, and with None
+    only on a terminal (a stage whose output already says what it did)."""
+    if enabled is not False and _terminal():
         return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, leave=leave,
                     dynamic_ncols=True, file=sys.stderr)
-    return PlainProgress(iterable, total=total, desc=desc, unit=unit, enabled=enabled and sys.stderr is not None,
+    return PlainProgress(iterable, total=total, desc=desc, unit=unit, enabled=bool(enabled) and sys.stderr is not None,
                          initial=initial)
 
 

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 
 from spherebench.baselines.circlenet.imaging import (FORMAT_VERSION, INPUT_NAME, METADATA_KEY, OUTPUT_NAMES,
                                                      decode_numpy, focal_scale, input_size, load_image, pad_image,
@@ -28,6 +27,12 @@ from spherebench.baselines.circlenet.imaging import (FORMAT_VERSION, INPUT_NAME,
                                                      unscale_circles)
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
+
+# ONNX Runtime's telemetry off unless the user has said otherwise: read once, when the library
+# loads, it stops the device id and event store written under
+# ~/.cache/Microsoft/DeveloperTools/.onnxruntime/ at import. Worker processes inherit it.
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+import onnxruntime as ort  # noqa: E402
 
 #: The shipped model (committed by ``make train``; package data of the wheel).
 DEFAULT_MODEL = Path(__file__).resolve().with_name("model.onnx")

@@ -21,28 +21,25 @@ import json
 import math
 import os
 import platform
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
 
-matplotlib.use("Agg")  # files only, no display
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, read_dataset, split_scenes  # noqa: E402
-from spherebench.baselines.circlenet.imaging import scale_circles  # noqa: E402
-from spherebench.baselines.circlenet.infer import CircleNetDetector  # noqa: E402
-from spherebench.baselines.circlenet.loss import circlenet_loss  # noqa: E402
-from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode  # noqa: E402
-from spherebench.baselines.circlenet.onnx_export import export_onnx  # noqa: E402
-from spherebench.datasets import inout  # noqa: E402
-from spherebench.errors import SphereBenchError  # noqa: E402
-from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, results_from_circles  # noqa: E402
+from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, read_dataset, split_scenes
+from spherebench.baselines.circlenet.imaging import scale_circles
+from spherebench.baselines.circlenet.infer import CircleNetDetector
+from spherebench.baselines.circlenet.loss import circlenet_loss
+from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode
+from spherebench.baselines.circlenet.onnx_export import export_onnx
+from spherebench.datasets import inout
+from spherebench.errors import SphereBenchError
+from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
+from spherebench.eval.figures import pyplot
+from spherebench.parallel import usable_cpus
+from spherebench.progress import bar as progress_bar, write as progress_write
 
 #: The owner-marker kind of a training run's folder (``inout.claim_output_dir``).
 TRAINING_RUN_KIND = "training run"
@@ -116,7 +113,8 @@ def predict(model: CircleNet, dataset: CircleDataset, batch_size: int = 16, devi
     """
     model.eval()
     device = torch.device(device)
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, num_workers=workers)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False,
+                                         num_workers=min(workers, usable_cpus()))
     out = {}
     for batch in loader:
         x = batch["image"].to(device).float().contiguous(memory_format=torch.channels_last)
@@ -169,6 +167,7 @@ def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[list[int]]:
 
 def plot_training_curve(history: dict, path) -> None:
     """Training loss (per iteration, and its running mean) and validation mAP per epoch, as a PNG."""
+    plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
     if history["loss"]:
         x, y = np.asarray(history["loss"], dtype=np.float64).T
@@ -327,9 +326,10 @@ def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt
         model.train()
         train_set.set_epoch(epoch)
         batches = _batches(len(train_set), config.batch_size, seed, epoch)
-        loader = torch.utils.data.DataLoader(train_set, batch_sampler=batches[batch_pos:], num_workers=config.workers)
-        bar = tqdm(loader, desc=f"epoch {epoch + 1}/{config.epochs}", initial=batch_pos, total=len(batches),
-                   disable=not progress, dynamic_ncols=True, file=sys.stderr)
+        loader = torch.utils.data.DataLoader(train_set, batch_sampler=batches[batch_pos:],
+                                             num_workers=min(config.workers, usable_cpus()))
+        bar = progress_bar(loader, desc=f"epoch {epoch + 1}/{config.epochs}", initial=batch_pos, total=len(batches),
+                           unit="batch", enabled=progress)
         running = None
         for pos, batch in enumerate(bar, start=batch_pos):
             lr = _learning_rate(config, iteration, total_iters)
@@ -364,8 +364,8 @@ def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt
         _atomic_write(out / "history.json", lambda tmp: tmp.write_text(json.dumps(history)))
         plot_training_curve(history, out / "training_curve.png")
         if progress:
-            tqdm.write(f"epoch {epoch}/{config.epochs}: loss {running if running is not None else float('nan'):.4f}, "
-                       f"val mAP {val['mAP']:.3f}, mAP.50 {val['mAP50']:.3f}", file=sys.stderr)
+            progress_write(f"epoch {epoch}/{config.epochs}: loss {running if running is not None else float('nan'):.4f}, "
+                           f"val mAP {val['mAP']:.3f}, mAP.50 {val['mAP50']:.3f}")
     seconds += time.perf_counter() - t_start
     return _finish(model, config, seed, out, train_dir, train_recs, val_recs, val_set, val_gt, history,
                    iteration, seconds, device, amp, command)
