@@ -276,7 +276,7 @@ def _ray(workers: int, address: str | None):
             if address:
                 ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
             else:
-                ray.init(num_cpus=max(1, workers), include_dashboard=False, runtime_env=runtime_env,
+                ray.init(num_cpus=pool_size(workers), include_dashboard=False, runtime_env=runtime_env,
                          log_to_driver=False)
         except Exception as exc:  # e.g. ConnectionError, ValueError (ray:// without ray[client]), RuntimeError
             where = f"--address {address}" if address else "--engine ray (a local cluster)"

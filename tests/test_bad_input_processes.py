@@ -149,6 +149,22 @@ def test_ray_failing_to_start_is_one_line(monkeypatch):
     assert "\n" not in str(info.value)
 
 
+def test_a_local_ray_cluster_gets_no_more_cpus_than_there_are(monkeypatch):
+    ray = pytest.importorskip("ray", reason="the `distributed` extra (ray) is not installed")
+    asked = {}
+
+    def init(**kwargs):
+        asked.update(kwargs)
+        raise RuntimeError("not started in this test")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", init)
+    with pytest.raises(SphereBenchError, match="Ray did not start: not started in this test"):
+        with parallel.executor(999999, "ray"):
+            pass
+    assert asked["num_cpus"] == parallel.usable_cpus()
+
+
 def test_a_ray_that_does_not_load_is_one_line(tmp_path, monkeypatch):
     broken = tmp_path / "ray"
     broken.mkdir()
