@@ -6,7 +6,7 @@ import argparse
 import json
 
 from spherebench.errors import SphereBenchError
-from spherebench.parallel import check_engine
+from spherebench.parallel import check_engine, check_reachable
 
 
 def _integer(text: str, least: int, what: str, too_small: str) -> int:
@@ -116,5 +116,8 @@ def parse_overrides(items: list[str]) -> dict:
 
 
 def check_executor(args: argparse.Namespace) -> None:
-    """--workers, --engine and --address (``add_executor_arguments``), checked before anything is written."""
+    """--workers, --engine and --address (``add_executor_arguments``), checked before anything is written
+    or run (the cluster's port too: a dead address fails now, not after the first stages)."""
     check_engine(args.workers, args.engine, args.address)
+    if args.engine == "ray" and args.address:
+        check_reachable(args.address)

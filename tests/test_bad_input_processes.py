@@ -10,7 +10,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+import types
 from pathlib import Path
 
 import cv2
@@ -118,6 +120,10 @@ def test_a_ray_address_with_nothing_there_is_one_line_at_once(tmp_path, capsys):
     err = _one_line(capsys, ["sweep", tmp_path / "ds", "--seeds", "0", "--engine", "ray", "--address", "127.0.0.1:1"],
                     "--address 127.0.0.1:1", "no Ray cluster")
     assert "ray start" in err
+    # before any stage runs (evaluate's Hough set-up said its note first)
+    _one_line(capsys, ["evaluate", "--data", tmp_path / "ds", "--out", tmp_path / "ev", "--engine", "ray",
+                       "--address", "ray://127.0.0.1:1"], "--address ray://127.0.0.1:1", "no Ray cluster")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
 
 
 def test_the_address_is_checked_before_ray_is_asked():
@@ -163,6 +169,23 @@ def test_a_local_ray_cluster_gets_no_more_cpus_than_there_are(monkeypatch):
         with parallel.executor(999999, "ray"):
             pass
     assert asked["num_cpus"] == parallel.usable_cpus()
+
+
+def test_a_port_that_answers_but_is_no_ray_cluster_is_given_up_in_one_line():
+    release = threading.Event()
+    hangs = types.SimpleNamespace(init=lambda **kwargs: release.wait(60))  # Ray retries such a port for minutes
+    try:
+        with pytest.raises(SphereBenchError, match=r"^--address 127.0.0.1:6379: no answer from a Ray cluster "
+                                                   r"within 0.2 s"):
+            parallel._join_cluster(hangs, "127.0.0.1:6379", {}, timeout_s=0.2)
+    finally:
+        release.set()
+
+    def refuses(**kwargs):
+        raise ConnectionError("Failed to connect to Ray cluster at 127.0.0.1:6379")
+
+    with pytest.raises(ConnectionError):  # a failure within the time is Ray's own, worded by _ray
+        parallel._join_cluster(types.SimpleNamespace(init=refuses), "127.0.0.1:6379", {}, timeout_s=5)
 
 
 def test_a_ray_that_does_not_load_is_one_line(tmp_path, monkeypatch):
