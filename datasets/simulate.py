@@ -32,6 +32,7 @@ from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_vi
 from spherebench.datasets.primitives import Box, Cylinder, SolidSphere, raycast, surface_map
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.datasets.sensor import D435Sensor, SensorRanges, apply_sensor, check_setting, draw_sensor
+from spherebench.datasets.stereo import StereoSensor, check_stereo, stereo_depth
 from spherebench.errors import SphereBenchError
 from spherebench.parallel import pool_size, process_pool, usable_cpus
 from spherebench.progress import bar as progress_bar
@@ -41,6 +42,9 @@ RESOLUTIONS = {"424x240": (424, 240), "848x480": (848, 480), "1280x720": (1280, 
 HARD_FAMILIES = ("distractor", "negative", "cylinder", "occluded", "out_of_frame", "far", "two")
 #: Enters the seed of a scene's sensor draws beside the scene seed (a stream apart from the scene's).
 SENSOR_STREAM = 0x5E4502
+#: The sensor models a scene can be rendered through: the analytic noise model (``sensor``) or the
+#: rendered infrared pair matched by SGBM (``stereo``); the name selects the model's default parameters.
+SENSOR_MODELS = {"analytic": D435Sensor, "stereo": StereoSensor}
 
 #: The robust preset's grid: Intel's subpixel range x noise correlation x low-texture dropouts.
 ROBUST_SENSOR = SensorRanges(grid=(
@@ -247,18 +251,22 @@ def _full_silhouette_px(intr: Intrinsics, centre: np.ndarray, radius: float, in_
     return int(sphere_silhouette_mask(big, centre, radius).sum())
 
 
-def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor, rng: np.random.Generator,
+def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor | StereoSensor, rng: np.random.Generator,
            rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Ball]]:
-    """Ray-cast a layout and apply the sensor: depth (H, W) uint16, true z (H, W) m, target balls."""
+    """Ray-cast a layout and apply the sensor (either model): depth (H, W) uint16, true z (H, W) m,
+    target balls."""
     if rays is None:
         rays = image_rays(intr)
     shapes = [it.shape for it in layout.items]
     z_true, label = raycast(shapes, rays, intr)
-    surfaces = None
-    if sensor.dropouts:  # planar surfaces may be low-texture, the balls only if asked
-        balls_too = tuple(k for k, it in enumerate(layout.items) if it.kind == "target") if sensor.dropout_ball else ()
-        surfaces = surface_map(shapes, label, z_true, rays, intr, balls_too)
-    depth = apply_sensor(z_true, intr, sensor, rng, surfaces)
+    if isinstance(sensor, StereoSensor):
+        depth = stereo_depth(shapes, intr, sensor, rng, rays)
+    else:
+        surfaces = None
+        if sensor.dropouts:  # planar surfaces may be low-texture, the balls only if asked
+            balls_too = tuple(k for k, it in enumerate(layout.items) if it.kind == "target") if sensor.dropout_ball else ()
+            surfaces = surface_map(shapes, label, z_true, rays, intr, balls_too)
+        depth = apply_sensor(z_true, intr, sensor, rng, surfaces)
     balls = []
     for k, item in enumerate(layout.items):
         if item.kind != "target":
@@ -295,12 +303,16 @@ def scene_sensor(preset_name: str, seed: int, index: int, sensor: D435Sensor = D
 def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolution: str,
                    radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
                    sensor_overrides: Mapping | None = None) -> Scene:
-    """One scene of a preset, fully determined by its arguments (``scene_sensor`` for the sensor)."""
+    """One scene of a preset, fully determined by its arguments (``scene_sensor`` for the analytic
+    sensor; a StereoSensor is used as given)."""
     preset = PRESETS[preset_name]
     s = generation_seed(preset, seed, index)
     rng = np.random.default_rng(s)
-    varied = preset.sensor is not None or bool(sensor_overrides) or sensor != D435Sensor()
-    sensor, cell = scene_sensor(preset_name, seed, index, sensor, sensor_overrides)
+    if isinstance(sensor, StereoSensor):
+        varied, cell = True, None
+    else:
+        varied = preset.sensor is not None or bool(sensor_overrides) or sensor != D435Sensor()
+        sensor, cell = scene_sensor(preset_name, seed, index, sensor, sensor_overrides)
     w, h = RESOLUTIONS[resolution]
     intr = Intrinsics.d435(w, h)
     intr = Intrinsics(**{**intr.to_dict(), "depth_scale": sensor.depth_scale_m})
@@ -337,6 +349,8 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
             "distractors": distractors, "cylinders": cylinders}
     if varied:  # a nominal-sensor dataset's scenes read as before; dataset.json holds its sensor
         meta["sensor"] = sensor.to_dict()
+    if isinstance(sensor, StereoSensor):
+        meta["sensor_model"] = "stereo"
     if cell is not None:
         meta["sensor_cell"] = cell
     return Scene(scene_id=scene_id, family=family, intrinsics=intr, depth=depth, balls=balls, seed=s, meta=meta)
@@ -381,11 +395,13 @@ def _build_one(args) -> str:
 def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None, seed: int = 0,
                      radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
                      workers: int = 1, progress: bool = True, clouds: bool | None = None,
-                     sensor_overrides: Mapping | None = None) -> Path:
+                     sensor_overrides: Mapping | None = None, sensor_model: str = "analytic") -> Path:
     """Build a preset into ``out_dir`` (replaced atomically when complete); returns the path.
 
-    sensor: the base sensor (the preset's sensor values, grid cells and ``sensor_overrides``,
+    sensor: the base analytic sensor (the preset's sensor values, grid cells and ``sensor_overrides``,
     parameter -> value or (lo, hi), apply over it; see ``scene_sensor``).
+    sensor_model: a name of SENSOR_MODELS; ``stereo`` renders every scene through ``StereoSensor()``
+    (the analytic sensor's settings and ranges do not apply to it, and are refused).
     clouds: write each scene's cloud.ply (default: yes, except for the train preset, whose
     2D consumers read image.png only: 2,000 clouds would take several GB)."""
     if clouds is None:
@@ -395,8 +411,19 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
     for name, value in overrides.items():
         check_setting(name, value)
     jobs = plan(preset_name, n, seed)
-    for i, _f, _r in jobs:  # every scene's sensor is valid (e.g. drawn depth limits in order) before any work
-        scene_sensor(preset_name, seed, i, sensor, overrides)
+    if sensor_model not in SENSOR_MODELS:
+        raise SphereBenchError(f"--sensor-model {sensor_model}: use one of {', '.join(SENSOR_MODELS)}")
+    if sensor_model == "stereo":
+        if overrides or PRESETS[preset_name].sensor is not None or sensor != D435Sensor():
+            raise SphereBenchError(f"--sensor-model stereo: the {preset_name} preset or --sensor sets the analytic "
+                                   "model's parameters, which the stereo model does not have: use a preset "
+                                   "without a sensor grid (default, hard, train, paper) and no --sensor")
+        sensor = StereoSensor()
+        for resolution in sorted({r for _i, _f, r in jobs}):
+            check_stereo(sensor, Intrinsics.d435(*RESOLUTIONS[resolution]))
+    else:
+        for i, _f, _r in jobs:  # every scene's sensor is valid (e.g. drawn depth limits in order) before any work
+            scene_sensor(preset_name, seed, i, sensor, overrides)
     out_dir = Path(out_dir)
     with inout.atomic_directory(out_dir, inout.replaceable_dataset) as tmp:
         scenes_dir = tmp / "scenes"
@@ -415,7 +442,9 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         bar.close()
         meta = {"name": out_dir.name, "preset": preset_name, "n": len(jobs), "seed": int(seed),
                 "ball_radius_m": radius_m, "category": "basketball", "source": "simulated", "clouds": clouds,
-                "sensor": sensor.to_dict(compact=True)}
+                "sensor": sensor.to_dict(compact=True) if sensor_model == "analytic" else sensor.to_dict()}
+        if sensor_model != "analytic":  # an analytic dataset's record reads as before the stereo model
+            meta["sensor_model"] = sensor_model
         spec = PRESETS[preset_name].sensor
         if spec is not None:
             meta["sensor_ranges"] = spec.to_dict()

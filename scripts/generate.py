@@ -27,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="set a sensor parameter for every scene, overriding the preset: a number, a range "
                         "LO:HI drawn per scene (a pair parameter's own range), 0/1 for a switch; repeatable. "
                         f"Parameters: {', '.join(PARAMETERS)} (docs/data.md)")
+    p.add_argument("--sensor-model", choices=sorted(simulate.SENSOR_MODELS), default="analytic",
+                   help="analytic: the noise model of datasets/sensor.py (default); stereo: both infrared images "
+                        "rendered and matched by semi-global matching (datasets/stereo.py, docs/data.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -39,6 +42,6 @@ def run(args: argparse.Namespace) -> int:
               "cell (the scenes keep their cell labels; gt.json records the sensor used)", file=sys.stderr)
     out = simulate.generate_dataset(args.preset, args.out, n=args.n, seed=args.seed, radius_m=args.radius,
                                     workers=args.workers, progress=not args.quiet, clouds=args.clouds,
-                                    sensor_overrides=overrides)
+                                    sensor_overrides=overrides, sensor_model=args.sensor_model)
     print(f"wrote {out}")
     return 0

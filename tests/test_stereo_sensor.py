@@ -155,3 +155,40 @@ def test_a_sensor_that_cannot_work_at_the_stream_fails_before_any_work(changes, 
     message = str(err.value)
     assert "\n" not in message and all(w in message for w in words), message
     assert rng.bit_generator.state == state  # nothing drawn, nothing rendered
+
+
+# ---------------------------------------------------------------- generate --sensor-model stereo
+
+def _files(root) -> dict:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name not in ("dataset.json", "coco_gt.json")}  # these name the folder
+
+
+def test_generate_stereo_gives_the_same_bytes_for_any_workers_and_records_its_model(tmp_path):
+    from spherebench import cli
+    from spherebench.datasets import inout
+
+    for name, workers in (("one", "1"), ("two", "2")):
+        assert cli.main(["generate", "--preset", "default", "--n", "2", "--quiet", "--sensor-model", "stereo",
+                         "--workers", workers, "--out", str(tmp_path / name)]) == 0
+    assert _files(tmp_path / "one") == _files(tmp_path / "two")
+    meta = inout.read_dataset_meta(tmp_path / "one")
+    assert meta["sensor_model"] == "stereo" and meta["sensor"] == StereoSensor().to_dict()
+    gt = inout.read_scene_gt(tmp_path / "one" / "scenes" / "clean_0000")
+    assert gt["meta"]["sensor_model"] == "stereo"
+    analytic = tmp_path / "analytic"
+    assert cli.main(["generate", "--preset", "default", "--n", "2", "--quiet", "--workers", "1",
+                     "--out", str(analytic)]) == 0
+    assert "sensor_model" not in inout.read_dataset_meta(analytic)  # analytic records read as before
+    assert _files(analytic) != _files(tmp_path / "one")
+
+
+@pytest.mark.parametrize("argv", [["--preset", "robust"], ["--sensor", "subpixel=0.1"]])
+def test_generate_stereo_refuses_the_analytic_models_settings(tmp_path, capsys, argv):
+    from spherebench import cli
+
+    assert cli.main(["generate", "--n", "2", "--quiet", "--sensor-model", "stereo", *argv,
+                     "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--sensor-model stereo" in err, err
+    assert not (tmp_path / "ds").exists()
