@@ -5,7 +5,8 @@ in input order, run by
 - ``local`` (default): this process when ``workers <= 1``, else a pool of ``workers`` spawned
   processes (``process_pool``);
 - ``ray``: the tasks of a Ray cluster (``--engine ray [--address ADDR]``; without an address a
-  local one is started with ``workers`` CPUs). Ray is the optional extra ``distributed``.
+  local one is started with ``workers`` CPUs; joining one is given up after
+  ``RAY_CONNECT_TIMEOUT_S``). Ray is the optional extra ``distributed``.
 Every worker, local or Ray, is pinned to one thread (``SINGLE_THREAD_ENV``, ``pin_single_thread``):
 the benchmark's times are single-threaded, and the output of a task depends on its arguments only,
 so the results are the same whichever engine runs them.
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import logging
 import multiprocessing
 import os
 import signal
@@ -259,6 +261,41 @@ def check_reachable(address: str, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> N
                                "(ray start --head) or check the address") from None
 
 
+class _NotMainThreadNote(logging.Filter):
+    """Ray's warning that a driver started outside the main thread sets no SIGTERM handler: the
+    command's own handler is the one wanted."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "not the main thread" not in record.getMessage()
+
+
+def _join_cluster(ray, address: str, runtime_env: dict, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """``ray.init(address)``, given up after ``timeout_s``: a port that answers but is not a Ray
+    cluster's (or a cluster that does not reply) is retried by Ray for minutes. It runs in a daemon
+    thread, so that a connection given up on does not hold up the command's exit."""
+    failure: list[BaseException] = []
+
+    def connect():
+        try:
+            ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
+        except BaseException as exc:  # re-raised in the caller's thread
+            failure.append(exc)
+
+    worker_log, note = logging.getLogger("ray._private.worker"), _NotMainThreadNote()
+    worker_log.addFilter(note)
+    try:
+        thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
+        thread.start()
+        thread.join(timeout_s)
+    finally:
+        worker_log.removeFilter(note)
+    if thread.is_alive():
+        raise SphereBenchError(f"--address {address}: no answer from a Ray cluster within {timeout_s:g} s: "
+                               "check that it runs there (ray status) and the address")
+    if failure:
+        raise failure[0]
+
+
 @contextlib.contextmanager
 def _ray(workers: int, address: str | None):
     try:
@@ -274,10 +311,12 @@ def _ray(workers: int, address: str | None):
         runtime_env = {"env_vars": dict(SINGLE_THREAD_ENV)}
         try:
             if address:
-                ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
+                _join_cluster(ray, address, runtime_env)
             else:
                 ray.init(num_cpus=pool_size(workers), include_dashboard=False, runtime_env=runtime_env,
                          log_to_driver=False)
+        except SphereBenchError:
+            raise
         except Exception as exc:  # e.g. ConnectionError, ValueError (ray:// without ray[client]), RuntimeError
             where = f"--address {address}" if address else "--engine ray (a local cluster)"
             raise SphereBenchError(f"{where}: Ray did not start: {_first_line(exc)}") from None
