@@ -233,7 +233,7 @@ def test_raw_frames(tmp_path, capsys):
     # the same floats in millimetres: plainly the wrong unit
     f.write_bytes((depth_m * 1000).astype(">f4").tobytes())
     assert_failed(capsys, run_cli(f, "--raw-size", "80x60", "--raw-dtype", "float32", "--raw-byte-order", "big", *cam,
-                                  "--out", out2 / "x"), out2 / "x", "f.bin", "--depth-scale 0.001")
+                                  "--out", tmp_path / "x"), tmp_path / "x", "f.bin", "--depth-scale 0.001")
     # size mismatches: file too short for the size, and size against the intrinsics file
     assert_failed(capsys, run_cli(folder / "a.raw", "--raw-size", "80x61", *cam, "--out", tmp_path / "z"),
                   tmp_path / "z", "a.raw", "truncated")
