@@ -31,6 +31,7 @@ from spherebench.datasets import simulate
 from spherebench.datasets.primitives import Box, Plane, raycast
 from spherebench.datasets.sensor import D435Sensor, apply_sensor
 from spherebench.datasets.stereo import StereoSensor, stereo_depth
+from spherebench.eval.figures import pyplot
 
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 3.0, 4.0)
 INTEL_SUBPIXEL_PX = 0.08
@@ -214,10 +215,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _figure(walls: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(9, 3.4), dpi=90)
     for (w, h), colour in zip(RESOLUTIONS, ("C0", "C1")):
         intr = Intrinsics.d435(w, h)

@@ -55,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    # here, not at the top: the reports load matplotlib and pandas, and `spherebench evaluate --help`
+    # here, not at the top: the reports load pandas (and matplotlib to draw), and `spherebench evaluate --help`
     # took 2.4 s with them, about 1 s without
     from spherebench.eval.evaluation import check_dataset, console_line, dataset_label, evaluate
     from spherebench.eval.recorded import load_beside

@@ -38,7 +38,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    # here, not at the top: the reports load matplotlib and pandas, and `spherebench eval --help` took
+    # here, not at the top: the reports load pandas (and matplotlib to draw), and `spherebench eval --help` took
     # 2.0 s with them, about 1 s without
     from spherebench.eval.evaluation import run_benchmark
 
