@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,7 @@ from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_vi
 from spherebench.datasets.primitives import Box, Cylinder, SolidSphere, raycast, surface_map
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.datasets.sensor import D435Sensor, SensorRanges, apply_sensor, check_setting, draw_sensor
-from spherebench.datasets.stereo import StereoSensor, check_stereo, stereo_depth
+from spherebench.datasets.stereo import StereoSensor, check_stereo, check_stereo_ranges, draw_stereo, stereo_depth
 from spherebench.errors import SphereBenchError
 from spherebench.parallel import pool_size, process_pool, usable_cpus
 from spherebench.progress import bar as progress_bar
@@ -61,6 +61,14 @@ TRAIN_SENSOR = SensorRanges(values={
     "depth_scale_error": (-0.003, 0.003), "depth_bias_m": (-0.002, 0.002),
 })
 
+#: The train-stereo preset's per-scene stereo draws (the nominal values of StereoSensor inside each
+#: range): ambient infrared from a dim room to one beside a window, the emitter's power (laser power
+#: setting and unit spread), the dots' focus and power spread, the imager's read noise.
+TRAIN_STEREO = {
+    "dot_sigma_mrad": (0.9, 1.6), "dot_power_spread": (0.1, 0.35), "dot_peak_e_per_ms": (900.0, 2000.0),
+    "ambient_e_per_ms": (10.0, 300.0), "read_noise_e": (2.0, 8.0),
+}
+
 
 @dataclass(frozen=True)
 class Preset:
@@ -71,7 +79,12 @@ class Preset:
     n_default: int
     families: tuple[tuple[str, float], ...]
     resolutions: tuple[tuple[str, float], ...] = (("424x240", 1.0),)
-    sensor: SensorRanges | None = None          # per-scene sensor draws; None: the given sensor for all
+    sensor: SensorRanges | None = None          # per-scene analytic sensor draws; None: the given sensor for all
+    sensor_model: str = "analytic"              # a name of SENSOR_MODELS: what every scene is rendered through
+    stereo: Mapping | None = None               # per-scene stereo draws, parameter -> (lo, hi) (stereo presets)
+    clouds: bool = True                         # write cloud.ply per scene by default
+    twin_of: str | None = None                  # the analytic preset whose families and sizes a stereo one repeats
+    grammar: str = "classic"                    # the scene grammar its families come from (dataset.json says a new one)
 
 
 PRESETS = {
@@ -92,6 +105,24 @@ PRESETS = {
     "robust": Preset("robust", 5, 400, (("clean", 0.5), ("cluttered", 0.5)),
                      (("424x240", 0.8), ("848x480", 0.2)), ROBUST_SENSOR),
 }
+PRESETS["train"] = replace(PRESETS["train"], clouds=False)  # its 2D consumers read image.png only
+
+
+def _stereo_twin(name: str, code: int, stereo: Mapping | None = None) -> Preset:
+    """The stereo model's twin of an analytic preset: its families, sizes and resolutions, its own
+    seed stream (``code``), every scene rendered through StereoSensor (with ``stereo`` drawn per scene)."""
+    base = PRESETS[name]
+    return replace(base, name=f"{name}-stereo", code=code, sensor=None, sensor_model="stereo", stereo=stereo,
+                   twin_of=name)
+
+
+PRESETS.update({
+    "default-stereo": _stereo_twin("default", 6),
+    "hard-stereo": _stereo_twin("hard", 7),
+    # train's twin: as train draws its analytic sensor per scene, this draws the unit's light and
+    # imager per scene (TRAIN_STEREO), so that choices made on it hold across units and rooms
+    "train-stereo": _stereo_twin("train", 8, TRAIN_STEREO),
+})
 
 
 def generation_seed(preset: Preset, seed: int, index: int) -> int:
@@ -300,16 +331,27 @@ def scene_sensor(preset_name: str, seed: int, index: int, sensor: D435Sensor = D
     return draw_sensor(sensor, settings, rng), None if cell is None else {"cell": cell[0], **cell[1]}
 
 
+def scene_stereo(preset_name: str, seed: int, index: int, sensor: StereoSensor = StereoSensor()) -> StereoSensor:
+    """The stereo sensor of one scene: ``sensor`` with the preset's stereo ranges drawn from the
+    scene seed's sensor stream (``sensor`` itself where the preset draws none)."""
+    preset = PRESETS[preset_name]
+    if not preset.stereo:
+        return sensor
+    rng = np.random.default_rng([generation_seed(preset, seed, index), SENSOR_STREAM])
+    return draw_stereo(sensor, preset.stereo, rng)
+
+
 def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolution: str,
                    radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
                    sensor_overrides: Mapping | None = None) -> Scene:
     """One scene of a preset, fully determined by its arguments (``scene_sensor`` for the analytic
-    sensor; a StereoSensor is used as given)."""
+    sensor; a StereoSensor with the preset's per-scene stereo draws, ``scene_stereo``)."""
     preset = PRESETS[preset_name]
     s = generation_seed(preset, seed, index)
     rng = np.random.default_rng(s)
     if isinstance(sensor, StereoSensor):
         varied, cell = True, None
+        sensor = scene_stereo(preset_name, seed, index, sensor)
     else:
         varied = preset.sensor is not None or bool(sensor_overrides) or sensor != D435Sensor()
         sensor, cell = scene_sensor(preset_name, seed, index, sensor, sensor_overrides)
@@ -395,17 +437,23 @@ def _build_one(args) -> str:
 def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None, seed: int = 0,
                      radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
                      workers: int = 1, progress: bool = True, clouds: bool | None = None,
-                     sensor_overrides: Mapping | None = None, sensor_model: str = "analytic") -> Path:
+                     sensor_overrides: Mapping | None = None, sensor_model: str | None = None) -> Path:
     """Build a preset into ``out_dir`` (replaced atomically when complete); returns the path.
 
     sensor: the base analytic sensor (the preset's sensor values, grid cells and ``sensor_overrides``,
     parameter -> value or (lo, hi), apply over it; see ``scene_sensor``).
-    sensor_model: a name of SENSOR_MODELS; ``stereo`` renders every scene through ``StereoSensor()``
-    (the analytic sensor's settings and ranges do not apply to it, and are refused).
-    clouds: write each scene's cloud.ply (default: yes, except for the train preset, whose
-    2D consumers read image.png only: 2,000 clouds would take several GB)."""
+    sensor_model: a name of SENSOR_MODELS (default: the preset's); ``stereo`` renders every scene
+    through ``StereoSensor()`` with the preset's stereo draws (the analytic sensor's settings and
+    ranges do not apply to it, and are refused). A stereo preset takes no other model.
+    clouds: write each scene's cloud.ply (default: the preset's: yes, except for the training
+    splits, whose 2D consumers read image.png only: 2,000 clouds would take several GB)."""
+    if preset_name not in PRESETS:
+        raise SphereBenchError(f"unknown preset '{preset_name}': use one of {', '.join(PRESETS)}")
+    preset = PRESETS[preset_name]
+    if sensor_model is None:
+        sensor_model = preset.sensor_model
     if clouds is None:
-        clouds = preset_name != "train"
+        clouds = preset.clouds
     inout.check_ball_radius(radius_m)
     overrides = dict(sensor_overrides or {})
     for name, value in overrides.items():
@@ -413,14 +461,20 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
     jobs = plan(preset_name, n, seed)
     if sensor_model not in SENSOR_MODELS:
         raise SphereBenchError(f"--sensor-model {sensor_model}: use one of {', '.join(SENSOR_MODELS)}")
+    if preset.sensor_model != "analytic" and sensor_model != preset.sensor_model:
+        raise SphereBenchError(f"--sensor-model {sensor_model}: the {preset_name} preset is the {preset.sensor_model} "
+                               f"model's twin of {preset.twin_of}: use --preset {preset.twin_of} for the "
+                               f"{sensor_model} model, or leave --sensor-model out")
     if sensor_model == "stereo":
-        if overrides or PRESETS[preset_name].sensor is not None or sensor != D435Sensor():
+        if overrides or preset.sensor is not None or sensor != D435Sensor():
             raise SphereBenchError(f"--sensor-model stereo: the {preset_name} preset or --sensor sets the analytic "
                                    "model's parameters, which the stereo model does not have: use a preset "
-                                   "without a sensor grid (default, hard, train, paper) and no --sensor")
+                                   "without a sensor grid (default, hard, train, paper, their -stereo twins) "
+                                   "and no --sensor")
         sensor = StereoSensor()
-        for resolution in sorted({r for _i, _f, r in jobs}):
-            check_stereo(sensor, Intrinsics.d435(*RESOLUTIONS[resolution]))
+        check_stereo_ranges(preset.stereo or {}, f"the {preset_name} preset's stereo ranges")
+        for i, _f, resolution in jobs:  # every scene's sensor works at its stream before any work
+            check_stereo(scene_stereo(preset_name, seed, i, sensor), Intrinsics.d435(*RESOLUTIONS[resolution]))
     else:
         for i, _f, _r in jobs:  # every scene's sensor is valid (e.g. drawn depth limits in order) before any work
             scene_sensor(preset_name, seed, i, sensor, overrides)
@@ -445,6 +499,12 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
                 "sensor": sensor.to_dict(compact=True) if sensor_model == "analytic" else sensor.to_dict()}
         if sensor_model != "analytic":  # an analytic dataset's record reads as before the stereo model
             meta["sensor_model"] = sensor_model
+        if preset.stereo:
+            meta["stereo_ranges"] = {k: list(v) for k, v in preset.stereo.items()}
+        if preset.twin_of:
+            meta["twin_of"] = preset.twin_of
+        if preset.grammar != "classic":  # the presets of the first grammar read as before
+            meta["grammar"] = preset.grammar
         spec = PRESETS[preset_name].sensor
         if spec is not None:
             meta["sensor_ranges"] = spec.to_dict()

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -133,6 +134,34 @@ class StereoSensor:
 
 
 STEREO_PARAMETERS = {f.name: f for f in fields(StereoSensor)}
+
+
+def check_stereo_ranges(ranges: Mapping, where: str = "stereo sensor ranges") -> None:
+    """One-line SphereBenchError unless every entry of ``ranges`` (parameter -> (lo, hi)) names a
+    numeric stereo parameter and both bounds are valid values of it, lo <= hi."""
+    for name, value in ranges.items():
+        f = STEREO_PARAMETERS.get(name)
+        if f is None or f.metadata["kind"] not in ("scalar", "int"):
+            raise SphereBenchError(f"{where}: {name!r} is not a numeric stereo parameter; use one of "
+                                   + ", ".join(n for n, g in STEREO_PARAMETERS.items()
+                                               if g.metadata["kind"] in ("scalar", "int")))
+        if not (isinstance(value, tuple) and len(value) == 2 and value[0] <= value[1]):
+            raise SphereBenchError(f"{where}: {name}={value!r} must be a range (LO, HI) with LO <= HI")
+        for x in value:
+            _check(f, x)
+
+
+def draw_stereo(base: StereoSensor, ranges: Mapping, rng: np.random.Generator) -> StereoSensor:
+    """``base`` with each parameter of ``ranges`` (parameter -> (lo, hi)) drawn uniformly from
+    ``rng``, in the dataclass's field order (an integer parameter rounded), so that the draws
+    depend only on the ranges and the rng; the result is checked as any StereoSensor."""
+    changes = {}
+    for name, f in STEREO_PARAMETERS.items():
+        if name in ranges:
+            lo, hi = ranges[name]
+            x = lo if lo == hi else float(rng.uniform(lo, hi))
+            changes[name] = int(round(x)) if f.metadata["kind"] == "int" else x
+    return replace(base, **changes)
 
 
 def _check(f, value) -> None:

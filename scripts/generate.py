@@ -14,7 +14,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=sorted(simulate.PRESETS), default="default",
                    help="default: the paper's 200 scenes; paper: E1-E3; hard: distractors, occlusion, "
                         "range, negatives; robust: default's scenes over a grid of sensor conditions; "
-                        "train: training split for learned baselines")
+                        "train: training split for learned baselines; NAME-stereo: NAME's families and sizes "
+                        "through the stereo sensor model, other seeds")
     p.add_argument("--out", type=options.out_path, required=True, help="dataset folder to write (replaced when complete)")
     p.add_argument("--n", type=int, default=None, help="number of scenes (default: the preset's)")
     p.add_argument("--seed", type=options.seed, default=0, help="run seed; scene k's seed derives from (preset, seed, k)")
@@ -27,9 +28,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="set a sensor parameter for every scene, overriding the preset: a number, a range "
                         "LO:HI drawn per scene (a pair parameter's own range), 0/1 for a switch; repeatable. "
                         f"Parameters: {', '.join(PARAMETERS)} (docs/data.md)")
-    p.add_argument("--sensor-model", choices=sorted(simulate.SENSOR_MODELS), default="analytic",
-                   help="analytic: the noise model of datasets/sensor.py (default); stereo: both infrared images "
-                        "rendered and matched by semi-global matching (datasets/stereo.py, docs/data.md)")
+    p.add_argument("--sensor-model", choices=sorted(simulate.SENSOR_MODELS), default=None,
+                   help="analytic: the noise model of datasets/sensor.py; stereo: both infrared images rendered "
+                        "and matched by semi-global matching (datasets/stereo.py, docs/data.md); default: the "
+                        "preset's (stereo for the -stereo twins, else analytic)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

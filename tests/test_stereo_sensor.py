@@ -192,3 +192,62 @@ def test_generate_stereo_refuses_the_analytic_models_settings(tmp_path, capsys, 
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--sensor-model stereo" in err, err
     assert not (tmp_path / "ds").exists()
+
+
+# ---------------------------------------------------------------- the stereo twins
+
+def test_stereo_twins_repeat_their_presets_families_with_other_seeds():
+    from spherebench.datasets import simulate
+
+    for name in ("default", "hard", "train"):
+        base, twin = simulate.PRESETS[name], simulate.PRESETS[f"{name}-stereo"]
+        assert (twin.families, twin.n_default, twin.resolutions) == (base.families, base.n_default, base.resolutions)
+        assert twin.sensor_model == "stereo" and twin.twin_of == name and twin.sensor is None
+        assert twin.code not in {p.code for p in simulate.PRESETS.values() if p is not twin}
+        assert [f for _i, f, _r in simulate.plan(twin.name, 40)] == [f for _i, f, _r in simulate.plan(name, 40)]
+    assert not simulate.PRESETS["train-stereo"].clouds and simulate.PRESETS["default-stereo"].clouds
+
+
+def test_train_stereo_draws_each_scenes_unit_inside_its_ranges():
+    from spherebench.datasets import simulate
+
+    ranges = simulate.PRESETS["train-stereo"].stereo
+    stereo.check_stereo_ranges(ranges)
+    drawn = [simulate.scene_stereo("train-stereo", 0, i) for i in range(20)]
+    for name, (lo, hi) in ranges.items():
+        values = [getattr(s, name) for s in drawn]
+        assert all(lo <= v <= hi for v in values) and len(set(values)) == 20, name
+    assert simulate.scene_stereo("train-stereo", 0, 3) == drawn[3]  # a scene's draw depends on its seed only
+    assert simulate.scene_stereo("default-stereo", 0, 3) == StereoSensor()  # no ranges: the nominal unit
+
+
+@pytest.mark.parametrize("ranges,match", [({"mode": ("sgbm", "hh")}, "not a numeric"),
+                                          ({"nonsense": (1, 2)}, "not a numeric"),
+                                          ({"read_noise_e": (5.0, 2.0)}, "LO <= HI"),
+                                          ({"read_noise_e": 3.0}, "LO <= HI"),
+                                          ({"read_noise_e": (1.0, 500.0)}, "from 0 to 100")])
+def test_bad_stereo_ranges_are_one_line_errors(ranges, match):
+    with pytest.raises(SphereBenchError, match=match) as err:
+        stereo.check_stereo_ranges(ranges)
+    assert "\n" not in str(err.value)
+
+
+def test_a_stereo_twin_refuses_the_analytic_model_and_records_its_draws(tmp_path, capsys):
+    from spherebench import cli
+    from spherebench.datasets import inout, simulate
+
+    assert cli.main(["generate", "--preset", "default-stereo", "--sensor-model", "analytic", "--n", "2", "--quiet",
+                     "--out", str(tmp_path / "no")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--preset default" in err and not (tmp_path / "no").exists()
+    assert cli.main(["generate", "--preset", "train-stereo", "--n", "2", "--quiet", "--workers", "1",
+                     "--out", str(tmp_path / "ts")]) == 0
+    meta = inout.read_dataset_meta(tmp_path / "ts")
+    assert (meta["sensor_model"], meta["twin_of"], meta["clouds"]) == ("stereo", "train", False)
+    ranges = simulate.PRESETS["train-stereo"].stereo
+    assert set(meta["stereo_ranges"]) == set(ranges)
+    scene = sorted((tmp_path / "ts" / "scenes").iterdir())[1]
+    gt = inout.read_scene_gt(scene)
+    assert gt["meta"]["sensor_model"] == "stereo" and not (scene / "cloud.ply").exists()
+    for name, (lo, hi) in ranges.items():
+        assert lo <= gt["meta"]["sensor"][name] <= hi
