@@ -1,6 +1,7 @@
 """`spherebench train`: train the CircleNet-style 2D baseline on a training dataset.
 
-    spherebench train --data data/train --out checkpoints/circlenet [--backbone resnet18|hourglass]
+    spherebench train --data data/train [--data data/train-stereo] --out checkpoints/circlenet
+                      [--backbone resnet18|hourglass]
                       [--resnet-width N] [--epochs N] [--seed N] [--onnx-weights float32|float16] [--resume]
 
 Writes checkpoint.pt, history.json, training_curve.png, model.onnx and model_card.{json,md} to
@@ -18,7 +19,9 @@ from spherebench.errors import SphereBenchError, require
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--data", required=True, metavar="DIR", help="training dataset folder (the train preset)")
+    parser.add_argument("--data", required=True, action="append", metavar="DIR",
+                        help="training dataset folder (the train preset); repeat to train on several as one "
+                             "(e.g. train and train-stereo)")
     parser.add_argument("--out", type=options.out_path, required=True, metavar="DIR", help="folder for checkpoints, curve, model.onnx, card")
     parser.add_argument("--backbone", choices=["resnet18", "hourglass"], default=None,
                         help="resnet18 (light, CPU; default) or hourglass (CircleNet-HG-like, for a GPU)")
@@ -70,7 +73,8 @@ def run(args) -> int:
     else:
         config = TrainConfig(model=CircleNetConfig(**model), **given)
     command = "spherebench " + shlex.join(sys.argv[1:])
-    card = train(args.data, args.out, config, seed=args.seed, resume=args.resume, progress=not args.quiet,
+    data = args.data[0] if len(args.data) == 1 else args.data
+    card = train(data, args.out, config, seed=args.seed, resume=args.resume, progress=not args.quiet,
                  command=command)
     v = card["val_onnx"]
     print(f"{args.out}/model.onnx: validation mAP {v['mAP']:.3f}, mAP.50 {v['mAP50']:.3f}, mAP.75 {v['mAP75']:.3f} "

@@ -324,6 +324,21 @@ def test_train_writes_everything_and_resume_gives_the_same_model(tmp_path, tiny_
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_training_on_two_folders_keeps_their_scenes_apart(tmp_path, tiny_data):
+    other = make_dataset(tmp_path / "other", n=6, double_every=3, seed=5)
+    one, both = ctrain.read_datasets(tiny_data), ctrain.read_datasets([tiny_data, other])
+    assert [r.scene_id for r in one] == [r.scene_id for r in ctrain.read_datasets([tiny_data])]
+    assert len(both) == 16 and len({r.image_id for r in both}) == 16  # same scene names, told apart
+    assert len({r.scene_id for r in both}) == 16 and {r.path for r in both} == {r.path for r in one} | {
+        r.path for r in ctrain.read_datasets(other)}
+    with pytest.raises(SphereBenchError, match="given twice"):
+        ctrain.read_datasets([tiny_data, tiny_data])
+    card = ctrain.train([tiny_data, other], tmp_path / "run", tiny_config(epochs=1), seed=3, progress=False)
+    assert card["data"]["train_images"] + card["data"]["val_images"] == 16
+    assert [d["train_dir"] for d in card["data"]["datasets"]] == [str(tiny_data), str(other)]
+    assert f"`{other}` (preset test, seed 5)" in (tmp_path / "run" / "model_card.md").read_text()
+
+
 # ---------------------------------------------------------------- ONNX
 
 @pytest.mark.parametrize("backbone", ["resnet18", "hourglass"])

@@ -98,6 +98,22 @@ def read_dataset(root) -> list[ImageRecord]:
     return records
 
 
+def read_datasets(roots) -> list[ImageRecord]:
+    """The images of one dataset folder (``read_dataset``), or of several as one: image ids
+    renumbered in folder order and scene ids prefixed with the folder's position, so that two
+    presets' scenes of the same name stay apart in the validation split."""
+    roots = [roots] if isinstance(roots, (str, Path)) else list(roots)
+    if len(roots) == 1:
+        return read_dataset(roots[0])
+    if len({Path(r).resolve() for r in roots}) < len(roots):
+        raise SphereBenchError("the same training folder is given twice: give each --data once")
+    records: list[ImageRecord] = []
+    for k, root in enumerate(roots):
+        for r in read_dataset(root):
+            records.append(ImageRecord(len(records) + 1, r.path, r.width, r.height, f"{k}:{r.scene_id}", r.circles))
+    return records
+
+
 def split_scenes(records: list[ImageRecord], val_fraction: float, seed: int) -> tuple[list[ImageRecord], list[ImageRecord]]:
     """Split a training dataset into (train, validation) by scene, seeded; validation >= 1 scene."""
     scenes = sorted({r.scene_id for r in records})

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, read_dataset, split_scenes
+from spherebench.baselines.circlenet.data import AugmentConfig, CircleDataset, read_datasets, split_scenes
 from spherebench.baselines.circlenet.imaging import scale_circles
 from spherebench.baselines.circlenet.infer import CircleNetDetector
 from spherebench.baselines.circlenet.loss import circlenet_loss
@@ -219,12 +219,13 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
           progress: bool = True, command: str | None = None) -> dict:
     """Train, validate each epoch, export model.onnx; returns the model card (a dict).
 
+    train_dir: a dataset folder, or a list of them trained on as one (``data.read_datasets``).
     config: None = the defaults, or on resume the checkpoint's. resume: continue the run in
     out_dir (its config must then match in every field that defines the result).
     """
     out = Path(out_dir)
     ckpt_path = out / "checkpoint.pt"
-    records = read_dataset(train_dir)
+    records = read_datasets(train_dir)
     state = None
     if resume:
         state = _load_checkpoint(ckpt_path)
@@ -375,17 +376,23 @@ def _finish(model, config, seed, out, train_dir, train_recs, val_recs, val_set, 
             iteration, seconds, device, amp, command) -> dict:
     """Export the final model to ONNX, score the exported file on validation, write the model card."""
 
-    dataset_meta = {}
-    meta_path = Path(train_dir) / "dataset.json"
-    if meta_path.is_file():
-        with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):
-            d = json.loads(meta_path.read_text())
-            dataset_meta = {k: d[k] for k in ("name", "preset", "seed") if k in d}
+    dirs = [train_dir] if isinstance(train_dir, (str, Path)) else list(train_dir)
+    metas = []
+    for d_path in dirs:
+        meta, meta_path = {}, Path(d_path) / "dataset.json"
+        if meta_path.is_file():
+            with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):
+                d = json.loads(meta_path.read_text())
+                meta = {k: d[k] for k in ("name", "preset", "seed") if k in d}
+        metas.append(meta)
+    # one folder: its fields as before; several: each folder's in "datasets"
+    dataset_meta = metas[0] if len(dirs) == 1 else {
+        "datasets": [{"train_dir": str(p), **m} for p, m in zip(dirs, metas)]}
     last = history["val"][-1] if history["val"] else {}
     card = {
         "model": f"CircleNet-style ({config.model.backbone}), CenterNet circle heads at stride 4",
         "parameters": count_parameters(model),
-        "data": {"train_dir": str(train_dir), **dataset_meta, "train_images": len(train_recs),
+        "data": {"train_dir": " + ".join(str(p) for p in dirs), **dataset_meta, "train_images": len(train_recs),
                  "val_images": len(val_recs), "val_split": f"{config.val_fraction:g} of the training scenes, seed {seed}"},
         "seed": seed, "epochs": config.epochs, "iterations": iteration, "batch_size": config.batch_size,
         "train_seconds": round(seconds, 1), "device": _device_name(device),
@@ -416,12 +423,16 @@ def _device_name(device: torch.device) -> str:
     return f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}"
 
 
+def _data_line(d: dict) -> str:
+    return f"`{d['train_dir']}`" + (f" (preset {d['preset']}, seed {d.get('seed')})" if "preset" in d else "")
+
+
 def _card_markdown(card: dict) -> str:
     v, d = card["val_onnx"], card["data"]
     lines = [
         f"# Model card: {card['model']}",
         "",
-        f"- Data: `{d['train_dir']}`" + (f" (preset {d['preset']}, seed {d.get('seed')})" if "preset" in d else "")
+        "- Data: " + (", ".join(_data_line(x) for x in d["datasets"]) if "datasets" in d else _data_line(d))
         + f": {d['train_images']} training images, {d['val_images']} validation images ({d['val_split']}).",
         f"- Trained from scratch: seed {card['seed']}, {card['epochs']} epochs, {card['iterations']} iterations "
         f"of batch {card['batch_size']}, {card['train_seconds'] / 60:.1f} min on {card['device']} "
