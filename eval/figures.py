@@ -279,3 +279,31 @@ def robustness(label: str, rows_by_method: dict, path: Path, ceiling: dict | Non
     fig.suptitle(f"`{label}`: detection rate and mAP.50 against the sensor's subpixel noise, per range band "
                  "(true distance to the ball's surface)", fontsize=10)
     _save(fig, path)
+
+
+def transfer(rows: Sequence[dict], path: Path) -> None:
+    """The transfer table (``eval.transfer.transfer_rows``) as bars: one column of panels per preset
+    pair, circle mAP above and the 3D found rate below, each method's analytic bar (solid) beside
+    its stereo bar (hatched), the drop written over the pair."""
+    plt = pyplot()
+    pairs = list(dict.fromkeys((r["analytic"], r["stereo"]) for r in rows))
+    fig, axes = plt.subplots(2, len(pairs), figsize=(4.6 * len(pairs), 7.2), squeeze=False, sharey=True)
+    for col, pair in enumerate(pairs):
+        mine = [r for r in rows if (r["analytic"], r["stereo"]) == pair]
+        colours = _colours(len(mine))
+        for ax, key, what in ((axes[0, col], "mAP", "circle mAP (.50:.95)"), (axes[1, col], "found", "3D found rate")):
+            for k, r in enumerate(mine):
+                a, s, drop = r[key]
+                if a is None or s is None:
+                    continue
+                ax.bar(k - 0.2, a, 0.4, color=colours[k])
+                ax.bar(k + 0.2, s, 0.4, color=colours[k], alpha=0.45, hatch="//", edgecolor="black", lw=0.5)
+                ax.text(k, max(a, s) + 0.02, f"{-drop:+.2f}", ha="center", fontsize=7)
+            ax.set_xticks(range(len(mine)), [r["output"] for r in mine], rotation=45, ha="right", fontsize=7)
+            ax.set_ylim(0, 1.12)
+            ax.grid(axis="y", alpha=0.3)
+            ax.set_title(f"`{pair[0]}` (solid) vs `{pair[1]}` (hatched)", fontsize=9)
+            if col == 0:
+                ax.set_ylabel(what)
+    fig.tight_layout()
+    _save(fig, path)

@@ -215,6 +215,19 @@ FAR_RULE_FROM_M = 3.0
 DISTRACTOR_HIT_M = 0.05
 
 
+def found_far_rule(centre_errors_m, depths_m) -> float:
+    """The share of balls found by the far rule: centre error within FOUND_M, or within FOUND_FAR_M
+    for a ball whose centre lies deeper (camera z, m) than FAR_RULE_FROM_M; NaN or inf (missed)
+    counts as not found; NaN without balls."""
+    e, z = np.asarray(centre_errors_m, np.float64), np.asarray(depths_m, np.float64)
+    if e.shape != z.shape:
+        raise SphereBenchError(f"found_far_rule: {e.size} errors for {z.size} depths")
+    if not e.size:
+        return float("nan")
+    limit = np.where(z > FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M)
+    return float(np.count_nonzero(np.nan_to_num(e, nan=np.inf) <= limit) / e.size)
+
+
 def scene_counts(det_centres_m, gt: dict) -> dict:
     """One scene's detections against its ground truth (a scene's ``gt.json``), unmatched: the bench's
     and the seed sweep's view, where any detection within FOUND_M finds a ball.

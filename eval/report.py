@@ -32,10 +32,10 @@ import numpy as np
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval import figures as figs
-from spherebench.eval import recorded
+from spherebench.eval import recorded, transfer
 from spherebench.eval.cache import read_predictions
 from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
-from spherebench.eval.metrics3d import MATCH_GATE_M, match_scene, summarize_3d
+from spherebench.eval.metrics3d import MATCH_GATE_M, found_far_rule, match_scene, summarize_3d
 from spherebench.eval.paper_numbers import PAPER_TABLE2, PAPER_TABLE3
 from spherebench.eval.provenance import json_safe
 from spherebench.eval.registry import PAPER_CIRCLE
@@ -140,6 +140,8 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
         if matches:
             m["3d"] = json_safe(summarize_3d(matches))
             m["3d"]["gate_m"] = float(max(gates))
+            depths = np.concatenate([np.asarray(s.gt_centres_m, np.float64).reshape(-1, 3)[:, 2] for s, _ in ball_errors])
+            m["3d"]["found_far_rule"] = json_safe(found_far_rule(np.concatenate([e for _, e in ball_errors]), depths))
             m["3d"]["scenes_without_centre"] = sum(1 for s in scenes if s.annotated and len(s.gt_centres_m) != s.n_balls)
             out.distance_m = np.concatenate([mm.gt_distance_m for mm in matches])
             out.centre_error_m = np.concatenate([mm.centre_error_m for mm in matches])
@@ -727,6 +729,9 @@ def sensor_rows_by_method(metrics: dict, label: str) -> dict[str, list[dict]]:
             and not (by[label].get("scenes_refused") and by[label]["scenes_refused"] == by[label].get("n_scenes_run"))}
 
 
+TRANSFER_CAPTION = ("Transfer from the analytic sensor model to the stereo one: each method's circle mAP (top) and "
+                    "3D found rate (bottom) on each analytic preset (solid) and its stereo twin (hatched), the change "
+                    "written above")
 ROBUSTNESS_CAPTION = ("Robustness on `{label}`: the 3D detection rate (matched centre within 2 cm) and the 2D mAP.50 "
                       "against the sensor's subpixel noise, one panel per range band of the ball's true distance; "
                       "line styles for noise correlation and dropouts; each point one cell of the grid (20 scenes, a "
@@ -769,6 +774,12 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
                   sensor_table(label, sets), detections_table(label, sets)):
             if t is not None:
                 tables.append(t)
+    transfer_rows = transfer.transfer_rows(transfer.transfer_pairs({k: v[0] for k, v in per_dataset.items()}), sets_by)
+    t = transfer.transfer_table(transfer_rows)
+    if t is not None:
+        tables.append(t)
+        for label, said in transfer.transfer_reading(transfer_rows).items():
+            about.setdefault(label, []).extend(said)
     tables.append(timing_table(sets_by))
     if t2:
         tables.append(table2_table(t2))
@@ -802,6 +813,9 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
                     caption = ROBUSTNESS_CAPTION.format(label=label) + (
                         "; grey markers beside `improved`'s 3D rate: its ceiling (an oracle's)" if ceiling else "")
                     fig_paths[caption] = f"figures/robustness_{label}.png"
+            if transfer_rows:
+                figs.transfer(transfer_rows, tmp / "transfer.png")
+                fig_paths[TRANSFER_CAPTION] = "figures/transfer.png"
             figs.latency(sets_by, tmp / "latency.png")
             fig_paths["Latency per method"] = "figures/latency.png"
         for name in kept:

@@ -262,3 +262,29 @@ def test_circlenet_runs_from_an_onnx_file(tiny, tmp_path):
     assert all(RESULT_KEYS <= set(r) and "center_m" not in r for r in results)
     assert all(registry.CIRCLENET_MIN_SCORE < r["score"] <= 1.0 for r in results)
     assert all(len(s["detections"]) <= registry.CIRCLENET_TOP_K for s in meta["scenes"])
+
+
+def test_transfer_table_pairs_a_preset_with_its_stereo_twin(tiny, tmp_path):
+    from spherebench.cli import main
+    from spherebench.eval import metrics3d, transfer
+
+    twin = simulate.generate_dataset("default-stereo", tmp_path / "tiny-stereo", n=4, progress=False)
+    other = simulate.generate_dataset("hard", tmp_path / "hardish", n=2, progress=False)  # nobody's twin
+    assert transfer.transfer_pairs({"tiny": tiny, "hardish": other, "tiny-stereo": twin}) == [("tiny", "tiny-stereo")]
+    assert transfer.transfer_pairs({"tiny-stereo": twin}) == []
+    out = tmp_path / "out"
+    assert main(["evaluate", "--data", str(tiny), "--data", str(twin), "--out", str(out), "--methods", "improved",
+                 "--workers", "1", "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    md = (out / "tables" / "transfer.md").read_text()
+    a, s = metrics["improved"]["tiny"], metrics["improved"]["tiny-stereo"]
+    row = next(line for line in md.splitlines() if line.startswith("| improved "))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:3] == ["improved", "`tiny`", "`tiny-stereo`"] and len(cells) == 15
+    assert cells[3:6] == [f"{a['mAP']:.3f}", f"{s['mAP']:.3f}", tables.fmt(a["mAP"] - s["mAP"])]
+    assert cells[12:14] == [f"{a['3d']['found_far_rule']:.3f}", f"{s['3d']['found_far_rule']:.3f}"]
+    assert not any(line.startswith("| improved+paper-circle") for line in md.splitlines())
+    assert (out / "figures" / "transfer.png").is_file()
+    assert "`tiny-stereo` is `tiny` through the stereo sensor model" in (out / "README.md").read_text()
+    # the far rule: 3 cm counts beyond 3 m deep, a miss never
+    assert metrics3d.found_far_rule([0.025, 0.025, float("nan"), 0.01], [2.0, 3.5, 1.0, 1.0]) == 0.5
