@@ -1,17 +1,19 @@
 """Evaluations: methods run on datasets, scored and reported (``evaluate``), and the benchmark of
 `make eval` / `spherebench eval` (``run_benchmark``): every method on the `default`, `hard` and
-`robust` presets, Table 2 on `paper`, the oracle's ceiling on `robust`, then the scores, tables,
-figures, README and provenance under results/.
+`robust` presets and on the stereo twins of `default` and `hard`, Table 2 on `paper`, the
+oracle's ceiling on `robust`, then the scores, tables, figures, README and provenance under results/.
 
 Steps of ``run_benchmark`` (each resumable; finished work with the same inputs is reused):
 1. the Hough baseline's parameters, tuned on a training subset (``baselines.hough_tuning``: built
    in DATA/train-hough if needed; cached in OUT/hough_config.json);
-2. predictions of every available method on DATA/default, DATA/hard and DATA/robust (OUT/predictions/);
+2. predictions of every available method on DATA/default, DATA/hard, DATA/robust and the stereo
+   twins DATA/default-stereo, DATA/hard-stereo (OUT/predictions/);
 3. Table 2 on DATA/paper (the paper configuration, z 3, 2, 1.5; 10,000 iterations on E2), and the
    oracle's ceiling of the improved detector on DATA/robust (``studies.oracle_balls``, cached in
    OUT/oracle_robust.json), drawn beside its rates in the robustness figure;
 4. metrics.json, tables/, figures/ (on `robust` also the robustness figure: rates per sensor
-   condition and range band), README.md, provenance.json.
+   condition and range band; the transfer table and figure, each analytic preset beside its
+   stereo twin), README.md, provenance.json.
 Each CircleNet baseline joins when its model exists (baselines/circlenet/model.onnx, full/model.onnx,
 hg/model.onnx); otherwise the tables say it was skipped.
 """
@@ -35,7 +37,7 @@ from spherebench.eval.sensor_grid import ceiling_by_cell
 from spherebench.eval.studies import oracle_balls, table2_rows
 
 #: The presets `make eval` reads under its data folder, and the Table 2 one.
-BENCHMARK_PRESETS = ("default", "hard", "robust")
+BENCHMARK_PRESETS = ("default", "hard", "robust", "default-stereo", "hard-stereo")
 TABLE2_PRESET = "paper"
 
 BENCHMARK_INTRO = [
@@ -44,7 +46,11 @@ BENCHMARK_INTRO = [
     "occlusion, frame borders, range and two balls, at mixed resolutions; `data/robust`: `default`'s families "
     "over a grid of 20 sensor conditions, subpixel noise 0.05-0.20 px x noise correlation none / 1 px x "
     "low-texture dropouts off / on, 20 scenes each, 400 in all, 80 % at 424x240 and 20 % at 848x480; "
-    "`data/paper`: the paper's E1-E3).",
+    "`data/paper`: the paper's E1-E3). `data/default-stereo` and `data/hard-stereo` are the stereo twins of "
+    "`default` and `hard`: the same families, sizes and resolutions with other seeds, their depth made by the "
+    "physical sensor model (both infrared images of the D435 rendered with its dot pattern, depth by semi-global "
+    "matching; docs/data.md) instead of the analytic noise model; the transfer table sets each method's figures on "
+    "the two side by side.",
     "",
     "The robustness figure (`figures/robustness_robust.png`) reads row by row, one method per row: on the left "
     "its 3D detection rate (the matched centre within 2 cm of the truth), on the right its 2D mAP.50, each against "
@@ -190,7 +196,7 @@ def run_benchmark(data: Path, out: Path, seed: int = 0, workers: int = 2, force:
     data, out = Path(data), Path(out)
     for name in (*BENCHMARK_PRESETS, TABLE2_PRESET):
         if not (data / name / "coco_gt.json").is_file():
-            raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust` "
+            raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust data-stereo` "
                                    f"(spherebench generate --preset {name} --out {data / name})")
     with results_run(out):
         return _benchmark(data, out, seed, workers, force, methods, progress, command, engine, address, log)
