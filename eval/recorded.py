@@ -37,9 +37,9 @@ from spherebench.eval.runner import dataset_scenes
 from spherebench.eval.tables import Table, fmt, rule_label
 
 #: The learned 2D methods (trained on simulated D435 frames) and the one tuned on them.
-LEARNED_2D = ("circlenet", "circlenet-full", "circlenet-hg")
+LEARNED_2D = ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")
 #: Methods whose Table 3 figures the beside reading quotes, in this order, where present.
-BESIDE_READING = ("improved", "circlenet", "circlenet-full", "circlenet-hg", "hough")
+BESIDE_READING = ("improved", "circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg", "hough")
 #: The repository's reviewed annotation sets: <this>/<dataset name>/<scene_id>.json and a README.md card.
 ANNOTATION_SETS = REPO_ROOT / "datasets" / "annotations"
 #: LabelMe shapes that are balls (``datasets.annotate.BALL_SHAPE_TYPES``).

@@ -15,8 +15,9 @@ Methods (``build_methods``, in ``METHOD_ORDER``):
   configuration tuned on the training split (``baselines.hough_tuning``);
 - ``circlenet``: the CircleNet-style ONNX model (``baselines.circlenet.infer``) on image.png
   scaled to its training focal length by the scene's intrinsics, when a model file exists;
-  ``circlenet-full`` (ResNet-18 at its own widths) and ``circlenet-hg`` (the stacked hourglass)
-  the same with the GPU-trained models (``CIRCLENET_MODELS``).
+  ``circlenet-analytic`` the same model trained on the analytic sensor model's ``train`` alone (the
+  earlier weights, for comparison), ``circlenet-full`` (ResNet-18 at its own widths) and
+  ``circlenet-hg`` (the stacked hourglass) the same with the GPU-trained models (``CIRCLENET_MODELS``).
 
 An adapter (``adapter_for``) has ``kind``, ``load(scene_dir)`` (the input it reads: the cloud or
 the image) and ``detect(inputs, seed)`` -> [{score, circle, and for 3D center_m, radius_m,
@@ -62,6 +63,8 @@ CIRCLENET_DIR = REPO_ROOT / "baselines" / "circlenet"
 #: ``circlenet``: the half-width ResNet-18 trained on the CPU; the others need a CUDA machine.
 CIRCLENET_MODELS = {
     "circlenet": ("model.onnx", "make train"),
+    # the earlier shipped circlenet, trained on `train` alone, kept beside the one trained on both models
+    "circlenet-analytic": ("analytic/model.onnx", "make train-analytic"),
     "circlenet-full": ("full/model.onnx", "make train-full, on a CUDA machine"),
     "circlenet-hg": ("hg/model.onnx", "make train-hg, on a CUDA machine"),
 }
@@ -152,7 +155,9 @@ def card_budget(card: dict) -> str:
     val = card.get("val_onnx") or card.get("val_torch") or {}
     data = card.get("data", {})
     half = "; weights stored as float16" if (card.get("onnx") or {}).get("weights") == "float16" else ""
-    return (f"trained from scratch on {data.get('train_images', '?')} `{data.get('preset', 'train')}` images, "
+    presets = " + ".join(f"`{d.get('preset', '?')}`" for d in data["datasets"]) if data.get("datasets") else \
+        f"`{data.get('preset', 'train')}`"
+    return (f"trained from scratch on {data.get('train_images', '?')} {presets} images, "
             f"{card.get('epochs', '?')} epochs, {card.get('train_seconds', 0) / 60:.0f} min on {card.get('device', '?')}; "
             f"validation mAP.50 {val.get('mAP50', float('nan')):.3f}{half}")
 

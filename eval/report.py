@@ -46,6 +46,7 @@ from spherebench.eval.tables import Table, fmt, rule_label
 
 #: The CircleNet methods in the reading, with what each one is (``registry.CIRCLENET_MODELS``).
 CIRCLENET_READING = {"circlenet": "`circlenet` (half-width ResNet-18, CPU-trained)",
+                     "circlenet-analytic": "`circlenet-analytic` (the same, trained on the analytic `train` alone)",
                      "circlenet-full": "`circlenet-full` (ResNet-18 at its own widths, GPU-trained)",
                      "circlenet-hg": "`circlenet-hg` (2-stack hourglass, GPU-trained)"}
 
@@ -652,7 +653,7 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
         nets = [(name, c) for name, c in ((n, _get(default, n)) for n in CIRCLENET_READING)
                 if c is not None and c.metrics.get("mAP") is not None]
         if nets:
-            out.append("CircleNet (trained here on the `train` split only) scores "
+            out.append("CircleNet (trained here on the training splits only: its note says which) scores "
                        + "; ".join(f"{c.metrics['mAP']:.3f} / {c.metrics['mAP50']:.3f} / {c.metrics['mAP75']:.3f} "
                                    f"as {CIRCLENET_READING[name]}" for name, c in nets)
                        + f" (paper's CircleNet-HG: {PAPER_TABLE3[1][1]:.3f} / {PAPER_TABLE3[1][2]:.3f} / "

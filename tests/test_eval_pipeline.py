@@ -119,7 +119,7 @@ def test_circlenet_skipped_when_model_missing(tmp_path):
 
 
 def test_gpu_trained_circlenets_are_methods_and_skipped_when_missing(monkeypatch):
-    assert registry.METHOD_ORDER[-3:] == ("circlenet", "circlenet-full", "circlenet-hg")
+    assert registry.METHOD_ORDER[-4:] == ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")
     for name in ("circlenet-full", "circlenet-hg"):
         monkeypatch.setitem(registry.CIRCLENET_MODELS, name, (f"absent/{name}.onnx", f"make train-{name[10:]}, on a CUDA machine"))
     skipped = {}

@@ -117,7 +117,8 @@ def test_the_wheel_carries_the_models_and_the_hough_configuration(installed):
 
     names = set(zipfile.ZipFile(installed[4]).namelist())
     for need in ("spherebench/baselines/circlenet/model.onnx", "spherebench/baselines/circlenet/full/model.onnx",
-                 "spherebench/baselines/hough_config.json", "spherebench/py.typed"):
+                 "spherebench/baselines/circlenet/analytic/model.onnx", "spherebench/baselines/hough_config.json",
+                 "spherebench/py.typed", "spherebench/datasets/d435_pattern.npz"):
         assert need in names, need
 
 
