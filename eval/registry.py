@@ -74,8 +74,8 @@ CIRCLENET_MODELS = {
 #: began drawing each scene's sensor, bf6a801).
 EARLIER_TRAIN = {
     "3b72295ef7ff02b8fd1f939613db8828eb10db18006e57b50997ff17d2236862":
-        "trained on the earlier train preset (nominal sensor, before bf6a801); `make train-full` on a CUDA "
-        "machine retrains it on the current one",
+        "trained on the earlier train preset (nominal sensor, before bf6a801), never on train-stereo (no GPU was "
+        "lent since); `make train-full` on a CUDA machine retrains it on train + train-stereo",
 }
 
 DETECTOR_PRESETS = ("improved", "paper", "paper-lstsq")
