@@ -15,7 +15,7 @@ import numpy as np
 
 from spherebench.camera import Intrinsics, pixel_rays
 from spherebench.circles import norm3, sphere_circle_amodal
-from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere
+from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, Texture
 
 #: Radii (m) of the balls the hard preset puts beside the basketball: soccer ball (size 5),
 #: two smaller balls and a larger one.
@@ -24,14 +24,20 @@ DISTRACTOR_RADII_M = (0.11, 0.09, 0.065, 0.15)
 
 @dataclass
 class Item:
+    """A primitive and what it is; albedo (infrared, 0-1) and texture set its surface for the
+    stereo model (None: the model draws the albedo, untextured); the analytic model ignores both."""
+
     shape: object
     kind: str
+    albedo: float | None = None
+    texture: Texture | None = None
 
 
 @dataclass
 class Layout:
     items: list[Item] = field(default_factory=list)
     floor_y_m: float = 1.2
+    meta: dict = field(default_factory=dict)  # what a grammar records of the scene (gt.json meta)
 
     def add(self, shape, kind: str) -> Item:
         item = Item(shape, kind)
@@ -57,21 +63,34 @@ def room(rng: np.random.Generator, layout: Layout, wall_z_m: float) -> None:
     layout.add(Plane(np.array([0.0, 0.0, wall_z_m]), _rot_y(yaw) @ np.array([0.0, 0.0, -1.0])), "wall")
 
 
+#: Board thickness of a shelf unit, m.
+SHELF_BOARD_M = 0.02
+
+
 def bookcase(rng: np.random.Generator, layout: Layout, x_m: float, z_back_m: float) -> None:
     """A bookcase standing on the floor, its back at ``z_back_m``: panels, shelves, books, jars."""
     width = rng.uniform(0.8, 1.6)
     height = rng.uniform(1.2, 2.0)
     depth = rng.uniform(0.28, 0.4)
+    n_shelves = int(rng.integers(3, 6))
+    shelf_unit(rng, layout, x_m, z_back_m, width, height, depth,
+               np.linspace(0.0, height - SHELF_BOARD_M, n_shelves + 1))
+
+
+def shelf_unit(rng: np.random.Generator, layout: Layout, x_m: float, z_back_m: float, width: float, height: float,
+               depth: float, levels, clear: tuple[int, float, float] | None = None) -> None:
+    """A shelf unit on the floor, its back at ``z_back_m``: back and side panels, boards, books and jars.
+
+    levels: the boards' heights above the floor (m, their bottoms; the top board's: height - board).
+    clear: (board index, x0, x1): no book or jar on that board between x0 and x1 (m)."""
     floor = layout.floor_y_m
     zc = z_back_m - depth / 2
-    t = 0.02
+    t = SHELF_BOARD_M
     layout.add(Box(np.array([x_m, floor - height / 2, z_back_m - t / 2]), np.array([width / 2, height / 2, t / 2])),
                "furniture")
     for side in (-1, 1):
         layout.add(Box(np.array([x_m + side * (width / 2 - t / 2), floor - height / 2, zc]),
                        np.array([t / 2, height / 2, depth / 2])), "furniture")
-    n_shelves = int(rng.integers(3, 6))
-    levels = np.linspace(0.0, height - t, n_shelves + 1)
     for k, level in enumerate(levels):
         y = floor - level - t / 2
         layout.add(Box(np.array([x_m, y, zc]), np.array([width / 2, t / 2, depth / 2])), "furniture")
@@ -88,12 +107,18 @@ def bookcase(rng: np.random.Generator, layout: Layout, x_m: float, z_back_m: flo
                 bh = min(gap * rng.uniform(0.55, 0.95), gap - 0.005)
                 bd = rng.uniform(0.15, depth - 0.02)
                 front = z_back_m - t - bd / 2 - rng.uniform(0.0, depth - bd - t)
+                if clear is not None and clear[0] == k and u < clear[2] and u + bw > clear[1]:
+                    u = clear[2]
+                    continue
                 layout.add(Box(np.array([u + bw / 2, y - t / 2 - bh / 2, front]), np.array([bw / 2, bh / 2, bd / 2])),
                            "clutter")
                 u += bw + 0.002
             else:
                 r = rng.uniform(0.03, 0.07)
                 hh = min(gap * rng.uniform(0.4, 0.9), gap - 0.005)
+                if clear is not None and clear[0] == k and u < clear[2] and u + 2 * r > clear[1]:
+                    u = clear[2]
+                    continue
                 layout.add(Cylinder(np.array([u + r, y - t / 2, zc + rng.uniform(-0.05, 0.05)]),
                                     np.array([0.0, -1.0, 0.0]), r, hh), "clutter")
                 u += 2 * r + 0.01
@@ -102,16 +127,30 @@ def bookcase(rng: np.random.Generator, layout: Layout, x_m: float, z_back_m: flo
 def floor_box(rng: np.random.Generator, layout: Layout, x_m: float, z_m: float, size_m=(0.2, 0.6)) -> None:
     """A box resting on the floor (its corners are a trap for sphere fits)."""
     half = rng.uniform(*size_m, size=3) / 2
-    layout.add(Box(np.array([x_m, layout.floor_y_m - half[1], z_m]), half, _rot_y(rng.uniform(0, math.pi / 2))),
-               "clutter")
+    box_on_floor(layout, x_m, z_m, half, _rot_y(rng.uniform(0, math.pi / 2)))
+
+
+def box_on_floor(layout: Layout, x_m: float, z_m: float, half_m: np.ndarray, rot: np.ndarray,
+                 kind: str = "clutter") -> Item:
+    """A box of half sizes ``half_m`` resting on the floor at (x, z), turned by ``rot``."""
+    return layout.add(Box(np.array([x_m, layout.floor_y_m - half_m[1], z_m]), half_m, rot), kind)
 
 
 def chair(rng: np.random.Generator, layout: Layout, x_m: float, z_m: float) -> None:
-    floor = layout.floor_y_m
     seat_h, w = rng.uniform(0.42, 0.5), rng.uniform(0.4, 0.5)
-    rot = _rot_y(rng.uniform(-0.6, 0.6))
+    chair_at(layout, x_m, z_m, seat_h, w, _rot_y(rng.uniform(-0.6, 0.6)))
+
+
+#: Half thickness of a chair's seat, m (its top is this above the seat height given to ``chair_at``).
+SEAT_HALF_M = 0.02
+
+
+def chair_at(layout: Layout, x_m: float, z_m: float, seat_h: float, w: float, rot: np.ndarray) -> None:
+    """A chair of seat width ``w`` whose seat's mid-plane is ``seat_h`` above the floor at (x, z),
+    its back on its local +z side, turned by ``rot``."""
+    floor = layout.floor_y_m
     centre = np.array([x_m, floor - seat_h, z_m])
-    layout.add(Box(centre, np.array([w / 2, 0.02, w / 2]), rot), "furniture")
+    layout.add(Box(centre, np.array([w / 2, SEAT_HALF_M, w / 2]), rot), "furniture")
     layout.add(Box(centre + rot @ np.array([0.0, -0.22, w / 2]), np.array([w / 2, 0.22, 0.015]), rot), "furniture")
     for sx in (-1, 1):
         for sz in (-1, 1):

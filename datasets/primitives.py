@@ -7,7 +7,7 @@ misses; ``planar_face`` says which planar face a surface point lies on (CURVED i
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -159,6 +159,69 @@ class Cylinder:
         s = (np.asarray(points_m, np.float64) - np.asarray(self.base_m, np.float64)) @ a
         tol = 1e-7 * max(1.0, self.height_m)  # a cap hit's axial coordinate is the cap's up to rounding
         return np.where(np.abs(s) <= tol, 0, np.where(np.abs(s - self.height_m) <= tol, 1, CURVED)).astype(np.int32)
+
+
+def rotated(obj, rotation: np.ndarray):
+    """The primitive turned about the camera origin: every point p goes to ``rotation`` @ p (3x3,
+    orthonormal), e.g. a scene built in a level frame seen by a pitched and rolled camera."""
+    rot = np.asarray(rotation, np.float64)
+    if isinstance(obj, Plane):
+        return replace(obj, point_m=rot @ np.asarray(obj.point_m, np.float64), normal=rot @ np.asarray(obj.normal, np.float64))
+    if isinstance(obj, SolidSphere):
+        return replace(obj, center_m=rot @ np.asarray(obj.center_m, np.float64))
+    if isinstance(obj, Box):
+        return replace(obj, center_m=rot @ np.asarray(obj.center_m, np.float64),
+                       rotation=rot @ np.asarray(obj.rotation, np.float64))
+    return replace(obj, base_m=rot @ np.asarray(obj.base_m, np.float64), axis=rot @ np.asarray(obj.axis, np.float64))
+
+
+#: The procedural patterns of ``Texture``.
+TEXTURE_PATTERNS = ("stripes", "checks", "noise")
+
+
+@dataclass(frozen=True)
+class Texture:
+    """A surface's albedo pattern as a function of the 3D point (camera frame, m): a factor from
+    1 - contrast to 1 that multiplies the surface's albedo. stripes: a sinusoid of period
+    ``scale_m`` along ``direction``; checks: the product of such sinusoids along the three axes;
+    noise: value noise on a lattice of spacing ``scale_m`` (trilinear, values hashed from ``seed``)."""
+
+    pattern: str
+    scale_m: float
+    contrast: float
+    direction: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    seed: int = 0
+
+    def factor(self, points_m: np.ndarray) -> np.ndarray:
+        q = np.asarray(points_m, np.float64) / self.scale_m
+        if self.pattern == "stripes":
+            value = 0.5 + 0.5 * np.sin(2 * np.pi * (q @ (np.asarray(self.direction) / norm3(self.direction))))
+        elif self.pattern == "checks":
+            # scaled and clipped: a product of three sines is small over most of a surface
+            value = np.clip(0.5 + 1.5 * np.prod(np.sin(2 * np.pi * q), axis=1), 0.0, 1.0)
+        else:
+            value = _value_noise(q, self.seed)
+        return 1.0 - self.contrast * value
+
+
+def _value_noise(q: np.ndarray, seed: int) -> np.ndarray:
+    """Trilinear value noise at lattice coordinates q (N, 3): values in [0, 1) hashed per lattice node."""
+    base = np.floor(q)
+    f = q - base
+    f = f * f * (3 - 2 * f)  # smoothstep: no creases along the lattice planes
+    i = base.astype(np.int64)
+    out = np.zeros(len(q))
+    for corner in range(8):
+        d = np.array([(corner >> a) & 1 for a in range(3)])
+        node = (i + d).astype(np.uint64)
+        h = node[:, 0] * np.uint64(0x9E3779B97F4A7C15) ^ node[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F) \
+            ^ node[:, 2] * np.uint64(0x165667B19E3779F9) ^ np.uint64(seed)
+        h ^= h >> np.uint64(31)
+        h *= np.uint64(0xBF58476D1CE4E5B9)
+        h ^= h >> np.uint64(29)
+        w = np.prod(np.where(d == 1, f, 1 - f), axis=1)
+        out += w * (h >> np.uint64(11)).astype(np.float64) / 2.0 ** 53
+    return out
 
 
 def _box_corners(center: np.ndarray, rot: np.ndarray, half: np.ndarray) -> np.ndarray:

@@ -291,7 +291,7 @@ def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor | StereoSensor, 
     shapes = [it.shape for it in layout.items]
     z_true, label = raycast(shapes, rays, intr)
     if isinstance(sensor, StereoSensor):
-        depth = stereo_depth(shapes, intr, sensor, rng, rays)
+        depth = stereo_depth(layout, intr, sensor, rng, rays)  # the items' own albedos and textures
     else:
         surfaces = None
         if sensor.dropouts:  # planar surfaces may be low-texture, the balls only if asked

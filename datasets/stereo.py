@@ -312,8 +312,10 @@ def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _irradiance(objects: list, z_m: np.ndarray, label: np.ndarray, rays: np.ndarray, origin_m: np.ndarray,
-                sensor: StereoSensor, emitter: _Emitter, lit_z: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-    """(H, W) signal, e- per ms, of the imager at ``origin_m`` (left imager's frame) seeing z, label."""
+                sensor: StereoSensor, emitter: _Emitter, lit_z: np.ndarray, albedo: np.ndarray,
+                textures: list | None = None) -> np.ndarray:
+    """(H, W) signal, e- per ms, of the imager at ``origin_m`` (left imager's frame) seeing z, label.
+    textures: per primitive, a ``primitives.Texture`` whose factor multiplies its albedo, or None."""
     out = np.zeros(z_m.shape)
     hit = label > 0
     if not hit.any():
@@ -344,7 +346,11 @@ def _irradiance(objects: list, z_m: np.ndarray, label: np.ndarray, rays: np.ndar
     k = emitter.oversample
     dots = _bilinear(emitter.texture, (ue + 0.5) * k - 0.5, (ve + 0.5) * k - 0.5)
     signal = np.where(lit, sensor.dot_peak_e_per_ms * dots * cos / dist2, 0.0) + sensor.ambient_e_per_ms
-    out[hit] = albedo[lab] * signal
+    reflect = albedo[lab]
+    for k, texture in enumerate(textures or ()):
+        if texture is not None and (sel := lab == k).any():
+            reflect[sel] *= texture.factor(p[sel])  # of the left frame's point: the same on both imagers
+    out[hit] = reflect * signal
     return out
 
 
@@ -410,6 +416,15 @@ def _objects(scene) -> list:
     return [it.shape for it in scene.items] if hasattr(scene, "items") else list(scene)
 
 
+def _surfaces(scene, albedo: np.ndarray) -> tuple[np.ndarray, list | None]:
+    """The albedo per primitive (an item's own where it sets one, else the drawn ``albedo``) and the
+    textures per primitive (None for a list of primitives)."""
+    if not hasattr(scene, "items"):
+        return albedo, None
+    own = np.array([np.nan if it.albedo is None else it.albedo for it in scene.items])
+    return np.where(np.isnan(own), albedo, own), [it.texture for it in scene.items]
+
+
 def stereo_frame(scene, intr: Intrinsics, sensor: StereoSensor, rng: np.random.Generator,
                  rays: np.ndarray | None = None) -> StereoFrame:
     """Render a layout (or a list of primitives) through the stereo model (``stereo_depth``)."""
@@ -423,11 +438,11 @@ def stereo_frame(scene, intr: Intrinsics, sensor: StereoSensor, rng: np.random.G
     emitter = _emitter(sensor, float(intr.fx), float(intr.fy))
     e_at = np.array([sensor.emitter_x_m, 0.0, 0.0])
     lit_z, _ = raycast([_shifted(o, e_at) for o in objects], _rays(emitter.intr), emitter.intr)
-    albedo = rng.uniform(*sensor.albedo, size=len(objects))
+    albedo, textures = _surfaces(scene, rng.uniform(*sensor.albedo, size=len(objects)))
     signals = []
     for origin in (np.zeros(3), right_at):
         z, label = raycast([_shifted(o, origin) for o in objects] if origin.any() else objects, rays, intr)
-        signals.append(_irradiance(objects, z, label, rays, origin, sensor, emitter, lit_z, albedo))
+        signals.append(_irradiance(objects, z, label, rays, origin, sensor, emitter, lit_z, albedo, textures))
     exposure = exposure_ms(signals[0], sensor)
     images = [_expose(signal, exposure, sensor, rng) for signal in signals]
     disparity = match(images[0], images[1], sensor)
@@ -444,7 +459,9 @@ def stereo_depth(scene, intr: Intrinsics, sensor: StereoSensor, rng: np.random.G
                  rays: np.ndarray | None = None) -> np.ndarray:
     """A layout (``layouts.Layout``) or a list of primitives -> D435 depth (H, W) uint16 counts of
     ``sensor.depth_scale_m``, 0 = invalid: the contract of ``sensor.apply_sensor`` on the ray-cast
-    depth. Draws, in order, one albedo per primitive and the two images' noise from ``rng``."""
+    depth. Draws, in order, one albedo per primitive and the two images' noise from ``rng``; a
+    layout's item that sets its own albedo keeps it (its draw is made all the same), its texture
+    multiplies it."""
     return stereo_frame(scene, intr, sensor, rng, rays).depth
 
 
