@@ -26,7 +26,7 @@ import numpy as np
 from spherebench import __version__
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import sphere_circle_amodal, sphere_silhouette_mask
-from spherebench.datasets import inout
+from spherebench.datasets import inout, wide_scenes
 from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_view, ball_partly_out, bookcase,
                                           chair, floor_box, room, table, tripod)
 from spherebench.datasets.primitives import Box, Cylinder, SolidSphere, raycast, surface_map
@@ -123,6 +123,10 @@ PRESETS.update({
     # imager per scene (TRAIN_STEREO), so that choices made on it hold across units and rooms
     "train-stereo": _stereo_twin("train", 8, TRAIN_STEREO),
 })
+# the wide grammar (``wide_scenes``): pitched and rolled cameras, the ball on every support among
+# furniture, distractors, low-albedo and textured surfaces, negatives; 70 % at 424x240
+PRESETS["wide"] = Preset("wide", 9, 200, wide_scenes.SHARES, (("424x240", 0.7), ("848x480", 0.3)), grammar="wide")
+PRESETS["wide-stereo"] = _stereo_twin("wide", 10)
 
 
 def generation_seed(preset: Preset, seed: int, index: int) -> int:
@@ -362,6 +366,8 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
     for _attempt in range(40):
         if preset_name == "paper":
             layout = family_paper(family, intr, radius_m)
+        elif preset.grammar == "wide":
+            layout = wide_scenes.FAMILIES[family](rng, intr, radius_m)
         elif family == "clean":
             layout = family_clean(rng, intr, radius_m)
         elif family == "cluttered":
@@ -372,7 +378,9 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
                 _occlude(rng, intr, layout, np.asarray(layout.targets[0].center_m), radius_m)
         depth, _z, balls = render(layout, intr, sensor, rng, rays)
         vis = [b.visible_fraction for b in balls]
-        if family == "occluded":
+        if preset.grammar == "wide":  # furniture beside it and a pitched view may hide some of it
+            ok = all(v >= 0.5 for v in vis)
+        elif family == "occluded":
             ok = 0.4 <= vis[0] <= 0.7  # 30-60 % hidden
         elif family == "out_of_frame":
             ok = 0.3 <= vis[0] <= 0.85
@@ -395,6 +403,7 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
         meta["sensor_model"] = "stereo"
     if cell is not None:
         meta["sensor_cell"] = cell
+    meta.update(layout.meta)  # the grammar's record: the camera's pose, the support
     return Scene(scene_id=scene_id, family=family, intrinsics=intr, depth=depth, balls=balls, seed=s, meta=meta)
 
 

@@ -14,7 +14,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=sorted(simulate.PRESETS), default="default",
                    help="default: the paper's 200 scenes; paper: E1-E3; hard: distractors, occlusion, "
                         "range, negatives; robust: default's scenes over a grid of sensor conditions; "
-                        "train: training split for learned baselines; NAME-stereo: NAME's families and sizes "
+                        "train: training split for learned baselines; wide: the wide grammar (pitched and rolled "
+                        "cameras, the ball on tripods, shelves, tables, chairs, boxes, the floor, against walls, "
+                        "among furniture and distractors; negatives); NAME-stereo: NAME's families and sizes "
                         "through the stereo sensor model, other seeds")
     p.add_argument("--out", type=options.out_path, required=True, help="dataset folder to write (replaced when complete)")
     p.add_argument("--n", type=int, default=None, help="number of scenes (default: the preset's)")
