@@ -114,8 +114,8 @@ class _Room:
 
 # --------------------------------------------------------------------------- the families
 
-def _support_top(rng, support: str) -> tuple[float, dict]:
-    """How far above the floor the ball's bottom rests (m), and the support's drawn sizes."""
+def _support_top(rng, support: str, radius: float) -> tuple[float, dict]:
+    """How far above the floor a ball of ``radius`` rests (m), and the support's drawn sizes."""
     if support == "tripod":
         return rng.uniform(0.3, 1.3), {}
     if support == "table":
@@ -127,7 +127,8 @@ def _support_top(rng, support: str) -> tuple[float, dict]:
         top = rng.uniform(0.2, 0.6)
         return top, {}
     if support == "shelf":  # board k of evenly spaced boards (the gap above holds the ball)
-        spacing, k = rng.uniform(0.3, 0.45), int(rng.integers(0, 4))
+        lo = max(0.3, 2 * radius + SHELF_BOARD_M + 0.04)  # room above a larger distractor too
+        spacing, k = rng.uniform(lo, max(0.45, lo + 0.05)), int(rng.integers(0, 4))
         return k * spacing + SHELF_BOARD_M, {"spacing": spacing, "board": k}
     return 0.0, {}  # floor, wall
 
@@ -139,7 +140,7 @@ def _pose(rng, intr: Intrinsics, radius: float, support: str):
         pitch, roll, yaw = rng.uniform(*PITCH_DEG), rng.uniform(*ROLL_DEG), rng.uniform(*ROOM_YAW_RAD)
         to_room = _rot_y(yaw).T @ _rot_x(math.radians(pitch)) @ _rot_z(math.radians(roll))
         centre = to_room @ ball_in_view(rng, intr, radius, BALL_DISTANCE_M)
-        top, sizes = _support_top(rng, support)
+        top, sizes = _support_top(rng, support, radius)
         height = centre[1] + radius + top
         wall_ok = support != "wall" or BACK_WALL_M[0] <= centre[2] + radius <= BACK_WALL_M[1]
         if HEIGHT_M[0] <= height <= HEIGHT_M[1] and wall_ok and centre[2] > 0.2:
@@ -177,7 +178,8 @@ def _build_support(rng, layout: Layout, support: str, c: np.ndarray, r: float, t
         t, k, spacing = SHELF_BOARD_M, sizes["board"], sizes["spacing"]
         n = k + 1 + int(rng.integers(0, 3))
         levels = spacing * np.arange(n + 1)
-        width, depth = rng.uniform(0.8, 1.6), rng.uniform(0.28, 0.4)
+        lo = max(0.28, 2 * r + t + 0.01)
+        width, depth = rng.uniform(0.8, 1.6), rng.uniform(lo, max(0.4, lo + 0.05))
         x = c[0] + rng.uniform(-1, 1) * (width / 2 - t - r - 0.05)
         z_back = c[2] + r + t + rng.uniform(0.0, depth - 2 * r - t)
         clear = (k, c[0] - r - rng.uniform(*NEAR_GAP_M), c[0] + r + rng.uniform(*NEAR_GAP_M))  # books beside it
