@@ -1,13 +1,13 @@
 """Evaluations: methods run on datasets, scored and reported (``evaluate``), and the benchmark of
-`make eval` / `spherebench eval` (``run_benchmark``): every method on the `default`, `hard` and
-`robust` presets and on the stereo twins of `default` and `hard`, Table 2 on `paper`, the
-oracle's ceiling on `robust`, then the scores, tables, figures, README and provenance under results/.
+`make eval` / `spherebench eval` (``run_benchmark``): every method on the `default`, `hard`,
+`robust` and `wide` presets and on the stereo twins of `default`, `hard` and `wide`, Table 2 on
+`paper`, the oracle's ceiling on `robust`, then the scores, tables, figures, README and provenance under results/.
 
 Steps of ``run_benchmark`` (each resumable; finished work with the same inputs is reused):
 1. the Hough baseline's parameters, tuned on a training subset (``baselines.hough_tuning``: built
    in DATA/train-hough if needed; cached in OUT/hough_config.json);
-2. predictions of every available method on DATA/default, DATA/hard, DATA/robust and the stereo
-   twins DATA/default-stereo, DATA/hard-stereo (OUT/predictions/);
+2. predictions of every available method on DATA/default, DATA/hard, DATA/robust, DATA/wide and
+   the stereo twins DATA/default-stereo, DATA/hard-stereo, DATA/wide-stereo (OUT/predictions/);
 3. Table 2 on DATA/paper (the paper configuration, z 3, 2, 1.5; 10,000 iterations on E2), and the
    oracle's ceiling of the improved detector on DATA/robust (``studies.oracle_balls``, cached in
    OUT/oracle_robust.json), drawn beside its rates in the robustness figure;
@@ -37,7 +37,7 @@ from spherebench.eval.sensor_grid import ceiling_by_cell
 from spherebench.eval.studies import oracle_balls, table2_rows
 
 #: The presets `make eval` reads under its data folder, and the Table 2 one.
-BENCHMARK_PRESETS = ("default", "hard", "robust", "default-stereo", "hard-stereo")
+BENCHMARK_PRESETS = ("default", "hard", "robust", "wide", "default-stereo", "hard-stereo", "wide-stereo")
 TABLE2_PRESET = "paper"
 
 BENCHMARK_INTRO = [
@@ -49,8 +49,12 @@ BENCHMARK_INTRO = [
     "`data/paper`: the paper's E1-E3). `data/default-stereo` and `data/hard-stereo` are the stereo twins of "
     "`default` and `hard`: the same families, sizes and resolutions with other seeds, their depth made by the "
     "physical sensor model (both infrared images of the D435 rendered with its dot pattern, depth by semi-global "
-    "matching; docs/data.md) instead of the analytic noise model; the transfer table sets each method's figures on "
-    "the two side by side.",
+    "matching; docs/data.md) instead of the analytic noise model. `data/wide` (200 scenes, 70 % at 424x240, 30 % "
+    "at 848x480) is a wider scene grammar: cameras pitched -35 to +15 deg and rolled +-10 deg at 0.3-2 m, the ball "
+    "on a tripod, shelf, table, chair seat, box, the floor or against a wall with furniture within a ball's "
+    "diameter, distractor balls of 0.10-0.11 and 0.13-0.15 m in half the scenes, negatives, low-albedo and "
+    "textured surfaces; `data/wide-stereo` is its stereo twin. The transfer table sets each method's figures on "
+    "each analytic preset and its twin side by side.",
     "",
     "The robustness figure (`figures/robustness_robust.png`) reads row by row, one method per row: on the left "
     "its 3D detection rate (the matched centre within 2 cm of the truth), on the right its 2D mAP.50, each against "
@@ -196,7 +200,7 @@ def run_benchmark(data: Path, out: Path, seed: int = 0, workers: int = 2, force:
     data, out = Path(data), Path(out)
     for name in (*BENCHMARK_PRESETS, TABLE2_PRESET):
         if not (data / name / "coco_gt.json").is_file():
-            raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust data-stereo` "
+            raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust data-stereo data-wide` "
                                    f"(spherebench generate --preset {name} --out {data / name})")
     with results_run(out):
         return _benchmark(data, out, seed, workers, force, methods, progress, command, engine, address, log)
