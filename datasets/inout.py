@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import glob
 import io
 import json
@@ -30,6 +31,7 @@ import os
 import queue
 import shutil
 import socket
+import stat
 import tempfile
 import threading
 import warnings
@@ -91,9 +93,31 @@ def named_error(exc: OSError, path: str | Path) -> OSError:
     return OSError(exc.errno, exc.strerror or str(exc), str(path))
 
 
+#: What a path is, by its stat mode, where it is neither a regular file nor a folder.
+_SPECIAL_FILES = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                  (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_regular(path: str | Path, what: str = "output") -> None:
+    """A one-line error when ``path`` exists as anything but a regular file (a folder, a device, a
+    FIFO, a socket; a link is followed): a write renames a new file over it, which would put a
+    regular file in place of a device or pipe, and --force never allows that."""
+    try:
+        mode = Path(path).stat().st_mode
+    except OSError:  # nothing there (or nothing this user may see): a new file
+        return
+    if stat.S_ISDIR(mode):
+        raise SphereBenchError(f"{what} {path} is a folder: give a file name")
+    kind = next((name for test, name in _SPECIAL_FILES if test(mode)), None if stat.S_ISREG(mode) else "not a file")
+    if kind is not None:
+        raise SphereBenchError(f"{what} {path} is {kind}, not a regular file: only a regular file is ever "
+                               "replaced: give a file name")
+
+
 def _stage(path: Path, data: bytes) -> Path:
     """``data`` in a new temporary sibling of ``path``, with the mode an ordinary write would give
     (0666 less the umask), not mkstemp's 0600; its name."""
+    check_regular(path)
     check_folders(path, "output")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -192,14 +216,14 @@ def is_marked(path: Path) -> bool:
 
 def check_output_file(path, what: str, inputs=(), force: bool = False) -> Path:
     """``path`` as a file for the user (a picture, a cloud to view), or a one-line SphereBenchError:
-    refused are an empty path, a folder, an input of the command or a file inside an input folder, a
-    file inside any dataset (a folder with dataset.json at or above it: only generate and prepare
-    write there), and an existing file without the mark of ours (``is_marked``) unless ``force``."""
+    refused are an empty path, anything but a regular file (a folder, a device, a FIFO:
+    ``check_regular``), an input of the command or a file inside an input folder, a file inside any
+    dataset (a folder with dataset.json at or above it: only generate and prepare write there), and
+    an existing file without the mark of ours (``is_marked``) unless ``force``."""
     if path is None or not str(path).strip():
         raise SphereBenchError(f"{what} is empty (an unset shell variable?): give a file name")
     path = Path(path)
-    if path.is_dir():
-        raise SphereBenchError(f"{what} {path} is a folder: give a file name")
+    check_regular(path, what)
     check_folders(path, what)
     resolved = path.resolve()
     for source in inputs:
@@ -257,9 +281,9 @@ def check_report_out(out: str | Path, kind: str) -> tuple[Path, Path]:
     if not str(out).strip():
         raise SphereBenchError("--out is empty (an unset shell variable?): give a path for the report, e.g. "
                                f"results/{kind}")
-    out = Path(out)
-    if out.name in ("", ".", ".."):
-        raise SphereBenchError(f"--out {out} is a folder; give a path for the report's two files in it, e.g. "
+    text, out = str(out), Path(out)
+    if out.name in ("", ".", "..") or text.endswith(("/", os.sep)):  # Path drops a trailing slash
+        raise SphereBenchError(f"--out {text} is a folder; give a path for the report's two files in it, e.g. "
                                f"{out / kind} (writes {kind}.md and {kind}.json)")
     md, js = out.with_suffix(".md"), out.with_suffix(".json")
     check_folders(out)
@@ -267,6 +291,7 @@ def check_report_out(out: str | Path, kind: str) -> tuple[Path, Path]:
     for path in (md, js):
         if path.is_symlink() or path.is_dir():
             raise SphereBenchError(f"{path}: is a folder or a link: give --out a path for the report's two files")
+        check_regular(path, "--out")
     if (md.exists() or js.exists()) and not (js.is_file() and _report_is_ours(js, kind)):
         raise SphereBenchError(f"--out {out}: {md.name} or {js.name} there was not written by this report; "
                                "give another --out (nothing was written)")
@@ -617,9 +642,17 @@ def _check_frame_size(path: Path, width: int, height: int) -> None:
                                f"({MAX_IMAGE_SIDE_PX} px a side at most): the file is damaged or not a camera frame")
 
 
+@functools.cache
+def _quiet_opencv() -> None:
+    """OpenCV's own log off, once per process: of a damaged image it prints WARN and ERROR lines of
+    its decoder before _imread's one line says what is wrong and what to do."""
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
 def _imread(path: Path, flags: int) -> np.ndarray:
     if not path.is_file():
         raise SphereBenchError(f"{path}: file not found")
+    _quiet_opencv()
     data = np.fromfile(path, dtype=np.uint8)
     size = _header_size(data[:1 << 16].tobytes())
     if size is not None:

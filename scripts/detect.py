@@ -149,8 +149,7 @@ def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
         if not args.rerun_save.strip():
             raise SphereBenchError("--rerun-save is empty (an unset shell variable?): give a file name ending in .rrd")
         out = Path(args.rerun_save)
-        if out.is_dir():
-            raise SphereBenchError(f"--rerun-save {out} is a folder: give a file name")
+        inout.check_regular(out, "--rerun-save")
         if any(out.resolve() == src or src in out.resolve().parents for src in sources):
             raise SphereBenchError(f"--rerun-save {out} is an input or inside one: write it elsewhere")
         inout.check_not_in_dataset(out, "--rerun-save")

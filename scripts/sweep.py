@@ -23,7 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override a DetectorConfig field (repeatable), e.g. --set min_score=0.3")
     options.add_executor_arguments(p, "processes (each single-threaded)")
     p.add_argument("--limit", type=options.count, default=None, help="at most this many scenes per dataset (quick runs)")
-    p.add_argument("--out", default=None, help="write OUT.md and OUT.json (atomically)")
+    p.add_argument("--out", default=None, metavar="OUT",
+                   help="write the report to OUT.md and OUT.json, atomically (OUT: a path without its suffix, e.g. "
+                        "results/sweep; not a folder)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -90,8 +90,12 @@ def parse_seeds(text: str) -> list[int]:
             bounds.append((int(lo), int(hi) if hi else int(lo)))
     except ValueError:
         bounds = []
-    if not bounds or any(lo < 0 or hi < lo for lo, hi in bounds):
+    if not bounds or any(lo < 0 or hi < 0 for lo, hi in bounds):
         raise SphereBenchError(f"--seeds {text!r}: give non-negative seeds, e.g. 0-3 or 0,1,5")
+    reversed_range = next(((lo, hi) for lo, hi in bounds if hi < lo), None)
+    if reversed_range is not None:
+        lo, hi = reversed_range
+        raise SphereBenchError(f"--seeds {text!r}: the range {lo}-{hi} is reversed: give {hi}-{lo}")
     if sum(hi - lo + 1 for lo, hi in bounds) > MAX_SEEDS:
         raise SphereBenchError(f"--seeds {text!r}: more than {MAX_SEEDS} seeds, each a run over every "
                                "scene: give fewer, e.g. 0-7")

@@ -1,0 +1,117 @@
+"""Bad input that a hostile re-test still got through: outputs that are no regular file, other
+libraries' log lines before ours, a batch stopped at its first bad input, messages that named the
+wrong thing or contradicted themselves, and damaged files of ours read late or not at all.
+
+Each test asserts the exit status, exactly one error line on stderr (no traceback), and that
+nothing was printed or written before the error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import stat
+
+import pytest
+
+from spherebench import cli
+from spherebench.datasets import inout
+from test_bad_input_commands import _fails, _listing, big_ball  # noqa: E402, F401  (tests/ is on sys.path)
+
+
+@pytest.fixture
+def data(big_ball, tmp_path):
+    """A copy of a one-scene prepared dataset (160x120, a 0.2 m ball) to damage."""
+    return shutil.copytree(big_ball, tmp_path / "data")
+
+
+def _scene(ds):
+    return inout.list_scenes(ds)[0]
+
+
+# ---------------------------------------------------------------- outputs that are no regular file
+
+def _specials(folder):
+    """A FIFO, and a character device (the null device's numbers) where this user may make one."""
+    made = {"fifo": folder / "fifo"}
+    os.mkfifo(made["fifo"])
+    try:
+        os.mknod(folder / "mynull", stat.S_IFCHR | 0o644, os.makedev(1, 3))
+        made["device"] = folder / "mynull"
+    except PermissionError:  # not root: the FIFO alone
+        pass
+    return made
+
+
+def _unchanged(specials):
+    return all(stat.S_ISFIFO(p.lstat().st_mode) if k == "fifo" else stat.S_ISCHR(p.lstat().st_mode)
+               for k, p in specials.items())
+
+
+def test_force_never_replaces_a_device_or_fifo(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    specials = _specials(out)
+    scene = _scene(data)
+    for kind, special in specials.items():
+        what = "FIFO" if kind == "fifo" else "device"
+        _fails(capsys, ["detect", scene, "--out-ply", special, "--force"], "--out-ply", what, "not a regular file")
+        _fails(capsys, ["show", scene, "--out-png", special, "--out-ply", out / "s.ply", "--force"],
+               "--out-png", what, "not a regular file")
+    assert _unchanged(specials)
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in specials.values())
+
+
+def test_a_report_never_replaces_a_fifo(data, tmp_path, capsys):
+    os.mkfifo(tmp_path / "sweep.md")
+    _fails(capsys, ["sweep", data, "--seeds", "0", "--workers", "1", "--out", tmp_path / "sweep"],
+           "sweep.md", "FIFO", "not a regular file")
+    assert stat.S_ISFIFO((tmp_path / "sweep.md").lstat().st_mode)
+    assert not (tmp_path / "sweep.json").exists()
+
+
+def test_a_write_through_inout_never_replaces_a_fifo(tmp_path):
+    os.mkfifo(tmp_path / "p.json")
+    with pytest.raises(inout.SphereBenchError, match="FIFO"):
+        inout.write_json(tmp_path / "p.json", {"a": 1})
+    with pytest.raises(inout.SphereBenchError, match="FIFO"):
+        inout.replace_files({tmp_path / "a.txt": b"a", tmp_path / "p.json": b"b"})
+    assert stat.S_ISFIFO((tmp_path / "p.json").lstat().st_mode)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.json"]  # nor the other file, nor a temporary
+
+
+# ---------------------------------------------------------------- a damaged PNG: our line only
+
+def test_a_png_with_a_truncated_header_gets_one_line(data, tmp_path, capfd):
+    """OpenCV's decoder logs WARN and ERROR lines of its own (on the file descriptor: capfd)."""
+    scene = _scene(data)
+    (scene / "image.png").write_bytes((scene / "image.png").read_bytes()[:20])
+    pngs = tmp_path / "pngs"
+    pngs.mkdir()
+    (pngs / "f.png").write_bytes((scene / "depth.png").read_bytes()[:20])
+    runs = [["show", scene, "--out-png", tmp_path / "s.png", "--out-ply", tmp_path / "s.ply"],
+            ["detect", scene, "--out-png", tmp_path / "d.png"],
+            ["evaluate", "--data", data, "--out", tmp_path / "ev", "--methods", "hough", "--workers", "1", "--quiet",
+             "--no-figures"],
+            ["prepare", pngs, "--intrinsics", scene / "intrinsics.json", "--out", tmp_path / "p"]]
+    for argv in runs:
+        assert cli.main([str(a) for a in argv]) == 2, argv
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "not a readable image" in err[0], (argv, err)
+    pytest.importorskip("onnxruntime")
+    assert cli.main(["detect-2d", str(scene)]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a readable image" in err[0], err
+
+
+# ---------------------------------------------------------------- messages that named the wrong thing
+
+def test_a_reversed_seed_range_says_so(data, capsys):
+    _fails(capsys, ["sweep", data, "--seeds", "5-2", "--workers", "1"], "5-2", "reversed", "2-5")
+
+
+def test_a_report_out_ending_in_a_slash_is_refused_as_a_folder(data, tmp_path, capsys):
+    _fails(capsys, ["sweep", data, "--seeds", "0", "--workers", "1", "--out", f"{tmp_path}/newdir/"],
+           "newdir/", "folder", "newdir/sweep", "sweep.md")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
