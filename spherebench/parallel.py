@@ -269,24 +269,49 @@ class _NotMainThreadNote(logging.Filter):
         return "not the main thread" not in record.getMessage()
 
 
+@contextlib.contextmanager
+def _stderr_fd_silenced():
+    """File descriptor 2 on the null device for a while: Ray's core (C++) logs its connection
+    attempts there, "Failed to connect to GCS ...", before any log level of its own is read (it
+    takes none from Python). Nothing else of this process writes meanwhile: the caller only waits."""
+    with contextlib.suppress(AttributeError, ValueError, OSError):  # replaced or closed: nothing to flush
+        sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # stderr closed: nothing to silence
+        yield
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
+
+
 def _join_cluster(ray, address: str, runtime_env: dict, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
     """``ray.init(address)``, given up after ``timeout_s``: a port that answers but is not a Ray
     cluster's (or a cluster that does not reply) is retried by Ray for minutes. It runs in a daemon
-    thread, so that a connection given up on does not hold up the command's exit."""
+    thread, so that a connection given up on does not hold up the command's exit. Ray's own log
+    lines of the attempt (its Python loggers below ERROR, its core's on stderr) are left out: the
+    command's one line says what went wrong."""
     failure: list[BaseException] = []
 
     def connect():
         try:
-            ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
+            ray.init(address=address, runtime_env=runtime_env, log_to_driver=False, logging_level=logging.ERROR)
         except BaseException as exc:  # re-raised in the caller's thread
             failure.append(exc)
 
     worker_log, note = logging.getLogger("ray._private.worker"), _NotMainThreadNote()
     worker_log.addFilter(note)
     try:
-        thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
-        thread.start()
-        thread.join(timeout_s)
+        with _stderr_fd_silenced():
+            thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
+            thread.start()
+            thread.join(timeout_s)
     finally:
         worker_log.removeFilter(note)
     if thread.is_alive():
@@ -311,7 +336,7 @@ def _ray(workers: int, address: str | None):
         runtime_env = {"env_vars": dict(SINGLE_THREAD_ENV)}
         try:
             if address:
-                _join_cluster(ray, address, runtime_env)
+                _join_cluster(ray, address, runtime_env, RAY_CONNECT_TIMEOUT_S)  # read at the call, not at import
             else:
                 ray.init(num_cpus=pool_size(workers), include_dashboard=False, runtime_env=runtime_env,
                          log_to_driver=False)

@@ -11,7 +11,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import stat
+import subprocess
+import sys
 
 import pytest
 
@@ -115,3 +118,24 @@ def test_a_report_out_ending_in_a_slash_is_refused_as_a_folder(data, tmp_path, c
     _fails(capsys, ["sweep", data, "--seeds", "0", "--workers", "1", "--out", f"{tmp_path}/newdir/"],
            "newdir/", "folder", "newdir/sweep", "sweep.md")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+
+
+# ---------------------------------------------------------------- a Ray address that never answers
+
+def test_a_ray_address_that_never_answers_gets_our_line_only(data, tmp_path):
+    """A port that takes the connection and says nothing: Ray logs its attempts (Python INFO lines,
+    its core's warnings on the file descriptor) before the command gives up. In a process of its
+    own: Ray's connecting thread outlives the error."""
+    pytest.importorskip("ray")
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(4)
+        code = ("import sys; from spherebench import cli, parallel; parallel.RAY_CONNECT_TIMEOUT_S = 2.0; "
+                "sys.exit(cli.main(sys.argv[1:]))")
+        argv = ["sweep", str(data), "--seeds", "0", "--engine", "ray", "--address",
+                f"127.0.0.1:{server.getsockname()[1]}"]
+        run = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120,
+                             cwd=tmp_path)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and run.stdout == ""
+    assert len(lines) == 1 and "no answer from a Ray cluster within 2 s" in lines[0], run.stderr
