@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from spherebench import options, viz
-from spherebench.cli import os_error_message
+from spherebench.cli import BadInputs
 from spherebench.cloud import in_front_of_camera
 from spherebench.datasets import inout, stream
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
@@ -270,15 +270,7 @@ def run(args: argparse.Namespace) -> int:
     selection = FrameSelection.parse(args.every, args.frames, args.time_range)
     extra = {} if args.depth_noise is None else {"noise_z2_per_m": args.depth_noise}
     intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
-    failed = []
-
-    def skip(raw: str, exc: Exception) -> None:
-        """A bad input's one line; the others go on."""
-        if isinstance(exc, BrokenPipeError):  # the reader of stdout has gone: nothing more to say
-            raise exc
-        failed.append(raw)
-        text = os_error_message(exc) if isinstance(exc, OSError) else str(exc)
-        print(f"spherebench detect: error: {text}", file=sys.stderr, flush=True)
+    bad = BadInputs("spherebench detect")
 
     jobs = []
     for raw in args.paths:
@@ -294,7 +286,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 jobs.append((raw, path, radius, source, eps, None))
         except (SphereBenchError, OSError) as exc:
-            skip(raw, exc)
+            bad.skip(raw, exc)
     if args.camera is not None:
         width, height = _size(args.size)
         radius, source = (args.radius, "--radius") if args.radius is not None else (DEFAULT_RADIUS_M, "default")
@@ -367,7 +359,7 @@ def run(args: argparse.Namespace) -> int:
                         files[Path(args.out_png)] = inout.encode_png(drawn, args.out_png, mark=True)
                     inout.replace_files(files)
                 except (SphereBenchError, OSError) as exc:
-                    skip(raw, exc)
+                    bad.skip(raw, exc)
     except BaseException as exc:
         if args.rerun_save and Path(args.rerun_save).exists():  # streamed as it went: what it has is readable
             exc.kept = f"{args.rerun_save} holds what was logged before the stop"
@@ -375,4 +367,4 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if log is not None:
             log.close()
-    return 2 if failed else 0
+    return bad.status

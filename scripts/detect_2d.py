@@ -13,7 +13,10 @@ image is not 424x240). With --json, one line per input in the schema that `detec
      "radius_m": null, "circle_px": {"center": [cx, cy], "radius": r}, "bbox": [x, y, w, h],
      "inliers": null}, ...], "ms": T}
 circles in the input's pixels, best first (a 2D detector knows no metres); ms = inference time
-(scaling, padding, ONNX Runtime, decoding), not file reading.
+(scaling, padding, ONNX Runtime, decoding), not file reading. As in `detect`, an input that turns
+out bad (missing, not an image, damaged) gets one line on stderr, ``spherebench detect-2d: error:
+PATH: what is wrong``, and is skipped: the others are detected and printed, and the exit status
+is then 2.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import time
 from pathlib import Path
 
 from spherebench import options
+from spherebench.cli import BadInputs
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
@@ -65,25 +69,32 @@ def run(args) -> int:
 
     if args.focal_px is not None and not (math.isfinite(args.focal_px) and args.focal_px > 0):
         raise SphereBenchError(f"--focal-px must be a positive number of pixels, got {args.focal_px:g}")
-    images = [_image_path(Path(p)) for p in args.paths]  # all checked before the model loads
-    focals = [args.focal_px if args.focal_px is not None else scene_focal_px(p.parent) for p in images]
+    bad = BadInputs("spherebench detect-2d")
+    jobs = []  # (as given, image file, focal px): each input checked as far as it can be unread
+    for given in args.paths:
+        with bad.each(given):
+            path = _image_path(Path(given))
+            jobs.append((given, path, args.focal_px if args.focal_px is not None else scene_focal_px(path.parent)))
+    if not jobs:
+        return bad.status
     detector = CircleNetDetector(args.model or DEFAULT_MODEL, threads=args.threads, provider=args.provider)
     assumed = []  # images of another size than the model's without a focal length
-    for given, path, focal in zip(args.paths, images, focals):
-        image = load_image(path)
-        if focal is None and image.shape[:2] != detector.image_size:
-            assumed.append(given)
-        t0 = time.perf_counter()
-        circles = detector.detect(image, min_score=args.min_score, top_k=args.top_k, focal_px=focal)
-        ms = 1000 * (time.perf_counter() - t0)
-        if args.json:
-            print(json.dumps(inout.frame_record(given, [inout.detection_record(s, (cx, cy, r))
-                                                        for cx, cy, r, s in circles], ms)), flush=True)
-        else:
-            found = ", ".join(f"({cx:.1f}, {cy:.1f}) r {r:.1f} score {s:.2f}" for cx, cy, r, s in circles) or "none"
-            print(f"{given}: {len(circles)} circle(s) {found} [{ms:.1f} ms]", flush=True)
+    for given, path, focal in jobs:
+        with bad.each(given):
+            image = load_image(path)
+            if focal is None and image.shape[:2] != detector.image_size:
+                assumed.append(given)
+            t0 = time.perf_counter()
+            circles = detector.detect(image, min_score=args.min_score, top_k=args.top_k, focal_px=focal)
+            ms = 1000 * (time.perf_counter() - t0)
+            if args.json:
+                print(json.dumps(inout.frame_record(given, [inout.detection_record(s, (cx, cy, r))
+                                                            for cx, cy, r, s in circles], ms)), flush=True)
+            else:
+                found = ", ".join(f"({cx:.1f}, {cy:.1f}) r {r:.1f} score {s:.2f}" for cx, cy, r, s in circles) or "none"
+                print(f"{given}: {len(circles)} circle(s) {found} [{ms:.1f} ms]", flush=True)
     if assumed:
         h, w = detector.image_size
         print(f"note: {len(assumed)} image(s) without intrinsics.json, e.g. {assumed[0]}, were scaled to {w} px wide "
               "(the training camera's field of view); give --focal-px F for another camera", file=sys.stderr)
-    return 0
+    return bad.status

@@ -147,6 +147,33 @@ def os_error_message(exc: OSError) -> str:
     return f"{where}: {advice}"
 
 
+class BadInputs:
+    """The bad inputs of a batch (detect, detect-2d): each gets its one line on stderr, ``PROG: error:
+    what is wrong``, and is skipped, the others go on; ``status`` is then 2."""
+
+    def __init__(self, prog: str):
+        self.prog, self.failed = prog, []
+
+    def skip(self, raw: str, exc: Exception) -> None:
+        if isinstance(exc, BrokenPipeError):  # the reader of stdout has gone: nothing more to say
+            raise exc
+        self.failed.append(raw)
+        text = os_error_message(exc) if isinstance(exc, OSError) else str(exc)
+        print(f"{self.prog}: error: {text}", file=sys.stderr, flush=True)
+
+    @contextlib.contextmanager
+    def each(self, raw: str):
+        """The block of one input: bad input (SphereBenchError) or a failed read (OSError) skips it."""
+        try:
+            yield
+        except (SphereBenchError, OSError) as exc:
+            self.skip(raw, exc)
+
+    @property
+    def status(self) -> int:
+        return 2 if self.failed else 0
+
+
 def run_guarded(prog: str, work) -> int:
     """Run ``work()`` as a command: bad input (SphereBenchError) and failed reads or writes (OSError)
     as one line on stderr with exit 2; Ctrl-C, SIGTERM and SIGHUP as one "interrupted" line with exit

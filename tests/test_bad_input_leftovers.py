@@ -139,3 +139,21 @@ def test_a_ray_address_that_never_answers_gets_our_line_only(data, tmp_path):
     lines = run.stderr.strip().splitlines()
     assert run.returncode == 2 and run.stdout == ""
     assert len(lines) == 1 and "no answer from a Ray cluster within 2 s" in lines[0], run.stderr
+
+
+# ---------------------------------------------------------------- detect-2d: a batch goes on past a bad input
+
+def test_detect_2d_reports_and_skips_each_bad_input_and_detects_the_others(data, tmp_path, capsys):
+    pytest.importorskip("onnxruntime")
+    scene = _scene(data)
+    good = tmp_path / "good.png"
+    shutil.copy(scene / "image.png", good)
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(good.read_bytes()[:20])
+    status = cli.main(["detect-2d", str(scene), str(tmp_path / "missing.png"), str(broken), str(good), "--json"])
+    cap = capsys.readouterr()
+    assert status == 2
+    assert [json.loads(x)["input"] for x in cap.out.splitlines()] == [str(scene), str(good)]
+    errors = [x for x in cap.err.splitlines() if "error:" in x]
+    assert len(errors) == 2 and "missing.png" in errors[0] and "broken.png" in errors[1], cap.err
+    assert "Traceback" not in cap.err
