@@ -136,9 +136,41 @@ def _file_above(path) -> str | None:
     return None
 
 
+class StdoutError(OSError):
+    """A failed write to standard output (a full disk under `> FILE`, /dev/full): no input's fault."""
+
+
+class _Stdout:
+    """sys.stdout for the length of a command: its failed writes raised as StdoutError, since the
+    OSError of a write names no file and the one line must say it was standard output. A closed
+    pipe stays a BrokenPipeError (run_guarded ends quietly on it)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+    def _call(self, fn, *args):
+        try:
+            return fn(*args)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise StdoutError(exc.errno, exc.strerror or str(exc)) from None
+
+    def write(self, text: str) -> int:
+        return self._call(self._stream.write, text)
+
+    def flush(self) -> None:
+        self._call(self._stream.flush)
+
+
 def os_error_message(exc: OSError) -> str:
     """One line for a failed read or write: the path, what the system said, what to do."""
     where = " -> ".join(_real_name(f) for f in (exc.filename, exc.filename2) if f is not None) or "a file"
+    if isinstance(exc, StdoutError):
+        where = "cannot write to standard output"
     advice = _OS_ADVICE.get(exc.errno, exc.strerror or str(exc))
     if exc.errno in (errno.ENOTDIR, errno.EEXIST) and exc.filename is not None:
         part = _file_above(_real_name(exc.filename))
@@ -155,7 +187,7 @@ class BadInputs:
         self.prog, self.failed = prog, []
 
     def skip(self, raw: str, exc: Exception) -> None:
-        if isinstance(exc, BrokenPipeError):  # the reader of stdout has gone: nothing more to say
+        if isinstance(exc, (BrokenPipeError, StdoutError)):  # stdout's reader has gone or it failed: stop
             raise exc
         self.failed.append(raw)
         text = os_error_message(exc) if isinstance(exc, OSError) else str(exc)
@@ -186,6 +218,14 @@ def run_guarded(prog: str, work) -> int:
             print(f"{prog}: error: stdout is closed: run with stdout open, or send it to a file "
                   "(> FILE, > /dev/null)", file=sys.stderr)
         return 2
+    stdout, sys.stdout = sys.stdout, _Stdout(sys.stdout)
+    try:
+        return _run_guarded(prog, work)
+    finally:
+        sys.stdout = stdout
+
+
+def _run_guarded(prog: str, work) -> int:
     with _signals_as_interrupts():
         try:
             status = int(work() or 0)

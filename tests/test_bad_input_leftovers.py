@@ -8,6 +8,8 @@ nothing was printed or written before the error.
 
 from __future__ import annotations
 
+import errno
+import io
 import json
 import os
 import shutil
@@ -157,3 +159,23 @@ def test_detect_2d_reports_and_skips_each_bad_input_and_detects_the_others(data,
     errors = [x for x in cap.err.splitlines() if "error:" in x]
     assert len(errors) == 2 and "missing.png" in errors[0] and "broken.png" in errors[1], cap.err
     assert "Traceback" not in cap.err
+
+
+# ---------------------------------------------------------------- messages that name the right thing
+
+class _FullDisk(io.StringIO):
+    """Standard output on a full disk (`> /dev/full`): every write and flush fails."""
+
+    def write(self, text):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def flush(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_failed_write_to_stdout_names_stdout_and_stops_the_batch(data, monkeypatch, capsys):
+    scene = _scene(data)
+    monkeypatch.setattr(sys, "stdout", _FullDisk())
+    assert cli.main(["detect", str(scene), str(scene)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "cannot write to standard output: the disk is full" in lines[0], lines
