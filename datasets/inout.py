@@ -536,6 +536,7 @@ _KINDS = {
     "text": (lambda v: isinstance(v, str), "a string"),
     "bool": (lambda v: isinstance(v, bool), "true or false"),
     "int": (_integer, "an integer"),
+    "number": (_finite, "a finite number"),
     "positive": (lambda v: _finite(v) and v > 0, "a finite number > 0"),
     "length": (lambda v: _finite(v) and v >= 0, "a finite number >= 0"),
     "fraction": (lambda v: _finite(v) and 0 <= v <= 1, "a number from 0 to 1"),
@@ -748,6 +749,12 @@ def write_intrinsics(path: str | Path, intr: Intrinsics) -> None:
     write_json(path, intr.to_dict())
 
 
+#: intrinsics.json's real-valued fields, JSON numbers (a string such as "nan" is none): what is
+#: missing, and the sizes, Intrinsics.from_dict words.
+INTRINSICS_NUMBERS = {"ppx?": "number", "ppy?": "number", "fx?": "positive", "fy?": "positive",
+                      "depth_scale?": "positive"}
+
+
 def read_intrinsics(path: str | Path) -> Intrinsics:
     """intrinsics.json (pyrealsense2 field names; a scene folder gives its own)."""
     path = Path(path)
@@ -756,6 +763,7 @@ def read_intrinsics(path: str | Path) -> Intrinsics:
     d = read_json(path)
     if not isinstance(d, dict):
         raise SphereBenchError(f"{path}: intrinsics must be a JSON object with width, height, ppx, ppy, fx, fy")
+    check_schema(path, d, INTRINSICS_NUMBERS)
     try:
         return Intrinsics.from_dict(d)
     except SphereBenchError as exc:
@@ -992,6 +1000,15 @@ def read_dataset_meta(dataset_dir: str | Path) -> dict:
     return read_checked_json(Path(dataset_dir) / "dataset.json", DATASET_SCHEMA)
 
 
+def scene_dataset_meta(scene_dir: str | Path) -> dict:
+    """The dataset.json of the dataset a scene folder lies in (DIR/scenes/<id>), checked; {} for a
+    scene of no dataset. Read by whatever reads such a scene, so that a damaged one is refused in
+    one line, never passed over."""
+    scene_dir = Path(scene_dir)
+    dataset = scene_dir.parent.parent
+    return read_dataset_meta(dataset) if scene_dir.parent.name == "scenes" and is_dataset_dir(dataset) else {}
+
+
 def build_coco_gt(dataset_dir: str | Path, category: str = DEFAULT_CATEGORY, name: str | None = None) -> dict:
     """COCO ground truth with CircleNet's circle fields, from the scenes' gt.json files.
 
@@ -1050,7 +1067,17 @@ def read_coco_gt(dataset_dir: str | Path) -> dict:
     path = Path(dataset_dir) / "coco_gt.json"
     if not path.is_file():
         raise SphereBenchError(f"{dataset_dir}: no coco_gt.json: the dataset is incomplete; rebuild it")
-    return read_checked_json(path, COCO_GT_SCHEMA)
+    coco = read_checked_json(path, COCO_GT_SCHEMA)
+    # what scoring would otherwise meet only after every method has run
+    rebuild = "the file is damaged; rebuild the dataset with the command that wrote it (generate or prepare)"
+    if not coco["categories"]:
+        raise SphereBenchError(f"{path}: categories is empty (it names the ball's category); {rebuild}")
+    ids = {im["id"] for im in coco["images"]}
+    for i, ann in enumerate(coco["annotations"]):
+        if ann["image_id"] not in ids:
+            raise SphereBenchError(f"{path}: annotations[{i}].image_id is {ann['image_id']}, which no image has; "
+                                   f"{rebuild}")
+    return coco
 
 
 # --------------------------------------------------------------------------- recorded-data readers

@@ -108,17 +108,17 @@ def _scene_dir(path: Path) -> Path | None:
 
 def ball_radius(path: Path, given: float | None) -> tuple[float, str]:
     """(radius m, its source) for one input: --radius, the dataset's, the scene's or the default."""
+    scene = _scene_dir(path)
+    # a scene's dataset.json and gt.json are read even where --radius or the other makes them moot:
+    # a damaged one is refused, never passed over
+    meta, gt = (inout.scene_dataset_meta(scene), inout.read_scene_gt(scene)) if scene is not None else ({}, {})
     if given is not None:
         return given, "--radius"
-    scene = _scene_dir(path)
-    if scene is None:
-        return DEFAULT_RADIUS_M, "default"
-    if scene.parent.name == "scenes" and (scene.parent.parent / "dataset.json").is_file():
-        radius = inout.read_dataset_meta(scene.parent.parent).get("ball_radius_m")
-        if radius is not None:
-            return radius, "dataset"
-    radius = inout.read_scene_gt(scene).get("ball_radius_m")
-    return (radius, "scene") if radius is not None else (DEFAULT_RADIUS_M, "default")
+    if meta.get("ball_radius_m") is not None:
+        return meta["ball_radius_m"], "dataset"
+    if gt.get("ball_radius_m") is not None:
+        return gt["ball_radius_m"], "scene"
+    return DEFAULT_RADIUS_M, "default"
 
 
 def _check_input(path: Path) -> None:

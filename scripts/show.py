@@ -77,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
     if inout.read_scene_gt(scene_dir).get("has_image", True) and not (scene_dir / "depth.png").is_file():
         raise SphereBenchError(f"depth.png is missing in {scene_dir}: gt.json says the scene has an image, so the "
                                "folder is damaged; rebuild the dataset with the command that wrote it")
+    inout.scene_dataset_meta(scene_dir)  # not used, but a damaged dataset.json is refused, never passed over
     scene = inout.read_scene(scene_dir)
     radius = inout.read_scene_gt(scene_dir).get("ball_radius_m")
     image = None if scene.depth is None else inout.read_image(scene_dir)

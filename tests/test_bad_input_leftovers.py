@@ -21,7 +21,7 @@ import sys
 import pytest
 
 from spherebench import cli
-from spherebench.datasets import inout
+from spherebench.datasets import inout, simulate
 from test_bad_input_commands import _fails, _listing, big_ball  # noqa: E402, F401  (tests/ is on sys.path)
 
 
@@ -179,3 +179,49 @@ def test_a_failed_write_to_stdout_names_stdout_and_stops_the_batch(data, monkeyp
     assert cli.main(["detect", str(scene), str(scene)]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "cannot write to standard output: the disk is full" in lines[0], lines
+
+
+@pytest.fixture(scope="module")
+def annotated(tmp_path_factory):
+    """One simulated scene with a ball (424x240)."""
+    return simulate.generate_dataset("default", tmp_path_factory.mktemp("sim") / "sim", n=1, progress=False)
+
+
+@pytest.mark.parametrize("damage, words", [
+    (lambda coco: coco["annotations"][0].update(image_id=99), ("annotations[0].image_id is 99", "no image has")),
+    (lambda coco: coco.update(categories=[]), ("categories is empty",)),
+])
+def test_evaluate_refuses_a_coco_gt_that_scoring_would_meet_late_before_anything_is_printed(
+        annotated, tmp_path, capsys, damage, words):
+    data = shutil.copytree(annotated, tmp_path / "data")
+    coco = json.loads((data / "coco_gt.json").read_text())
+    damage(coco)
+    (data / "coco_gt.json").write_text(json.dumps(coco))
+    for _ in range(2):  # a rerun says the same, nothing printed or kept before it ("reused", "rerun to resume")
+        line = _fails(capsys, ["evaluate", "--data", data, "--out", tmp_path / "out", "--methods", "hough", "--workers",
+                               "1", "--quiet", "--no-figures"], "coco_gt.json", *words, "rebuild the dataset")
+        assert "resume" not in line
+        assert not (tmp_path / "out").exists()
+
+
+def test_an_intrinsics_number_given_as_text_says_what_it_got(data, capsys):
+    path = _scene(data) / "intrinsics.json"
+    intr = json.loads(path.read_text())
+    path.write_text(json.dumps({**intr, "fx": "nan"}))
+    line = _fails(capsys, ["detect", _scene(data)], "intrinsics.json", "fx must be a finite number", '"nan"')
+    assert "not a finite number;" not in line  # the old message: "fx is not a finite number ... fx=nan must be > 0"
+
+
+@pytest.mark.parametrize("argv", [[], ["--radius", "0.2"]])
+def test_detect_refuses_a_damaged_gt_json_of_the_scene_it_reads(data, capsys, argv):
+    (_scene(data) / "gt.json").write_text('{"scene_id": 5')
+    _fails(capsys, ["detect", _scene(data), *argv], "gt.json", "not valid JSON")
+    _fails(capsys, ["detect", _scene(data) / "cloud.ply", *argv], "gt.json", "not valid JSON")
+
+
+def test_show_refuses_a_damaged_dataset_json(data, tmp_path, capsys):
+    for text, words in (("[1", ("not valid JSON",)), ('{"ball_radius_m": "x"}', ("ball_radius_m", '"x"'))):
+        (data / "dataset.json").write_text(text)
+        _fails(capsys, ["show", _scene(data), "--out-png", tmp_path / "s.png", "--out-ply", tmp_path / "s.ply"],
+               "dataset.json", *words)
+    assert not (tmp_path / "s.png").exists() and not (tmp_path / "s.ply").exists()
