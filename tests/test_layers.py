@@ -56,15 +56,23 @@ def layer_of(module: str) -> str | None:
     return best[0] if best else None
 
 
-def folder_of(module: str) -> str:
+def folder_of(module: str, packages: set[str]) -> str:
     """The folder of the checkout that holds a ``spherebench`` module: a top-level one, or one of
-    its subfolders that is a layer (``eval/metrics``, ``eval/bench``)."""
+    its subfolders that is a layer (``eval/metrics``, ``eval/bench``; a module of that name is not
+    one). packages: the names that are packages."""
     parts = module.split(".")
     if len(parts) < 2 or parts[1] not in FOLDERS:
         return "spherebench"
-    if len(parts) > 2 and parts[2] in LAYER_SUBFOLDERS.get(parts[1], ()):
+    sub = ".".join(parts[:3])
+    if len(parts) > 2 and parts[2] in LAYER_SUBFOLDERS.get(parts[1], ()) and sub in packages:
         return f"{parts[1]}/{parts[2]}"
     return parts[1]
+
+
+def folders(modules: dict[str, tuple[Path, bool]]):
+    """folder_of for these modules ({name: (source file, is a package)})."""
+    packages = {name for name, (_, is_package) in modules.items() if is_package}
+    return lambda module: folder_of(module, packages)
 
 
 def module_imports(path: Path, module: str, is_package: bool, known: set[str]) -> list[tuple[str, int]]:
@@ -178,10 +186,11 @@ def checkout_modules(root: Path) -> dict[str, tuple[Path, bool]]:
 
 def folder_report(modules: dict[str, tuple[Path, bool]]) -> str:
     """The folder graph of these modules: each edge, their count and a cycle (or none)."""
-    graph = graph_of(import_edges(modules), folder_of)
+    folder = folders(modules)
+    graph = graph_of(import_edges(modules), folder)
     edges = sorted((a, b) for a, succ in graph.items() for b in succ)
     pairs = {frozenset(e) for e in edges}
-    n = len({folder_of(m) for m in modules})
+    n = len({folder(m) for m in modules})
     cycle = find_cycle(graph)
     return "\n".join([f"{a} -> {b}" for a, b in edges] + [
         f"{len(edges)} edges between {n} folders ({len(pairs)} of {n * (n - 1) // 2} pairs joined)",
@@ -201,7 +210,8 @@ def test_no_module_imports_itself_back():
 
 
 def test_the_folders_form_a_dag():
-    cycle = find_cycle(graph_of(import_edges(installed_modules()), folder_of))
+    modules = installed_modules()
+    cycle = find_cycle(graph_of(import_edges(modules), folders(modules)))
     assert cycle is None, "the folders import in a cycle: " + " -> ".join(cycle)
 
 
@@ -245,6 +255,10 @@ def test_relative_imports_and_cycles_are_read(tmp_path):
     known = {"spherebench.eval.sibling", "spherebench.camera"}
     assert module_imports(src, "spherebench.eval.m", False, known) == [("spherebench.eval.sibling", 1),
                                                                       ("spherebench.camera", 2)]
+    assert folder_of("spherebench.eval.bench.registry", {"spherebench.eval.bench"}) == "eval/bench"
+    assert folder_of("spherebench.eval.bench", set()) == "eval"  # a module of that name, in eval/
+    assert folder_of("spherebench.baselines.circlenet.infer", set()) == "baselines"
+    assert folder_of("spherebench.cli", set()) == "spherebench"
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": {"c"}}) is None
 
