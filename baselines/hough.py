@@ -36,7 +36,8 @@ import cv2
 import numpy as np
 
 from spherebench.errors import SphereBenchError
-from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, load_ground_truth, results_from_circles
+from spherebench.eval.metrics.coco_eval import (coco_from_circles, evaluate_circles, load_ground_truth,
+                                                results_from_circles)
 
 #: The tuned configuration shipped with the package (a copy of results/hough_config.json, which
 #: `make eval` writes and copies here): what `evaluate` uses without --hough-config, so that an

@@ -22,9 +22,10 @@ import numpy as np
 from spherebench.baselines import hough
 from spherebench.baselines.hough import DEFAULT_GRID, HoughConfig
 from spherebench.datasets import inout, simulate
+from spherebench.datasets.fingerprint import dataset_fingerprint
 from spherebench.errors import SphereBenchError
-from spherebench.eval.provenance import REPO_ROOT, code_version, dataset_fingerprint, json_safe
 from spherebench.parallel import executor
+from spherebench.provenance import REPO_ROOT, code_version, json_safe
 
 #: The training subset the Hough parameters are chosen on: `spherebench generate --preset train --n 200`.
 HOUGH_TRAIN_SCENES = 200
@@ -36,7 +37,7 @@ def hough_key(n: int = HOUGH_TRAIN_SCENES, seed: int = 0) -> str:
     """The cache key of a tuning on ``n`` training scenes of seed ``seed``."""
     blob = json.dumps({"train": {"preset": "train", "n": int(n), "seed": int(seed)}, "grid": DEFAULT_GRID,
                        "base": dataclasses.asdict(HoughConfig()),
-                       "code": code_version(("spherebench.baselines.hough", "spherebench.eval.coco_eval",
+                       "code": code_version(("spherebench.baselines.hough", "spherebench.eval.metrics.coco_eval",
                                              "spherebench.datasets"))}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
 

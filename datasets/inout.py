@@ -1281,7 +1281,8 @@ def read_labelme(path: str | Path) -> dict:
 RECORDING_MAGIC = {".bag": (b"#ROSBAG V2.0\n", "ROS1 bag"), ".db3": (b"SQLite format 3\x00", "ROS2 SQLite")}
 
 
-def _import_pyrealsense2():
+def import_pyrealsense2():
+    """pyrealsense2 (the ``realsense`` extra), or one line saying how to install it."""
     return require("pyrealsense2", "realsense", "reading RealSense recordings and cameras (also: apt-get install "
                    "libusb-1.0-0)")
 
@@ -1357,7 +1358,7 @@ class BagRecording:
         if head != magic:  # refused before librealsense starts (it writes ~/.rum/rum.json)
             raise SphereBenchError(f"{path}: not a RealSense recording (no {kind} header): "
                                    "give a .bag or .db3 file recorded by a RealSense camera")
-        rs = _import_pyrealsense2()
+        rs = import_pyrealsense2()
         try:
             self._device = rs.context().load_device(str(path))
             sensors = self._device.query_sensors()
@@ -1413,7 +1414,7 @@ class BagRecording:
         arrives while the consumer is still busy with earlier ones is dropped (counted in
         ``self.dropped``, by stream: "depth", "colour") rather than waited for."""
 
-        rs = _import_pyrealsense2()
+        rs = import_pyrealsense2()
         path = self.path
         playback = self._device.as_playback()
         playback.set_real_time(bool(real_time))

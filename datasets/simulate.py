@@ -132,7 +132,7 @@ PRESETS["wide-stereo"] = _stereo_twin("wide", 10)
 def generation_seed(preset: Preset, seed: int, index: int) -> int:
     """The seed from which the simulator builds scene ``index`` of a preset's dataset of seed ``seed``
     (its layout and sensor draw): SeedSequence((preset code, seed, index)), so that no two presets'
-    scenes share one. Not the detector's seed on the built scene (``eval.seeds.detection_seed``)."""
+    scenes share one. Not the detector's seed on the built scene (``eval.bench.seeds.detection_seed``)."""
     return int(np.random.SeedSequence([preset.code, int(seed), int(index)]).generate_state(1, np.uint64)[0])
 
 

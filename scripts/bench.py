@@ -1,5 +1,5 @@
 """`spherebench bench` (`make bench`): the 3D detector's accuracy and speed on simulated datasets,
-beside pyransac3d (``eval.bench``).
+beside pyransac3d (``eval.bench.speed``).
 
     spherebench bench data/default data/hard --out results/bench
 """
@@ -14,7 +14,7 @@ from spherebench import options
 from spherebench.cli import run_module
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval.bench import MIN_SCORES, bench, markdown, run_info
+from spherebench.eval.bench.speed import MIN_SCORES, bench, markdown, run_info
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -14,7 +14,8 @@ before the first detection, and every input as far as it can be unread (it exist
 its radius). An input that turns out bad (missing, damaged, refused by the detector) gets one line
 on stderr, ``spherebench detect: error: PATH: what is wrong``, and is skipped: the others are
 detected and printed, and the exit status is then 2. Files are read and written only through
-``spherebench.datasets.inout``; streams come from ``spherebench.datasets.stream``.
+``spherebench.datasets.inout``; streams come from ``spherebench.datasets.depth_frames`` and are detected by
+``spherebench.method.stream``.
 """
 
 from __future__ import annotations
@@ -33,12 +34,12 @@ import numpy as np
 from spherebench import options, viz
 from spherebench.cli import BadInputs
 from spherebench.cloud import in_front_of_camera
-from spherebench.datasets import inout, stream
+from spherebench.datasets import depth_frames, inout
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
 from spherebench.datasets.prepare import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.errors import SphereBenchError
-from spherebench.method import PRESETS, config_for, detect, warm_up
+from spherebench.method import PRESETS, config_for, detect, stream, warm_up
 
 #: The ball radius without --radius or a scene's own, metres: a basketball's.
 DEFAULT_RADIUS_M = 0.12
@@ -130,10 +131,10 @@ def _check_input(path: Path) -> None:
         return  # inout.load_cloud says what a folder lacks
     if not path.exists():
         raise SphereBenchError(f"{path}: file not found")
-    if path.suffix.lower() not in inout.CLOUD_READERS and not stream.is_recording(path):
+    if path.suffix.lower() not in inout.CLOUD_READERS and not depth_frames.is_recording(path):
         raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' "
                                f"(use {', '.join(sorted(inout.CLOUD_READERS))}, a scene folder or a RealSense "
-                               f"recording: {', '.join(stream.RECORDING_SUFFIXES)})")
+                               f"recording: {', '.join(depth_frames.RECORDING_SUFFIXES)})")
 
 
 def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
@@ -235,7 +236,7 @@ def _labelme(out_dir: Path | None, scene_id: str, spheres, shape) -> None:
     inout.atomic_write_bytes(out_dir / f"{scene_id}.json", labelme_text(doc).encode())
 
 
-def _stream_summary(raw: str, times_ms, stats: stream.StreamStats, real_time: bool) -> None:
+def _stream_summary(raw: str, times_ms, stats: depth_frames.StreamStats, real_time: bool) -> None:
     """One line on stderr at a stream's end: frames, time per frame, frames dropped and missing."""
     lat = stream.latency_summary(np.frombuffer(times_ms, dtype=np.float64) if len(times_ms) else [])
     timing = (f", {lat['median_ms']:.1f} ms median and {lat['p95_ms']:.1f} ms p95 per frame" if lat["frames"]
@@ -259,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
         raise SphereBenchError("--camera reads the camera: give no PATH with it")
     if args.camera is None and not args.paths:
         raise SphereBenchError("nothing to detect in: give PATHs (clouds, scene folders, recordings) or --camera")
-    streaming = args.camera is not None or any(stream.is_recording(p) for p in args.paths)
+    streaming = args.camera is not None or any(depth_frames.is_recording(p) for p in args.paths)
     stream_only = [o for o, v in (("--every", args.every != 1), ("--frames", args.frames),
                                   ("--time-range", args.time_range), ("--real-time", args.real_time)) if v]
     if stream_only and not streaming:
@@ -279,10 +280,10 @@ def run(args: argparse.Namespace) -> int:
             _check_input(path)
             radius, source = ball_radius(path, args.radius)
             eps = _tolerance(args, radius, source, raw)
-            if stream.is_recording(path):  # opened now: a recording without depth is refused before any work
-                stats = stream.StreamStats()
+            if depth_frames.is_recording(path):  # opened now: a recording without depth is refused before any work
+                stats = depth_frames.StreamStats()
                 jobs.append((raw, path, radius, source, eps,
-                             (stream.recording_frames(path, selection, args.real_time, stats), stats)))
+                             (depth_frames.recording_frames(path, selection, args.real_time, stats), stats)))
             else:
                 jobs.append((raw, path, radius, source, eps, None))
         except (SphereBenchError, OSError) as exc:
@@ -291,8 +292,8 @@ def run(args: argparse.Namespace) -> int:
         width, height = _size(args.size)
         radius, source = (args.radius, "--radius") if args.radius is not None else (DEFAULT_RADIUS_M, "default")
         eps = _tolerance(args, radius, source, "--camera")
-        stats = stream.StreamStats()
-        frames = stream.camera_frames(args.camera or None, width, height, args.fps, stats)
+        stats = depth_frames.StreamStats()
+        frames = depth_frames.camera_frames(args.camera or None, width, height, args.fps, stats)
         if selection.first or selection.stop is not None or selection.every != 1:
             frames = (f for f, _ in selection.apply(frames, "the camera's stream"))
         jobs.append((f"camera {args.camera}".strip(), None, radius, source, eps, (frames, stats)))
@@ -321,13 +322,13 @@ def run(args: argparse.Namespace) -> int:
                         stem = scene_id_from(path.stem) if path is not None else f"camera{args.camera or ''}"
                         times = array("d")  # floats, not frames: bounded over an hour-long recording
                         for frame, spheres, ms in stream.detect_stream(frames, config(radius, eps), args.seed, stats):
-                            stream.print_notes(stats, f"note: {raw}")
+                            depth_frames.print_notes(stats, f"note: {raw}")
                             times.append(ms)
                             _print_result(args, raw, spheres, ms, radius, source, frame)
                             _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
                             if log is not None:
                                 log.frame(raw, frame, spheres)
-                        stream.print_notes(stats, f"note: {raw}")
+                        depth_frames.print_notes(stats, f"note: {raw}")
                         _stream_summary(raw, times, stats, args.real_time or path is None)
                         continue
                     cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)

@@ -10,7 +10,7 @@ predictions/<dataset>/<method>.json (COCO results with CircleNet's fields) and .
 Scenes with ground truth are scored (COCO circle mAP; 3D metrics where true centres are known);
 unannotated scenes (annotated = false) get detection and radius statistics instead. An
 interrupted run resumes: finished prediction sets with the same inputs are reused. A recorded
-dataset's README says what its ground truth is (``eval.recorded``); --beside sets every Table 3
+dataset's README says what its ground truth is (``eval.bench.recorded``); --beside sets every Table 3
 beside the same methods' on a dataset of another evaluation (its metrics.json), e.g. the
 simulated `default` of results/ beside a recording's.
 """
@@ -24,7 +24,7 @@ from pathlib import Path
 from spherebench import options
 from spherebench.baselines.hough_tuning import hough_config_for_run
 from spherebench.errors import SphereBenchError
-from spherebench.eval.registry import CIRCLENET_MODELS, METHOD_ORDER, circlenet_model_path, circlenet_spec
+from spherebench.eval.bench.registry import CIRCLENET_MODELS, METHOD_ORDER, circlenet_model_path, circlenet_spec
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -57,9 +57,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     # here, not at the top: the reports load pandas (and matplotlib to draw), and `spherebench evaluate --help`
     # took 2.4 s with them, about 1 s without
-    from spherebench.eval.evaluation import check_dataset, console_line, dataset_label, evaluate
-    from spherebench.eval.recorded import load_beside
-    from spherebench.eval.report import results_run
+    from spherebench.eval.bench.evaluate import check_dataset, console_line, dataset_label, evaluate
+    from spherebench.eval.bench.recorded import load_beside
+    from spherebench.eval.bench.report import results_run
 
     options.check_executor(args)
     out = Path(args.out)

@@ -1,5 +1,5 @@
 """`spherebench robustness` (`make robustness`): the improved detector across sensor conditions,
-against issue 16's targets (``eval.robustness_report``).
+against issue 16's targets (``eval.bench.robustness``).
 
     spherebench robustness data/robust --default data/default --hard data/hard --seeds 0-3 \
         --out results/robustness
@@ -16,7 +16,7 @@ from spherebench import options
 from spherebench.cli import run_module
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval.robustness_report import markdown, robustness
+from spherebench.eval.bench.robustness import markdown, robustness
 from spherebench.method import config_for
 
 

@@ -4,10 +4,10 @@ recordings of simulated scenes (``make stream-bench``).
 For each depth mode (424x240, 848x480 by default) it renders --scenes simulated scenes of the
 `default` preset (clean and cluttered, seed 0), writes them as one ROS1 recording of --frames
 frames at --fps (the scenes in turn; ``datasets.bagwrite``) in a temporary folder, and plays it
-back twice through ``datasets.stream``, as `detect` does: offline (every frame read) and in real
+back twice through ``method.stream``, as `detect` does: offline (every frame read) and in real
 time (frames arriving while the detector is busy are dropped). Per-frame time: the deprojection
 and the detection (``stream.detect_stream``'s ms), not the reading. Prints a table; writes
-OUT.md and OUT.json. Thin driver: the work is in ``spherebench.datasets.stream``.
+OUT.md and OUT.json. Thin driver: the work is in ``spherebench.method.stream``.
 
     python -m spherebench.scripts.stream_bench --out results/stream_bench
 """
@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from spherebench import options
-from spherebench.datasets import inout, simulate, stream
+from spherebench.datasets import depth_frames, inout, simulate
 from spherebench.datasets.bagwrite import write_realsense_bag
-from spherebench.method import config_for, warm_up
+from spherebench.method import config_for, stream, warm_up
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,8 +51,8 @@ def measure(path: Path, real_time: bool, seed: int = 0) -> dict:
 
     config = config_for("improved")
     warm_up(config)
-    stats = stream.StreamStats()
-    ms = [r.ms for r in stream.detect_stream(stream.recording_frames(path, real_time=real_time, stats=stats),
+    stats = depth_frames.StreamStats()
+    ms = [r.ms for r in stream.detect_stream(depth_frames.recording_frames(path, real_time=real_time, stats=stats),
                                              config, seed, stats)]
     return {**stream.latency_summary(np.asarray(ms)), "dropped": stats.dropped, "missing": stats.missing}
 

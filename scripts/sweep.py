@@ -1,4 +1,4 @@
-"""`spherebench sweep` (`make sweep`): the 3D detector's detections over several seeds (``eval.sweep``).
+"""`spherebench sweep` (`make sweep`): the 3D detector's detections over several seeds (``eval.bench.sweep``).
 
     spherebench sweep data/default data/hard --seeds 0-7 --out results/sweep
     spherebench sweep data/train --seeds 0-3 --set verify_candidates_if_none=10
@@ -12,7 +12,7 @@ import sys
 from spherebench import options
 from spherebench.cli import run_module
 from spherebench.datasets import inout
-from spherebench.eval.sweep import markdown, sweep
+from spherebench.eval.bench.sweep import markdown, sweep
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

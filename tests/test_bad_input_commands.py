@@ -14,15 +14,15 @@ import shutil
 import numpy as np
 import pytest
 
-from spherebench import cli
+from spherebench import cli, provenance
 from spherebench.baselines import pyransac3d_peer as peer
 from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import Cloud, in_front_of_camera
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import fingerprint, inout, simulate
 from spherebench.errors import SphereBenchError
+from spherebench.eval.bench import registry, report, seeds
 from spherebench.method import config_for
-from spherebench.eval import provenance, registry, report, seeds
 from conftest import markdown_cells  # noqa: E402  (tests/ is on sys.path under pytest)
 
 CAM = Intrinsics(width=160, height=120, ppx=79.5, ppy=59.5, fx=140.0, fy=140.0)
@@ -221,7 +221,7 @@ def test_evaluate_refuses_a_truncated_coco_gt_of_any_dataset_before_running(big_
                     "--workers", "1", "--quiet", "--no-figures"], "coco_gt.json", "not valid JSON")
     assert _listing(tmp_path) == before
     with pytest.raises(SphereBenchError, match="truncated"):  # the path that read it with json.loads
-        provenance.dataset_fingerprint(bad)
+        fingerprint.dataset_fingerprint(bad)
 
 
 def test_evaluate_says_a_method_that_refused_every_image_was_not_run(big_ball, tmp_path, capsys, monkeypatch):

@@ -233,15 +233,15 @@ def test_failed_evaluate_removes_the_folder_it_made(dataset, user, capsys, monke
 
 
 def test_stopped_evaluate_says_what_it_kept(dataset, ds, user, capsys, monkeypatch):
-    from spherebench.eval import evaluation
-    real, calls = evaluation.run_methods, []
+    from spherebench.eval.bench import evaluate
+    real, calls = evaluate.run_methods, []
 
     def run_methods(*args, **kwargs):  # the second dataset is stopped: the first's predictions are done
         calls.append(1)
         if len(calls) == 2:
             raise KeyboardInterrupt
         return real(*args, **kwargs)
-    monkeypatch.setattr(evaluation, "run_methods", run_methods)
+    monkeypatch.setattr(evaluate, "run_methods", run_methods)
     assert cli.main([str(a) for a in _evaluate(dataset, "ev", "--data", ds)]) == 130
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "no partial output" not in err, err

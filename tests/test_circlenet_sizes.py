@@ -169,7 +169,8 @@ def test_detect_2d_runs_on_any_size_with_the_scene_camera(tmp_path, monkeypatch,
 
 
 def test_a_model_trained_on_the_earlier_train_preset_says_so():
-    from spherebench.eval import provenance, registry
+    from spherebench import provenance
+    from spherebench.eval.bench import registry
     full = registry.circlenet_model_path("circlenet-full")
     if not full.is_file():
         pytest.skip("the full-size CircleNet is not shipped in this checkout")

@@ -10,7 +10,7 @@ import pytest
 from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import simulate
 from spherebench.errors import SphereBenchError
-from spherebench.eval import registry, runner
+from spherebench.eval.bench import registry, tasks
 from spherebench.parallel import executor
 
 ray = pytest.importorskip("ray", reason="the `distributed` extra (ray) is not installed")
@@ -25,8 +25,8 @@ def three(tmp_path_factory):
 def test_ray_and_local_engines_write_the_same_predictions(three, tmp_path):
     specs = [registry.detector_spec("improved"), registry.pyransac3d_spec(points=500, iterations=40),
              registry.hough_spec(HoughConfig())]
-    local = runner.run_methods(three, tmp_path / "local", specs, seed=1, workers=1, progress=False, log=lambda m: None)
-    ray_paths = runner.run_methods(three, tmp_path / "ray", specs, seed=1, workers=2, progress=False,
+    local = tasks.run_methods(three, tmp_path / "local", specs, seed=1, workers=1, progress=False, log=lambda m: None)
+    ray_paths = tasks.run_methods(three, tmp_path / "ray", specs, seed=1, workers=2, progress=False,
                                    log=lambda m: None, engine="ray")
     assert set(local) == set(ray_paths) and len(local) == 5
     for name, path in local.items():

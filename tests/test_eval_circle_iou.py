@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from spherebench.errors import SphereBenchError
-from spherebench.eval.circle_iou import circle_intersection_area, circle_iou, circle_iou_matrix
+from spherebench.eval.metrics.circle_iou import circle_intersection_area, circle_iou, circle_iou_matrix
 
 
 def test_identical_disjoint_tangent():

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from spherebench.errors import SphereBenchError
-from spherebench.eval.coco_eval import (coco_from_circles, evaluate_by_family, evaluate_circles, load_results,
-                                         load_ground_truth, results_from_circles, scalar_metrics)
+from spherebench.eval.metrics.coco_eval import (coco_from_circles, evaluate_by_family, evaluate_circles, load_results,
+                                                load_ground_truth, results_from_circles, scalar_metrics)
 
 R = 10.0  # every ground-truth circle: area 100 pi < 32^2, COCO 'small'
 

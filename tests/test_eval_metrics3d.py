@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from spherebench.errors import SphereBenchError
-from spherebench.eval.metrics3d import (detection_rates, error_stats, error_vs_distance, match_scene,
-                                        summarize_3d)
+from spherebench.eval.metrics.metrics3d import (detection_rates, error_stats, error_vs_distance, match_scene,
+                                                summarize_3d)
 
 GT = np.array([[0.0, 0.0, 2.0], [0.5, 0.0, 3.0]])
 
@@ -76,7 +76,7 @@ def test_bad_input():
 
 
 def test_scene_counts_and_their_totals():
-    from spherebench.eval.metrics3d import FOUND_M, detection_counts, scene_counts
+    from spherebench.eval.metrics.metrics3d import FOUND_M, detection_counts, scene_counts
     gt = {"balls": [{"center_m": [0.0, 0.0, 2.0]}, {"center_m": [0.5, 0.0, 3.0]}],
           "meta": {"distractors": [{"center_m": [-0.5, 0.0, 1.0], "radius_m": 0.11}]}}
     # one detection 1.5 cm from the first ball, one on the distractor, none near the second ball
@@ -96,7 +96,7 @@ def test_scene_counts_and_their_totals():
 
 
 def test_the_far_rule_takes_3_cm_only_beyond_3_m():
-    from spherebench.eval.metrics3d import detection_counts, scene_counts
+    from spherebench.eval.metrics.metrics3d import detection_counts, scene_counts
     gt = {"balls": [{"center_m": [0.0, 0.0, 2.9]}, {"center_m": [0.5, 0.0, 3.2]}, {"center_m": [-0.5, 0.0, 4.5]}]}
     # 2.5 cm off each ball; 3.5 cm off the farthest too
     near = scene_counts([[0.025, 0.0, 2.9], [0.5, 0.025, 3.2], [-0.5, 0.0, 4.535]], gt)

@@ -1,4 +1,4 @@
-"""The benchmark pipeline (eval.runner, eval.report, `spherebench evaluate`) on tiny generated data."""
+"""The benchmark pipeline (eval.bench.tasks, eval.bench.report, `spherebench evaluate`) on tiny generated data."""
 
 from __future__ import annotations
 
@@ -8,10 +8,12 @@ import math
 import numpy as np
 import pytest
 
+from spherebench import provenance
 from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import inout, simulate
+from spherebench.datasets import fingerprint
 from spherebench.errors import SphereBenchError
-from spherebench.eval import cache, provenance, registry, report, runner, seeds, studies, tables
+from spherebench.eval.bench import cache, registry, report, seeds, studies, tables, tasks
 
 RESULT_KEYS = {"image_id", "category_id", "circle_center", "circle_radius", "bbox", "score", "scene_id"}
 
@@ -29,7 +31,7 @@ def _specs(names=("improved", "paper", "pyransac3d", "hough")):
 
 
 def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
-    paths = runner.run_methods(tiny, tmp_path, _specs(), seed=0, workers=1, progress=False, log=lambda m: None)
+    paths = tasks.run_methods(tiny, tmp_path, _specs(), seed=0, workers=1, progress=False, log=lambda m: None)
     assert set(paths) == {"improved", "improved+paper-circle", "paper", "paper+paper-circle", "pyransac3d",
                           "pyransac3d+paper-circle", "hough"}
     coco = inout.read_coco_gt(tiny)
@@ -53,13 +55,13 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
     assert exact and any(a["circle_radius"] != b["circle_radius"] for a, b in zip(exact, paper_rule))
     # the improved detector finds the four simulated balls within 2 cm, and scores them
     gt = {img["id"]: img for img in coco["images"]}
-    scored = report.score_set(paths["improved"], coco, runner.dataset_scenes(tiny))
+    scored = report.score_set(paths["improved"], coco, tasks.dataset_scenes(tiny))
     assert scored.metrics["3d"]["within_2cm"] == 1.0 and scored.metrics["mAP50"] == 1.0
     assert set(scored.metrics["families"]) == {gt[i]["family"] for i in gt}
     # a predictions file loads in plain pycocotools (its bbox: the circle's box), and dropping the bbox
     # (files written before it) scores the same
     from pycocotools.coco import COCO
-    from spherebench.eval.coco_eval import evaluate_circles
+    from spherebench.eval.metrics.coco_eval import evaluate_circles
     plain = COCO()
     plain.dataset = json.loads(json.dumps(coco))
     for ann in plain.dataset["annotations"]:
@@ -73,40 +75,40 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
     without = [{k: v for k, v in r.items() if k != "bbox"} for r in exact]
     assert evaluate_circles(coco, without)["mAP"] == evaluate_circles(coco, exact)["mAP"] == scored.metrics["mAP"]
     # pyransac3d's radius is its own and is compared against R
-    py = report.score_set(paths["pyransac3d"], coco, runner.dataset_scenes(tiny))
+    py = report.score_set(paths["pyransac3d"], coco, tasks.dataset_scenes(tiny))
     assert all(d["radius_m"] is not None for s in py.scenes for d in s["detections"])
 
 
 def test_deterministic_across_workers_and_resume(tiny, tmp_path):
     specs = _specs(("improved", "paper"))
-    a = runner.run_methods(tiny, tmp_path / "a", specs, seed=3, workers=1, progress=False, log=lambda m: None)
-    b = runner.run_methods(tiny, tmp_path / "b", specs, seed=3, workers=2, progress=False, log=lambda m: None)
+    a = tasks.run_methods(tiny, tmp_path / "a", specs, seed=3, workers=1, progress=False, log=lambda m: None)
+    b = tasks.run_methods(tiny, tmp_path / "b", specs, seed=3, workers=2, progress=False, log=lambda m: None)
     for name in a:
         assert a[name].read_bytes() == b[name].read_bytes()
     # a second run reuses the finished files
     before = {n: p.stat().st_mtime_ns for n, p in a.items()}
     logged = []
-    runner.run_methods(tiny, tmp_path / "a", specs, seed=3, workers=1, progress=False, log=logged.append)
+    tasks.run_methods(tiny, tmp_path / "a", specs, seed=3, workers=1, progress=False, log=logged.append)
     assert {n: p.stat().st_mtime_ns for n, p in a.items()} == before
     assert sum("reused" in m for m in logged) == 2
     # another seed: recomputed (the paper pipeline's global sampling changes with it)
-    runner.run_methods(tiny, tmp_path / "a", specs, seed=4, workers=1, progress=False, log=logged.append)
+    tasks.run_methods(tiny, tmp_path / "a", specs, seed=4, workers=1, progress=False, log=logged.append)
     assert all(p.stat().st_mtime_ns != before[n] for n, p in a.items())
     assert cache.read_predictions(a["paper"])[1]["seed"] == 4
     # a damaged predictions file is not reused
     a["improved"].write_text("[]")
     logged.clear()
-    runner.run_methods(tiny, tmp_path / "a", specs, seed=4, workers=1, progress=False, log=logged.append)
+    tasks.run_methods(tiny, tmp_path / "a", specs, seed=4, workers=1, progress=False, log=logged.append)
     assert sum("reused" in m for m in logged) == 1
     assert json.loads(a["improved"].read_text()) != []
 
 
 def test_scene_seed_and_fingerprint(tiny, tmp_path):
     assert seeds.detection_seed(0, 1) == seeds.detection_seed(0, 1) != seeds.detection_seed(0, 2) != seeds.detection_seed(1, 2)
-    fp = provenance.dataset_fingerprint(tiny)
-    assert fp == provenance.dataset_fingerprint(tiny)
+    fp = fingerprint.dataset_fingerprint(tiny)
+    assert fp == fingerprint.dataset_fingerprint(tiny)
     with pytest.raises(SphereBenchError):
-        provenance.dataset_fingerprint(tmp_path)
+        fingerprint.dataset_fingerprint(tmp_path)
     with pytest.raises(SphereBenchError, match="unknown method"):
         registry.build_methods(["nope"])
 
@@ -175,10 +177,10 @@ def test_unannotated_scenes_get_detection_statistics(tiny, tmp_path):
         gt["meta"] = {"reference_center_m": [0.0, 0.0, 1.0]}
         inout.write_json(scene / "gt.json", gt)
     inout.write_json(data / "coco_gt.json", inout.build_coco_gt(data))
-    paths = runner.run_methods(data, tmp_path / "p", _specs(("improved",)), workers=1, progress=False,
+    paths = tasks.run_methods(data, tmp_path / "p", _specs(("improved",)), workers=1, progress=False,
                                log=lambda m: None)
     assert cache.read_predictions(paths["improved"])[0] == []  # nothing to score in 2D
-    scored = report.score_set(paths["improved"], inout.read_coco_gt(data), runner.dataset_scenes(data))
+    scored = report.score_set(paths["improved"], inout.read_coco_gt(data), tasks.dataset_scenes(data))
     u = scored.metrics["unannotated"]
     assert "mAP" not in scored.metrics and "3d" not in scored.metrics
     assert u["n_scenes"] == 4 and u["scenes_with_detection"] == 4 and u["n_reference"] == 4
@@ -233,9 +235,9 @@ def test_table2_on_the_paper_preset(paper_dataset):
 
 
 def test_reading_and_readme_from_scores(tiny, tmp_path):
-    paths = runner.run_methods(tiny, tmp_path, _specs(("improved",)), workers=1, progress=False, log=lambda m: None)
+    paths = tasks.run_methods(tiny, tmp_path, _specs(("improved",)), workers=1, progress=False, log=lambda m: None)
     coco = inout.read_coco_gt(tiny)
-    scenes = runner.dataset_scenes(tiny)
+    scenes = tasks.dataset_scenes(tiny)
     sets = [report.score_set(paths[o], coco, scenes) for o in ("improved", "improved+paper-circle")]
     text = report.reading({"default": sets}, None, {"circlenet": "model file not found"})
     assert any("improved" in s and f"{sets[0].metrics['mAP']:.3f}" in s for s in text)
@@ -256,7 +258,7 @@ def test_circlenet_runs_from_an_onnx_file(tiny, tmp_path):
                         tmp_path / "m.onnx")
     specs = registry.build_methods(["circlenet"], circlenet_model=model)
     assert [s.name for s in specs] == ["circlenet"] and specs[0].extra_fingerprint == provenance.file_sha256(model)
-    paths = runner.run_methods(tiny, tmp_path / "p", specs, workers=1, progress=False, log=lambda m: None)
+    paths = tasks.run_methods(tiny, tmp_path / "p", specs, workers=1, progress=False, log=lambda m: None)
     results, meta = cache.read_predictions(paths["circlenet"])
     assert meta["kind"] == "2d" and len(meta["scenes"]) == 4
     assert all(RESULT_KEYS <= set(r) and "center_m" not in r for r in results)
@@ -266,7 +268,8 @@ def test_circlenet_runs_from_an_onnx_file(tiny, tmp_path):
 
 def test_transfer_table_pairs_a_preset_with_its_stereo_twin(tiny, tmp_path):
     from spherebench.cli import main
-    from spherebench.eval import metrics3d, transfer
+    from spherebench.eval.bench import transfer
+    from spherebench.eval.metrics import metrics3d
 
     twin = simulate.generate_dataset("default-stereo", tmp_path / "tiny-stereo", n=4, progress=False)
     other = simulate.generate_dataset("hard", tmp_path / "hardish", n=2, progress=False)  # nobody's twin

@@ -1,4 +1,4 @@
-"""The robust preset's figures per sensor cell and range band (eval.sensor_grid, the report's rows and
+"""The robust preset's figures per sensor cell and range band (eval.metrics.sensor_grid, the report's rows and
 the robustness figure), on synthetic rows and a few generated scenes."""
 
 from __future__ import annotations
@@ -8,11 +8,13 @@ import math
 import numpy as np
 import pytest
 
+from spherebench import provenance
 from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import simulate
-from spherebench.eval import cache, figures, provenance, registry, report, sensor_grid, studies
-from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
-from spherebench.eval.evaluation import evaluate
+from spherebench.eval.bench import cache, figures, registry, report, studies
+from spherebench.eval.bench.evaluate import evaluate
+from spherebench.eval.metrics import sensor_grid
+from spherebench.eval.metrics.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
 
 
 def test_bands_keys_and_rates():
@@ -116,7 +118,7 @@ def test_robust_cells_through_the_stage_files(tiny_robust, tmp_path):
 
 
 def test_oracle_ceiling_rows_are_cached(tiny_robust, tmp_path):
-    pytest.importorskip("spherebench.eval.oracle")
+    pytest.importorskip("spherebench.eval.bench.oracle")
     logged = []
     balls = studies.oracle_balls(tiny_robust, tmp_path / "oracle.json", workers=1, log=logged.append)
     assert [(b["scene_id"], b["ball"], b["cell"]["cell"]) for b in balls] == \
@@ -163,7 +165,7 @@ def test_circlenet_spec_key_covers_the_scaling_rule():
         pytest.skip("no shipped CircleNet model")
     spec = registry.circlenet_spec(path)
     assert spec.config["scale"] == "focal_px" and "focal length" in spec.note
-    assert "spherebench.eval.registry" in spec.modules and "spherebench.baselines.circlenet" in spec.modules
+    assert "spherebench.eval.bench.registry" in spec.modules and "spherebench.baselines.circlenet" in spec.modules
     before = registry.MethodSpec(**{**spec.__dict__, "config": {k: v for k, v in spec.config.items() if k != "scale"}})
     args = ("circlenet", "fp", 0, provenance.code_version(spec.modules), ["s"])
     assert cache.prediction_key(spec, *args) != cache.prediction_key(before, *args)

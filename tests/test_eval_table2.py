@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from spherebench.errors import SphereBenchError
-from spherebench.eval.table2 import barycentre, sphere_rmse, table2_row
+from spherebench.eval.metrics.table2 import barycentre, sphere_rmse, table2_row
 
 R = 0.12
 C = np.array([0.1, -0.05, 1.5])

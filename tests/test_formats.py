@@ -107,7 +107,7 @@ def test_show_draws_a_methods_predictions(small_default, tmp_path, capsys):
 def test_provider_and_missing_models_are_one_line_errors(small_default, tmp_path, capsys, monkeypatch):
     import onnxruntime as ort
 
-    from spherebench.eval import registry
+    from spherebench.eval.bench import registry
 
     scene = inout.list_scenes(small_default)[0]
     if "CUDAExecutionProvider" not in ort.get_available_providers():

@@ -430,7 +430,7 @@ def test_the_circle_of_a_partly_hidden_ball_is_that_of_its_visible_pixels():
     hidden report it (``detect``: visible_fraction below 0.9), nearer the truth's circle than the whole
     silhouette's is."""
     from spherebench.circles import mask_circle, sphere_circle_exact, sphere_circle_visible, sphere_silhouette_mask
-    from spherebench.eval.circle_iou import circle_iou
+    from spherebench.eval.metrics.circle_iou import circle_iou
 
     c = np.array([0.1, 0.0, 1.5])
     clean = scene(ball_c=tuple(c), wall_z=2.3, noise=0.0, width=424, height=240)

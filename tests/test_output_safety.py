@@ -20,7 +20,7 @@ import pytest
 from spherebench import cli
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval import report
+from spherebench.eval.bench import report
 
 SB = [sys.executable, "-m", "spherebench.cli"]
 

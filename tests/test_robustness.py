@@ -1,4 +1,4 @@
-"""Issue 16's robustness targets (eval.robustness), the oracle's ceiling (eval.oracle) and the
+"""Issue 16's robustness targets (eval.metrics.targets), the oracle's ceiling (eval.bench.oracle) and the
 `make robustness` script, on synthetic rows and a few generated scenes."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from spherebench.datasets import inout, simulate
-from spherebench.eval import oracle
-from spherebench.eval import robustness as rb
+from spherebench.eval.bench import oracle
+from spherebench.eval.metrics import targets
 from spherebench.method import config_for
 from spherebench.scripts import robustness as script
 
@@ -20,13 +20,13 @@ def _ball(cell, band, found, within=False, separable=False):
 
 
 def test_targets_follow_the_issue_and_the_ceiling():
-    assert rb.nominal_target(0.16, far=False) == 0.99 and rb.nominal_target(0.20, far=False) == 0.97
-    assert rb.nominal_target(0.12, far=True) == 0.95 and rb.nominal_target(0.16, far=True) == 0.80
+    assert targets.nominal_target(0.16, far=False) == 0.99 and targets.nominal_target(0.20, far=False) == 0.97
+    assert targets.nominal_target(0.12, far=True) == 0.95 and targets.nominal_target(0.16, far=True) == 0.80
     near, far = (0.08, "none", "off"), (0.2, "1px", "on")
     balls = ([_ball(near, "0-1 m", True)] * 99 + [_ball(near, "1-2 m", False, separable=True)]
              + [_ball(far, "2-3 m", True)] * 5 + [_ball(far, "2-3 m", False, separable=True)] * 2
              + [_ball(far, "2-3 m", False)] * 3 + [_ball(far, "3-4 m", False)])
-    rows = {(r["subpixel"], r["range"]): r for r in rb.cell_table(balls)}
+    rows = {(r["subpixel"], r["range"]): r for r in targets.cell_table(balls)}
     assert set(rows) == {(0.08, "within 2 m"), (0.2, "2-3 m")}  # bands beyond 3 m count nowhere
     r = rows[(0.08, "within 2 m")]
     assert (r["n"], r["found"], r["ceiling"], r["target"], r["ok"]) == (100, 99, 1.0, 0.99, True)
@@ -35,17 +35,18 @@ def test_targets_follow_the_issue_and_the_ceiling():
     assert r["ceiling"] == pytest.approx(0.7) and r["target"] == pytest.approx(0.97 * 0.7)
     assert r["rate"] == 0.5 and not r["ok"]
     # the ceiling never falls below the rate: a found ball is within it
-    assert rb.ceiling_holds(_ball(far, "2-3 m", True)) and not rb.ceiling_holds(_ball(far, "2-3 m", False, True))
+    assert targets.ceiling_holds(_ball(far, "2-3 m", True))
+    assert not targets.ceiling_holds(_ball(far, "2-3 m", False, True))
 
 
 def test_overall_verdicts():
     balls = [_ball((0.05, "none", "off"), "0-1 m", True)] * 96 + [_ball((0.05, "none", "off"), "0-1 m", False)] * 4
     scenes = [{"false": 0}] * 199 + [{"false": 2}]
-    o = rb.overall(balls, scenes, default_rate=0.99)
+    o = targets.overall(balls, scenes, default_rate=0.99)
     assert o["rate"] == 0.96 and o["gap_ok"] and o["false_share"] == 0.005 and o["false_ok"]
-    assert not rb.overall(balls, scenes, default_rate=0.995)["gap_ok"]
-    assert not rb.overall(balls, scenes + [{"false": 1}], None)["false_ok"]
-    assert rb.overall(balls, scenes, None)["gap_ok"] is None
+    assert not targets.overall(balls, scenes, default_rate=0.995)["gap_ok"]
+    assert not targets.overall(balls, scenes + [{"false": 1}], None)["false_ok"]
+    assert targets.overall(balls, scenes, None)["gap_ok"] is None
 
 
 @pytest.fixture(scope="module")
@@ -118,15 +119,15 @@ def test_reports_never_overwrite_a_file_they_did_not_write(tiny_robust, tmp_path
 
 
 def test_timing_turns_alternate_their_order(tiny_robust, monkeypatch):
-    """``bench.frame_best_times``: the configurations take turns in an order that reverses every pass
+    """``speed.frame_best_times``: the configurations take turns in an order that reverses every pass
     (a run right after the other configuration's reads slower), and each keeps its fastest run."""
-    from spherebench.eval import bench
+    from spherebench.eval.bench import speed
 
     _, default = tiny_robust
     seen = []
-    monkeypatch.setattr(bench, "_warmed", lambda name: name)
-    monkeypatch.setattr(bench, "detect", lambda cloud, config, seed: seen.append(config))
+    monkeypatch.setattr(speed, "_warmed", lambda name: name)
+    monkeypatch.setattr(speed, "detect", lambda cloud, config, seed: seen.append(config))
     scene = inout.list_scenes(default)[0]
-    best = bench.frame_best_times((str(scene), ("improved", "paper-lstsq"), 0, 3))
+    best = speed.frame_best_times((str(scene), ("improved", "paper-lstsq"), 0, 3))
     assert seen == ["improved", "paper-lstsq", "paper-lstsq", "improved", "improved", "paper-lstsq"]
     assert len(best) == 2 and all(0.0 <= t < 1e3 for t in best)

@@ -1,5 +1,6 @@
 """Streaming detection: `spherebench detect` on RealSense recordings (.bag) and a live camera, and the
-Python streaming API (spherebench.datasets.stream), on recordings the tests write themselves."""
+Python streaming API (spherebench.datasets.depth_frames, spherebench.method.stream), on recordings the
+tests write themselves."""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ rs = pytest.importorskip("pyrealsense2")
 from spherebench import cli  # noqa: E402
 from spherebench.camera import Intrinsics  # noqa: E402
 from spherebench.cloud import cloud_from_depth, depth_to_metres  # noqa: E402
-from spherebench.datasets import inout, stream  # noqa: E402
+from spherebench.datasets import depth_frames, inout  # noqa: E402
 from spherebench.datasets.bagwrite import write_realsense_bag  # noqa: E402
 from spherebench.datasets.prepare import FrameSelection  # noqa: E402
-from spherebench.method import config_for  # noqa: E402
+from spherebench.method import config_for, stream  # noqa: E402
 from test_prepare_bag import INTR, render_frames  # noqa: E402
 
 N = 8
@@ -114,9 +115,9 @@ def test_real_time_drops_frames_a_slow_detector_cannot_keep_up_with(recording, c
         return []
     monkeypatch.setattr(stream, "detect", slow)
     path, _, _ = recording
-    stats = stream.StreamStats()
-    got = [f.number for f, _, _ in stream.detect_stream(stream.recording_frames(path, real_time=True, stats=stats),
-                                                        config_for("improved"), stats=stats)]
+    stats = depth_frames.StreamStats()
+    frames = depth_frames.recording_frames(path, real_time=True, stats=stats)
+    got = [f.number for f, _, _ in stream.detect_stream(frames, config_for("improved"), stats=stats)]
     assert 1 <= len(got) < N and stats.dropped >= 1
     assert stats.frames == len(got)
     status, out, err = _run(capsys, "detect", path, "--real-time")
@@ -125,7 +126,7 @@ def test_real_time_drops_frames_a_slow_detector_cannot_keep_up_with(recording, c
 
 def test_python_api_and_rs_helpers(recording):
     path, frames, numbers = recording
-    results = list(stream.detect_stream(stream.recording_frames(path, FrameSelection(first=1, stop=3)),
+    results = list(stream.detect_stream(depth_frames.recording_frames(path, FrameSelection(first=1, stop=3)),
                                         config_for("improved")))
     assert [r.frame.number for r in results] == numbers[1:3]
     frame, spheres, ms = results[0]
@@ -137,7 +138,7 @@ def test_python_api_and_rs_helpers(recording):
     try:
         profile.get_device().as_playback().set_real_time(False)
         depth = pipe.wait_for_frames(5000).get_depth_frame()
-        cloud = stream.cloud_from_rs_depth(depth)
+        cloud = depth_frames.cloud_from_rs_depth(depth)
         intr = Intrinsics.from_rs(depth.get_profile().as_video_stream_profile().get_intrinsics(), depth.get_units())
     finally:
         pipe.stop()
@@ -196,7 +197,7 @@ def test_memory_stays_bounded_over_a_long_recording(tmp_path, monkeypatch):
     tracemalloc.start()
     try:
         held = []
-        for r in stream.detect_stream(stream.recording_frames(path), config_for("improved")):
+        for r in stream.detect_stream(depth_frames.recording_frames(path), config_for("improved")):
             if r.frame.index in (50, 299):
                 held.append(tracemalloc.get_traced_memory()[0])
     finally:
@@ -214,7 +215,7 @@ def test_a_viewer_that_cannot_start_is_a_note(recording, tmp_path, capsys, monke
 
 
 class _FakeRealSense:
-    """Just enough of pyrealsense2 for stream.camera_frames: one D435 whose pipeline delivers the
+    """Just enough of pyrealsense2 for depth_frames.camera_frames: one D435 whose pipeline delivers the
     given depth frames with the given frame numbers (a gap: frames librealsense dropped)."""
 
     def __init__(self, frames, numbers, intr=INTR):
@@ -245,7 +246,7 @@ class _FakeRealSense:
 def test_camera_stream_with_a_fake_camera(monkeypatch, capsys):
     frames = render_frames(n=6)
     fake = _FakeRealSense(frames, [10, 11, 14, 15, 16, 17])
-    monkeypatch.setattr(stream, "_rs", lambda: fake)
+    monkeypatch.setattr(depth_frames, "_rs", lambda: fake)
     status, out, err = _run(capsys, "detect", "--camera", "--size", "64x48", "--fps", "90", "--frames", "0:4",
                             "--json")
     assert status == 0, err

@@ -10,7 +10,7 @@
     model_card.json/.md  data, seed, epochs, time, device, validation mAP of the ONNX model, command
 
 The validation split is a seeded draw of the training dataset's scenes (``data.split_scenes``);
-its mAP is the COCO protocol with circle IoU (``spherebench.eval.coco_eval``).
+its mAP is the COCO protocol with circle IoU (``spherebench.eval.metrics.coco_eval``).
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, co
 from spherebench.baselines.circlenet.onnx_export import export_onnx
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
-from spherebench.eval.figures import pyplot
+from spherebench.eval.metrics.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
 from spherebench.parallel import usable_cpus
+from spherebench.plotting import pyplot
 from spherebench.progress import bar as progress_bar, write as progress_write
 
 #: The owner-marker kind of a training run's folder (``inout.claim_output_dir``).
@@ -88,7 +88,7 @@ _HOW_FIELDS = ("device", "mixed_precision", "workers", "threads", "checkpoint_mi
 # ---------------------------------------------------------------- validation mAP
 
 def coco_circle_map(gt: dict[int, np.ndarray], detections: dict[int, np.ndarray]) -> dict[str, float]:
-    """COCO AP with circle IoU (CircleNet's protocol, ``spherebench.eval.coco_eval``): mAP over
+    """COCO AP with circle IoU (CircleNet's protocol, ``spherebench.eval.metrics.coco_eval``): mAP over
     IoU 0.50:0.05:0.95, mAP.50, mAP.75 (101 recall points, maxDets 1000, area = pi r^2).
 
     gt: image id -> circles (N, 3) (cx, cy, r) px, every image of the set (empty for negatives).

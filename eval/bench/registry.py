@@ -40,8 +40,8 @@ from spherebench.baselines import pyransac3d_peer
 from spherebench.baselines.hough import HoughConfig, detect_circles
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval.provenance import REPO_ROOT, dist_version, file_sha256
 from spherebench.method import DetectorConfig, config_for, detect
+from spherebench.provenance import REPO_ROOT, dist_version, file_sha256
 
 #: Suffix of the prediction set that uses the paper's projection rule.
 PAPER_CIRCLE = "+paper-circle"
@@ -83,7 +83,7 @@ METHOD_ORDER = (*DETECTOR_PRESETS, "pyransac3d", "hough", *CIRCLENET_MODELS)
 
 #: Modules whose source is every method's code version (scene reading, circles, the adapters).
 _CORE_MODULES = ("spherebench.camera", "spherebench.cloud", "spherebench.circles", "spherebench.datasets.inout",
-                 "spherebench.eval.registry")
+                 "spherebench.eval.bench.registry")
 
 
 @dataclass(frozen=True)

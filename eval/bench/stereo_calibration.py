@@ -1,6 +1,6 @@
 """The stereo sensor model against Intel's published D435 behaviour: flat walls and an edge.
 
-``python -m spherebench.eval.stereo_calibration [--figure results/stereo/calibration.png]``
+``python -m spherebench.eval.bench.stereo_calibration [--figure results/stereo/calibration.png]``
 prints, for the analytic model (``sensor.D435Sensor``), the stereo model (``stereo.StereoSensor``)
 and Intel's figures, at 848x480 and 424x240:
 
@@ -31,7 +31,7 @@ from spherebench.datasets import simulate
 from spherebench.datasets.primitives import Box, Plane, raycast
 from spherebench.datasets.sensor import D435Sensor, apply_sensor
 from spherebench.datasets.stereo import StereoSensor, stereo_depth
-from spherebench.eval.figures import pyplot
+from spherebench.plotting import pyplot
 
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 3.0, 4.0)
 INTEL_SUBPIXEL_PX = 0.08

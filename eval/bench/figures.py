@@ -2,7 +2,7 @@
 distance, latency per method, a grid of example scenes with true and predicted circles, and the
 robustness figure of a grid preset (rates per sensor condition and range band).
 
-Each function draws from scored prediction sets (``eval.report.ScoredSet``), or ``robustness`` from
+Each function draws from scored prediction sets (``eval.bench.report.ScoredSet``), or ``robustness`` from
 the per-cell rows that metrics.json holds, and writes one PNG.
 """
 
@@ -14,23 +14,14 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from spherebench.eval.circle_iou import circle_iou_matrix
-from spherebench.eval.sensor_grid import ceiling_key, level_label
+from spherebench.eval.metrics.circle_iou import circle_iou_matrix
+from spherebench.eval.metrics.sensor_grid import ceiling_key, level_label
+from spherebench.plotting import pyplot
 
 RECALL = np.linspace(0.0, 1.0, 101)
 #: Methods drawn on the example scenes, with their colours (matplotlib names).
 EXAMPLE_METHODS = (("improved", "red"), ("paper+paper-circle", "orange"), ("circlenet", "cyan"),
                    ("circlenet-full", "black"), ("hough", "magenta"))
-
-
-def pyplot():
-    """matplotlib's pyplot on the Agg backend (files only), imported at the first figure drawn: its
-    import builds matplotlib's font cache in the user's cache folder (``~/.cache/matplotlib``), which
-    a command that refuses its input, or draws nothing, has no reason to do."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
 
 
 def _colours(n: int):
@@ -219,7 +210,7 @@ def robustness(label: str, rows_by_method: dict, path: Path, ceiling: dict | Non
     and dropouts as line styles (``ROBUST_LINES``: solid dropouts off, dashed on; circles
     correlation none, triangles 1 px), the four lines nudged apart in x.
 
-    rows_by_method: {method: its ``sensor_cells`` rows (``eval.sensor_grid.grid_rows``, as in
+    rows_by_method: {method: its ``sensor_cells`` rows (``eval.metrics.sensor_grid.grid_rows``, as in
     metrics.json)}, in drawing order. A method without 3D centres leaves its 3D panels blank.
     ceiling: the hook for an oracle's per-cell ceiling of the detection rate, {(subpixel,
     correlation, dropouts, band label e.g. "0-1 m"): rate in 0-1} (``sensor_grid.ceiling_key``),
@@ -282,7 +273,7 @@ def robustness(label: str, rows_by_method: dict, path: Path, ceiling: dict | Non
 
 
 def transfer(rows: Sequence[dict], path: Path) -> None:
-    """The transfer table (``eval.transfer.transfer_rows``) as bars: one column of panels per preset
+    """The transfer table (``eval.bench.transfer.transfer_rows``) as bars: one column of panels per preset
     pair, circle mAP above and the 3D found rate below, each method's analytic bar (solid) beside
     its stereo bar (hatched), the drop written over the pair."""
     plt = pyplot()

@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from spherebench.datasets import inout
-from spherebench.eval.tables import Table, fmt
+from spherebench.eval.bench.tables import Table, fmt
 
 #: The figures compared, as (metrics key, column heading); "found" is the 3D found rate.
 FIGURES = (("mAP", "mAP"), ("mAP50", "mAP.50"), ("mAP75", "mAP.75"), ("found", "3D found"))

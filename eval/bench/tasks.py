@@ -3,13 +3,13 @@
 A task is one scene through one method configuration (``SceneTask``); ``run_tasks`` runs tasks on
 an executor (``spherebench.parallel.executor``: this process, a pool of local worker processes,
 or Ray) and returns each task's record in task order. ``run_methods`` builds the tasks of the
-benchmark's methods (``eval.registry``) on a dataset and writes one prediction set per output
-(``eval.cache``), reusing the finished ones; ``bench``, ``sweep`` and ``robustness`` run their
-tasks through the same loop, Table 2 and the oracle's ceiling (``eval.studies``) theirs on the same
+benchmark's methods (``eval.bench.registry``) on a dataset and writes one prediction set per output
+(``eval.bench.cache``), reusing the finished ones; ``bench``, ``sweep`` and ``robustness`` run their
+tasks through the same loop, Table 2 and the oracle's ceiling (``eval.bench.studies``) theirs on the same
 executor with the same seeds.
 
 Seeding: scene k of a dataset (scene folders sorted by id) is run with ``detection_seed(seed, k)``
-(``eval.seeds``). Every task's output depends on its arguments only, so the files are identical
+(``eval.bench.seeds``). Every task's output depends on its arguments only, so the files are identical
 for any number of workers and either engine. Time per frame is measured around the detection call
 alone (no file reading), one thread per worker.
 """
@@ -22,13 +22,14 @@ from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 from spherebench.datasets import inout
+from spherebench.datasets.fingerprint import dataset_fingerprint
 from spherebench.errors import SphereBenchError
-from spherebench.eval.cache import is_finished, prediction_key, write_prediction_set
-from spherebench.eval.provenance import code_version, dataset_fingerprint
-from spherebench.eval.registry import MethodSpec, warm_adapter
-from spherebench.eval.seeds import detection_seed
+from spherebench.eval.bench.cache import is_finished, prediction_key, write_prediction_set
+from spherebench.eval.bench.registry import MethodSpec, warm_adapter
+from spherebench.eval.bench.seeds import detection_seed
 from spherebench.parallel import executor
 from spherebench.progress import bar as progress_bar
+from spherebench.provenance import code_version
 
 
 @dataclass

@@ -1,7 +1,8 @@
-"""Provenance: content hashes of datasets and code, the machine, package versions, git state.
+"""Provenance: content hashes of files and code, the machine, package versions, git state.
 
-These hashes are the resume keys of the prediction sets (``eval.cache``) and of the cached
-tuning and oracle runs; the rest is recorded beside the results (provenance.json).
+These hashes (with a dataset's, ``datasets.fingerprint``) are the resume keys of the prediction
+sets (``eval.bench.cache``) and of the cached tuning and oracle runs; the rest is recorded beside
+the results (provenance.json).
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ import ctypes
 import datetime as _dt
 import hashlib
 import importlib.util
-import json
 import math
 import os
 import platform
@@ -22,7 +22,6 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from spherebench import __version__
-from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
 #: Repository root (the folder that holds method/, baselines/, ...).
@@ -56,7 +55,8 @@ def file_sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def _hash_files(paths: Iterable[Path], root: Path) -> str:
+def hash_files(paths: Iterable[Path], root: Path) -> str:
+    """One hash (blake2b, hex) of the files' paths relative to ``root`` and their bytes, in order."""
     h = hashlib.blake2b(digest_size=16)
     for p in paths:
         h.update(str(p.relative_to(root)).encode())
@@ -65,24 +65,6 @@ def _hash_files(paths: Iterable[Path], root: Path) -> str:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
         h.update(b"\1")
-    return h.hexdigest()
-
-
-def dataset_fingerprint(data_dir: str | Path) -> str:
-    """Content hash of a dataset: every file under scenes/ and the ground truth (not its folder name)."""
-    root = Path(data_dir)
-    scenes = root / "scenes"
-    if not scenes.is_dir():
-        raise SphereBenchError(f"{root}: not a dataset (no scenes/ folder); build one with 'spherebench generate' "
-                               "or 'spherebench prepare'")
-    files = sorted(p for p in scenes.rglob("*") if p.is_file() and not any(s.startswith(".") for s in p.parts[-2:]))
-    h = hashlib.blake2b(digest_size=16)
-    h.update(_hash_files(files, root).encode())
-    gt = root / "coco_gt.json"
-    if gt.is_file():
-        coco = inout.read_json(gt)  # a truncated file: one line, not a traceback
-        h.update(json.dumps({k: coco.get(k) for k in ("images", "annotations", "categories")},
-                            sort_keys=True).encode())
     return h.hexdigest()
 
 

@@ -1,38 +1,34 @@
-"""Depth frames as a stream, and the 3D detector over it: a RealSense recording played back or a
-live camera, one frame at a time.
+"""Depth frames one at a time: a RealSense recording played back or a live camera. The detector
+runs over them in ``spherebench.method.stream``:
 
-    from spherebench.datasets import stream
+    from spherebench.datasets.depth_frames import recording_frames   # or camera_frames(width=848, ...)
     from spherebench.method import config_for
+    from spherebench.method.stream import detect_stream
 
-    frames = stream.recording_frames("capture.bag")            # or stream.camera_frames(width=848, ...)
-    for frame, spheres, ms in stream.detect_stream(frames, config_for("improved")):
+    for frame, spheres, ms in detect_stream(recording_frames("capture.bag"), config_for("improved")):
         print(frame.number, frame.timestamp_ms, [s.center_m for s in spheres], ms)
 
 Frames are ``inout.BagFrame``s (depth in counts of ``intrinsics.depth_scale``). Nothing is
-accumulated: each frame is read, detected and let go, so that memory stays bounded over an
+accumulated: each frame is read, handed on and let go, so that memory stays bounded over an
 hour-long recording. Offline playback reads every frame; real-time playback and a live camera
-deliver frames at the camera's rate and drop those that arrive while the detector is still busy
+deliver frames at the camera's rate and drop those that arrive while the consumer is still busy
 (counted in ``StreamStats``).
 """
 
 from __future__ import annotations
 
-import math
 import sys
-import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
-from spherebench.camera import Intrinsics, image_rays
+from spherebench.camera import Intrinsics
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets import inout
 from spherebench.datasets.prepare import FrameSelection
 from spherebench.errors import SphereBenchError
-from spherebench.method import detect
 
 #: Recording suffixes that pyrealsense2 plays back (ROS1 bag, ROS2 sqlite).
 RECORDING_SUFFIXES = (".bag", ".db3")
@@ -60,17 +56,8 @@ class StreamStats:
     notes: list[str] = field(default_factory=list)
 
 
-class StreamDetection(NamedTuple):
-    """One frame's result: the frame, its spheres (best first) and the detection's time (ms, the
-    deprojection to a cloud included, reading the frame excluded)."""
-
-    frame: inout.BagFrame
-    spheres: list
-    ms: float
-
-
 def _rs():
-    return inout._import_pyrealsense2()
+    return inout.import_pyrealsense2()
 
 
 def cloud_from_rs_depth(depth_frame, rays: np.ndarray | None = None) -> Cloud:
@@ -81,19 +68,6 @@ def cloud_from_rs_depth(depth_frame, rays: np.ndarray | None = None) -> Cloud:
     intr = Intrinsics.from_rs(profile.get_intrinsics(), depth_frame.get_units())
     depth = np.asanyarray(depth_frame.get_data())
     return cloud_from_depth(depth_to_metres(depth, intr), intr, rays)
-
-
-class _Rays:
-    """image_rays of the stream's intrinsics, computed once (a stream keeps its camera)."""
-
-    def __init__(self):
-        self.intrinsics: Intrinsics | None = None
-        self.rays: np.ndarray | None = None
-
-    def __call__(self, intr: Intrinsics) -> np.ndarray:
-        if intr != self.intrinsics:
-            self.intrinsics, self.rays = intr, image_rays(intr)
-        return self.rays
 
 
 def is_recording(path: str | Path) -> bool:
@@ -203,33 +177,6 @@ def camera_frames(serial: str | None = None, width: int = 848, height: int = 480
         finally:
             pipeline.stop()
     return _counted(frames(), stats, gaps_are_drops=True)
-
-
-def detect_stream(frames: Iterable[inout.BagFrame], config, seed: int = 0,
-                  stats: StreamStats | None = None) -> Iterator[StreamDetection]:
-    """The detector over a stream of depth frames: (frame, spheres, ms) per frame, lazily. Frame
-    k's seed is (seed, k), k its index in the stream: the same recording gives the same output. A
-    frame with no depth at all gives no sphere."""
-    rays = _Rays()
-    for frame in frames:
-        t = time.perf_counter()
-        cloud = cloud_from_depth(depth_to_metres(frame.depth, frame.intrinsics), frame.intrinsics,
-                                 rays(frame.intrinsics))
-        spheres = detect(cloud, config, seed=(int(seed), int(frame.index))) if len(cloud) else []
-        ms = (time.perf_counter() - t) * 1e3
-        if stats is not None:
-            stats.frames += 1
-            if not len(cloud):
-                stats.notes.append(f"frame {frame.number} has no depth (every pixel 0): no sphere")
-        yield StreamDetection(frame, spheres, ms)
-
-
-def latency_summary(ms: np.ndarray) -> dict:
-    """Median and 95th percentile (ms) of per-frame times, and their count."""
-    ms = np.asarray(ms, dtype=np.float64)
-    if ms.size == 0:
-        return {"frames": 0, "median_ms": math.nan, "p95_ms": math.nan}
-    return {"frames": int(ms.size), "median_ms": float(np.median(ms)), "p95_ms": float(np.percentile(ms, 95))}
 
 
 def print_notes(stats: StreamStats, prog: str = "note") -> None:

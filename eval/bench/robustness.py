@@ -1,17 +1,17 @@
 """`spherebench robustness` (`make robustness`): the improved detector across sensor conditions,
-against issue 16's targets (``eval.robustness``).
+against issue 16's targets (``eval.metrics.targets``).
 
 On the `robust` preset (20 sensor cells: subpixel x correlation x dropouts), per cell and range
 group (balls within 2 m; at 2-3 m), over the run seeds: balls found (the nearest detection within
-2 cm), the oracle's ceiling (``eval.oracle``, ``eval.robustness.ceiling_holds``: the detector's
+2 cm), the oracle's ceiling (``eval.bench.oracle``, ``eval.metrics.targets.ceiling_holds``: the detector's
 verification started about the true centre, its score above every clutter sphere of its frame)
 and the share it accepts at the detector's own threshold, the target and whether it holds. Then
 the overall rate beside `default`'s, false detections, `hard`'s negatives and distractors, and the
-time per 424x240 frame as a ratio to the `paper-lstsq` control (``eval.bench.frame_best_times``:
+time per 424x240 frame as a ratio to the `paper-lstsq` control (``eval.bench.speed.frame_best_times``:
 the two take turns on each frame, the fastest of five runs each; the median of the frames'
 ratios), with the frame noise measurement's own cost. A false detection lies farther than one radius from every
 ball (``metrics3d``' "clutter"): a detection of a ball 2-3 cm off is a miss of the 2 cm rate, not
-a false detection. Detections and the oracle run on the one task loop (``eval.runner``), scene k of
+a false detection. Detections and the oracle run on the one task loop (``eval.bench.tasks``), scene k of
 run seed s with ``detection_seed(s, k)``, the oracle with ``detection_seed(0, k)`` (as `make eval`'s).
 """
 
@@ -24,14 +24,14 @@ import numpy as np
 
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval import robustness as rb
-from spherebench.eval.bench import frame_best_times
-from spherebench.eval.metrics3d import FOUND_M, detection_counts, scene_counts
-from spherebench.eval.registry import detector_spec
-from spherebench.eval.runner import dataset_scenes, run_tasks, tasks_for
-from spherebench.eval.seeds import detection_seed
-from spherebench.eval.sensor_grid import GRID_AXES, grid_key
-from spherebench.eval.studies import oracle_scene
+from spherebench.eval.bench.registry import detector_spec
+from spherebench.eval.bench.seeds import detection_seed
+from spherebench.eval.bench.speed import frame_best_times
+from spherebench.eval.bench.studies import oracle_scene
+from spherebench.eval.bench.tasks import dataset_scenes, run_tasks, tasks_for
+from spherebench.eval.metrics import targets
+from spherebench.eval.metrics.metrics3d import FOUND_M, detection_counts, scene_counts
+from spherebench.eval.metrics.sensor_grid import GRID_AXES, grid_key
 from spherebench.method import config_for
 from spherebench.method.detector import prepare_frame
 from spherebench.method.improved import frame_noise_correlation_px
@@ -137,15 +137,15 @@ def _robustness(ex, robust: str, seeds: list[int], default: str | None, hard: st
     r = _run(ex, robust, seeds, overrides, True, limit)
     if any(b["cell"] is None for b in r["balls"]):
         raise SphereBenchError(f"{robust}: scenes without a sensor cell: give the robust preset's folder")
-    result = {"seeds": seeds, "overrides": overrides, "robust": str(robust), "cells": rb.cell_table(r["balls"]),
-              "levels": rb.by_level(r["balls"]), "rows": r}
+    result = {"seeds": seeds, "overrides": overrides, "robust": str(robust), "cells": targets.cell_table(r["balls"]),
+              "levels": targets.by_level(r["balls"]), "rows": r}
     default_rate = None
     if default:
         progress(f"default: {len(inout.list_scenes(default)[:limit])} scenes x {len(seeds)} seeds")
         d = _run(ex, default, seeds, overrides, False, limit)
         result["default"] = _default_figures(d["scenes"])
         default_rate = result["default"]["rate"]
-    result["overall"] = rb.overall(r["balls"], r["scenes"], default_rate)
+    result["overall"] = targets.overall(r["balls"], r["scenes"], default_rate)
     if hard:
         progress(f"hard: {len(inout.list_scenes(hard)[:limit])} scenes x {len(seeds)} seeds")
         h = _run(ex, hard, seeds, overrides, False, limit)

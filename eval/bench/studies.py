@@ -14,19 +14,20 @@ from typing import Callable, Sequence
 import numpy as np
 
 from spherebench.datasets import inout
+from spherebench.datasets.fingerprint import dataset_fingerprint
 from spherebench.errors import SphereBenchError
-from spherebench.eval.oracle import ceiling
-from spherebench.eval.paper_numbers import PAPER_DEFAULT_ITERATIONS, PAPER_ITERATIONS, PAPER_TABLE2
-from spherebench.eval.provenance import code_version, dataset_fingerprint, json_safe
-from spherebench.eval.runner import dataset_scenes
-from spherebench.eval.seeds import detection_seed
-from spherebench.eval.sensor_grid import band_of, surface_distance_m
-from spherebench.eval.table2 import table2_row
+from spherebench.eval.bench.oracle import ceiling
+from spherebench.eval.bench.paper_numbers import PAPER_DEFAULT_ITERATIONS, PAPER_ITERATIONS, PAPER_TABLE2
+from spherebench.eval.bench.seeds import detection_seed
+from spherebench.eval.bench.tasks import dataset_scenes
+from spherebench.eval.metrics.sensor_grid import band_of, surface_distance_m
+from spherebench.eval.metrics.table2 import table2_row
 from spherebench.method import IMPROVED, DetectorConfig, config_for, detect, warm_up
 from spherebench.parallel import executor
+from spherebench.provenance import code_version, json_safe
 
 #: The modules whose source defines the oracle's rows (with the detector's configuration and the data).
-ORACLE_MODULES = ("spherebench.eval.oracle", "spherebench.method", "spherebench.eval.sensor_grid",
+ORACLE_MODULES = ("spherebench.eval.bench.oracle", "spherebench.method", "spherebench.eval.metrics.sensor_grid",
                   "spherebench.datasets.inout", "spherebench.cloud")
 TABLE2_THRESHOLDS = (3.0, 2.0, 1.5)
 
@@ -37,7 +38,7 @@ def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, wo
                  log: Callable[[str], None] = print, engine: str = "local",
                  address: str | None = None) -> list[dict]:
     """Per true ball of a dataset with known centres: the improved detector's ceiling there
-    (``eval.oracle.ceiling``: its verification started from the true centre), cached.
+    (``eval.bench.oracle.ceiling``: its verification started from the true centre), cached.
 
     Rows {scene_id, ball (index in gt.json), cell (the scene's sensor_cell or None), band
     (``sensor_grid.band_of``), within, separable, score}; scene k's clutter search uses the seed
@@ -95,9 +96,9 @@ def table2_rows(paper_dir: str | Path, seed: int = 0, thresholds: Sequence[float
     The paper configuration (``PAPER``; 1,000 iterations, 10,000 for E2, or ``iterations`` for
     all) runs once per threshold with the scene's seed, so every threshold filters the same
     RANSAC draw (the draw does not depend on the threshold; checked). Each row holds
-    ``eval.table2.table2_row`` (RMSEs in metres, true centre errors), the centre error of the
+    ``eval.metrics.table2.table2_row`` (RMSEs in metres, true centre errors), the centre error of the
     least-squares refinement of the same kept points (R fixed), that of the whole improved
-    detector, and the paper's values where it reports the row (``eval.paper_numbers``).
+    detector, and the paper's values where it reports the row (``eval.bench.paper_numbers``).
     """
     tasks = [(str(s.path), s.scene_id, detection_seed(seed, s.index),
               s.gt_centres_m[0] if s.gt_centres_m else None, tuple(float(z) for z in thresholds),

@@ -1,7 +1,7 @@
 """The benchmark's one seeding rule for detectors: scene k of a run with seed s is detected with
 ``detection_seed(s, k)``.
 
-Scenes are numbered 0, 1, ... in scene-id order (``eval.runner.dataset_scenes``); the seed of
+Scenes are numbered 0, 1, ... in scene-id order (``eval.bench.tasks.dataset_scenes``); the seed of
 each depends only on (run seed, index), never on the worker, the engine or the order in which
 scenes are run, so a run's predictions are byte-identical for any number of workers, locally or
 on Ray. Every run of a detector goes through it: the prediction sets of ``evaluate`` and ``make

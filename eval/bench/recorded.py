@@ -30,11 +30,11 @@ import numpy as np
 from spherebench.circles import sphere_circle_exact
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval.cache import meta_path
-from spherebench.eval.provenance import REPO_ROOT, file_sha256
-from spherebench.eval.registry import PAPER_CIRCLE
-from spherebench.eval.runner import dataset_scenes
-from spherebench.eval.tables import Table, fmt, rule_label
+from spherebench.eval.bench.cache import meta_path
+from spherebench.eval.bench.registry import PAPER_CIRCLE
+from spherebench.eval.bench.tables import Table, fmt, rule_label
+from spherebench.eval.bench.tasks import dataset_scenes
+from spherebench.provenance import REPO_ROOT, file_sha256
 
 #: The learned 2D methods (trained on simulated D435 frames) and the one tuned on them.
 LEARNED_2D = ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")

@@ -43,7 +43,7 @@ from pycocotools.cocoeval import COCOeval
 
 from spherebench.circles import circle_bbox
 from spherebench.errors import SphereBenchError
-from spherebench.eval.circle_iou import circle_intersection_matrix, circle_iou_matrix
+from spherebench.eval.metrics.circle_iou import circle_intersection_matrix, circle_iou_matrix
 
 #: COCO's IoU thresholds, 0.50:0.05:0.95 (linspace, as pycocotools, to avoid arange drift).
 IOU_THRESHOLDS = np.linspace(0.5, 0.95, 10)

@@ -8,7 +8,7 @@ of the balls within 2 m (the nearest detection's error; a miss counts as infinit
 scenes without a basketball (the hard preset's negatives), distractor balls rejected (no detection
 within 5 cm of their centre) by distance and size, and the detection time per frame (median, p95)
 per resolution: wall clock and the thread's CPU time (the machine may be shared; CPU time is what
-the detector itself costs). Each configuration runs on the one task loop (``eval.runner``) in one
+the detector itself costs). Each configuration runs on the one task loop (``eval.bench.tasks``) in one
 worker process pinned to one thread, over its scenes in order, once per scene, as over the frames
 of a stream (grouped by resolution, as a stream keeps one: the `hard` preset mixes three; its
 buffers warm from the previous frame; the time excludes reading the frame). improved makes ``--passes`` such
@@ -36,12 +36,12 @@ import numpy as np
 
 from spherebench import __version__
 from spherebench.datasets import inout
-from spherebench.eval.metrics3d import detection_counts, scene_counts
-from spherebench.eval.provenance import dist_version, machine_info
-from spherebench.eval.registry import detector_spec, pyransac3d_spec
-from spherebench.eval.runner import SceneInfo, dataset_scenes, run_tasks, tasks_for
+from spherebench.eval.bench.registry import detector_spec, pyransac3d_spec
+from spherebench.eval.bench.tasks import SceneInfo, dataset_scenes, run_tasks, tasks_for
+from spherebench.eval.metrics.metrics3d import detection_counts, scene_counts
 from spherebench.method import config_for, detect, warm_up
 from spherebench.parallel import executor
+from spherebench.provenance import dist_version, machine_info
 
 NEAR_M = 2.0            # the median centre error is over balls at most this far
 CONFIGS = ("improved", "paper", "paper-lstsq", "pyransac3d")

@@ -4,7 +4,7 @@ much they move with it.
 Per dataset and run seed: basketballs found (nearest detection within 2 cm, ``metrics3d.scene_counts``;
 in brackets where it differs, by the far rule: 3 cm for a ball deeper than 3 m), false detections,
 detections on the negative scenes, distractor balls rejected, and the same per scene family.
-Detections only, no timing: the scenes x seeds tasks run on the one task loop (``eval.runner``)
+Detections only, no timing: the scenes x seeds tasks run on the one task loop (``eval.bench.tasks``)
 over the executor's workers, scene k of run seed s with ``detection_seed(s, k)``.
 Overrides of the detector's configuration (``method.config.DetectorConfig`` fields) compare a
 change over seeds: a difference of a ball or two at one seed is within what the seed alone moves.
@@ -18,9 +18,9 @@ import numpy as np
 
 from spherebench import __version__
 from spherebench.datasets import inout
-from spherebench.eval.metrics3d import detection_counts, scene_counts
-from spherebench.eval.registry import detector_spec
-from spherebench.eval.runner import dataset_scenes, run_tasks, tasks_for
+from spherebench.eval.bench.registry import detector_spec
+from spherebench.eval.bench.tasks import dataset_scenes, run_tasks, tasks_for
+from spherebench.eval.metrics.metrics3d import detection_counts, scene_counts
 from spherebench.method import config_for
 from spherebench.parallel import executor
 

@@ -1,7 +1,7 @@
 """Issue 16's robustness targets on the `robust` preset: pure functions on per-ball and per-scene rows.
 
 A ball row: {cell: (subpixel, correlation, dropouts), band (``sensor_grid.band_of`` label), seed,
-found (a detection within 2 cm), within (accepted by the oracle, ``eval.oracle``), separable}; the
+found (a detection within 2 cm), within (accepted by the oracle, ``eval.bench.oracle``), separable}; the
 ceiling holds for a ball that is separable or that the detector found (``ceiling_holds``). A
 scene row: {seed, false (detections farther than 2 cm from every ball)}.
 
@@ -30,7 +30,7 @@ FALSE_SCENE_SHARE = 0.005
 
 
 def ceiling_holds(ball: Mapping) -> bool:
-    """A ball is within the ceiling when it is separable (``eval.oracle``: verified from about the
+    """A ball is within the ceiling when it is separable (``eval.bench.oracle``: verified from about the
     truth to within 2 cm with the right size, its score above every clutter sphere of its frame: some
     score threshold takes it and no false detection there), or the detector found it at this seed:
     the ceiling is never below the rate. ``within`` (the oracle accepts it at the detector's own

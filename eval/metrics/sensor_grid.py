@@ -26,7 +26,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth
+from spherebench.eval.metrics.coco_eval import evaluate_circles, load_ground_truth
 
 #: The grid's axes, as a scene's sensor_cell names them.
 GRID_AXES = ("subpixel", "correlation", "dropouts")
@@ -142,7 +142,7 @@ def ceiling_key(row: Mapping) -> tuple:
 def ceiling_by_cell(balls: Sequence[Mapping], axes: Sequence[str] = GRID_AXES) -> dict[tuple, float]:
     """A per-cell ceiling for the robustness figure from an oracle's per-ball rows ({cell (a sensor_cell),
     band, separable}, ``studies.oracle_balls``): {key + (band,): share of the group's balls that are
-    separable} (``eval.oracle``: verified from the true centre to within 2 cm at the right size,
+    separable} (``eval.bench.oracle``: verified from the true centre to within 2 cm at the right size,
     with a score above every clutter sphere of the frame). Balls without a cell or band are left out."""
     groups: dict[tuple, list[bool]] = {}
     for b in balls:

@@ -1,15 +1,15 @@
 """Scoring prediction sets and writing the benchmark's results: metrics, tables, README, provenance.
 
-``score_set`` turns one prediction set (``eval.cache``, written by ``eval.runner``) into the
+``score_set`` turns one prediction set (``eval.bench.cache``, written by ``eval.bench.tasks``) into the
 figures of the tables: COCO metrics with circle IoU (overall and per scene family), 3D metrics for
 methods with a 3D centre, and the time per frame. ``write_results`` writes, under an output folder:
 
     metrics.json          {method: {dataset: {...}}}, every figure of the tables
-    tables/*.csv, *.md    (``eval.tables``, written by pandas) Table 3 per dataset (beside the
+    tables/*.csv, *.md    (``eval.bench.tables``, written by pandas) Table 3 per dataset (beside the
                           paper's reported numbers; beside another evaluation's with ``beside``,
-                          ``eval.recorded``), per-family mAP, 3D metrics, timings, Table 2,
+                          ``eval.bench.recorded``), per-family mAP, 3D metrics, timings, Table 2,
                           detection statistics of unannotated data
-    figures/*.png         (``eval.figures``)
+    figures/*.png         (``eval.bench.figures``)
     README.md             the tables, the figures, and a reading of them
     provenance.json       commit, package versions, seeds, configurations, machine, date
 
@@ -31,18 +31,18 @@ import numpy as np
 
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval import figures as figs
-from spherebench.eval import recorded, transfer
-from spherebench.eval.cache import read_predictions
-from spherebench.eval.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
-from spherebench.eval.metrics3d import MATCH_GATE_M, found_far_rule, match_scene, summarize_3d
-from spherebench.eval.paper_numbers import PAPER_TABLE2, PAPER_TABLE3
-from spherebench.eval.provenance import json_safe
-from spherebench.eval.registry import PAPER_CIRCLE
-from spherebench.eval.runner import SceneInfo
-from spherebench.eval.sensor_grid import (GRID_AXES, RANGE_BANDS_M, band_label, band_of, detection_rates, grid_key,
-                                          grid_rows, level_label, map50_by_group, surface_distance_m)
-from spherebench.eval.tables import Table, fmt, rule_label
+from spherebench.eval.bench import figures as figs
+from spherebench.eval.bench import recorded, transfer
+from spherebench.eval.bench.cache import read_predictions
+from spherebench.eval.bench.paper_numbers import PAPER_TABLE2, PAPER_TABLE3
+from spherebench.eval.bench.registry import PAPER_CIRCLE
+from spherebench.eval.bench.tables import Table, fmt, rule_label
+from spherebench.eval.bench.tasks import SceneInfo
+from spherebench.eval.metrics.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
+from spherebench.eval.metrics.metrics3d import MATCH_GATE_M, found_far_rule, match_scene, summarize_3d
+from spherebench.eval.metrics.sensor_grid import (GRID_AXES, RANGE_BANDS_M, band_label, band_of, detection_rates, grid_key,
+                                                  grid_rows, level_label, map50_by_group, surface_distance_m)
+from spherebench.provenance import json_safe
 
 #: The CircleNet methods in the reading, with what each one is (``registry.CIRCLENET_MODELS``).
 CIRCLENET_READING = {"circlenet": "`circlenet` (half-width ResNet-18, CPU-trained)",
@@ -600,7 +600,7 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
             about: dict[str, list[str]] | None = None) -> list[str]:
     """A short reading of the results, computed from them (no number here is typed in by hand).
 
-    about: {dataset label: sentences said first about it} (what a recorded dataset is, ``eval.recorded``)."""
+    about: {dataset label: sentences said first about it} (what a recorded dataset is, ``eval.bench.recorded``)."""
     out = []
     for label, sets in per_dataset.items():
         out += (about or {}).get(label, [])

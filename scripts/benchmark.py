@@ -1,6 +1,6 @@
 """`spherebench eval` (what `make eval` runs): every method on the `default`, `hard` and `robust`
 presets, Table 2 on `paper`, then the scores, tables, figures, README and provenance under results/
-(``eval.evaluation.run_benchmark``).
+(``eval.bench.benchmark.run_benchmark``).
 
     spherebench eval [--data data] [--out results] [--seed 0] [--workers 2]
                      [--engine local|ray [--address ADDR]] [--force] [--methods ...]
@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from spherebench import options
-from spherebench.eval.registry import METHOD_ORDER
+from spherebench.eval.bench.registry import METHOD_ORDER
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -40,7 +40,7 @@ def command_line(args: argparse.Namespace) -> str:
 def run(args: argparse.Namespace) -> int:
     # here, not at the top: the reports load pandas (and matplotlib to draw), and `spherebench eval --help` took
     # 2.0 s with them, about 1 s without
-    from spherebench.eval.evaluation import run_benchmark
+    from spherebench.eval.bench.benchmark import run_benchmark
 
     options.check_executor(args)
     t0 = time.perf_counter()

@@ -19,9 +19,9 @@ from pathlib import Path
 
 from spherebench.circles import circle_bbox
 from spherebench.datasets import inout
-from spherebench.eval.provenance import file_sha256, machine_info, now_utc
-from spherebench.eval.registry import PAPER_CIRCLE, MethodSpec
-from spherebench.eval.seeds import DETECTION_SEED_RULE
+from spherebench.eval.bench.registry import PAPER_CIRCLE, MethodSpec
+from spherebench.eval.bench.seeds import DETECTION_SEED_RULE
+from spherebench.provenance import file_sha256, machine_info, now_utc
 
 #: Format version of the predictions' meta files (part of the resume key).
 FORMAT_VERSION = 1
