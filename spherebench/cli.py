@@ -32,7 +32,7 @@ COMMANDS = [
     ("detect-2d", "detect_2d", "run the CircleNet-style 2D detector on reprojected images"),
     ("train", "train", "train the CircleNet-style 2D baseline on the train preset"),
     ("evaluate", "evaluate", "run methods on a dataset and score them (COCO circle mAP, 3D errors)"),
-    ("eval", "benchmark", "the benchmark (make eval): every method on default, hard, robust; Table 2 on paper"),
+    ("eval", "benchmark", "the benchmark (make eval): every method on every benchmark preset; Table 2 on paper"),
     ("bench", "bench", "the 3D detector's accuracy and speed per configuration, beside pyransac3d"),
     ("sweep", "sweep", "the 3D detector's detections over several seeds"),
     ("robustness", "robustness", "the improved detector across sensor conditions, against its targets"),

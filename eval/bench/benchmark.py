@@ -59,7 +59,7 @@ BENCHMARK_INTRO = [
     "0-1 m, 8 at 1-2 m and 9 at 2-3 m), and one ball moves a point by 0.1-0.3: read the trend, and the table "
     "\"Per sensor noise level and range band\" for the levels pooled over correlation and dropouts (80 scenes "
     "each). Grey markers beside `improved`'s 3D rate: its ceiling, the share of the cell's balls that an oracle "
-    "(`eval/oracle.py`) separates: the detector's own verification, started from the true centre, ends within "
+    "(`eval/bench/oracle.py`) separates: the detector's own verification, started from the true centre, ends within "
     "2 cm with the right size and a score above every clutter sphere of the frame.",
     "",
     "Methods: the 3D detector in three configurations (`improved`, `paper`: section 2.5 as written with the "

@@ -329,7 +329,7 @@ def sensor_table(label: str, sets: Sequence[ScoredSet]) -> Table | None:
                  notes=["Each subpixel level pools its cells over noise correlation (none, 1 px) and low-texture "
                         "dropouts (off, on); the robustness figure shows the cells apart. Bands: the ball's true "
                         "distance to its nearest surface.",
-                        "Matched <= 2 cm: balls whose matched detection (`match_scene` of `eval/metrics3d.py`) is "
+                        "Matched <= 2 cm: balls whose matched detection (`match_scene` of `eval/metrics/metrics3d.py`) is "
                         "within 2 cm of the true centre, over the band's balls. mAP.50: COCO AP at circle IoU 0.50 over the level's images, the balls of other bands "
                         "being COCO's ignored ground truth (a detection matched to one counts nowhere); a detection "
                         "matched to no ball is a false positive in every band.",
