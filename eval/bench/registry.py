@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
+from spherebench.baselines import circlenet as circlenet_package
 from spherebench.baselines import pyransac3d_peer
 from spherebench.baselines.hough import HoughConfig, detect_circles
 from spherebench.datasets import inout
@@ -56,8 +57,8 @@ PYRANSAC3D_POINTS = 2_000
 #: pyransac3d: RANSAC iterations and inlier threshold (m), its own defaults being 1,000 and 0.2 m.
 PYRANSAC3D_ITERATIONS = 1000
 PYRANSAC3D_THRESH_M = 0.01
-#: The shipped CircleNet models' folder (``baselines/circlenet``).
-CIRCLENET_DIR = REPO_ROOT / "baselines" / "circlenet"
+#: The shipped CircleNet models' folder: the circlenet package's own, in a clone and in an installed wheel.
+CIRCLENET_DIR = Path(circlenet_package.__file__).resolve().parent
 
 #: The CircleNet models: method name -> (ONNX file under baselines/circlenet/, how to make it).
 #: ``circlenet``: the half-width ResNet-18 trained on the CPU; the others need a CUDA machine.
