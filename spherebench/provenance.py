@@ -24,8 +24,9 @@ import numpy as np
 from spherebench import __version__
 from spherebench.errors import SphereBenchError
 
-#: Repository root (the folder that holds method/, baselines/, ...).
-REPO_ROOT = Path(__file__).resolve().parents[1]
+#: The folder that holds the layers (method/, baselines/, ...): a clone's root, or in an installed
+#: wheel the spherebench package itself (where method/ and the rest sit inside it).
+REPO_ROOT = Path(importlib.util.find_spec("spherebench.method").origin).resolve().parents[1]
 #: Packages whose versions go into the provenance.
 PACKAGES = ("numpy", "scipy", "opencv-python-headless", "numba", "pycocotools", "onnxruntime", "torch",
             "pyransac3d", "matplotlib", "tqdm", "plyfile", "open3d", "pandas", "ray")
