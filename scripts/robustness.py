@@ -1,5 +1,5 @@
 """`spherebench robustness` (`make robustness`): the improved detector across sensor conditions,
-against issue 16's targets (``eval.bench.robustness``).
+against the robustness targets (``eval.bench.robustness``, ``eval.metrics.targets``).
 
     spherebench robustness data/robust --default data/default --hard data/hard --seeds 0-3 \
         --out results/robustness

@@ -1,5 +1,5 @@
 """`spherebench robustness` (`make robustness`): the improved detector across sensor conditions,
-against issue 16's targets (``eval.metrics.targets``).
+against the robustness targets (``eval.metrics.targets``).
 
 On the `robust` preset (20 sensor cells: subpixel x correlation x dropouts), per cell and range
 group (balls within 2 m; at 2-3 m), over the run seeds: balls found (the nearest detection within

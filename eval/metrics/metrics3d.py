@@ -26,7 +26,7 @@ Summary (``summarize_3d``), over all scenes:
 "false", one farther than ``MATCH_GATE_M`` from every ball in "clutter" (what the matched rule
 calls a false detection; `robustness` reports this one). The two can differ on a ball with
 several detections about it (matched: the best-scored one within the gate; nearest: the nearest).
-Beside it, **the far rule** (issue 20's): within ``FOUND_M``, or within ``FOUND_FAR_M`` (3 cm) for
+Beside it, **the far rule**: within ``FOUND_M``, or within ``FOUND_FAR_M`` (3 cm) for
 a ball whose centre lies deeper than ``FAR_RULE_FROM_M`` (3 m), where one pixel's depth noise is
 10 cm or more (``detection_counts``' found_far_rule).
 """

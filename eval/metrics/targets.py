@@ -1,4 +1,4 @@
-"""Issue 16's robustness targets on the `robust` preset: pure functions on per-ball and per-scene rows.
+"""The robustness targets on the `robust` preset: pure functions on per-ball and per-scene rows.
 
 A ball row: {cell: (subpixel, correlation, dropouts), band (``sensor_grid.band_of`` label), seed,
 found (a detection within 2 cm), within (accepted by the oracle, ``eval.bench.oracle``), separable}; the
