@@ -120,8 +120,37 @@ def test_circlenet_skipped_when_model_missing(tmp_path):
     assert specs == [] and "not found" in skipped["circlenet"]
 
 
+def test_a_registered_method_joins_the_benchmark(tiny, tmp_path, monkeypatch):
+    """One decorated adapter is a method: listed last, built, run by the task loop, scored."""
+    monkeypatch.setattr(registry, "METHODS", dict(registry.METHODS))
+    monkeypatch.setattr(registry, "ADAPTERS", dict(registry.ADAPTERS))
+
+    @registry.register_method("centre-guess", description="`centre-guess` (the image's centre)")
+    class CentreGuess:
+        kind = "2d"
+
+        def __init__(self, config, resource=None):
+            pass
+
+        def load(self, scene_dir):
+            return inout.read_image(scene_dir / "image.png")
+
+        def detect(self, image, seed):
+            h, w = image.shape[:2]
+            return [{"score": 0.5, "circle": (w / 2, h / 2, h / 4)}]
+
+    assert registry.method_names()[-1] == "centre-guess" and registry.METHODS["centre-guess"].needs == "image.png"
+    with pytest.raises(ValueError, match="registered already"):
+        registry.register_method("centre-guess", CentreGuess)
+    specs = registry.build_methods(["centre-guess"])
+    assert specs[0].config == {"engine": "centre-guess"} and specs[0].kind == "2d"
+    paths = tasks.run_methods(tiny, tmp_path, specs, seed=0, workers=1, progress=False, log=lambda m: None)
+    results, meta = cache.read_predictions(paths["centre-guess"])
+    assert len(results) == 4 and meta["method"] == "centre-guess"
+
+
 def test_gpu_trained_circlenets_are_methods_and_skipped_when_missing(monkeypatch):
-    assert registry.METHOD_ORDER[-4:] == ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")
+    assert registry.method_names()[-4:] == ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")
     for name in ("circlenet-full", "circlenet-hg"):
         monkeypatch.setitem(registry.CIRCLENET_MODELS, name, (f"absent/{name}.onnx", f"make train-{name[10:]}, on a CUDA machine"))
     skipped = {}
