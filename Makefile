@@ -33,13 +33,10 @@ data-stereo: $(DATA)/default-stereo/coco_gt.json $(DATA)/hard-stereo/coco_gt.jso
 data-train-stereo: $(DATA)/train-stereo/coco_gt.json  ## train's twin through the stereo sensor model
 data-wide: $(DATA)/wide/coco_gt.json $(DATA)/wide-stereo/coco_gt.json  ## the wide grammar (pitched cameras, supports, textures) and its stereo twin
 
+# every preset is registered in datasets/simulate.py (hard-sensor: hard's scenes under the robust
+# grid's span of sensors, drawn per scene; `make sweep` reports it)
 $(DATA)/%/coco_gt.json: | venv
 	$(SB) generate --preset $* --out $(DATA)/$* --seed $(SEED) --workers $(WORKERS)
-# hard's scenes (the same layouts) under the robust grid's span of sensors, drawn per scene: far and
-# partly hidden balls on noisier, correlated units with low-texture dropouts (`make sweep` reports it)
-$(DATA)/hard-sensor/coco_gt.json: | venv
-	$(SB) generate --preset hard --sensor subpixel=0.05:0.20 --sensor correlation_px=0:1 \
-		--sensor dropout_probability=0:0.5 --out $(DATA)/hard-sensor --seed $(SEED) --workers $(WORKERS)
 
 # ---- recorded data: the real sensor sets of ../shared/realdata, in the scene format
 realdata: $(DATA)/real/kinect-pochang/dataset.json $(DATA)/real/lidar-spherecalib/dataset.json  ## prepare the recorded sets of ../shared/realdata

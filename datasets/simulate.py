@@ -9,6 +9,12 @@ Each scene has its own seed, drawn from (preset, --seed, index) by numpy's SeedS
 scene does not depend on the others (workers can build them in any order) and the presets'
 seed streams are disjoint: the train split never repeats an evaluation scene.
 
+Presets and scene families are registered here (``register_preset``, ``register_family``):
+a preset names its families, a family of a grammar is a layout builder with its visibility rule,
+so a new preset or family is one entry, not a branch of ``simulate_scene``. A variant preset
+(``hard-sensor``) is another preset's scenes with sensor settings of its own, built and recorded
+exactly as ``--preset BASE --sensor ...`` would be.
+
 A preset may draw each scene's sensor (``SensorRanges``: ranges, a grid of conditions), from a
 stream of the scene's seed of its own, and ``--sensor`` settings override any parameter; a
 scene's gt.json then records its sensor (and its grid cell), the dataset.json the ranges.
@@ -18,8 +24,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -85,48 +93,102 @@ class Preset:
     clouds: bool = True                         # write cloud.ply per scene by default
     twin_of: str | None = None                  # the analytic preset whose families and sizes a stereo one repeats
     grammar: str = "classic"                    # the scene grammar its families come from (dataset.json says a new one)
+    benchmark: bool = False                     # one of the presets `make eval` runs every method on
+    role: str = ""                              # a PRESET_* role the results' reading looks it up by
+    description: str = ""                       # what the reading says it is
+    variant_of: str | None = None               # a variant: that preset's scenes with sensor_overrides
+    sensor_overrides: Mapping = field(default_factory=dict)
 
 
-PRESETS = {
+#: The roles the results' reading (``eval.bench.prose``) looks presets up by, rather than by name.
+PRESET_PROTOCOL = "the paper's protocol"  # read first: the paper's rows, the 2D rules, the learned baselines
+PRESET_HARD = "the hard cases"            # read for its negative scenes and its per-family table
+
+PRESETS: dict[str, Preset] = {}
+
+
+def register_preset(preset: Preset) -> Preset:
+    """Enter a preset in PRESETS (its name must be new; a variant's base must be there)."""
+    if preset.name in PRESETS:
+        raise ValueError(f"preset {preset.name} is registered already")
+    if preset.variant_of is not None and preset.variant_of not in PRESETS:
+        raise ValueError(f"preset {preset.name}: its base {preset.variant_of} is not registered")
+    PRESETS[preset.name] = preset
+    return preset
+
+
+def preset_with_role(role: str) -> str | None:
+    """The name of the first registered preset of a role, or None."""
+    return next((name for name, p in PRESETS.items() if p.role == role), None)
+
+
+def benchmark_presets() -> tuple[str, ...]:
+    """The presets `make eval` reads under its data folder: the analytic ones, then their stereo
+    twins, each in registration order."""
+    chosen = [name for name, p in PRESETS.items() if p.benchmark]
+    return tuple(n for n in chosen if PRESETS[n].twin_of is None) + tuple(n for n in chosen if PRESETS[n].twin_of)
+
+
+def resolve_preset(preset_name: str, overrides: Mapping | None = None) -> tuple[str, dict]:
+    """(the preset whose scenes are built, the sensor overrides): a variant's base and its settings,
+    under those given; any other preset as it is."""
+    if preset_name not in PRESETS:
+        raise SphereBenchError(f"unknown preset '{preset_name}': use one of {', '.join(PRESETS)}")
+    preset = PRESETS[preset_name]
+    if preset.variant_of is None:
+        return preset_name, dict(overrides or {})
+    return preset.variant_of, {**preset.sensor_overrides, **(overrides or {})}
+
+
+for _preset in (
     # the paper's protocol: 200 scenes, half clean, half cluttered, at 424x240
-    "default": Preset("default", 1, 200, (("clean", 0.5), ("cluttered", 0.5))),
+    Preset("default", 1, 200, (("clean", 0.5), ("cluttered", 0.5)), benchmark=True, role=PRESET_PROTOCOL,
+           description="the paper's protocol: 200 scenes, half clean, half cluttered"),
     # the paper's three named experiments as fixed scenes
-    "paper": Preset("paper", 2, 3, (("E1", 1 / 3), ("E2", 1 / 3), ("E3", 1 / 3))),
+    Preset("paper", 2, 3, (("E1", 1 / 3), ("E2", 1 / 3), ("E3", 1 / 3))),
     # what the paper did not test: distractors, occlusion, range, negatives; mixed resolutions
-    "hard": Preset("hard", 3, 140, tuple((f, 1 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
-                   (("424x240", 0.5), ("848x480", 0.3), ("1280x720", 0.2))),
+    Preset("hard", 3, 140, tuple((f, 1 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
+           (("424x240", 0.5), ("848x480", 0.3), ("1280x720", 0.2)), benchmark=True, role=PRESET_HARD),
     # training split for learned baselines and for every choice: the evaluation presets'
-    # distributions, other seeds, each scene's sensor drawn from TRAIN_SENSOR
-    "train": Preset("train", 4, 2000, (("clean", 0.3), ("cluttered", 0.35))
-                    + tuple((f, 0.35 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
-                    (("424x240", 0.7), ("848x480", 0.15), ("1280x720", 0.15)), TRAIN_SENSOR),
+    # distributions, other seeds, each scene's sensor drawn from TRAIN_SENSOR; no clouds (its 2D
+    # consumers read image.png only)
+    Preset("train", 4, 2000, (("clean", 0.3), ("cluttered", 0.35))
+           + tuple((f, 0.35 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
+           (("424x240", 0.7), ("848x480", 0.15), ("1280x720", 0.15)), TRAIN_SENSOR, clouds=False),
     # default's families over a grid of sensor conditions (ROBUST_SENSOR): 20 cells x 20 scenes,
     # each cell half clean, half cluttered, 80 % at 424x240
-    "robust": Preset("robust", 5, 400, (("clean", 0.5), ("cluttered", 0.5)),
-                     (("424x240", 0.8), ("848x480", 0.2)), ROBUST_SENSOR),
-}
-PRESETS["train"] = replace(PRESETS["train"], clouds=False)  # its 2D consumers read image.png only
+    Preset("robust", 5, 400, (("clean", 0.5), ("cluttered", 0.5)), (("424x240", 0.8), ("848x480", 0.2)),
+           ROBUST_SENSOR, benchmark=True,
+           description="`default`'s scenes over a grid of sensor conditions: subpixel noise, its correlation, "
+                       "low-texture dropouts"),
+):
+    register_preset(_preset)
 
 
 def _stereo_twin(name: str, code: int, stereo: Mapping | None = None) -> Preset:
     """The stereo model's twin of an analytic preset: its families, sizes and resolutions, its own
-    seed stream (``code``), every scene rendered through StereoSensor (with ``stereo`` drawn per scene)."""
+    seed stream (``code``), every scene rendered through StereoSensor (with ``stereo`` drawn per scene);
+    a benchmark preset if its base is one, with no role of its own."""
     base = PRESETS[name]
     return replace(base, name=f"{name}-stereo", code=code, sensor=None, sensor_model="stereo", stereo=stereo,
-                   twin_of=name)
+                   twin_of=name, role="", description="")
 
 
-PRESETS.update({
-    "default-stereo": _stereo_twin("default", 6),
-    "hard-stereo": _stereo_twin("hard", 7),
-    # train's twin: as train draws its analytic sensor per scene, this draws the unit's light and
-    # imager per scene (TRAIN_STEREO), so that choices made on it hold across units and rooms
-    "train-stereo": _stereo_twin("train", 8, TRAIN_STEREO),
-})
+register_preset(_stereo_twin("default", 6))
+register_preset(_stereo_twin("hard", 7))
+# train's twin: as train draws its analytic sensor per scene, this draws the unit's light and
+# imager per scene (TRAIN_STEREO), so that choices made on it hold across units and rooms
+register_preset(_stereo_twin("train", 8, TRAIN_STEREO))
 # the wide grammar (``wide_scenes``): pitched and rolled cameras, the ball on every support among
 # furniture, distractors, low-albedo and textured surfaces, negatives; 70 % at 424x240
-PRESETS["wide"] = Preset("wide", 9, 200, wide_scenes.SHARES, (("424x240", 0.7), ("848x480", 0.3)), grammar="wide")
-PRESETS["wide-stereo"] = _stereo_twin("wide", 10)
+register_preset(Preset("wide", 9, 200, wide_scenes.SHARES, (("424x240", 0.7), ("848x480", 0.3)), grammar="wide",
+                       benchmark=True))
+register_preset(_stereo_twin("wide", 10))
+# hard's scenes (the same layouts, seeds and records) under the robust grid's span of sensors, drawn
+# per scene: far and partly hidden balls on noisier, correlated units with low-texture dropouts
+register_preset(replace(PRESETS["hard"], name="hard-sensor", benchmark=False, role="", variant_of="hard",
+                        sensor_overrides={"subpixel": (0.05, 0.20), "correlation_px": (0.0, 1.0),
+                                          "dropout_probability": (0.0, 0.5)}))
 
 
 def generation_seed(preset: Preset, seed: int, index: int) -> int:
@@ -286,6 +348,60 @@ def _full_silhouette_px(intr: Intrinsics, centre: np.ndarray, radius: float, in_
     return int(sphere_silhouette_mask(big, centre, radius).sum())
 
 
+# --------------------------------------------------------------------------- families
+
+@dataclass(frozen=True)
+class Family:
+    """A scene family of a grammar: ``build(rng, intr, radius_m) -> Layout`` and ``accept(visible
+    fractions of its balls) -> bool``, the rule a drawn layout must meet (else it is drawn again).
+    fixed: one named scene (the paper's experiments): its layout stands as built and its scene id
+    is the family's name."""
+
+    build: Callable
+    accept: Callable[[list[float]], bool]
+    fixed: bool = False
+
+
+#: (grammar, family name) -> Family.
+FAMILIES: dict[tuple[str, str], Family] = {}
+
+
+def register_family(grammar: str, name: str, accept: Callable[[list[float]], bool], fixed: bool = False):
+    """A decorator: enter the layout builder it wraps as family ``name`` of ``grammar``."""
+    def enter(build: Callable) -> Callable:
+        if (grammar, name) in FAMILIES:
+            raise ValueError(f"family {name} of the {grammar} grammar is registered already")
+        FAMILIES[(grammar, name)] = Family(build, accept, fixed)
+        return build
+    return enter
+
+
+def _in_full_view(vis: list[float]) -> bool:
+    return all(v >= 0.85 for v in vis)  # a tripod cup or table may hide the ball's lowest rim
+
+
+register_family("classic", "clean", _in_full_view)(family_clean)
+register_family("classic", "cluttered", _in_full_view)(family_cluttered)
+for _name in ("E1", "E2", "E3"):
+    register_family("classic", _name, lambda vis: True, fixed=True)(
+        lambda rng, intr, radius, _name=_name: family_paper(_name, intr, radius))
+for _name in HARD_FAMILIES:
+    if _name not in ("occluded", "out_of_frame"):
+        register_family("classic", _name, _in_full_view)(partial(family_hard, _name))
+
+
+@register_family("classic", "occluded", lambda vis: 0.4 <= vis[0] <= 0.7)  # 30-60 % hidden
+def family_occluded(rng, intr: Intrinsics, radius: float) -> Layout:
+    layout = family_hard("occluded", rng, intr, radius)
+    _occlude(rng, intr, layout, np.asarray(layout.targets[0].center_m), radius)
+    return layout
+
+
+register_family("classic", "out_of_frame", lambda vis: 0.3 <= vis[0] <= 0.85)(partial(family_hard, "out_of_frame"))
+for _name, _share in wide_scenes.SHARES:  # furniture beside it and a pitched view may hide some of it
+    register_family("wide", _name, lambda vis: all(v >= 0.5 for v in vis))(wide_scenes.FAMILIES[_name])
+
+
 def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor | StereoSensor, rng: np.random.Generator,
            rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Ball]]:
     """Ray-cast a layout and apply the sensor (either model): depth (H, W) uint16, true z (H, W) m,
@@ -363,30 +479,11 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
     intr = Intrinsics.d435(w, h)
     intr = Intrinsics(**{**intr.to_dict(), "depth_scale": sensor.depth_scale_m})
     rays = image_rays(intr)
+    kind = FAMILIES[(preset.grammar, family)]
     for _attempt in range(40):
-        if preset_name == "paper":
-            layout = family_paper(family, intr, radius_m)
-        elif preset.grammar == "wide":
-            layout = wide_scenes.FAMILIES[family](rng, intr, radius_m)
-        elif family == "clean":
-            layout = family_clean(rng, intr, radius_m)
-        elif family == "cluttered":
-            layout = family_cluttered(rng, intr, radius_m)
-        else:
-            layout = family_hard(family, rng, intr, radius_m)
-            if family == "occluded":
-                _occlude(rng, intr, layout, np.asarray(layout.targets[0].center_m), radius_m)
+        layout = kind.build(rng, intr, radius_m)
         depth, _z, balls = render(layout, intr, sensor, rng, rays)
-        vis = [b.visible_fraction for b in balls]
-        if preset.grammar == "wide":  # furniture beside it and a pitched view may hide some of it
-            ok = all(v >= 0.5 for v in vis)
-        elif family == "occluded":
-            ok = 0.4 <= vis[0] <= 0.7  # 30-60 % hidden
-        elif family == "out_of_frame":
-            ok = 0.3 <= vis[0] <= 0.85
-        else:  # the ball is in full view (a tripod cup or table may hide its lowest rim)
-            ok = all(v >= 0.85 for v in vis)
-        if ok or preset_name == "paper":
+        if kind.fixed or kind.accept([b.visible_fraction for b in balls]):
             break
     else:
         raise RuntimeError(f"{preset_name} scene {index} ({family}): no layout met the visibility rule")
@@ -394,7 +491,7 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
                     "radius_m": float(it.shape.radius_m)} for it in layout.items if it.kind == "distractor"]
     cylinders = [{"base_m": [float(x) for x in it.shape.base_m], "radius_m": float(it.shape.radius_m),
                   "height_m": float(it.shape.height_m)} for it in layout.items if it.kind == "cylinder"]
-    scene_id = family if preset_name == "paper" else f"{family}_{index:04d}"
+    scene_id = family if kind.fixed else f"{family}_{index:04d}"
     meta = {"preset": preset_name, "index": index, "resolution": resolution,
             "distractors": distractors, "cylinders": cylinders}
     if varied:  # a nominal-sensor dataset's scenes read as before; dataset.json holds its sensor
@@ -410,13 +507,16 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
 # --------------------------------------------------------------------------- datasets
 
 def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[int, str, str]]:
-    """(index, family, resolution) of every scene of a preset run."""
-    if preset_name not in PRESETS:
-        raise SphereBenchError(f"unknown preset '{preset_name}': use one of {', '.join(PRESETS)}")
+    """(index, family, resolution) of every scene of a preset run (a variant's: its base's)."""
+    preset_name, _overrides = resolve_preset(preset_name)
     preset = PRESETS[preset_name]
     n = preset.n_default if n is None else int(n)
     if n <= 0 or n > 1_000_000:
         raise SphereBenchError(f"--n {n}: the number of scenes must be between 1 and 1,000,000")
+    unknown = [f for f, _share in preset.families if (preset.grammar, f) not in FAMILIES]
+    if unknown:
+        raise SphereBenchError(f"the {preset_name} preset names families that its {preset.grammar} grammar lacks: "
+                               f"{', '.join(unknown)} (register_family)")
     if preset_name == "paper" and n != 3:
         raise SphereBenchError("the paper preset is its three fixed scenes E1-E3: leave --n out")
     families = _assign(preset.families, n)
@@ -447,7 +547,8 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
                      radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
                      workers: int = 1, progress: bool = True, clouds: bool | None = None,
                      sensor_overrides: Mapping | None = None, sensor_model: str | None = None) -> Path:
-    """Build a preset into ``out_dir`` (replaced atomically when complete); returns the path.
+    """Build a preset into ``out_dir`` (replaced atomically when complete); returns the path. A variant
+    preset builds its base's scenes with its sensor settings (``resolve_preset``), recorded as its base.
 
     sensor: the base analytic sensor (the preset's sensor values, grid cells and ``sensor_overrides``,
     parameter -> value or (lo, hi), apply over it; see ``scene_sensor``).
@@ -456,15 +557,13 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
     ranges do not apply to it, and are refused). A stereo preset takes no other model.
     clouds: write each scene's cloud.ply (default: the preset's: yes, except for the training
     splits, whose 2D consumers read image.png only: 2,000 clouds would take several GB)."""
-    if preset_name not in PRESETS:
-        raise SphereBenchError(f"unknown preset '{preset_name}': use one of {', '.join(PRESETS)}")
+    preset_name, overrides = resolve_preset(preset_name, sensor_overrides)
     preset = PRESETS[preset_name]
     if sensor_model is None:
         sensor_model = preset.sensor_model
     if clouds is None:
         clouds = preset.clouds
     inout.check_ball_radius(radius_m)
-    overrides = dict(sensor_overrides or {})
     for name, value in overrides.items():
         check_setting(name, value)
     jobs = plan(preset_name, n, seed)

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from spherebench import options
-from spherebench.eval.bench.registry import METHOD_ORDER
+from spherebench.eval.bench.registry import method_names
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=options.seed, default=0, help="run seed")
     options.add_executor_arguments(p)
     p.add_argument("--force", action="store_true", help="recompute every prediction set")
-    p.add_argument("--methods", nargs="+", choices=METHOD_ORDER, default=None, metavar="METHOD",
+    p.add_argument("--methods", nargs="+", choices=method_names(), default=None, metavar="METHOD",
                    help="a subset of the methods (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 

@@ -24,15 +24,15 @@ from pathlib import Path
 from spherebench import options
 from spherebench.baselines.hough_tuning import hough_config_for_run
 from spherebench.errors import SphereBenchError
-from spherebench.eval.bench.registry import CIRCLENET_MODELS, METHOD_ORDER, circlenet_model_path, circlenet_spec
+from spherebench.eval.bench.registry import CIRCLENET_MODELS, circlenet_model_path, method_names, circlenet_spec
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", action="append", required=True, metavar="DIR",
                    help="dataset folder (repeat for several)")
     p.add_argument("--out", type=options.out_path, required=True, metavar="OUT", help="output folder")
-    p.add_argument("--methods", nargs="+", choices=METHOD_ORDER, default=None, metavar="METHOD",
-                   help=f"methods to run (default: all available: {', '.join(METHOD_ORDER)})")
+    p.add_argument("--methods", nargs="+", choices=method_names(), default=None, metavar="METHOD",
+                   help=f"methods to run (default: all available: {', '.join(method_names())})")
     p.add_argument("--seed", type=options.seed, default=0, help="run seed; scene k uses SeedSequence((seed, k))")
     options.add_executor_arguments(p, "worker processes (output identical for any number)")
     p.add_argument("--force", action="store_true", help="recompute predictions even when finished ones match")

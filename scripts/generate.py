@@ -13,7 +13,8 @@ from spherebench.datasets.sensor import PARAMETERS, parse_settings
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=sorted(simulate.PRESETS), default="default",
                    help="default: the paper's 200 scenes; paper: E1-E3; hard: distractors, occlusion, "
-                        "range, negatives; robust: default's scenes over a grid of sensor conditions; "
+                        "range, negatives; hard-sensor: hard's scenes under the robust grid's span of sensors, drawn "
+                        "per scene; robust: default's scenes over a grid of sensor conditions; "
                         "train: training split for learned baselines; wide: the wide grammar (pitched and rolled "
                         "cameras, the ball on tripods, shelves, tables, chairs, boxes, the floor, against walls, "
                         "among furniture and distractors; negatives); NAME-stereo: NAME's families and sizes "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -13,7 +14,7 @@ from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import inout, simulate
 from spherebench.datasets import fingerprint
 from spherebench.errors import SphereBenchError
-from spherebench.eval.bench import cache, registry, report, seeds, studies, tables, tasks
+from spherebench.eval.bench import cache, prose, registry, report, result_tables, scoring, seeds, studies, tables, tasks
 
 RESULT_KEYS = {"image_id", "category_id", "circle_center", "circle_radius", "bbox", "score", "scene_id"}
 
@@ -55,7 +56,7 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
     assert exact and any(a["circle_radius"] != b["circle_radius"] for a, b in zip(exact, paper_rule))
     # the improved detector finds the four simulated balls within 2 cm, and scores them
     gt = {img["id"]: img for img in coco["images"]}
-    scored = report.score_set(paths["improved"], coco, tasks.dataset_scenes(tiny))
+    scored = scoring.score_set(paths["improved"], coco, tasks.dataset_scenes(tiny))
     assert scored.metrics["3d"]["within_2cm"] == 1.0 and scored.metrics["mAP50"] == 1.0
     assert set(scored.metrics["families"]) == {gt[i]["family"] for i in gt}
     # a predictions file loads in plain pycocotools (its bbox: the circle's box), and dropping the bbox
@@ -75,7 +76,7 @@ def test_runner_writes_schema_and_two_rules(tiny, tmp_path):
     without = [{k: v for k, v in r.items() if k != "bbox"} for r in exact]
     assert evaluate_circles(coco, without)["mAP"] == evaluate_circles(coco, exact)["mAP"] == scored.metrics["mAP"]
     # pyransac3d's radius is its own and is compared against R
-    py = report.score_set(paths["pyransac3d"], coco, tasks.dataset_scenes(tiny))
+    py = scoring.score_set(paths["pyransac3d"], coco, tasks.dataset_scenes(tiny))
     assert all(d["radius_m"] is not None for s in py.scenes for d in s["detections"])
 
 
@@ -120,8 +121,37 @@ def test_circlenet_skipped_when_model_missing(tmp_path):
     assert specs == [] and "not found" in skipped["circlenet"]
 
 
+def test_a_registered_method_joins_the_benchmark(tiny, tmp_path, monkeypatch):
+    """One decorated adapter is a method: listed last, built, run by the task loop, scored."""
+    monkeypatch.setattr(registry, "METHODS", dict(registry.METHODS))
+    monkeypatch.setattr(registry, "ADAPTERS", dict(registry.ADAPTERS))
+
+    @registry.register_method("centre-guess", description="`centre-guess` (the image's centre)")
+    class CentreGuess:
+        kind = "2d"
+
+        def __init__(self, config, resource=None):
+            pass
+
+        def load(self, scene_dir):
+            return inout.read_image(scene_dir / "image.png")
+
+        def detect(self, image, seed):
+            h, w = image.shape[:2]
+            return [{"score": 0.5, "circle": (w / 2, h / 2, h / 4)}]
+
+    assert registry.method_names()[-1] == "centre-guess" and registry.METHODS["centre-guess"].needs == "image.png"
+    with pytest.raises(ValueError, match="registered already"):
+        registry.register_method("centre-guess", CentreGuess)
+    specs = registry.build_methods(["centre-guess"])
+    assert specs[0].config == {"engine": "centre-guess"} and specs[0].kind == "2d"
+    paths = tasks.run_methods(tiny, tmp_path, specs, seed=0, workers=1, progress=False, log=lambda m: None)
+    results, meta = cache.read_predictions(paths["centre-guess"])
+    assert len(results) == 4 and meta["method"] == "centre-guess"
+
+
 def test_gpu_trained_circlenets_are_methods_and_skipped_when_missing(monkeypatch):
-    assert registry.METHOD_ORDER[-4:] == ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")
+    assert registry.method_names()[-4:] == ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")
     for name in ("circlenet-full", "circlenet-hg"):
         monkeypatch.setitem(registry.CIRCLENET_MODELS, name, (f"absent/{name}.onnx", f"make train-{name[10:]}, on a CUDA machine"))
     skipped = {}
@@ -180,12 +210,12 @@ def test_unannotated_scenes_get_detection_statistics(tiny, tmp_path):
     paths = tasks.run_methods(data, tmp_path / "p", _specs(("improved",)), workers=1, progress=False,
                                log=lambda m: None)
     assert cache.read_predictions(paths["improved"])[0] == []  # nothing to score in 2D
-    scored = report.score_set(paths["improved"], inout.read_coco_gt(data), tasks.dataset_scenes(data))
+    scored = scoring.score_set(paths["improved"], inout.read_coco_gt(data), tasks.dataset_scenes(data))
     u = scored.metrics["unannotated"]
     assert "mAP" not in scored.metrics and "3d" not in scored.metrics
     assert u["n_scenes"] == 4 and u["scenes_with_detection"] == 4 and u["n_reference"] == 4
     assert 0.115 <= u["radius_m_median"] <= 0.125
-    table = report.detections_table("rec", [scored])
+    table = result_tables.detections_table("rec", [scored])
     assert table is not None and table.rows[0][2] == 4
 
 
@@ -230,7 +260,7 @@ def test_table2_on_the_paper_preset(paper_dataset):
     for r in e1:
         assert r["error_refined_m"] < 0.005 < r["error_barycentre_m"]
         assert r["paper"]["rmse_ransac"] == pytest.approx(0.007343368)
-    table = report.table2_table(rows)
+    table = result_tables.table2_table(rows)
     assert len(table.rows) == 9 and table.rows[0][6] == "0.007343"
 
 
@@ -238,15 +268,30 @@ def test_reading_and_readme_from_scores(tiny, tmp_path):
     paths = tasks.run_methods(tiny, tmp_path, _specs(("improved",)), workers=1, progress=False, log=lambda m: None)
     coco = inout.read_coco_gt(tiny)
     scenes = tasks.dataset_scenes(tiny)
-    sets = [report.score_set(paths[o], coco, scenes) for o in ("improved", "improved+paper-circle")]
-    text = report.reading({"default": sets}, None, {"circlenet": "model file not found"})
+    sets = [scoring.score_set(paths[o], coco, scenes) for o in ("improved", "improved+paper-circle")]
+    text = prose.reading({"default": sets}, None, {"circlenet": "model file not found"})
     assert any("improved" in s and f"{sets[0].metrics['mAP']:.3f}" in s for s in text)
     assert any("circlenet" in s and "not found" in s for s in text)
-    t3 = report.table3("default", sets)
+    t3 = result_tables.table3("default", sets)
     assert [r[0] for r in t3.rows][:2] == ["improved", "improved+paper-circle"]
     cells = [str(c) for r in t3.rows for c in r]
     assert any("0.512" in c for c in cells) and any("0.843" in c for c in cells)
     assert np.isfinite(sets[0].pr50).any()
+
+
+def test_the_reading_names_presets_and_methods_by_their_registered_roles(tiny, tmp_path, monkeypatch):
+    """The protocol's sentences follow the preset and the method that hold its roles, not their names."""
+    paths = tasks.run_methods(tiny, tmp_path, _specs(("improved",)), workers=1, progress=False, log=lambda m: None)
+    coco, scenes = inout.read_coco_gt(tiny), tasks.dataset_scenes(tiny)
+    sets = [scoring.score_set(paths[o], coco, scenes) for o in ("improved", "improved+paper-circle")]
+    protocol = simulate.PRESETS["default"]
+    monkeypatch.setitem(simulate.PRESETS, "default", dataclasses.replace(protocol, role=""))
+    monkeypatch.setitem(simulate.PRESETS, "mine", dataclasses.replace(protocol, name="mine", description="my protocol"))
+    text = prose.reading({"mine": sets}, None, {})
+    assert text[0].startswith("On `mine` (my protocol) the best circle mAP is improved's")
+    assert any(s.startswith("In 3D, `improved` finds") and "of the `mine` balls" in s for s in text)
+    monkeypatch.setattr(registry, "METHODS", {n: dataclasses.replace(m, role="") for n, m in registry.METHODS.items()})
+    assert not any(s.startswith("In 3D") for s in prose.reading({"mine": sets}, None, {}))
 
 
 def test_circlenet_runs_from_an_onnx_file(tiny, tmp_path):

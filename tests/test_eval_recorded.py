@@ -18,7 +18,7 @@ from spherebench.cli import main
 from spherebench.datasets import inout
 from spherebench.datasets import prepare as prep
 from spherebench.datasets.annotate import labelme_from_mask, labelme_text
-from spherebench.eval.bench import figures, recorded, registry, report, tasks
+from spherebench.eval.bench import figures, recorded, registry, report, scoring, tasks
 from spherebench.eval.bench import evaluate as ev
 from conftest import markdown_cells  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -119,7 +119,7 @@ def test_a_ball_without_a_reference_centre_leaves_its_scene_out_of_3d(rec, tmp_p
     inout.write_json(gt_path, gt)
     paths = tasks.run_methods(data, tmp_path / "p", registry.build_methods(["improved"], radius_m=R), workers=1,
                                progress=False, log=_quiet)
-    scored = report.score_set(paths["improved"], inout.read_coco_gt(data), tasks.dataset_scenes(data))
+    scored = scoring.score_set(paths["improved"], inout.read_coco_gt(data), tasks.dataset_scenes(data))
     d = scored.metrics["3d"]
     assert (d["n_scenes"], d["n_gt"], d["within_2cm"], d["scenes_without_centre"]) == (1, 1, 1.0, 1)
     assert scored.metrics["n_images"] == 2  # in 2D both frames are scored

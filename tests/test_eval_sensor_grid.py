@@ -11,7 +11,7 @@ import pytest
 from spherebench import provenance
 from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import simulate
-from spherebench.eval.bench import cache, figures, registry, report, studies
+from spherebench.eval.bench import cache, figures, registry, scoring, studies
 from spherebench.eval.bench.evaluate import evaluate
 from spherebench.eval.metrics import sensor_grid
 from spherebench.eval.metrics.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
@@ -84,7 +84,7 @@ def test_robustness_figure_from_rows_with_a_ceiling(tmp_path):
     metrics = {"improved": {"robust": {"sensor_cells": rows["improved"]}},
                "improved+paper-circle": {"robust": {"sensor_cells": rows["improved"]}},
                "hough": {"robust": {"sensor_cells": rows["hough"]}, "default": {}}, "paper": {"default": {}}}
-    assert list(report.sensor_rows_by_method(metrics, "robust")) == ["improved", "hough"]
+    assert list(scoring.sensor_rows_by_method(metrics, "robust")) == ["improved", "hough"]
 
 
 @pytest.fixture(scope="module")

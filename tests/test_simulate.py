@@ -209,3 +209,34 @@ def test_norm3_is_the_vector_norm():
     rng = np.random.default_rng(3)
     for v in rng.normal(size=(100, 3)) * 10.0 ** rng.integers(-3, 3, size=(100, 1)):
         assert norm3(v) == pytest.approx(float(np.linalg.norm(v)), rel=1e-15)
+
+
+def _same_tree(a, b) -> bool:
+    """Two folders hold the same files with the same bytes."""
+    cmp = filecmp.dircmp(a, b)
+    if cmp.left_only or cmp.right_only or filecmp.cmpfiles(a, b, cmp.common_files, shallow=False)[1:] != ([], []):
+        return False
+    return all(_same_tree(os.path.join(a, d), os.path.join(b, d)) for d in cmp.common_dirs)
+
+
+def test_the_hard_sensor_preset_is_hard_under_its_sensor_settings(tmp_path):
+    """`--preset hard-sensor` builds, byte for byte, what `--preset hard --sensor ...` built."""
+    variant = simulate.generate_dataset("hard-sensor", tmp_path / "a" / "hard-sensor", n=3, progress=False)
+    flags = simulate.generate_dataset("hard", tmp_path / "b" / "hard-sensor", n=3, progress=False,
+                                      sensor_overrides={"subpixel": (0.05, 0.20), "correlation_px": (0.0, 1.0),
+                                                        "dropout_probability": (0.0, 0.5)})
+    assert _same_tree(variant, flags)
+    assert inout.read_dataset_meta(variant)["sensor_overrides"]["subpixel"] == [0.05, 0.2]
+    assert simulate.plan("hard-sensor", 5) == simulate.plan("hard", 5)
+
+
+def test_presets_and_families_are_registered():
+    assert simulate.benchmark_presets() == ("default", "hard", "robust", "wide", "default-stereo", "hard-stereo",
+                                            "wide-stereo")
+    assert simulate.preset_with_role(simulate.PRESET_PROTOCOL) == "default"
+    for preset in simulate.PRESETS.values():  # every preset's families are built by its grammar
+        assert all((preset.grammar, f) in simulate.FAMILIES for f, _share in preset.families)
+    with pytest.raises(ValueError, match="registered already"):
+        simulate.register_preset(simulate.PRESETS["default"])
+    with pytest.raises(ValueError, match="registered already"):
+        simulate.register_family("classic", "clean", lambda vis: True)(simulate.family_clean)

@@ -1,7 +1,7 @@
 """The benchmark: the methods, the runs, their scores and reports, above the metrics, the detector
 and the baselines. Import the modules by name (this package imports nothing):
 
-    registry      each method's configuration and adapter (``build_methods``)
+    registry      the methods, registered (``register_method``): configuration and adapter each
     tasks         the one task loop: methods over a dataset's scenes, seeded (``run_methods``)
     cache         prediction sets on disk and their resume keys
     seeds         the detection seed of each scene
@@ -9,7 +9,10 @@ and the baselines. Import the modules by name (this package imports nothing):
     oracle        the detector's own verification started from the true centre
     evaluate      ``evaluate``: run, score and report datasets (`spherebench evaluate`)
     benchmark     ``run_benchmark``: the whole of `make eval` (`spherebench eval`)
-    report        scoring prediction sets; metrics.json, README.md, provenance.json
+    scoring       scoring prediction sets: COCO, 3D, sensor-grid and timing figures
+    result_tables the results' tables from the scored sets
+    prose         the README's reading of the results, by the registries' roles
+    report        writing the results: metrics.json, tables/, figures/, README.md, provenance.json
     tables        Markdown and CSV tables
     figures       the benchmark's figures
     recorded      what a recorded dataset's ground truth is; Table 3 beside another evaluation

@@ -24,14 +24,16 @@ from pathlib import Path
 from typing import Sequence
 
 from spherebench.baselines.hough_tuning import tuned_hough_config
+from spherebench.datasets.simulate import benchmark_presets
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.evaluate import evaluate
 from spherebench.eval.bench.report import results_run
 from spherebench.eval.bench.studies import oracle_balls
 from spherebench.eval.metrics.sensor_grid import ceiling_by_cell
 
-#: The presets `make eval` reads under its data folder, and the Table 2 one.
-BENCHMARK_PRESETS = ("default", "hard", "robust", "wide", "default-stereo", "hard-stereo", "wide-stereo")
+#: The presets `make eval` reads under its data folder (those the simulator registers as benchmark
+#: presets: default, hard, robust, wide, then the stereo twins), and the Table 2 one.
+BENCHMARK_PRESETS = benchmark_presets()
 TABLE2_PRESET = "paper"
 
 BENCHMARK_INTRO = [

@@ -15,7 +15,8 @@ from spherebench.datasets import inout
 from spherebench.datasets.fingerprint import dataset_fingerprint
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.registry import build_methods
-from spherebench.eval.bench.report import score_set, write_results
+from spherebench.eval.bench.report import write_results
+from spherebench.eval.bench.scoring import score_set
 from spherebench.eval.bench.seeds import DETECTION_SEED_RULE
 from spherebench.eval.bench.studies import table2_rows
 from spherebench.eval.bench.tasks import dataset_scenes, run_methods

@@ -2,7 +2,7 @@
 distance, latency per method, a grid of example scenes with true and predicted circles, and the
 robustness figure of a grid preset (rates per sensor condition and range band).
 
-Each function draws from scored prediction sets (``eval.bench.report.ScoredSet``), or ``robustness`` from
+Each function draws from scored prediction sets (``eval.bench.scoring.ScoredSet``), or ``robustness`` from
 the per-cell rows that metrics.json holds, and writes one PNG.
 """
 

@@ -1,4 +1,4 @@
-"""The benchmark's methods: one configuration object (``MethodSpec``) and one small adapter each.
+"""The benchmark's methods: a registry of adapters, each joined with one ``register_method``.
 
 A *method* turns a scene folder into detections. One detection run of a 3D method gives two
 prediction sets, one per 2D rule of ``spherebench.circles``:
@@ -6,7 +6,22 @@ prediction sets, one per 2D rule of ``spherebench.circles``:
     <name>               the exact silhouette reduced to a circle (the ground truth's rule)
     <name>+paper-circle  the paper's rule (project the centre and a point R to its left)
 
-Methods (``build_methods``, in ``METHOD_ORDER``):
+An adapter (``MethodAdapter``) is a class with ``kind`` (what it needs: "3d" reads the cloud,
+"2d" the image; ``NEEDS``), built from its configuration and model file as
+``Adapter(config, resource)``, with ``load(scene_dir)`` (its input) and ``detect(inputs, seed)`` ->
+[{score, circle, and for 3D center_m, radius_m, circle_paper}]. ``register_method`` enters a
+method (name, adapter, how its ``MethodSpec`` is built, its role in the reading) in ``METHODS``;
+the order of registration is the order of the tables, and ``config["engine"]`` names the adapter
+that a worker builds (``ADAPTERS``). A new baseline is one decorated adapter class:
+
+    @register_method("mine", description="`mine` (what it is)")
+    class MineAdapter:
+        kind = "2d"
+        def __init__(self, config, resource=None): ...
+        def load(self, scene_dir): return inout.read_image(scene_dir / "image.png")
+        def detect(self, image, seed): return [{"score": 0.9, "circle": (cx, cy, r)}]
+
+The registered methods, in order:
 - ``improved``, ``paper``, ``paper-lstsq``: ``spherebench.method.detect`` with that preset;
 - ``pyransac3d``: the generic peer, pyransac3d's free-radius sphere RANSAC (``Sphere().fit``) on
   a seeded subsample of each cloud; its circle is the projection of its centre with its own
@@ -19,11 +34,9 @@ Methods (``build_methods``, in ``METHOD_ORDER``):
   earlier weights, for comparison), ``circlenet-full`` (ResNet-18 at its own widths) and
   ``circlenet-hg`` (the stacked hourglass) the same with the GPU-trained models (``CIRCLENET_MODELS``).
 
-An adapter (``adapter_for``) has ``kind``, ``load(scene_dir)`` (the input it reads: the cloud or
-the image) and ``detect(inputs, seed)`` -> [{score, circle, and for 3D center_m, radius_m,
-circle_paper}]. Each worker process builds an adapter once per configuration and runs it once
-untimed on a first scene (``warm_adapter``), so that numba compilation and model loading stay out
-of every timing; a CircleNet adapter holds one single-threaded ONNX Runtime session.
+Each worker process builds an adapter once per configuration and runs it once untimed on a first
+scene (``warm_adapter``), so that numba compilation and model loading stay out of every timing; a
+CircleNet adapter holds one single-threaded ONNX Runtime session.
 """
 
 from __future__ import annotations
@@ -34,7 +47,7 @@ import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence
 
 from spherebench.baselines import circlenet as circlenet_package
 from spherebench.baselines import pyransac3d_peer
@@ -80,7 +93,12 @@ EARLIER_TRAIN = {
 }
 
 DETECTOR_PRESETS = ("improved", "paper", "paper-lstsq")
-METHOD_ORDER = (*DETECTOR_PRESETS, "pyransac3d", "hough", *CIRCLENET_MODELS)
+#: What a method of each kind reads from a scene folder.
+NEEDS = {"3d": "cloud.ply", "2d": "image.png"}
+#: The roles the reading (``eval.bench.prose``) looks methods up by, rather than by name.
+ROLE_DETECTOR = "the 3D detector"        # the improved detector: its figures are read first
+ROLE_PAPER = "the paper's method"        # the paper's pipeline, read against the paper's numbers
+ROLE_LEARNED_2D = "a learned 2D baseline"  # read beside the paper's CircleNet-HG
 
 #: Modules whose source is every method's code version (scene reading, circles, the adapters).
 _CORE_MODULES = ("spherebench.camera", "spherebench.cloud", "spherebench.circles", "spherebench.datasets.inout",
@@ -117,6 +135,98 @@ class MethodSpec:
 
     def config_json(self) -> str:
         return json.dumps(self.config, sort_keys=True)
+
+
+# --------------------------------------------------------------------------- the registry
+
+class MethodAdapter(Protocol):
+    """What the task loop asks of a method, in a worker: built once per configuration as
+    ``Adapter(config, resource)`` (resource: its model file, or None)."""
+
+    kind: str  # "3d": reads the cloud; "2d": reads the image (NEEDS)
+
+    def load(self, scene_dir: Path):
+        """The method's input from a scene folder (read outside the timing)."""
+
+    def detect(self, inputs, seed: int) -> list[dict]:
+        """Detections on one input: [{score, circle, and for 3D center_m, radius_m, circle_paper}]."""
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """What a run gives every method's spec: the dataset's ball radius (m), the tuned Hough
+    configuration (None: untuned), the ONNX file of ``circlenet`` (None: the shipped one)."""
+
+    radius_m: float = 0.12
+    hough_config: HoughConfig | None = None
+    circlenet_model: str | Path | None = None
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registered method: its adapter, how its ``MethodSpec`` is built (``spec(name, options)``,
+    which raises SphereBenchError when the method cannot run, e.g. its model is missing), its role
+    in the reading (a ROLE_* or "") and the words the reading names it by."""
+
+    name: str
+    adapter: type
+    spec: Callable[[str, BuildOptions], MethodSpec]
+    role: str = ""
+    description: str = ""
+
+    @property
+    def kind(self) -> str:
+        return self.adapter.kind
+
+    @property
+    def needs(self) -> str:
+        """The file it reads from each scene."""
+        return NEEDS[self.kind]
+
+
+#: name -> Method, in registration order (the order of the tables).
+METHODS: dict[str, Method] = {}
+#: config["engine"] -> adapter class.
+ADAPTERS: dict[str, type] = {}
+
+
+def default_spec(engine: str, adapter: type) -> Callable[[str, BuildOptions], MethodSpec]:
+    """The spec of a method with no settings: its engine, and its adapter's module as its code."""
+    def spec(name: str, options: BuildOptions) -> MethodSpec:
+        return MethodSpec(name=name, kind=adapter.kind, config={"engine": engine},
+                          modules=_CORE_MODULES + (adapter.__module__,))
+    return spec
+
+
+def register_method(name: str, adapter: type | None = None, *, spec: Callable[[str, BuildOptions], MethodSpec] | None = None,
+                    engine: str | None = None, role: str = "", description: str = ""):
+    """Enter method ``name`` in METHODS and its adapter in ADAPTERS under ``engine`` (default: the
+    name); spec: how its MethodSpec is built (default: ``default_spec``). Called with an adapter,
+    or used as a decorator on the adapter class (which it returns)."""
+    def enter(cls: type) -> type:
+        key = engine or name
+        if name in METHODS or ADAPTERS.get(key, cls) is not cls:
+            raise ValueError(f"method {name} (engine {key}) is registered already")
+        ADAPTERS[key] = cls
+        METHODS[name] = Method(name, cls, spec or default_spec(key, cls), role, description)
+        return cls
+    return enter if adapter is None else enter(adapter)
+
+
+def method_names() -> tuple[str, ...]:
+    """Every registered method's name, in the tables' order."""
+    return tuple(METHODS)
+
+
+def methods_with_role(role: str) -> list[Method]:
+    """The registered methods of a role, in order."""
+    return [m for m in METHODS.values() if m.role == role]
+
+
+def method_with_role(role: str) -> str | None:
+    """The name of the first registered method of a role, or None."""
+    found = methods_with_role(role)
+    return found[0].name if found else None
 
 
 # --------------------------------------------------------------------------- specs
@@ -205,7 +315,7 @@ def _check_model(path: str, sha256: str) -> None:
 def build_methods(names: Sequence[str] | None = None, hough_config: HoughConfig | None = None,
                   circlenet_model: str | Path | None = None,
                   table_note: Callable[[str, str], None] | None = None, radius_m: float = 0.12) -> list[MethodSpec]:
-    """The benchmark's methods (``METHOD_ORDER`` or ``names``), skipping the unavailable ones.
+    """The benchmark's methods (every registered one, or ``names``), skipping the unavailable ones.
 
     radius_m: the dataset's ball radius (the 3D methods' R).
     hough_config: the tuned ``HoughConfig`` (None: OpenCV-tutorial defaults, said in the note).
@@ -214,25 +324,15 @@ def build_methods(names: Sequence[str] | None = None, hough_config: HoughConfig 
     table_note(name, reason) is called for every method skipped, with the reason.
     Unknown names raise SphereBenchError.
     """
-    wanted = list(METHOD_ORDER if names is None else names)
-    unknown = [n for n in wanted if n not in METHOD_ORDER]
+    wanted = list(METHODS if names is None else names)
+    unknown = [n for n in wanted if n not in METHODS]
     if unknown:
-        raise SphereBenchError(f"unknown method(s) {', '.join(unknown)}: choose from {', '.join(METHOD_ORDER)}")
+        raise SphereBenchError(f"unknown method(s) {', '.join(unknown)}: choose from {', '.join(METHODS)}")
+    options = BuildOptions(radius_m=float(radius_m), hough_config=hough_config, circlenet_model=circlenet_model)
     specs = []
     for name in wanted:
         try:
-            if name in DETECTOR_PRESETS:
-                specs.append(detector_spec(name, radius_m=float(radius_m)))
-            elif name == "pyransac3d":
-                specs.append(pyransac3d_spec(radius_m=float(radius_m)))
-            elif name == "hough":
-                spec = hough_spec(hough_config or HoughConfig())
-                if hough_config is None:
-                    spec = dataclasses.replace(spec, note="untuned defaults (no tuned configuration given)")
-                specs.append(spec)
-            elif name in CIRCLENET_MODELS:
-                given = circlenet_model if name == "circlenet" else None
-                specs.append(circlenet_spec(given if given is not None else circlenet_model_path(name), name=name))
+            specs.append(METHODS[name].spec(name, options))
         except SphereBenchError as exc:
             if table_note is None:
                 raise
@@ -240,7 +340,7 @@ def build_methods(names: Sequence[str] | None = None, hough_config: HoughConfig 
     return specs
 
 
-# --------------------------------------------------------------------------- adapters (in workers)
+# --------------------------------------------------------------------------- adapters (in workers), registered
 
 class DetectorAdapter:
     """The 3D detector (``spherebench.method``)."""
@@ -262,6 +362,16 @@ class DetectorAdapter:
                 for s in detect(cloud, self.config, seed=seed)]
 
 
+def _detector(name: str, options: BuildOptions) -> MethodSpec:
+    return detector_spec(name, radius_m=options.radius_m)
+
+
+register_method("improved", DetectorAdapter, spec=_detector, engine="detector", role=ROLE_DETECTOR)
+register_method("paper", DetectorAdapter, spec=_detector, engine="detector", role=ROLE_PAPER)
+register_method("paper-lstsq", DetectorAdapter, spec=_detector, engine="detector")
+
+
+@register_method("pyransac3d", spec=lambda name, options: pyransac3d_spec(radius_m=options.radius_m))
 class PyRansac3dAdapter:
     """The generic peer: pyransac3d's free-radius sphere RANSAC (``Sphere().fit``), used as a user
     would: on the cloud's points (a seeded random subsample of ``points``), inlier threshold
@@ -285,6 +395,14 @@ class PyRansac3dAdapter:
                  "circle": d["circle_exact"], "circle_paper": d["circle_paper"]} for d in found]
 
 
+def _hough(name: str, options: BuildOptions) -> MethodSpec:
+    spec = hough_spec(options.hough_config or HoughConfig())
+    if options.hough_config is None:
+        spec = dataclasses.replace(spec, note="untuned defaults (no tuned configuration given)")
+    return spec
+
+
+@register_method("hough", spec=_hough)
 class HoughAdapter:
     """OpenCV's Hough circle transform on a scene's image.png."""
 
@@ -327,9 +445,20 @@ class CircleNetAdapter:
         return [{"score": float(sc), "circle": (float(cx), float(cy), float(r))} for cx, cy, r, sc in circles]
 
 
-#: config["engine"] -> adapter class.
-ADAPTERS = {"detector": DetectorAdapter, "pyransac3d": PyRansac3dAdapter, "hough": HoughAdapter,
-            "circlenet": CircleNetAdapter}
+def _circlenet(name: str, options: BuildOptions) -> MethodSpec:
+    given = options.circlenet_model if name == "circlenet" else None
+    return circlenet_spec(given if given is not None else circlenet_model_path(name), name=name)
+
+
+#: How the reading names each CircleNet method.
+CIRCLENET_DESCRIPTIONS = {"circlenet": "`circlenet` (half-width ResNet-18, CPU-trained)",
+                          "circlenet-analytic": "`circlenet-analytic` (the same, trained on the analytic `train` alone)",
+                          "circlenet-full": "`circlenet-full` (ResNet-18 at its own widths, GPU-trained)",
+                          "circlenet-hg": "`circlenet-hg` (2-stack hourglass, GPU-trained)"}
+for _name in CIRCLENET_MODELS:
+    register_method(_name, CircleNetAdapter, spec=_circlenet, engine="circlenet", role=ROLE_LEARNED_2D,
+                    description=CIRCLENET_DESCRIPTIONS[_name])
+
 
 _BUILT: dict[tuple[str, str], object] = {}
 
@@ -340,7 +469,7 @@ def warm_adapter(config_json: str, resource: str | None, warm_scene: str | None 
     key = (config_json, resource or "")
     if key not in _BUILT:
         config = json.loads(config_json)
-        cls = ADAPTERS.get(config.get("engine"))
+        cls = ADAPTERS.get(config.get("engine"))  # a MethodAdapter
         if cls is None:
             raise SphereBenchError(f"unknown engine {config.get('engine')}")
         adapter = cls(config, resource)

@@ -25,7 +25,7 @@ from spherebench.datasets import inout
 from spherebench.datasets.fingerprint import dataset_fingerprint
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.cache import is_finished, prediction_key, write_prediction_set
-from spherebench.eval.bench.registry import MethodSpec, warm_adapter
+from spherebench.eval.bench.registry import NEEDS, MethodSpec, warm_adapter
 from spherebench.eval.bench.seeds import detection_seed
 from spherebench.parallel import executor
 from spherebench.progress import bar as progress_bar
@@ -163,7 +163,7 @@ def run_methods(data_dir: str | Path, out_dir: str | Path, specs: Sequence[Metho
         if scene_filter is not None:
             chosen = [s for s in chosen if scene_filter(s)]
         if not chosen:
-            log(f"{spec.name}: no scene of {data_dir} has its input ({'cloud.ply' if spec.kind == '3d' else 'image.png'})")
+            log(f"{spec.name}: no scene of {data_dir} has its input ({NEEDS[spec.kind]})")
             continue
         version = code_version(spec.modules)
         keys = {o: prediction_key(spec, o, fingerprint, seed, version, [s.scene_id for s in chosen])
