@@ -310,25 +310,46 @@ def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, o
 # 2^24, so one load per corner and one add per cell serve both (the 2.4 MB of a float64 table with
 # a squared-depth channel did not stay in cache; two uint32 channels took twice the adds).
 
-P_FX, P_FY, P_PPX, P_PPY, P_R, P_EPS, P_NOISE_A, P_NOISE_K, P_EPS_CAP, P_STRATUM_V, P_BIN, P_RR_MIN, P_RR_MAX, \
-    P_SLACK, P_Z_FAR, P_STRATUM_U, P_CELL_PX = range(17)
-# ... and the constants that decide outcomes, each a ``DetectorConfig`` field (``improved.parameters``):
-# the search's box geometry (fractions of the ball's disc radius r in cells at the box's depth: box
-# half-side, side-box offset, ring-box offset and half-side, prefilter offset), the descent's steps,
-# a box's least valid share, the pretest's most continued ring boxes; the window's zones (above);
-# the refinement's bands and steps, the size check's limit, the radius SE's floor of s.
-P_H_FRAC, P_D_FRAC, P_RING_FRAC, P_RING_H_FRAC, P_PREFILTER_FRAC, P_DESCENT_STEPS, P_MIN_VALID, P_MAX_CONTINUED, \
-    P_RING_FACTOR, P_PROFILE_INNER, P_PROFILE_OUTER, P_RING_FRONT_MIN, P_RING_FRONT_MAX, P_FIRST_BAND, \
-    P_FIRST_STEPS, P_COARSE_BAND, P_SIZE_LIMIT, P_SE_S_MIN = range(17, 35)
-# box means' noise over the independent-pixel figure sigma / sqrt(n): the noise's correlation
-# (``improved.mean_variance_inflation``), square-rooted
-P_MEAN_NOISE = 35
-# the search's stencil follows the silhouette's off-axis stretch (1: on; 0: square, as on the axis)
-P_OFF_AXIS = 36
-# the descent leaves out side boxes more than R in front of the centre box, an occluder (1: on,
-# ``improved``'s second search of a frame where none was accepted; 0: off)
-P_OCCLUDER_BOUND = 37
-N_PRM = 38
+#: The parameter vector's slots, in order: (name, the ``DetectorConfig`` setting it holds, or None where
+#: ``improved.parameters`` computes it from the stream and the frame). Each slot's index is the
+#: module constant P_<name>, set from this list below (numba reads module-level ints as constants).
+PARAMETERS = (
+    ("FX", None), ("FY", None), ("PPX", None), ("PPY", None),  # the stream's intrinsics (px)
+    ("R", "radius_m"), ("EPS", "eps_m"),  # the ball radius and the shell half-width (m)
+    ("NOISE_A", None),  # sigma_z / z^2 (1/m): the frame's, or the model's
+    ("NOISE_K", "noise.noise_sigmas"),  # the band's noise multiple
+    ("EPS_CAP", None),  # the band's cap (m): noise.max_eps_fraction * R
+    ("STRATUM_V", None), ("BIN", None),  # a stratum's rows (cells), a cell's side (px)
+    ("RR_MIN", None), ("RR_MAX", None),  # the disc radii (cells) a hypothesis may have
+    ("SLACK", "search.pretest_slack"),  # the pretest's tolerance (fraction of R)
+    ("Z_FAR", None),  # the farthest depth searched (m)
+    ("STRATUM_U", None),  # a stratum's columns (cells)
+    ("CELL_PX", None),  # the pixels a cell's table entry sums
+    # the constants that decide outcomes (``improved.parameters``): the search's box geometry (fractions
+    # of the ball's disc radius r in cells at the box's depth), the descent's steps, a box's least valid
+    # share, the pretest's most continued ring boxes; the window's zones (above); the refinement's bands
+    # and steps, the size check's limit, the radius SE's floor of s
+    ("H_FRAC", "stencil.box_half_fraction"), ("D_FRAC", "stencil.box_offset_fraction"),
+    ("RING_FRAC", "stencil.ring_offset_fraction"), ("RING_H_FRAC", "stencil.ring_half_fraction"),
+    ("PREFILTER_FRAC", "stencil.prefilter_offset_fraction"), ("DESCENT_STEPS", "stencil.descent_steps"),
+    ("MIN_VALID", "stencil.box_min_valid"), ("MAX_CONTINUED", "stencil.pretest_max_continued"),
+    ("RING_FACTOR", "evidence.ring_factor"), ("PROFILE_INNER", "evidence.profile_inner_sq"),
+    ("PROFILE_OUTER", "evidence.profile_outer_sq"), ("RING_FRONT_MIN", "evidence.ring_front_min_fraction"),
+    ("RING_FRONT_MAX", "evidence.ring_front_max_fraction"), ("FIRST_BAND", "refinement.first_band_fraction"),
+    ("FIRST_STEPS", "refinement.first_steps"), ("COARSE_BAND", "refinement.coarse_band_fraction"),
+    ("SIZE_LIMIT", "refinement.size_limit_fraction"), ("SE_S_MIN", "refinement.radius_se_s_min_fraction"),
+    # box means' noise over the independent-pixel figure sigma / sqrt(n): the noise's correlation
+    # (``improved.mean_variance_inflation``), square-rooted
+    ("MEAN_NOISE", None),
+    # the search's stencil follows the silhouette's off-axis stretch (1: on; 0: square, as on the axis)
+    ("OFF_AXIS", "stencil.search_off_axis"),
+    # the descent leaves out side boxes more than R in front of the centre box, an occluder (1: on,
+    # ``improved``'s second search of a frame where none was accepted; 0: off)
+    ("OCCLUDER_BOUND", None),
+)
+for _index, (_name, _setting) in enumerate(PARAMETERS):
+    globals()["P_" + _name] = _index
+N_PRM = len(PARAMETERS)
 #: The packed table's count field starts at this bit; the depth sum (mm) takes the bits below.
 COUNT_SHIFT = 40
 _DEPTH_MASK = (1 << COUNT_SHIFT) - 1

@@ -3,8 +3,8 @@
 Input handling (one rule each, documented here):
 - Points with a NaN or infinite coordinate are dropped; the returned indices still refer to
   ``cloud.points``. A cloud with fewer than 3 finite points is refused.
-- A cloud whose median |z| exceeds ``config.mm_check_median_m`` (50 m) is refused as millimetres.
-- A cloud larger than ``config.max_points`` is searched on a random subsample of that size
+- A cloud whose median |z| exceeds ``config.input.mm_check_median_m`` (50 m) is refused as millimetres.
+- A cloud larger than ``config.input.max_points`` is searched on a random subsample of that size
   (deterministic from the seed) as an unorganised cloud; the final inliers come from all points.
 """
 
@@ -74,14 +74,14 @@ def _check_counts(points: np.ndarray, n_ok: int, n_big: int, config: DetectorCon
     if n_ok < 3:
         raise SphereBenchError(f"the cloud has {n_ok} finite points (of {n}): at least 3 are needed")
     # the median |z| exceeds the limit iff more than half of the points are beyond it
-    if config.mm_check and n_big > n_ok // 2:
+    if config.input.mm_check and n_big > n_ok // 2:
         z = np.abs(points[:: max(1, n // 4096), 2].astype(np.float64))
         med = float(np.median(z[np.isfinite(z)]))
         units = [(name, f) for name, f in (("centimetres", 100.0), ("millimetres", 1000.0))
-                 if 0.1 <= med / f <= 2 * config.mm_check_median_m]  # what a depth camera could see
+                 if 0.1 <= med / f <= 2 * config.input.mm_check_median_m]  # what a depth camera could see
         told = " or ".join(f"{name} ({med / f:.3g} m: divide by {f:g})" for name, f in units) or "not metres"
-        raise SphereBenchError(f"median |z| is {med:.4g}, beyond {config.mm_check_median_m:g} m: the cloud looks like "
-                               f"{told}; metres are expected")
+        raise SphereBenchError(f"median |z| is {med:.4g}, beyond {config.input.mm_check_median_m:g} m: the cloud "
+                               f"looks like {told}; metres are expected")
 
 
 def prepare_cloud(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator) -> tuple[Cloud, np.ndarray, bool]:
@@ -95,12 +95,12 @@ def prepare_cloud(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator
     n_ok = int(n_ok)
     index = np.flatnonzero(ok) if n_ok < n else None
     n_big = 0
-    if n_ok >= 3 and config.mm_check:
+    if n_ok >= 3 and config.input.mm_check:
         probe = cloud.points[(index if index is not None else np.arange(n))[:: max(1, n_ok // 4096)], 2]
-        n_big = int(np.count_nonzero(np.abs(probe) > config.mm_check_median_m)) * n_ok // max(len(probe), 1)
+        n_big = int(np.count_nonzero(np.abs(probe) > config.input.mm_check_median_m)) * n_ok // max(len(probe), 1)
     _check_counts(cloud.points, n_ok, n_big, config)
-    if n_ok > config.max_points:
-        index = np.sort(rng.choice(index if index is not None else n, size=config.max_points, replace=False))
+    if n_ok > config.input.max_points:
+        index = np.sort(rng.choice(index if index is not None else n, size=config.input.max_points, replace=False))
         return Cloud(cloud.points[index]), index, True
     if index is None:
         return cloud, np.arange(n), False
@@ -194,7 +194,7 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
 
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0) -> list[Sphere]:
-    """Find balls of radius ``config.radius_m`` in ``cloud``; best first (at most ``config.max_spheres``).
+    """Find balls of radius ``config.radius_m`` in ``cloud``; best first (at most ``config.verification.max_spheres``).
 
     cloud: points (N, 3) metres in the camera frame (camera at the origin, z forward), organised
         (pixel rows/cols + intrinsics: image-window sampling and silhouette checks) or not.
@@ -221,7 +221,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         cp, ce = _circles(cloud, centre, R)
         return [Sphere(center_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
                        rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
-    if cloud.organised and len(cloud.points) <= config.max_points:
+    if cloud.organised and len(cloud.points) <= config.input.max_points:
         # organised: NaN points get no pixel, so the searched points are the cloud's own
         frame = prepare_frame(cloud, config)
         work, index, subsampled = cloud, None, False

@@ -69,15 +69,15 @@ class Candidate:
 
 
 def noise_a(config: DetectorConfig, fx: float | None) -> float:
-    """sigma_z / z^2 (1/m): ``config.noise_z2_per_m`` where set, else Intel's stereo model for focal
+    """sigma_z / z^2 (1/m): ``config.noise.noise_z2_per_m`` where set, else Intel's stereo model for focal
     length fx px; 0 without intrinsics."""
     if fx is None:
         return 0.0
-    if config.noise_z2_per_m is not None:
-        return float(config.noise_z2_per_m)
-    if config.noise_subpixel <= 0 or config.noise_baseline_m <= 0:
+    if config.noise.noise_z2_per_m is not None:
+        return float(config.noise.noise_z2_per_m)
+    if config.noise.noise_subpixel <= 0 or config.noise.noise_baseline_m <= 0:
         return 0.0
-    return config.noise_subpixel / (fx * config.noise_baseline_m)
+    return config.noise.noise_subpixel / (fx * config.noise.noise_baseline_m)
 
 
 @functools.lru_cache(maxsize=8)
@@ -92,16 +92,16 @@ def _noise_mean_square(points: np.ndarray, index_image: np.ndarray, config: Dete
     """The trimmed mean square of ``_kernels.noise_samples`` at a lag (pixels): sigma_z^2 / z^4 (1/m^2)
     for a lag beyond the noise's correlation; None with too few samples (see ``frame_noise_a``)."""
     h, w = index_image.shape
-    step = max(1, int(math.sqrt(h * w / config.noise_estimate_samples)))
-    out = workspace("noise", (config.noise_estimate_samples,), np.float64)
-    m = K.noise_samples(points, index_image, lag, step, step, config.noise_estimate_min_depth_m, out)
-    if m < config.noise_estimate_min_samples:
+    step = max(1, int(math.sqrt(h * w / config.noise.noise_estimate_samples)))
+    out = workspace("noise", (config.noise.noise_estimate_samples,), np.float64)
+    m = K.noise_samples(points, index_image, lag, step, step, config.noise.noise_estimate_min_depth_m, out)
+    if m < config.noise.noise_estimate_min_samples:
         return None
     # a trimmed mean square, not the median: depth quantised in steps near sigma (a structured-light
     # sensor at range) makes the median of the few values it takes a biased estimate
-    k = max(1, int(config.noise_estimate_keep * m))
+    k = max(1, int(config.noise.noise_estimate_keep * m))
     kept = np.partition(out[:m], k - 1)[:k]
-    return float(np.dot(kept, kept)) / k / _trimmed_second_moment(config.noise_estimate_keep)
+    return float(np.dot(kept, kept)) / k / _trimmed_second_moment(config.noise.noise_estimate_keep)
 
 
 def _second_difference_ratio(length_px: float, lag_px: int) -> float:
@@ -141,13 +141,13 @@ def frame_noise_correlation_px(points: np.ndarray, index_image: np.ndarray, conf
     from 1 (independent pixels) as neighbours' errors correlate. 0 where it cannot be measured, or
     below ``noise_correlation_min_px``.
     lag_ms: the mean square at the long lag, when already measured."""
-    lag = max(1, config.noise_estimate_lag_px * bin_px)
+    lag = max(1, config.noise.noise_estimate_lag_px * bin_px)
     long_ms = _noise_mean_square(points, index_image, config, lag) if lag_ms is None else lag_ms
     short_ms = _noise_mean_square(points, index_image, config, 1)
     if long_ms is None or short_ms is None or not long_ms > 0:
         return 0.0
-    length = correlation_from_ratio(short_ms / long_ms, lag, config.noise_correlation_max_px * bin_px)
-    return length if length >= config.noise_correlation_min_px * bin_px else 0.0
+    length = correlation_from_ratio(short_ms / long_ms, lag, config.noise.noise_correlation_max_px * bin_px)
+    return length if length >= config.noise.noise_correlation_min_px * bin_px else 0.0
 
 
 @functools.lru_cache(maxsize=64)  # every verified candidate of a frame asks with the same arguments
@@ -173,14 +173,14 @@ def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorC
 
     The lag, ``noise_estimate_lag_px`` at 424 px wide, scales with the stream's width as the stereo
     matcher's noise correlation does, so that the second difference sees independent errors."""
-    ms = _noise_mean_square(points, index_image, config, max(1, config.noise_estimate_lag_px * bin_px))
+    ms = _noise_mean_square(points, index_image, config, max(1, config.noise.noise_estimate_lag_px * bin_px))
     return None if ms is None else math.sqrt(ms)
 
 
 def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
     """The shell half-width at a centre depth (metres): eps widened by the depth noise model."""
-    return float(K.noise_eps(depth_m, config.eps_m, noise_a(config, fx), config.noise_sigmas,
-                             config.max_eps_fraction * config.radius_m))
+    return float(K.noise_eps(depth_m, config.eps_m, noise_a(config, fx), config.noise.noise_sigmas,
+                             config.noise.max_eps_fraction * config.radius_m))
 
 
 def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: int, grid_shape: tuple,
@@ -190,32 +190,22 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     length (stream pixels), which widens the search's box-mean tolerances."""
     a = noise_a(config, float(intr.fx)) if a is None else a
     prm = np.zeros(K.N_PRM, np.float64)
+    for index, (_, setting) in enumerate(K.PARAMETERS):  # the slots that hold a setting
+        if setting is not None:
+            prm[index] = config.get(setting)
     R = config.radius_m
     prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY] = intr.fx, intr.fy, intr.ppx, intr.ppy
-    prm[K.P_R], prm[K.P_EPS] = R, config.eps_m
-    prm[K.P_NOISE_A], prm[K.P_NOISE_K] = a, config.noise_sigmas
-    prm[K.P_EPS_CAP] = config.max_eps_fraction * R
+    prm[K.P_NOISE_A] = a
+    prm[K.P_EPS_CAP] = config.noise.max_eps_fraction * R
     prm[K.P_STRATUM_V], prm[K.P_STRATUM_U], prm[K.P_BIN] = stratum[0], stratum[1], bin_px
     prm[K.P_CELL_PX] = bin_px * cell_rows(bin_px)  # the pixels a cell's table entry sums
     # hypotheses whose ball would be beyond the range limit (with a margin; on a noisy unit never nearer than
     # hypothesis_min_range_m), or larger than the grid
-    far_m = max(range_limit_m(config, float(intr.fx), a), min(config.hypothesis_min_range_m, config.max_range_m))
+    far_m = max(range_limit_m(config, float(intr.fx), a),
+                min(config.search.hypothesis_min_range_m, config.search.max_range_m))
     prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / far_m
     prm[K.P_RR_MAX] = float(max(grid_shape))
-    prm[K.P_SLACK] = config.pretest_slack
     prm[K.P_Z_FAR] = z_far_m
-    c = config
-    prm[K.P_H_FRAC], prm[K.P_D_FRAC] = c.box_half_fraction, c.box_offset_fraction
-    prm[K.P_RING_FRAC], prm[K.P_RING_H_FRAC] = c.ring_offset_fraction, c.ring_half_fraction
-    prm[K.P_PREFILTER_FRAC], prm[K.P_DESCENT_STEPS] = c.prefilter_offset_fraction, c.descent_steps
-    prm[K.P_MIN_VALID], prm[K.P_MAX_CONTINUED] = c.box_min_valid, c.pretest_max_continued
-    prm[K.P_RING_FACTOR], prm[K.P_PROFILE_INNER], prm[K.P_PROFILE_OUTER] = (c.ring_factor, c.profile_inner_sq,
-                                                                         c.profile_outer_sq)
-    prm[K.P_RING_FRONT_MIN], prm[K.P_RING_FRONT_MAX] = c.ring_front_min_fraction, c.ring_front_max_fraction
-    prm[K.P_FIRST_BAND], prm[K.P_FIRST_STEPS] = c.first_band_fraction, c.first_steps
-    prm[K.P_COARSE_BAND], prm[K.P_SIZE_LIMIT] = c.coarse_band_fraction, c.size_limit_fraction
-    prm[K.P_SE_S_MIN] = c.radius_se_s_min_fraction
-    prm[K.P_OFF_AXIS] = 1.0 if c.search_off_axis else 0.0
     # a box of cells each bin_px wide: the correlation length in cells
     prm[K.P_MEAN_NOISE] = math.sqrt(mean_variance_inflation(corr_px / bin_px))
     return prm
@@ -226,8 +216,8 @@ def range_limit_m(config: DetectorConfig, fx: float | None, a: float | None = No
     depth noise reaches ``bound_noise_fraction`` R (3.5 m at 424x240, 4.9 m at 848x480, 6 m at
     1280x720 for the D435 model), or ``max_range_m`` when that is nearer."""
     a = noise_a(config, fx) if a is None else a
-    lim = math.sqrt(config.bound_noise_fraction * config.radius_m / a) if a > 0 else math.inf
-    return min(lim, config.max_range_m)
+    lim = math.sqrt(config.search.bound_noise_fraction * config.radius_m / a) if a > 0 else math.inf
+    return min(lim, config.search.max_range_m)
 
 
 def far_depth_m(config: DetectorConfig, intr, z_scene_m: float, a: float | None = None) -> float:
@@ -258,16 +248,17 @@ def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape
     """
     hc, wc = grid_shape
     cells = float(hc * wc)
-    if config.adaptive:
+    if config.search.adaptive:
         r = intr.fx / bin_px * config.radius_m / z_far_m
-        if config.bound_visible_fraction >= 1.0:
-            side = stratum_side_ratio(config.sample_success, config.confidence) * r
+        if config.search.bound_visible_fraction >= 1.0:
+            side = stratum_side_ratio(config.search.sample_success, config.search.confidence) * r
         else:
-            area = math.pi * r * r * config.bound_visible_fraction
-            side = math.sqrt(config.sample_success * area / -math.log1p(-config.confidence))
+            area = math.pi * r * r * config.search.bound_visible_fraction
+            side = math.sqrt(config.search.sample_success * area / -math.log1p(-config.search.confidence))
     else:
-        side = math.sqrt(cells / config.iterations)
-    side = min(max(side, math.sqrt(cells / config.iterations)), math.sqrt(cells / max(config.min_iterations, 1)))
+        side = math.sqrt(cells / config.search.iterations)
+    search = config.search
+    side = min(max(side, math.sqrt(cells / search.iterations)), math.sqrt(cells / max(search.min_iterations, 1)))
     s = max(1, int(side))
     return s, s
 
@@ -373,14 +364,14 @@ class PreparedFrame:
         h, w = int(intr.height), int(intr.width)
         self.cloud = cloud
         self.points = cloud.points
-        self.bin = max(1, w // config.search_width_px)
+        self.bin = max(1, w // config.search.search_width_px)
         hc, wc = -(-h // self.bin), -(-w // self.bin)
         self.index_image = workspace("index", (h, w), np.int32)
         self.tab = workspace("tab", (hc + 1, wc + 1), np.uint64)
         self.hist = workspace("hist", (HIST_BINS,), np.int64)
         row_cell, col_cell = cell_lookup(h, w, self.bin)
         n_ok, n_big = K.prepare_organised(cloud.points, cloud.rows, cloud.cols, self.index_image, self.tab, row_cell,
-                                          col_cell, np.float32(config.mm_check_median_m), self.hist,
+                                          col_cell, np.float32(config.input.mm_check_median_m), self.hist,
                                           np.float32(1.0 / HIST_STEP_M))
         self.n_ok, self.n_big = int(n_ok), int(n_big)
         self.n_valid = int(self.tab[-1, -1] >> np.uint64(K.COUNT_SHIFT))  # the table's total count
@@ -388,17 +379,17 @@ class PreparedFrame:
         #: differs from the model's by more than noise_model_tolerance, else the model's
         self.noise_a_measured = None
         lag_ms = None
-        if config.noise_z2_per_m is None and config.noise_estimate:
+        if config.noise.noise_z2_per_m is None and config.noise.noise_estimate:
             lag_ms = _noise_mean_square(cloud.points, self.index_image, config,
-                                        max(1, config.noise_estimate_lag_px * self.bin))
+                                        max(1, config.noise.noise_estimate_lag_px * self.bin))
             self.noise_a_measured = None if lag_ms is None else math.sqrt(lag_ms)
         #: the depth noise's correlation length (stream pixels; 0: independent pixels or not measured)
         self.noise_corr_px = (frame_noise_correlation_px(cloud.points, self.index_image, config, self.bin, lag_ms)
-                              if config.noise_correlation else 0.0)
+                              if config.noise.noise_correlation else 0.0)
         model_a = noise_a(config, float(intr.fx))
         self.noise_a = model_a
         if self.noise_a_measured is not None and not (
-                abs(self.noise_a_measured - model_a) <= config.noise_model_tolerance * model_a):
+                abs(self.noise_a_measured - model_a) <= config.noise.noise_model_tolerance * model_a):
             self.noise_a = self.noise_a_measured
         self.z_far_m = far_depth_m(config, intr, hist_percentile(self.hist, 98.0), self.noise_a)
         self.stratum = strata(config, intr, self.z_far_m, self.bin, (hc, wc))
@@ -408,10 +399,11 @@ class PreparedFrame:
                               self.noise_corr_px)
         # verification's size/score gate (``_kernels.verify_organised``) and its output buffers
         # (candidates within rescore_band below min_score get their whole evidence: ``rescore``)
-        self.gate = np.array([size_tolerance(config) if config.size_check else math.inf, config.size_sigmas,
-                              max(0.0, config.min_score - config.rescore_band), config.min_inliers], np.float64)
+        fit, ver = config.refinement, config.verification
+        self.gate = np.array([size_tolerance(config) if fit.size_check else math.inf, fit.size_sigmas,
+                              max(0.0, ver.min_score - ver.rescore_band), ver.min_inliers], np.float64)
         #: no early stop (``rescore``: a start's whole score and size verdict count)
-        self.no_gate = np.array([math.inf, config.size_sigmas, 0.0, config.min_inliers], np.float64)
+        self.no_gate = np.array([math.inf, fit.size_sigmas, 0.0, ver.min_inliers], np.float64)
         self.vout = np.empty(K.N_VOUT, np.float64)
         self.vstats = np.empty(K.N_STATS, np.float64)
 
@@ -422,7 +414,7 @@ def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int,
     bool: passed the pretest with a side hidden by an occluder, ``_kernels.front_hypothesis``), best first.
     occluder_bound: the descent leaves out side boxes in front of a cap (``_kernels.P_OCCLUDER_BOUND``);
     off_axis: the stencil follows the silhouette's stretch off the optical axis (``_kernels.stencil_stretch``)."""
-    hyp = np.zeros((config.search_candidates, 6), np.float64)
+    hyp = np.zeros((config.search.search_candidates, 6), np.float64)
     counters = np.zeros(2, np.int64)
     prm = frame.prm
     if occluder_bound or off_axis:
@@ -442,28 +434,30 @@ def disc_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarra
     """Run ``_kernels.disc_hypotheses`` on the frame beyond the depth where one pixel's noise reaches
     ``disc_noise_fraction`` R; returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
     R = config.radius_m
-    z_min = math.sqrt(config.disc_noise_fraction * R / frame.noise_a) if frame.noise_a > 0 else math.inf
+    z_min = math.sqrt(config.retry.disc_noise_fraction * R / frame.noise_a) if frame.noise_a > 0 else math.inf
     fc = frame.prm[K.P_FX] / frame.bin
-    step = max(1, int(config.disc_step_fraction * fc * R / config.max_range_m))
-    hyp = np.zeros((config.search_candidates, 6), np.float64)
-    m = K.disc_hypotheses(frame.tab, frame.prm, z_min, config.disc_inner_fraction, config.disc_side_offset_fraction,
-                          config.disc_side_half_fraction, config.disc_gap_fraction * R, config.disc_gap_sigmas,
-                          config.disc_min_behind, step, hyp)
+    step = max(1, int(config.retry.disc_step_fraction * fc * R / config.search.max_range_m))
+    hyp = np.zeros((config.search.search_candidates, 6), np.float64)
+    retry = config.retry
+    m = K.disc_hypotheses(frame.tab, frame.prm, z_min, retry.disc_inner_fraction, retry.disc_side_offset_fraction,
+                          retry.disc_side_half_fraction, retry.disc_gap_fraction * R, retry.disc_gap_sigmas,
+                          retry.disc_min_behind, step, hyp)
     frame.hypotheses = hyp[:m]
     return K.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)
 
 
 def search_unorganised(points: np.ndarray, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Run the compiled unorganised search. Returns (candidate centres (M, 3), qualities (M,))."""
-    k = max(2 * config.max_spheres, 4)
+    k = max(2 * config.verification.max_spheres, 4)
     cands = np.zeros((k, 3), np.float64)
     quals = np.zeros(k, np.float64)
     grid = build_grid(points, config.local_radius_m)
-    win = config.local_radius_m if config.sampling == "local" else math.inf
+    win = config.local_radius_m if config.search.sampling == "local" else math.inf
+    s = config.search
     _, m = K.search_unorganised(points, grid["order"], grid["keys"], grid["origin"], grid["cell"], grid["dims"],
-                                config.radius_m, config.eps_m, win, config.iterations, config.min_iterations,
-                                config.confidence, config.sample_retries, config.pretest_points,
-                                config.pretest_min_fraction, config.score_max_points, np.uint64(seed), cands, quals)
+                                config.radius_m, config.eps_m, win, s.iterations, s.min_iterations, s.confidence,
+                                s.sample_retries, s.pretest_points, s.pretest_min_fraction, s.score_max_points,
+                                np.uint64(seed), cands, quals)
     return cands[:m], quals[:m]
 
 
@@ -515,9 +509,9 @@ def relief_agreement(stats: dict, config: DetectorConfig) -> float:
         n = stats[side + "_n"]
         if n >= 3:
             flatter = m_in - stats[side + "_sum"] / n
-            t = max(t, (flatter - config.relief_floor_fraction * config.radius_m)
+            t = max(t, (flatter - config.evidence.relief_floor_fraction * config.radius_m)
                     / (sigma * math.sqrt(per * (1.0 / n_in + 1.0 / n))))
-    return math.exp(-0.5 * max(0.0, t - config.relief_free_sigmas) ** 2)
+    return math.exp(-0.5 * max(0.0, t - config.evidence.relief_free_sigmas) ** 2)
 
 
 def see_through_excess(stats: dict, free: float, sigmas: float = 3.0) -> float:
@@ -555,8 +549,8 @@ def edge_behind_excess(stats: dict, free: float, sigmas: float = 2.0) -> float:
 
 def size_tolerance(config: DetectorConfig) -> float:
     """The size check's tolerance before standard errors (metres): the larger of the absolute and the
-    relative one (``DetectorConfig.size_tolerance_fraction``)."""
-    return max(config.size_tolerance_m, config.size_tolerance_fraction * config.radius_m)
+    relative one (``DetectorConfig.refinement.size_tolerance_fraction``)."""
+    return max(config.refinement.size_tolerance_m, config.refinement.size_tolerance_fraction * config.radius_m)
 
 
 def noise_shares(stats: dict, config: DetectorConfig) -> tuple[float, float]:
@@ -569,10 +563,10 @@ def noise_shares(stats: dict, config: DetectorConfig) -> tuple[float, float]:
     through, while every frame whose band the cap does not bind (all of the nominal sensor's
     within 3.5 m at 424x240) scores exactly as without. (1, 0) without ``calibrate_evidence``."""
     sigma = stats.get("sigma_m", 0.0)
-    if not config.calibrate_evidence or not sigma > 0:
+    if not config.evidence.calibrate_evidence or not sigma > 0:
         return 1.0, 0.0
-    band = max(config.eps_m, config.noise_sigmas * sigma)
-    capped = min(band, config.max_eps_fraction * config.radius_m)
+    band = max(config.eps_m, config.noise.noise_sigmas * sigma)
+    capped = min(band, config.noise.max_eps_fraction * config.radius_m)
     if capped >= band:
         return 1.0, 0.0
     z, z_full = capped / (sigma * math.sqrt(2.0)), band / (sigma * math.sqrt(2.0))
@@ -606,7 +600,7 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
     interior). size (with ``size_check``): exp(-d^2 / 2), d the free radius's deviation from R in
     units of (``size_tolerance`` + its standard error). Every exponent and allowance is a
     ``DetectorConfig`` field (Evidence)."""
-    f = {"support": n_inliers / (n_inliers + config.min_inliers)}
+    f = {"support": n_inliers / (n_inliers + config.verification.min_inliers)}
     # the free radius's deviation from R in units of the size tolerance and its standard error
     se = free_se if math.isfinite(free_se) else config.radius_m
     size_d = (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
@@ -616,28 +610,29 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
         behind = max(0.0, min(1.0, stats["behind"] / vd) - q_behind)
         hug = min(1.0, stats["front_near"] / vd)
         ring = stats["ring_continued"] / max(stats["ring"], 1.0)
-        attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - config.ring_front_free)
-        seen = see_through_excess(stats, config.see_through_free, config.see_through_sigmas)
-        edge = edge_behind_excess(stats, config.edge_behind_free, config.edge_behind_sigmas)
-        spread = max(0.0, stats.get("ring_spread", 0.0) - config.ring_spread_free)
+        attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - config.evidence.ring_front_free)
+        seen = see_through_excess(stats, config.evidence.see_through_free, config.evidence.see_through_sigmas)
+        edge = edge_behind_excess(stats, config.evidence.edge_behind_free, config.evidence.edge_behind_sigmas)
+        spread = max(0.0, stats.get("ring_spread", 0.0) - config.evidence.ring_spread_free)
         # a ball standing free (its outline ring not continued at its depth), seen enough and of the
         # right size: the pixels a nearer surface hides count neither for nor against (discount 1)
         visible = stats.get("visible_fraction", 1.0)
-        if (ring > config.occlusion_ring_max or visible < config.occlusion_min_visible
-                or not (config.size_check and abs(size_d) <= config.occlusion_size_sigmas)):
+        if (ring > config.evidence.occlusion_ring_max or visible < config.evidence.occlusion_min_visible
+                or not (config.refinement.size_check and abs(size_d) <= config.evidence.occlusion_size_sigmas)):
             visible = 1.0
-        f.update(coverage=min(1.0, stats["inlier"] / vd / p_in / max(visible, 1e-6) ** config.occlusion_discount),
-                 behind=(1.0 - behind) ** config.behind_power,
-                 hug=(1.0 - hug) ** config.hug_power,
-                 ring_continued=(1.0 - ring) ** config.ring_continued_power,
-                 ring_front=(1.0 - attached) ** config.ring_front_power,
-                 see_through=(1.0 - seen) ** config.see_through_power,
-                 edge_behind=(1.0 - edge) ** config.edge_behind_power,
+        discount = config.evidence.occlusion_discount
+        f.update(coverage=min(1.0, stats["inlier"] / vd / p_in / max(visible, 1e-6) ** discount),
+                 behind=(1.0 - behind) ** config.evidence.behind_power,
+                 hug=(1.0 - hug) ** config.evidence.hug_power,
+                 ring_continued=(1.0 - ring) ** config.evidence.ring_continued_power,
+                 ring_front=(1.0 - attached) ** config.evidence.ring_front_power,
+                 see_through=(1.0 - seen) ** config.evidence.see_through_power,
+                 edge_behind=(1.0 - edge) ** config.evidence.edge_behind_power,
                  relief=relief_agreement(stats, config),
-                 ring_spread=(1.0 - spread) ** config.ring_spread_power)
+                 ring_spread=(1.0 - spread) ** config.evidence.ring_spread_power)
     elif "interior_density_ratio" in stats:  # unorganised: a ball's interior holds no points
-        f["interior"] = (1.0 - min(1.0, stats["interior_density_ratio"])) ** config.interior_density_power
-    if config.size_check:
+        f["interior"] = (1.0 - min(1.0, stats["interior_density_ratio"])) ** config.evidence.interior_density_power
+    if config.refinement.size_check:
         f["size"] = math.exp(-0.5 * size_d * size_d) if math.isfinite(size_d) else 0.0
     return f
 
@@ -657,13 +652,13 @@ def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, confi
     elif "interior" in f:
         score *= f["interior"]
     size_ok = True
-    if config.size_check:
+    if config.refinement.size_check:
         R = config.radius_m
         se = free_se if math.isfinite(free_se) else R
         tol = size_tolerance(config)
         score *= f["size"]
-        size_ok = (math.isfinite(free_r) and abs(free_r - R) <= tol + config.size_sigmas * se
-                   and abs(free_r - R) <= config.size_limit_fraction * R)
+        size_ok = (math.isfinite(free_r) and abs(free_r - R) <= tol + config.refinement.size_sigmas * se
+                   and abs(free_r - R) <= config.refinement.size_limit_fraction * R)
     return float(min(max(score, 0.0), 1.0)), size_ok
 
 
@@ -671,20 +666,21 @@ def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfi
                      gate: np.ndarray | None = None, hold_direction: bool = False) -> Candidate | None:
     """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it.
     Where one pixel's noise at the refined centre is at least ``outline_evidence_noise_fraction`` R
-    (``DetectorConfig.outline_evidence``), the candidate is then re-centred on its outline and
+    (``DetectorConfig.outline.outline_evidence``), the candidate is then re-centred on its outline and
     verified again from there with its direction held: the cap's relief leaves the refined centre a
     pixel or more beside the ball, and the evidence is taken where the outline says the ball is.
     gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
     fits move the centre along its ray only (``_kernels.fit_range``)."""
     v = _verify_once(frame, c0, config, buf, gate, hold_direction)
-    if (v is None or hold_direction or not config.outline_evidence or v.score < config.outline_evidence_min_score
-            or frame.noise_a * float(v.center_m[2]) ** 2 < config.outline_evidence_noise_fraction * config.radius_m):
+    o = config.outline
+    if (v is None or hold_direction or not o.outline_evidence or v.score < o.outline_evidence_min_score
+            or frame.noise_a * float(v.center_m[2]) ** 2 < o.outline_evidence_noise_fraction * config.radius_m):
         return v
     oc = outline_centre(frame, v.center_m, config)
-    size = outline_size(frame, oc, config) if config.outline_size else None
+    size = outline_size(frame, oc, config) if config.outline.outline_size else None
     # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
     if size is None and (float(np.linalg.norm(oc - v.center_m)) * frame.prm[K.P_FX] / float(oc[2])
-                         < config.outline_evidence_min_move_px):
+                         < config.outline.outline_evidence_min_move_px):
         return v
     # the kernel's early stop judges the depth fit's radius, which the outline's replaces
     return _verify_once(frame, oc, config, buf, gate if size is None else frame.no_gate, True, size)
@@ -695,7 +691,7 @@ def _outline_buffers(frame: PreparedFrame, rho: float, config: DetectorConfig) -
     holds at most two pairs per pixel of the kernel's window; the capacity is rounded up to a power of
     two, so that balls of every size share a few reused buffers."""
     r_px = float(frame.prm[K.P_FX]) * math.tan(math.asin(config.radius_m / rho))
-    side = 2 * int(r_px + config.outline_band_px + config.outline_band_fraction * r_px + 3) + 1
+    side = 2 * int(r_px + config.outline.outline_band_px + config.outline.outline_band_fraction * r_px + 3) + 1
     return (workspace("outline_res", (4, 1 << (2 * side * side - 1).bit_length()), np.float64),
             workspace("outline_count", (4,), np.int64))
 
@@ -714,14 +710,15 @@ def outline_size(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorCon
     if not (c[2] > 0 and rho > config.radius_m):
         return None
     res, count = _outline_buffers(frame, rho, config)
+    o = config.outline
     K.outline_residuals(frame.points, frame.index_image, frame.prm, c[0], c[1], c[2], frame.noise_a * float(c[2]) ** 2,
-                        config.outline_gap_sigmas, config.outline_band_px, config.outline_band_fraction, res, count)
-    if int(count.min()) < config.outline_min_side:
+                        o.outline_gap_sigmas, o.outline_band_px, o.outline_band_fraction, res, count)
+    if int(count.min()) < config.outline.outline_min_side:
         return None
     pooled = np.concatenate([res[q, :count[q]] for q in range(4)])
     spread = 1.4826 * float(np.median(np.abs(pooled - np.median(pooled))))
     angle = math.asin(config.radius_m / rho) + float(np.mean([np.median(res[q, :count[q]]) for q in range(4)]))
-    se = math.hypot(1.2533 * spread / math.sqrt(pooled.size), config.outline_size_floor_px / float(frame.prm[K.P_FX]))
+    se = math.hypot(1.2533 * spread / math.sqrt(pooled.size), o.outline_size_floor_px / float(frame.prm[K.P_FX]))
     return angle, se
 
 
@@ -733,18 +730,18 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
     check's radius in place of the depth fit's (at the verified centre's distance)."""
     out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refine_iterations, config.fit_max_points, config.ray_s_min_fraction,
-                       config.noise_from_data,
+                       config.refinement.refine_iterations, config.refinement.fit_max_points,
+                       config.refinement.ray_s_min_fraction, config.noise.noise_from_data,
                        frame.gate if gate is None else gate, hold_direction, buf, out, st)
     n = int(out[K.V_N])
-    if n < config.min_inliers:  # too few, or failed the size check (-1)
+    if n < config.verification.min_inliers:  # too few, or failed the size check (-1)
         return None
     stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
     # pixels per effective sample of the evidence's counts and zone means: the window's stride
     # (``_kernels.window_stride``, as the kernel took it) against the noise's correlation length
     cz = float(out[K.V_CZ])
-    stride = K.window_stride(float(out[K.V_CX]), float(out[K.V_CY]), cz, config.radius_m * config.ring_factor,
-                             max(frame.prm[K.P_FX], frame.prm[K.P_FY]), 4.0 * config.fit_max_points)
+    stride = K.window_stride(float(out[K.V_CX]), float(out[K.V_CY]), cz, config.radius_m * config.evidence.ring_factor,
+                             max(frame.prm[K.P_FX], frame.prm[K.P_FY]), 4.0 * config.refinement.fit_max_points)
     stats["pixels_per_sample"] = mean_variance_inflation(frame.noise_corr_px, int(stride))
     # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
     # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
@@ -771,7 +768,7 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
 def rescore_starts(config: DetectorConfig) -> tuple[tuple[float, float, float], ...]:
     """``rescore``'s six starts about a refined centre (units of R): across the line of sight (camera x
     and y) and along it (z), where the refinement's optima lie a cm or two apart at 2-3 m."""
-    a, b = config.rescore_offset_xy, config.rescore_offset_z
+    a, b = config.verification.rescore_offset_xy, config.verification.rescore_offset_z
     return ((a, 0.0, 0.0), (-a, 0.0, 0.0), (0.0, a, 0.0), (0.0, -a, 0.0), (0.0, 0.0, b), (0.0, 0.0, -b))
 
 
@@ -799,11 +796,11 @@ def verify_pushed(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
     ``rescore_band`` of min_score is returned, else the last."""
     R = config.radius_m
     ray = c0 / max(norm3(c0), 1e-9)
-    quiet = frame.prm[K.P_NOISE_A] * c0[2] ** 2 < config.occluded_push_noise_fraction * R
+    quiet = frame.prm[K.P_NOISE_A] * c0[2] ** 2 < config.verification.occluded_push_noise_fraction * R
     v = None
-    for j in range(1 + (config.occluded_push_starts if quiet else 0)):
-        v = verify_organised(frame, c0 + j * config.occluded_push_fraction * R * ray, config, buf)
-        if v is not None and v.size_ok and v.score >= config.min_score - config.rescore_band:
+    for j in range(1 + (config.verification.occluded_push_starts if quiet else 0)):
+        v = verify_organised(frame, c0 + j * config.verification.occluded_push_fraction * R * ray, config, buf)
+        if v is not None and v.size_ok and v.score >= config.verification.min_score - config.verification.rescore_band:
             break
     return v
 
@@ -813,7 +810,7 @@ def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: 
     (without the kernel's early stop, so that each start's whole score and size verdict count): its
     score becomes the mean of all (a start left with too few inliers counts 0) and its size check
     the majority's. The centre, evidence and fits stay the first verification's; stats gets
-    "score_single", the first score (see ``DetectorConfig.rescore_band``)."""
+    "score_single", the first score (see ``DetectorConfig.verification.rescore_band``)."""
     scores = [cand.score]
     size_ok = [cand.size_ok]
     for off in rescore_starts(config):
@@ -833,7 +830,7 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     buf = np.empty(len(points), np.int64)
     c = np.asarray(c0, np.float64).copy()
     idx = buf[:0]
-    for _ in range(config.refine_iterations):
+    for _ in range(config.refinement.refine_iterations):
         n = K.shell_indices(points, c[0], c[1], c[2], R, e, buf)
         if n < 3:
             break
@@ -844,7 +841,7 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
         if moved < 1e-5:
             break
     n = K.shell_indices(points, c[0], c[1], c[2], R, e, buf)
-    if n < config.min_inliers:
+    if n < config.verification.min_inliers:
         return None
     idx = buf[:n].copy()
     free_c, free_r, free_se, _ = K.fit_free_radius(points, idx, c[0], c[1], c[2], R, 8)
@@ -853,7 +850,7 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     # a ball hides its interior: points in its inner half (and ``interior_bands`` shell half-widths under
     # its surface) are another surface the sphere cuts (a wall, clutter) or volumetric noise; a noisy
     # sensor's returns off the ball itself do not reach that deep (a 16-beam LiDAR's do 3 cm deep)
-    r_in = min(R - config.interior_bands * e, 0.5 * R)
+    r_in = min(R - config.verification.interior_bands * e, 0.5 * R)
     inside = float(K.inside_count(points, c[0], c[1], c[2], r_in)) if r_in > 0 else 0.0
     v_shell = (R + e) ** 3 - max(R - e, 0.0) ** 3  # volumes / (4 pi / 3)
     stats = {"inside": inside, "shell": float(n),
@@ -884,10 +881,11 @@ def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorC
         return c_in
     res, count = _outline_buffers(frame, rho, config)
     out = np.empty(3, np.float64)
+    o = config.outline
     K.outline_centre(frame.points, frame.index_image, frame.prm, c_in, frame.noise_a * float(c_in[2]) ** 2,
-                     config.outline_gap_sigmas, config.outline_band_px, config.outline_band_fraction,
-                     config.outline_min_side, config.outline_max_bias_px, config.outline_iterations, res, count, out)
-    if float(np.linalg.norm(out - c_in)) > config.outline_max_shift_fraction * R:
+                     o.outline_gap_sigmas, o.outline_band_px, o.outline_band_fraction, o.outline_min_side,
+                     o.outline_max_bias_px, o.outline_iterations, res, count, out)
+    if float(np.linalg.norm(out - c_in)) > config.outline.outline_max_shift_fraction * R:
         return c_in
     return out
 
@@ -902,19 +900,20 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
     pretest only by an occluded side: a frame with a ball pays nothing for either. multistart: a
     noisy hypothesis is verified from several starts while none is accepted (``verify_multistart``)."""
     if limit_none is None:
-        limit_none = max(config.verify_candidates, config.verify_candidates_if_none if frame is not None else 0)
+        ver = config.verification
+        limit_none = max(ver.verify_candidates, ver.verify_candidates_if_none if frame is not None else 0)
     q_accepted = -math.inf  # the best search score among the accepted
     verified: list[np.ndarray] = []
     for k, (c0, q) in enumerate(zip(cands, quals)):
-        if k >= (config.verify_candidates if found else limit_none):
+        if k >= (config.verification.verify_candidates if found else limit_none):
             break
         if found and occluded[k]:
             continue
         # organised: hypotheses are sorted by score; those far below every accepted sphere's are clutter
-        if frame is not None and q < q_accepted - config.verify_score_margin:
+        if frame is not None and q < q_accepted - config.verification.verify_score_margin:
             break
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
-        if frame is None and q < config.verify_quality_fraction * quals[0]:
+        if frame is None and q < config.verification.verify_quality_fraction * quals[0]:
             break
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
         if any(math.dist(c0, v.center_m) < config.radius_m for v in found):
@@ -922,7 +921,8 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         verified.append(c0)
         if frame is None:
             v = verify_unorganised(points, c0, config)
-        elif multistart and not found and frame.prm[K.P_NOISE_A] * c0[2] ** 2 > config.multistart_noise_fraction * config.radius_m:
+        elif (multistart and not found and frame.prm[K.P_NOISE_A] * c0[2] ** 2
+              > config.verification.multistart_noise_fraction * config.radius_m):
             # while none is accepted (a frame with a ball pays nothing, and gets no second sphere this
             # way); the best of several starts is a biased draw: its score is always re-taken as the mean
             v = verify_multistart(frame, np.asarray(c0, np.float64), config, buf)
@@ -931,9 +931,9 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
             # a hypothesis with an occluded side (verified only while none is accepted): pushed back too
             v = (verify_pushed(frame, np.asarray(c0, np.float64), config, buf) if occluded[k]
                  else verify_organised(frame, c0, config, buf))
-            if v is not None and abs(v.score - config.min_score) < config.rescore_band:
+            if v is not None and abs(v.score - config.verification.min_score) < config.verification.rescore_band:
                 v = rescore(frame, v, config, buf)
-        if v is None or not v.size_ok or v.score < config.min_score:
+        if v is None or not v.size_ok or v.score < config.verification.min_score:
             continue
         found.append(v)
         q_accepted = max(q_accepted, float(q))
@@ -962,32 +962,32 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     # stencil stretched off the axis, then for discs standing out of their background, and verify the
     # hypotheses not verified before
     retries = [] if frame is None else (
-        ([lambda: search_frame(frame, config, seed, occluder_bound=True)] if config.retry_occluder else [])
+        ([lambda: search_frame(frame, config, seed, occluder_bound=True)] if config.retry.retry_occluder else [])
         + ([lambda: search_frame(frame, config, seed, off_axis=True)]
-           if config.retry_off_axis and not config.search_off_axis else [])
-        + ([lambda: disc_search(frame, config)] if config.retry_disc else []))
+           if config.retry.retry_off_axis and not config.stencil.search_off_axis else [])
+        + ([lambda: disc_search(frame, config)] if config.retry.retry_disc else []))
     for retry in retries:
         if found:  # a frame with a ball found pays nothing for the retries
             break
         cands, quals, occluded = retry()
         new = [k for k, c in enumerate(cands)
-               if all(math.dist(c, c1) > config.retry_new_fraction * config.radius_m for c1 in verified)]
+               if all(math.dist(c, c1) > config.retry.retry_new_fraction * config.radius_m for c1 in verified)]
         # the best verify_candidates of a retry's new hypotheses, each verified from one start: on `train`
         # 16, or the multistart of noisy ones, found about as many balls, at twice the time on an empty frame
         verified += _verify_candidates(points, frame, cands[new], quals[new], occluded[new], config, buf, found,
-                                       limit_none=config.verify_candidates, multistart=False)
+                                       limit_none=config.verification.verify_candidates, multistart=False)
     found.sort(key=lambda v: -v.score)
     kept: list[Candidate] = []
-    min_sep = config.nms_distance_fraction * 2.0 * config.radius_m
+    min_sep = config.verification.nms_distance_fraction * 2.0 * config.radius_m
     for v in found:
         if all(math.dist(v.center_m, k.center_m) >= min_sep for k in kept):
             kept.append(v)
-        if len(kept) == config.max_spheres:
+        if len(kept) == config.verification.max_spheres:
             break
     if frame is not None:
         for v in kept:
             # where the noise nears R, the outline places the centre across the line of sight
-            if frame.noise_a * float(v.center_m[2]) ** 2 >= config.outline_noise_fraction * config.radius_m:
+            if frame.noise_a * float(v.center_m[2]) ** 2 >= config.outline.outline_noise_fraction * config.radius_m:
                 v.center_m = outline_centre(frame, v.center_m, config)
             # verification visited strided windows: collect every inlier of the reported ones
             n, v.rmse_m = K.final_inliers(frame.points, frame.index_image, v.center_m, frame.prm, v.eps_m, buf)

@@ -85,7 +85,7 @@ def candidate_centres(points: np.ndarray, config: DetectorConfig, rng: np.random
 
     def estimate(s):
         p1, p2, p3 = (points[s[:, j]].astype(np.float64) for j in range(3))
-        if config.solver == "known_radius":
+        if config.search.solver == "known_radius":
             c, ok = sm.solve_known_radius(p1, p2, p3, R)
             r = np.full(len(c), R)
         else:
@@ -108,7 +108,7 @@ def candidate_centres(points: np.ndarray, config: DetectorConfig, rng: np.random
         votes.append(1)
         return False
 
-    its = sample_loop(config.iterations, sample, estimate, check, visit, rng)
+    its = sample_loop(config.search.iterations, sample, estimate, check, visit, rng)
     return (np.asarray(centres, np.float64).reshape(-1, 3), np.asarray(radii, np.float64),
             np.asarray(votes, np.int64), its)
 
@@ -127,19 +127,20 @@ def run_paper(points: np.ndarray, config: DetectorConfig, rng: np.random.Generat
         return None
     c0 = centres[best]
     chosen = np.flatnonzero(np.abs(sm.residuals(points, c0, R)) <= eps)
-    z, keep = zscore_keep(zscore_values(points[chosen], c0, R, config.zscore_variable), config.zscore_threshold)
+    z, keep = zscore_keep(zscore_values(points[chosen], c0, R, config.paper.zscore_variable),
+                          config.paper.zscore_threshold)
     kept = chosen[keep]
     if len(kept) < 3:
         kept = chosen
     bary = points[kept].astype(np.float64).mean(axis=0)
-    if config.refine == "barycentre":
+    if config.paper.refine == "barycentre":
         centre = bary
         inliers = np.flatnonzero(np.linalg.norm(points - centre, axis=1) <= R)
     else:
         centre = sm.refine_fixed_radius(points[kept], c0, R)
         inliers = np.flatnonzero(np.abs(sm.residuals(points, centre, R)) <= eps)
     trace = PaperTrace(ransac_center_m=c0, ransac_radius_m=float(radii[best]), ransac_indices=chosen, zscores=z,
-                       kept_indices=kept, barycentre_m=bary, zscore_threshold=config.zscore_threshold,
-                       zscore_variable=config.zscore_variable, iterations=its, candidate_centres_m=centres,
+                       kept_indices=kept, barycentre_m=bary, zscore_threshold=config.paper.zscore_threshold,
+                       zscore_variable=config.paper.zscore_variable, iterations=its, candidate_centres_m=centres,
                        candidate_votes=votes, candidate_counts=counts)
     return centre, inliers, trace

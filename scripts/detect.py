@@ -269,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
         raise SphereBenchError("--time-range is for recordings; with --camera use --frames A:B")
     _check_outputs(args, streaming)
     selection = FrameSelection.parse(args.every, args.frames, args.time_range)
-    extra = {} if args.depth_noise is None else {"noise_z2_per_m": args.depth_noise}
+    extra = {} if args.depth_noise is None else {"noise": {"noise_z2_per_m": args.depth_noise}}
     intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
     bad = BadInputs("spherebench detect")
 

@@ -17,6 +17,7 @@ from spherebench.cli import run_module
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.robustness import markdown, robustness
+from spherebench.eval.bench.sweep import read_settings
 from spherebench.method import config_for
 
 
@@ -26,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hard", default=None, help="the hard preset's folder: negatives and distractors")
     p.add_argument("--seeds", default="0-3", help="run seeds, e.g. 0-3 or 0,2")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="override a DetectorConfig field (repeatable), as in sweep")
+                   help="override a detector setting by its path (repeatable), as in sweep")
     options.add_executor_arguments(p, "processes")
     p.add_argument("--limit", type=options.count, default=None,
                    help="at most this many scenes per dataset (quick runs)")
@@ -36,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     seeds = options.parse_seeds(args.seeds)
-    overrides = options.parse_overrides(args.set)
+    overrides = read_settings(args.set, "robustness")
     config_for("improved", **overrides)  # a bad override: one line before any work
     options.check_executor(args)
     for ds in (args.robust, args.default, args.hard):

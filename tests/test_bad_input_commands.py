@@ -317,12 +317,13 @@ def test_benchmark_subcommands_refuse_bad_input_in_one_line(tmp_path, capsys, ar
 
 
 @pytest.mark.parametrize("setting, says", [
-    ("retry_disc=maybe", "retry_disc='maybe' must be true or false"),  # a string would pass as on
-    ("size_check=1", "size_check=1 must be true or false"),
-    ("disc_min_behind=0", "disc_min_behind=0 must be 1-4"),
-    ("occlusion_discount=2", "occlusion_discount=2 must be within [0, 1]"),
-    ("occluded_push_starts=11", "occluded_push_starts=11 must be 0-10"),
-    ("outline_noise_fraction=-inf", "outline_noise_fraction=-inf must be >= 0"),
+    ("retry.retry_disc=maybe", "retry.retry_disc='maybe' must be true or false"),  # a string would pass as on
+    ("refinement.size_check=1", "refinement.size_check=1 must be true or false"),
+    ("retry.disc_min_behind=0", "retry.disc_min_behind=0 must be 1-4"),
+    ("evidence.occlusion_discount=2", "evidence.occlusion_discount=2 must be within [0, 1]"),
+    ("verification.occluded_push_starts=11", "verification.occluded_push_starts=11 must be 0-10"),
+    ("outline.outline_noise_fraction=-inf", "outline.outline_noise_fraction=-inf must be >= 0"),
+    ("verification.min_scor=0.4", "unknown detector parameter verification.min_scor"),
 ])
 def test_sweep_refuses_a_bad_setting_in_one_line(small_default, tmp_path, capsys, setting, says):
     argv = ["sweep", str(small_default), "--seeds", "0", "--set", setting, "--out", str(tmp_path / "out")]
@@ -330,6 +331,16 @@ def test_sweep_refuses_a_bad_setting_in_one_line(small_default, tmp_path, capsys
     err = capsys.readouterr().err
     assert err.startswith("spherebench sweep: error:") and len(err.strip().splitlines()) == 1 and says in err
     assert not (tmp_path / "out.md").exists() and not (tmp_path / "out.json").exists()
+
+
+def test_sweep_reads_a_bare_name_of_before_the_groups_with_one_deprecation_line(capsys):
+    from spherebench.eval.bench.sweep import read_settings
+
+    got = read_settings(["min_score=0.4", "verification.rescore_band=0.1", "radius_m=0.2"], "sweep")
+    assert got == {"verification.min_score": 0.4, "verification.rescore_band": 0.1, "radius_m": 0.2}
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["spherebench sweep: deprecated: name settings by their path: min_score -> verification.min_score"]
+    assert config_for("improved", got).verification.min_score == 0.4
 
 
 def test_set_reads_infinity_where_a_field_means_never():
@@ -341,7 +352,7 @@ def test_set_reads_infinity_where_a_field_means_never():
                            "b=Infinity", "c=nan", "d=infinite"])
     assert got["outline_noise_fraction"] == got["multistart_noise_fraction"] == got["b"] == math.inf
     assert got["a"] == -math.inf and got["c"] == "nan" and got["d"] == "infinite"
-    config_for("improved", outline_noise_fraction=got["outline_noise_fraction"])  # accepted
+    config_for("improved", outline={"outline_noise_fraction": got["outline_noise_fraction"]})  # accepted
 
 
 def test_engine_options_are_checked_before_any_work(small_default, tmp_path, capsys):

@@ -97,16 +97,16 @@ def test_sweep_script_on_small_dataset(small_default, tmp_path, capsys):
     one = json.loads((tmp_path / "one.json").read_text())["datasets"]["default6"]["per_seed"]["0"]
     assert one == d["per_seed"]["0"]
     # a configuration override changes what runs: a threshold no ball reaches finds none
-    assert sweep.main([str(small_default), "--seeds", "0", "--set", "min_score=1.0", "--workers", "1",
+    assert sweep.main([str(small_default), "--seeds", "0", "--set", "verification.min_score=1.0", "--workers", "1",
                        "--out", str(tmp_path / "strict")]) == 0
     strict = json.loads((tmp_path / "strict.json").read_text())
-    assert strict["overrides"] == {"min_score": 1.0}
+    assert strict["overrides"] == {"verification.min_score": 1.0}
     assert strict["datasets"]["default6"]["per_seed"]["0"]["total"]["found"] == 0
     md = out.with_suffix(".md").read_text()
     assert "| default6 | 5 |" in md and "| clean |" in md
     capsys.readouterr()
     for bad in (["--seeds", "x"], ["--seeds", "-1"], ["--set", "nonsense"], ["--set", "no_such_field=1"],
-                ["--set", "min_score=2"], ["--workers", "0"]):
+                ["--set", "verification.min_score=2"], ["--workers", "0"]):
         assert sweep.main([str(small_default), *bad]) == 2
         err = capsys.readouterr().err
         assert err.startswith(("sweep: error:", "spherebench-sweep: error: argument")) and err.count("\n") == 1

@@ -187,7 +187,7 @@ def test_edge_band_tells_a_smaller_ball():
         share = out[K.ST_EDGE_BEHIND] / out[K.ST_EDGE_N]
         assert out[K.ST_EDGE_N] > 50 and (share < 0.05 if r == R else share > 0.5), (r, share)
         excess[r] = I.edge_behind_excess({"edge_n": out[K.ST_EDGE_N], "edge_behind": out[K.ST_EDGE_BEHIND]},
-                                         IMPROVED.edge_behind_free)
+                                         IMPROVED.evidence.edge_behind_free)
     assert excess[R] == 0.0 and excess[0.11] > 0.1
 
 
@@ -203,7 +203,7 @@ def test_ring_spread_tells_support_from_embedding():
     assert ref.ring_spread(np.full(8, 10.0), np.full(8, 5.0)) == pytest.approx(20.0 / 80.0)
     du, dv = np.array([-2.0, -1, 1, 2, 2, 1, -1, -2]), np.array([-1.0, -2, -2, -1, 1, 2, 2, 1])
     assert ref.ring_sectors(du, dv).tolist() == list(range(8))  # octants in angular order
-    cfg = config_for("improved", size_check=False, min_score=0.0)
+    cfg = config_for("improved", refinement={"size_check": False}, verification={"min_score": 0.0})
     buf = np.empty(424 * 240 + 1, np.int64)
     c = np.array([0.1, 0.13, 1.0])  # resting on the floor of scene(box=True), 0.25 m below the camera
     floor = scene(ball_c=tuple(c), box=True, noise=0.002, width=424, height=240)
@@ -227,7 +227,7 @@ def test_ring_spread_tells_support_from_embedding():
                                 ("embedded", embedded, c)):
         v = I.verify_organised(prepare_frame(cloud, cfg), centre, cfg, buf)
         spread[name] = v.stats["ring_spread"]
-    assert max(spread["floor"], spread["rolled"]) < IMPROVED.ring_spread_free < 0.2 < spread["embedded"], spread
+    assert max(spread["floor"], spread["rolled"]) < IMPROVED.evidence.ring_spread_free < 0.2 < spread["embedded"], spread
 
 
 # ------------------------------------------------------------------------------------ detection
@@ -237,7 +237,7 @@ def test_detects_ball_before_wall(method):
     # the paper samples three points from the whole frame: it needs a ball that fills much of it
     c = np.array([0.1, -0.05, 1.0]) if method == "improved" else np.array([0.0, 0.02, 0.5])
     cloud = scene(ball_c=c, wall_z=1.2)
-    cfg = config_for(method, iterations=20000)
+    cfg = config_for(method, search={"iterations": 20000})
     spheres = detect(cloud, cfg, seed=0)
     assert spheres, method
     if method == "improved":
@@ -251,7 +251,7 @@ def test_detects_ball_before_wall(method):
 
 def test_paper_trace_has_table2_values():
     cloud = scene(ball_c=(0.0, 0.0, 0.8))
-    s = detect(cloud, config_for("paper", iterations=20000), seed=1)[0]
+    s = detect(cloud, config_for("paper", search={"iterations": 20000}), seed=1)[0]
     t = s.trace
     assert t is not None and len(t.kept_indices) <= len(t.ransac_indices)
     assert np.allclose(t.barycentre_m, cloud.points[t.kept_indices].mean(axis=0), atol=1e-5)
@@ -294,8 +294,9 @@ def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypa
     found = detect(cloud, config_for("improved"), seed=0)
     assert len(found) == 1 and np.linalg.norm(found[0].center_m - c) < 0.003
     # (the retries would search again, and verify the starts left over: this one is about the first)
-    assert detect(cloud, config_for("improved", verify_candidates_if_none=6, retry_occluder=False,
-                                    retry_off_axis=False, retry_disc=False), seed=0) == []
+    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False}
+    assert detect(cloud, config_for("improved", verification={"verify_candidates_if_none": 6}, retry=no_retry),
+                  seed=0) == []
 
 
 def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
@@ -313,7 +314,7 @@ def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
     monkeypatch.setattr(I, "verify_organised", lambda *a: calls.append(a[1]) or verify(*a))
     for margin, n_verified in ((6.0, 2), (100.0, 4)):
         calls.clear()
-        found = detect(cloud, config_for("improved", verify_score_margin=margin), seed=0)
+        found = detect(cloud, config_for("improved", verification={"verify_score_margin": margin}), seed=0)
         assert len(found) == 1 and np.linalg.norm(found[0].center_m - c) < 0.003
         assert len(calls) == n_verified
 
@@ -416,7 +417,7 @@ def test_hidden_pixels_count_neither_for_nor_against_a_ball_standing_free():
         return I.confidence_factors(st, 500, free_r, se, config, True)["coverage"]
 
     assert coverage(stats) == pytest.approx(1.0)  # 200 inliers of the 200 pixels seen
-    assert coverage(stats, config=config_for("improved", occlusion_discount=0.0)) == pytest.approx(0.5)
+    assert coverage(stats, config=config_for("improved", evidence={"occlusion_discount": 0.0})) == pytest.approx(0.5)
     assert coverage({**stats, "ring_continued": 20.0}) == pytest.approx(0.5)  # a wall about it
     assert coverage({**stats, "visible_fraction": 0.3, "inlier": 120.0}) == pytest.approx(0.3)  # mostly hidden
     # the free radius within occlusion_size_sigmas (0.5) of (tolerance + standard error) from R, or not
@@ -463,7 +464,7 @@ def test_retries_find_more_of_the_hidden_balls():
     """While none is accepted the detector searches again (the descent past occluders, then the stencil
     off the axis): it finds more of these half-hidden balls (7 of 16 against 4 when written), and
     every ball found without the retries is found with them."""
-    without = config_for("improved", retry_occluder=False, retry_off_axis=False, retry_disc=False)
+    without = config_for("improved", retry={"retry_occluder": False, "retry_off_axis": False, "retry_disc": False})
     found = {False: set(), True: set()}
     for k, (c, cloud) in enumerate(_occluded_frames(16, (0.5, 0.65), 2.5)):
         for retry, cfg in ((False, without), (True, IMPROVED)):
@@ -480,8 +481,8 @@ def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray():
     from spherebench.method import improved as I
 
     cfg = config_for("improved")
-    off = config_for("improved", occluded_push_starts=0)
-    loud = config_for("improved", occluded_push_noise_fraction=0.01)
+    off = config_for("improved", verification={"occluded_push_starts": 0})
+    loud = config_for("improved", verification={"occluded_push_noise_fraction": 0.01})
     plain = pushed = 0
     for c, cloud in _occluded_frames(8, (0.5, 0.65), 2.0):
         frame = I.PreparedFrame(cloud, cfg)
@@ -489,7 +490,8 @@ def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray():
         start = c - 1.2 * R * c / np.linalg.norm(c)
 
         def found(v):
-            return v is not None and v.size_ok and v.score >= cfg.min_score and np.linalg.norm(v.center_m - c) < 0.02
+            return (v is not None and v.size_ok and v.score >= cfg.verification.min_score
+                    and np.linalg.norm(v.center_m - c) < 0.02)
 
         plain += found(I.verify_organised(frame, start, cfg, buf))
         pushed += found(I.verify_pushed(frame, start, cfg, buf))
@@ -519,7 +521,8 @@ def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
     monkeypatch.setattr(I, "disc_search", lambda frame, config: fake_search(frame, config, 0))
     monkeypatch.setattr(I, "verify_organised", lambda *a, **kw: calls.append(a[1]) or verify(*a, **kw))
     config = config_for("improved")
-    assert config.verify_candidates == 6 and 0.0075 * 4.5 ** 2 > config.multistart_noise_fraction * R
+    ver = config.verification
+    assert ver.verify_candidates == 6 and 0.0075 * 4.5 ** 2 > ver.multistart_noise_fraction * R
     assert detect(cloud, config, seed=0) == [] and len(calls) == 18  # three retries, 6 each
 
 
@@ -537,7 +540,8 @@ def test_retries_only_while_none_is_accepted(monkeypatch):
     assert detect(scene(ball_c=None), seed=0) == [] and calls == [{}, {"occluder_bound": True}, {"off_axis": True},
                                                                   "disc"]
     calls.clear()
-    detect(scene(ball_c=None), config_for("improved", retry_occluder=False, retry_off_axis=False, retry_disc=False),
+    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False}
+    detect(scene(ball_c=None), config_for("improved", retry=no_retry),
            seed=0)
     assert calls == [{}]
 
@@ -582,7 +586,7 @@ def test_the_disc_retry_finds_far_balls_the_searches_lose():
     """Balls at 3.6-4.6 m whose cap's relief is within one pixel's noise: with the disc search as the
     last retry, 10 of 16 are found within 3 cm (4 without it, when written), every one found without it
     among them."""
-    without = config_for("improved", retry_disc=False)
+    without = config_for("improved", retry={"retry_disc": False})
     found = {False: set(), True: set()}
     for k, (c, cloud) in enumerate(_far_frames(16)):
         for disc, cfg in ((False, without), (True, IMPROVED)):
@@ -609,7 +613,7 @@ def test_size_gate_in_the_kernel_agrees_with_the_size_check():
     buf = np.empty(cloud.intrinsics.width * cloud.intrinsics.height + 1, np.int64)
     gated = config_for("improved")
     assert I.verify_organised(prepare_frame(cloud, gated), start, gated, buf) is None
-    ungated = config_for("improved", size_check=False)
+    ungated = config_for("improved", refinement={"size_check": False})
     v = I.verify_organised(prepare_frame(cloud, ungated), start, ungated, buf)
     assert v is not None and abs(v.free_radius_m - 0.11) < 0.003
     assert I.confidence(v.stats, 1000, v.free_radius_m, v.free_radius_se_m, gated, True)[1] is False
@@ -625,7 +629,7 @@ def test_confidence_is_the_product_of_its_named_factors():
     from spherebench.method import improved as I
     from spherebench.method.detector import prepare_frame
 
-    config = config_for("improved", size_check=True)
+    config = config_for("improved", refinement={"size_check": True})
     buf = np.empty(424 * 240 + 1, np.int64)
     c = np.array([0.1, 0.0, 1.2])
     for ball_r, start in ((R, c), (0.11, c * (1.0 + 0.01 / np.linalg.norm(c)))):
@@ -700,14 +704,14 @@ def test_cylinder_of_the_ball_radius_is_not_a_ball(top_y):
 def test_see_through_excess_follows_noise():
     from spherebench.method import improved as imp
     stats = {"valid_inner": 400.0, "behind_inner": 4.0, "sigma_m": 0.01, "eps_m": 0.025}
-    assert imp.see_through_excess(stats, IMPROVED.see_through_free) == 0.0  # 1 %: the noise's tail
+    assert imp.see_through_excess(stats, IMPROVED.evidence.see_through_free) == 0.0  # 1 %: the noise's tail
     stats["behind_inner"] = 80.0  # 20 %: seen through
     q = 0.5 * math.erfc(2.5 / math.sqrt(2.0))
-    want = 0.2 - q - 3 * math.sqrt(q * (1 - q) / 400) - IMPROVED.see_through_free
-    assert imp.see_through_excess(stats, IMPROVED.see_through_free) == pytest.approx(want)
+    want = 0.2 - q - 3 * math.sqrt(q * (1 - q) / 400) - IMPROVED.evidence.see_through_free
+    assert imp.see_through_excess(stats, IMPROVED.evidence.see_through_free) == pytest.approx(want)
     # a band capped below the noise lets more through without penalty
     stats["eps_m"] = 0.01
-    assert imp.see_through_excess(stats, IMPROVED.see_through_free) == 0.0
+    assert imp.see_through_excess(stats, IMPROVED.evidence.see_through_free) == 0.0
 
 
 def test_relief_test_is_one_sided():
@@ -718,10 +722,10 @@ def test_relief_test_is_one_sided():
                 "outer_v_n": 80.0, "outer_v_sum": 80.0 * outer_v_m, "sigma_m": 0.01}
     assert imp.relief_agreement(stats(0.0, 0.0), IMPROVED) == 1.0  # a sphere
     se = 0.01 * math.sqrt(1 / 100 + 1 / 80)
-    floor = IMPROVED.relief_floor_fraction * R
+    floor = IMPROVED.evidence.relief_floor_fraction * R
     # flatter than the sphere along x (a cylinder's top, a box's edge): behind it inside, in front outside
     t = (0.02 - floor) / se
-    want = math.exp(-0.5 * (t - IMPROVED.relief_free_sigmas) ** 2)
+    want = math.exp(-0.5 * (t - IMPROVED.evidence.relief_free_sigmas) ** 2)
     assert imp.relief_agreement(stats(0.01, -0.01), IMPROVED) == pytest.approx(want)
     assert imp.relief_agreement(stats(0.0, 0.0, -0.02), IMPROVED) == pytest.approx(want)  # or along y
     assert want < 0.01
@@ -764,10 +768,11 @@ def test_bad_input_errors():
     # a scene at about 1.8 m, in centimetres: named as such (also read as millimetres: 0.18 m)
     with pytest.raises(SphereBenchError, match=r"centimetres \(1.8 m: divide by 100\) or millimetres"):
         detect(Cloud(scene().points * 100))
-    for kw in ({"radius_m": 0.0}, {"radius_m": -1.0}, {"eps_m": 0.2}, {"iterations": 0}, {"iterations": 2.5},
-               {"zscore_variable": "colour"}):
+    for kw in ({"radius_m": 0.0}, {"radius_m": -1.0}, {"eps_m": 0.2}, {"search.iterations": 0},
+               {"search.iterations": 2.5},
+               {"paper.zscore_variable": "colour"}):
         with pytest.raises(SphereBenchError):
-            config_for("improved", **kw)
+            config_for("improved", kw)
     with pytest.raises(SphereBenchError, match="unknown"):
         config_for("hough")
 
@@ -786,7 +791,7 @@ def test_large_cloud_is_subsampled():
     pts = np.column_stack([rng.uniform(-2, 2, 30000), rng.uniform(-1, 1, 30000), np.full(30000, 3.0)])
     ball = cap_points(np.array([0.0, 0.0, 2.0]), R, 3000, rng)
     cloud = Cloud(np.vstack([pts, ball]))
-    spheres = detect(cloud, config_for("improved", max_points=10000), seed=0)
+    spheres = detect(cloud, config_for("improved", input={"max_points": 10000}), seed=0)
     assert spheres and np.linalg.norm(spheres[0].center_m - [0, 0, 2.0]) < 0.005
     assert len(spheres[0].inlier_indices) > 2000  # inliers from the whole cloud, not the subsample
 
@@ -837,8 +842,8 @@ def test_kinect_like_ball_a_few_percent_off_nominal_is_found(seed):
     assert abs(spheres[0].free_radius_m - 0.211) < 0.004
     assert spheres[0].evidence["eps_m"] < eps_at(config, 2.3, cloud.intrinsics.fx)  # narrowed by the data
     # without them the band is the noise model's, wider, and the ball is refused (or kept on that wider band)
-    old = config_for("improved", radius_m=0.203, noise_from_data=False, noise_estimate=False,
-                     size_tolerance_fraction=0.0)
+    old = config_for("improved", radius_m=0.203, noise={"noise_from_data": False, "noise_estimate": False},
+                     refinement={"size_tolerance_fraction": 0.0})
     found_old = detect(cloud, old, seed=0)
     assert found_old == [] or found_old[0].evidence["eps_m"] > 1.2 * spheres[0].evidence["eps_m"]
 
@@ -846,13 +851,14 @@ def test_kinect_like_ball_a_few_percent_off_nominal_is_found(seed):
 def test_sensor_noise_and_size_tolerance_settings():
     from spherebench.method.improved import noise_a, size_tolerance
     assert noise_a(config_for("improved"), 600.0) == pytest.approx(0.08 / (600.0 * 0.05))
-    assert noise_a(config_for("improved", noise_z2_per_m=0.0015), 600.0) == 0.0015
-    assert noise_a(config_for("improved", noise_z2_per_m=0.0015), None) == 0.0
+    assert noise_a(config_for("improved", noise={"noise_z2_per_m": 0.0015}), 600.0) == 0.0015
+    assert noise_a(config_for("improved", noise={"noise_z2_per_m": 0.0015}), None) == 0.0
     assert size_tolerance(config_for("improved")) == pytest.approx(0.0048)  # 4 % of 0.12 m
     assert size_tolerance(config_for("improved", radius_m=0.05)) == 0.004
-    for bad in ({"noise_z2_per_m": -1.0}, {"noise_z2_per_m": float("nan")}, {"size_tolerance_fraction": 2.0}):
+    for bad in ({"noise.noise_z2_per_m": -1.0}, {"noise.noise_z2_per_m": float("nan")},
+                {"refinement.size_tolerance_fraction": 2.0}):
         with pytest.raises(SphereBenchError):
-            config_for("improved", **bad)
+            config_for("improved", bad)
 
 
 def test_outcome_constants_are_configuration_fields():
@@ -861,40 +867,34 @@ def test_outcome_constants_are_configuration_fields():
     from spherebench.method import improved as I
 
     intr = Intrinsics.d435(424, 240)
-    fields = {K.P_H_FRAC: "box_half_fraction", K.P_D_FRAC: "box_offset_fraction", K.P_RING_FRAC: "ring_offset_fraction",
-              K.P_RING_H_FRAC: "ring_half_fraction", K.P_PREFILTER_FRAC: "prefilter_offset_fraction",
-              K.P_DESCENT_STEPS: "descent_steps", K.P_MIN_VALID: "box_min_valid",
-              K.P_MAX_CONTINUED: "pretest_max_continued", K.P_RING_FACTOR: "ring_factor",
-              K.P_PROFILE_INNER: "profile_inner_sq", K.P_PROFILE_OUTER: "profile_outer_sq",
-              K.P_RING_FRONT_MIN: "ring_front_min_fraction", K.P_RING_FRONT_MAX: "ring_front_max_fraction",
-              K.P_FIRST_BAND: "first_band_fraction", K.P_FIRST_STEPS: "first_steps",
-              K.P_COARSE_BAND: "coarse_band_fraction", K.P_SIZE_LIMIT: "size_limit_fraction",
-              K.P_SE_S_MIN: "radius_se_s_min_fraction", K.P_OFF_AXIS: "search_off_axis"}
-    # and P_MEAN_NOISE (from the frame's noise correlation) and P_OCCLUDER_BOUND (set by a retry's search)
-    assert len(fields) == K.N_PRM - 19
+    # the slots from P_H_FRAC on that hold a setting (P_MEAN_NOISE comes from the frame's noise
+    # correlation, P_OCCLUDER_BOUND is set by a retry's search)
+    fields = {i: path for i, (_, path) in enumerate(K.PARAMETERS) if path and i >= K.P_H_FRAC}
+    assert len(fields) == K.N_PRM - 19 and fields[K.P_OFF_AXIS] == "stencil.search_off_axis"
     base = kernel_parameters(intr)
     assert base[K.P_MEAN_NOISE] == 1.0
     for index, name in fields.items():
-        value = getattr(IMPROVED, name)
+        value = IMPROVED.get(name)
         assert base[index] == value, name
         # within every field's valid range
         other = (not value) if isinstance(value, bool) else (value + 1 if isinstance(value, int) else value * 0.9)
-        changed = kernel_parameters(intr, dataclasses.replace(IMPROVED, **{name: other}))
+        changed = kernel_parameters(intr, IMPROVED.override({name: other}))
         assert changed[index] == other and np.count_nonzero(changed != base) == 1, name
     ball = scene()
     assert len(detect(ball, seed=0)) == 1
     # a size limit below the free radius's error loses the ball; so does a floor under it priced out of reach
-    assert detect(ball, config_for("improved", size_limit_fraction=1e-4), seed=0) == []
+    assert detect(ball, config_for("improved", refinement={"size_limit_fraction": 1e-4}), seed=0) == []
     on_floor = scene(ball_c=(0.1, 0.13, 1.0), box=True, noise=0.002, width=424, height=240)
     assert len(detect(on_floor, seed=0)) == 1
-    assert detect(on_floor, config_for("improved", ring_front_free=0.0, ring_front_power=1e4), seed=0) == []
+    priced_out = config_for("improved", evidence={"ring_front_free": 0.0, "ring_front_power": 1e4})
+    assert detect(on_floor, priced_out, seed=0) == []
 
 
 def test_search_stencil_follows_the_off_axis_silhouette():
     """A ball at angle theta off the optical axis images 1 / cos^2 theta larger radially and 1 / cos theta
     tangentially: the search's stencil is stretched so along each image axis, and square on the axis."""
     intr = Intrinsics.d435(424, 240)
-    prm = kernel_parameters(intr, dataclasses.replace(IMPROVED, search_off_axis=True))
+    prm = kernel_parameters(intr, IMPROVED.override({"stencil.search_off_axis": True}))
     cu, cv = intr.ppx, intr.ppy  # bin 1: a cell is a pixel, its centre at the pixel's coordinate
     assert K.stencil_stretch(prm, int(round(cv)), int(round(cu))) == pytest.approx((1.0, 1.0), abs=2e-4)
     u = int(round(cu + intr.fx * math.tan(math.radians(35))))  # 35 degrees to the right, on the row of the axis
@@ -907,12 +907,14 @@ def test_search_stencil_follows_the_off_axis_silhouette():
 
 
 def test_outcome_constants_refuse_absurd_values():
-    for bad in ({"ring_factor": 0.9}, {"profile_inner_sq": 0.9}, {"box_min_valid": 1.5}, {"descent_steps": -1}, {"retry_new_fraction": -0.1},
-                {"pretest_max_continued": 9}, {"ring_front_min_fraction": 2.0}, {"ring_spread_power": -1.0},
-                {"noise_estimate_keep": 1.5}, {"first_steps": 0}, {"outline_min_side": 0},
-                {"outline_noise_fraction": -0.1}, {"outline_band_px": 0.0}):
+    for bad in ({"evidence.ring_factor": 0.9}, {"evidence.profile_inner_sq": 0.9}, {"stencil.box_min_valid": 1.5},
+                {"stencil.descent_steps": -1}, {"retry.retry_new_fraction": -0.1},
+                {"stencil.pretest_max_continued": 9}, {"evidence.ring_front_min_fraction": 2.0},
+                {"evidence.ring_spread_power": -1.0},
+                {"noise.noise_estimate_keep": 1.5}, {"refinement.first_steps": 0}, {"outline.outline_min_side": 0},
+                {"outline.outline_noise_fraction": -0.1}, {"outline.outline_band_px": 0.0}):
         with pytest.raises(SphereBenchError, match=next(iter(bad))):
-            config_for("improved", **bad)
+            config_for("improved", bad)
 
 
 # ------------------------------------------------------------------------------ outline centring
@@ -949,7 +951,7 @@ def test_outline_centres_a_noisy_far_ball_across_the_line_of_sight(holder):
     from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
-    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
     frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, holder=holder), config)
     start = truth + np.array([0.015, -0.010, 0.0])
     start *= np.linalg.norm(truth) / np.linalg.norm(start)  # the same range: only the direction is off
@@ -966,7 +968,7 @@ def test_outline_centring_leaves_an_axis_without_two_sides():
     from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
-    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
     frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, left_wall=True), config)
     start = truth + np.array([0.0, -0.012, 0.0]) + np.array([0.010, 0.0, 0.0])
     moved = I.outline_centre(frame, start, config)
@@ -982,11 +984,11 @@ def test_outline_centring_holds_back_an_axis_whose_outline_lies_beyond_the_spher
     from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
-    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
     frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, ledge_px=3.0), config)
     start = truth + np.array([0.010, 0.0, 0.0])
     held = I.outline_centre(frame, start, config)
-    pulled = I.outline_centre(frame, start, dataclasses.replace(config, outline_max_bias_px=math.inf))
+    pulled = I.outline_centre(frame, start, config.override({"outline.outline_max_bias_px": math.inf}))
     assert abs(held[1] - truth[1]) < 0.002 and pulled[1] - truth[1] > 0.004
     assert abs(held[0] - truth[0]) < 0.004 and abs(pulled[0] - truth[0]) < 0.004
 
@@ -1001,8 +1003,8 @@ def test_noisy_far_ball_is_measured_on_its_outline():
     truth = np.array([0.3, -0.1, 2.6])
     u = truth / np.linalg.norm(truth)
     across = lambda c: float(np.linalg.norm((c - truth) - ((c - truth) @ u) * u))
-    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
-    plain = dataclasses.replace(config, outline_evidence=False)
+    config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
+    plain = config.override({"outline.outline_evidence": False})
     gains = []
     for seed in range(3):
         frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed), config)
@@ -1022,7 +1024,7 @@ def test_outline_size_tells_a_ball_of_another_radius_where_depth_cannot():
     from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
-    config = config_for("improved", noise_z2_per_m=0.07 / 2.6 ** 2)
+    config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
     rho = float(np.linalg.norm(truth))
     for radius in (R, 0.15):
         for seed in range(2):
@@ -1039,7 +1041,7 @@ def test_detect_recentres_only_where_the_noise_nears_r():
     `train`), so a near ball's detection is the same with outline centring on or off."""
     cloud = scene(ball_c=(0.1, -0.05, 1.0), noise=0.002, width=424, height=240)
     on = detect(cloud, seed=0)
-    off = detect(cloud, config_for("improved", outline_noise_fraction=math.inf), seed=0)
+    off = detect(cloud, config_for("improved", outline={"outline_noise_fraction": math.inf}), seed=0)
     assert len(on) == len(off) == 1 and np.array_equal(on[0].center_m, off[0].center_m)
-    always = detect(cloud, config_for("improved", outline_noise_fraction=0.0), seed=0)
+    always = detect(cloud, config_for("improved", outline={"outline_noise_fraction": 0.0}), seed=0)
     assert len(always) == 1 and not np.array_equal(always[0].center_m, off[0].center_m)

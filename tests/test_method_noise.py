@@ -40,7 +40,7 @@ def test_measured_noise_matches_the_sensor_within_10_percent(width, height, subp
     true_a = sensor.sigma_z_m(1.0, cloud.intrinsics.fx)  # sigma_z / z^2
     assert frame.noise_a_measured == pytest.approx(true_a, rel=0.10)
     model_a = noise_a(cfg, cloud.intrinsics.fx)
-    if abs(frame.noise_a_measured / model_a - 1.0) > cfg.noise_model_tolerance:  # the kernels use it
+    if abs(frame.noise_a_measured / model_a - 1.0) > cfg.noise.noise_model_tolerance:  # the kernels use it
         assert frame.noise_a == frame.noise_a_measured and abs(subpixel - 0.08) > 0.01
     else:  # measured as the nominal unit: the model kept exactly
         assert frame.noise_a == model_a and subpixel == 0.08
@@ -48,14 +48,14 @@ def test_measured_noise_matches_the_sensor_within_10_percent(width, height, subp
 
 def test_the_override_and_a_frame_without_samples_use_the_configured_noise():
     cloud, _ = _wall_cloud(424, 240, 0.16, 0.0)
-    told = config_for("improved", noise_z2_per_m=0.01)
+    told = config_for("improved", noise={"noise_z2_per_m": 0.01})
     frame = PreparedFrame(cloud, told)
     assert frame.noise_a_measured is None and frame.noise_a == 0.01
     near, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=0.4, tilt_deg=0.0)  # nearer than noise_estimate_min_depth_m
     cfg = config_for("improved")
     frame = PreparedFrame(near, cfg)
     assert frame.noise_a_measured is None and frame.noise_a == noise_a(cfg, near.intrinsics.fx)
-    off = PreparedFrame(cloud, config_for("improved", noise_estimate=False))
+    off = PreparedFrame(cloud, config_for("improved", noise={"noise_estimate": False}))
     assert off.noise_a_measured is None and off.noise_a == noise_a(cfg, cloud.intrinsics.fx)
 
 
@@ -72,7 +72,7 @@ def test_measured_noise_correlation_matches_the_sensor_within_10_percent(width, 
         assert frame.noise_corr_px == 0.0
     else:
         assert frame.noise_corr_px == pytest.approx(true_px, rel=0.10)
-    assert PreparedFrame(cloud, config_for("improved", noise_correlation=False)).noise_corr_px == 0.0
+    assert PreparedFrame(cloud, config_for("improved", noise={"noise_correlation": False})).noise_corr_px == 0.0
 
 
 def test_effective_samples_of_correlated_noise():
@@ -107,7 +107,8 @@ def test_evidence_counts_effective_samples_and_the_noise_share():
     # sigma 0.12 m: the band 2.5 sigma is capped at 1.5 R = 1.5 sigma: 87 % of 98.8 % of the pixels, 6 % more behind
     p_in, q = imp.noise_shares({"sigma_m": 0.12}, cfg)
     assert p_in == pytest.approx(0.8664 / 0.9876, abs=1e-4) and q == pytest.approx(0.0668 - 0.0062, abs=1e-4)
-    assert imp.noise_shares({"sigma_m": 0.12}, config_for("improved", calibrate_evidence=False)) == (1.0, 0.0)
+    uncalibrated = config_for("improved", evidence={"calibrate_evidence": False})
+    assert imp.noise_shares({"sigma_m": 0.12}, uncalibrated) == (1.0, 0.0)
 
 
 def test_multistart_verification_only_where_noise_nears_the_radius():
@@ -127,10 +128,11 @@ def test_multistart_verification_only_where_noise_nears_the_radius():
     try:
         detect(cloud, cfg, seed=0)  # sigma at 2 m: 3 cm, a quarter of R
         assert not calls
-        detect(cloud, config_for("improved", multistart_noise_fraction=0.1), seed=0)
+        detect(cloud, config_for("improved", verification={"multistart_noise_fraction": 0.1}), seed=0)
         assert calls
     finally:
         imp.verify_multistart = real
     with pytest.raises(Exception, match="multistart_noise_fraction"):
-        config_for("improved", multistart_noise_fraction=0.0)
-    assert config_for("improved", multistart_noise_fraction=float("inf")).multistart_noise_fraction == float("inf")
+        config_for("improved", verification={"multistart_noise_fraction": 0.0})
+    never = config_for("improved", verification={"multistart_noise_fraction": float("inf")})
+    assert never.verification.multistart_noise_fraction == float("inf")

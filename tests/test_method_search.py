@@ -41,13 +41,14 @@ def test_compiled_search_equals_reference(ball, noise, seed, width, off_axis, oc
     # 30 degrees off the optical axis, searched with the stencil stretched as its silhouette is; the
     # last two searched as the detector's retries do (the descent's occluder bound)
     cloud = scene(ball_c=ball, noise=noise, width=width, height=width * 3 // 4, seed=seed)
-    cfg = config_for("improved", iterations=2000, adaptive=False, search_width_px=130, search_off_axis=off_axis)
+    cfg = config_for("improved", search={"iterations": 2000, "adaptive": False, "search_width_px": 130},
+                     stencil={"search_off_axis": off_axis})
     frame = det.prepare_frame(cloud, cfg)
     assert frame.bin == max(1, width // 130)
     cands, quals, _ = imp.search_frame(frame, cfg, seed, occluder_bound=occluder)
     prm = frame.prm.copy()
     prm[K.P_OCCLUDER_BOUND] = 1.0 if occluder else 0.0
-    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed, cfg.search_candidates)
+    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed, cfg.search.search_candidates)
     assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
     assert np.array_equal(frame.hypotheses, hyp)
     # and the best hypothesis is the ball (unrefined: from box means)
@@ -57,7 +58,7 @@ def test_compiled_search_equals_reference(ball, noise, seed, width, off_axis, oc
 def test_summed_area_table_gives_box_sums():
     cloud = scene(noise=0.01, width=100, height=60)
     for width_px, b in ((424, 1), (50, 2), (33, 3)):
-        frame = det.prepare_frame(cloud, config_for("improved", search_width_px=width_px))
+        frame = det.prepare_frame(cloud, config_for("improved", search={"search_width_px": width_px}))
         assert frame.bin == b
         grid = ref.Grid(*ref.cell_images(cloud.points, frame.index_image, b), frame.prm)
         for (v, u, h) in ((0, 0, 2), (10, 15, 3), (19, 33, 1), (5, 2, 0), (-4, 3, 2), (40, 40, 1)):
@@ -70,7 +71,7 @@ def test_summed_area_table_gives_box_sums():
     # depth sums and counts packed in one uint64 stay apart: a frame of 10 m depths (2.4e9 mm in all at 240 x 1000)
     far = Cloud(np.column_stack([np.zeros(240_000), np.zeros(240_000), np.full(240_000, 10.0)]),
                 np.repeat(np.arange(240), 1000), np.tile(np.arange(1000), 240), Intrinsics.d435(1000, 240))
-    frame = det.prepare_frame(far, config_for("improved", search_width_px=1000))
+    frame = det.prepare_frame(far, config_for("improved", search={"search_width_px": 1000}))
     assert K.box_sums(frame.tab, 120, 500, 10) == (441 * 10_000, 441, 441)
 
 
@@ -94,15 +95,16 @@ def test_strata_follow_the_ransac_bound():
     z_far = imp.far_depth_m(cfg, intr, 3.0)
     assert z_far == pytest.approx(3.12)
     r = intr.fx * R / 3.12
-    k = imp.stratum_side_ratio(cfg.sample_success, cfg.confidence)
+    k = imp.stratum_side_ratio(cfg.search.sample_success, cfg.search.confidence)
     assert imp.strata(cfg, intr, z_far, 1, grid) == (int(k * r), int(k * r))
     # k: the worst case over where the disc falls is within the confidence, a slightly larger one is not
-    assert imp.stratified_miss(k, cfg.sample_success) <= 1 - cfg.confidence < imp.stratified_miss(1.05 * k, 0.8)
+    search = cfg.search
+    assert imp.stratified_miss(k, search.sample_success) <= 1 - search.confidence < imp.stratified_miss(1.05 * k, 0.8)
     # independent draws (the area bound) would need strata of 0.74 r: half as many again
-    k_area = math.sqrt(cfg.sample_success * math.pi / -math.log(1 - cfg.confidence))
+    k_area = math.sqrt(cfg.search.sample_success * math.pi / -math.log(1 - cfg.search.confidence))
     assert k_area == pytest.approx(0.739, abs=1e-3) and k > 1.18 * k_area
     # a partly visible ball: the area bound, which holds for any shape
-    part = config_for("improved", bound_visible_fraction=0.5)
+    part = config_for("improved", search={"bound_visible_fraction": 0.5})
     s_part = imp.strata(part, intr, z_far, 1, grid)[0]
     assert s_part == int(math.sqrt(0.8 * 0.5 * math.pi * r * r / -math.log(0.01)))
     # a shallow scene needs fewer, larger strata; a deep one is capped by the noise range limit (3.5 m at 424x240)
@@ -113,9 +115,9 @@ def test_strata_follow_the_ransac_bound():
     hd = Intrinsics.d435(1280, 720)
     assert imp.strata(cfg, hd, z_far, 3, grid)[0] == int(k * hd.fx / 3 * R / 3.12)
     # without the bound: about `iterations` strata; never fewer than min_iterations
-    sv, su = imp.strata(config_for("improved", adaptive=False, iterations=400), intr, z_far, 1, grid)
+    sv, su = imp.strata(config_for("improved", search={"adaptive": False, "iterations": 400}), intr, z_far, 1, grid)
     assert 400 <= -(-240 // sv) * -(-424 // su) <= 520
-    sv, su = imp.strata(config_for("improved", min_iterations=2000), intr, 0.5, 1, grid)
+    sv, su = imp.strata(config_for("improved", search={"min_iterations": 2000}), intr, 0.5, 1, grid)
     assert -(-240 // sv) * -(-424 // su) >= 2000
 
 
@@ -208,9 +210,10 @@ def test_bad_organised_input():
     inf[::3] = np.inf
     out = detect(Cloud(inf, cloud.rows, cloud.cols, cloud.intrinsics), seed=0)
     assert all(np.all(np.isfinite(inf[s.inlier_indices])) for s in out)
-    for kw in ({"radius_m": 0.0}, {"eps_m": 0.12}, {"eps_m": 0.5}, {"confidence": 1.0}, {"pretest_slack": -1.0}, {"search_width_px": 4}):
+    for kw in ({"radius_m": 0.0}, {"eps_m": 0.12}, {"eps_m": 0.5}, {"search.confidence": 1.0}, {"search.pretest_slack": -1.0},
+               {"search.search_width_px": 4}):
         with pytest.raises(SphereBenchError):
-            config_for("improved", **kw)
+            config_for("improved", kw)
 
 
 def test_huge_cloud_is_bounded_by_max_points():
@@ -220,7 +223,7 @@ def test_huge_cloud_is_bounded_by_max_points():
     pts = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1, 1, n), np.full(n, 3.0)]).astype(np.float32)
     ball = cap_points(np.array([0.2, 0.1, 2.0]), R, 40_000, rng)
     cloud = Cloud(np.vstack([pts, ball]))
-    spheres = detect(cloud, config_for("improved", max_points=20_000), seed=0)
+    spheres = detect(cloud, config_for("improved", input={"max_points": 20_000}), seed=0)
     assert spheres and np.linalg.norm(spheres[0].center_m - [0.2, 0.1, 2.0]) < 0.005
     assert len(spheres[0].inlier_indices) > 30_000
 

@@ -18,7 +18,6 @@ the verification's evidence is the detector's.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Sequence
 
@@ -47,7 +46,7 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
         best = {"score": 0.0, "size_ok": False, "error_m": math.inf, "within": False, "separable": None}
         for off in offsets:
             v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
-            if v is not None and abs(v.score - config.min_score) < config.rescore_band:
+            if v is not None and abs(v.score - config.verification.min_score) < config.verification.rescore_band:
                 v = improved.rescore(frame, v, config, buf)
             if v is None:
                 continue
@@ -57,10 +56,10 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
             if (there and (not best["size_ok"] or best["error_m"] > CEILING_M or v.score > best["score"])) or (
                     not (best["size_ok"] and best["error_m"] <= CEILING_M) and err < best["error_m"]):
                 best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                        "within": bool(there and v.score >= config.min_score), "separable": None}
+                        "within": bool(there and v.score >= config.verification.min_score), "separable": None}
         out.append(best)
     if separable and out:
-        clutter = [s for s in detect(cloud, dataclasses.replace(config, min_score=0.0), seed=seed)
+        clutter = [s for s in detect(cloud, config.override({"verification.min_score": 0.0}), seed=seed)
                    if all(np.linalg.norm(s.center_m - np.asarray(c)) > CEILING_M for c in centres_m)]
         best_clutter = max((s.score for s in clutter), default=0.0)
         for r in out:

@@ -235,7 +235,7 @@ def detector_spec(name: str, **overrides) -> MethodSpec:
     """``improved`` / ``paper`` / ``paper-lstsq``: the 3D detector with that preset (fields overridden,
     e.g. radius_m for a dataset of another ball)."""
     cfg = config_for(name, **overrides)
-    return MethodSpec(name=name, kind="3d", config={"engine": "detector", "preset": name, **dataclasses.asdict(cfg)},
+    return MethodSpec(name=name, kind="3d", config={"engine": "detector", "preset": name, **cfg.flat()},
                       modules=_CORE_MODULES + ("spherebench.method",))
 
 
@@ -348,8 +348,7 @@ class DetectorAdapter:
     kind = "3d"
 
     def __init__(self, config: dict, resource: str | None = None):
-        fields = {f.name for f in dataclasses.fields(DetectorConfig)}
-        self.config = DetectorConfig(**{k: v for k, v in config.items() if k in fields})
+        self.config = DetectorConfig.from_flat(config)
         self.estimates_radius = self.config.pipeline == "improved"
 
     def load(self, scene_dir: Path):

@@ -180,8 +180,8 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
             base = config_for("improved", radius_m=R, eps_m=EPS_M)
             points = {}
             for t in min_scores:  # detections only: same seeds, another threshold
-                if t != base.min_score:
-                    spec = detector_spec("improved", radius_m=R, eps_m=EPS_M, min_score=t)
+                if t != base.verification.min_score:
+                    spec = detector_spec("improved", radius_m=R, eps_m=EPS_M, verification={"min_score": t})
                     points[t] = detection_counts(_rows(ex, spec, scenes, gts, seed, R))
             summ = {name: _summary(r) for name, r in rows.items() if r}
             if "pyransac3d" in summ:
@@ -197,11 +197,11 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
                     if s_imp["detection_rate"] else None,
                     "improved_detection_rate_same_scenes": s_imp["detection_rate"]}
             if min_scores and rows["improved"]:
-                points[base.min_score] = detection_counts(rows["improved"])
+                points[base.verification.min_score] = detection_counts(rows["improved"])
             result["datasets"][Path(ds).name] = {
                 "path": str(ds), "scenes": len(scenes), "radius_m": R, "subsets": {k: len(v) for k, v in runs.items()},
                 "summary": summ, "operating_points": [{"min_score": t, **points[t]} for t in sorted(points)],
-                "default_min_score": base.min_score, "rows": rows}
+                "default_min_score": base.verification.min_score, "rows": rows}
     sub = lambda k: "all" if k < 0 else f"{k} evenly spaced"  # noqa: E731
     result["notes"].append(f"paper and paper-lstsq ran on {sub(paper_subset)} scenes per dataset; pyransac3d on "
                            f"{sub(peer_subset)} scenes per dataset, fitting {peer_points} random points per cloud with "

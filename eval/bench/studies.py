@@ -4,7 +4,6 @@ with known centres (``oracle_balls``)."""
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import time
@@ -47,7 +46,7 @@ def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, wo
     """
     data_dir, cache_path = Path(data_dir), Path(cache_path)
     radius = float((inout.read_dataset_meta(data_dir) or {}).get("ball_radius_m", 0.12))
-    config = dataclasses.asdict(config_for("improved", radius_m=radius))
+    config = config_for("improved", radius_m=radius).flat()
     key = hashlib.sha256(json.dumps({"dataset": dataset_fingerprint(data_dir), "config": config, "seed": int(seed),
                                      "code": code_version(ORACLE_MODULES)}, sort_keys=True).encode()).hexdigest()
     if cache_path.is_file():
@@ -73,7 +72,7 @@ def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, wo
 def oracle_scene(task: tuple) -> list[dict]:
     """``oracle_balls``' rows of one scene (in a worker): task (config JSON, scene folder, seed)."""
     config_json, scene_dir, seed = task
-    config = DetectorConfig(**json.loads(config_json))
+    config = DetectorConfig.from_flat(json.loads(config_json))
     gt = inout.read_scene_gt(scene_dir)
     balls = [(k, b) for k, b in enumerate(gt.get("balls", [])) if b.get("center_m") is not None]
     if not balls:
@@ -120,13 +119,13 @@ def table2_scene(task: tuple) -> list[dict]:
     ransac_centre, rows = None, []
     # the paper pipeline's kernels loaded before the first timed row (a fresh checkout's first call
     # otherwise reads 1.1 s there, not 30 ms)
-    warm_up(config_for("paper", iterations=int(its)))
+    warm_up(config_for("paper", search={"iterations": int(its)}))
     for z in thresholds:
-        cfg = config_for("paper", zscore_threshold=float(z), iterations=int(its))
+        cfg = config_for("paper", paper={"zscore_threshold": float(z)}, search={"iterations": int(its)})
         t0 = time.perf_counter()
         found = detect(cloud, cfg, seed=s_seed)
         ms = 1000.0 * (time.perf_counter() - t0)
-        refined = detect(cloud, dataclasses.replace(cfg, refine="least_squares"), seed=s_seed)
+        refined = detect(cloud, cfg.override({"paper.refine": "least_squares"}), seed=s_seed)
         row = {"scene": scene_id, "z": float(z), "iterations": int(its), "seed": s_seed, "ms": ms}
         if found and refined:
             tr = found[0].trace

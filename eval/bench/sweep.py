@@ -6,23 +6,32 @@ in brackets where it differs, by the far rule: 3 cm for a ball deeper than 3 m),
 detections on the negative scenes, distractor balls rejected, and the same per scene family.
 Detections only, no timing: the scenes x seeds tasks run on the one task loop (``eval.bench.tasks``)
 over the executor's workers, scene k of run seed s with ``detection_seed(s, k)``.
-Overrides of the detector's configuration (``method.config.DetectorConfig`` fields) compare a
+Overrides of the detector's configuration (settings by path, ``verification.min_score``) compare a
 change over seeds: a difference of a ball or two at one seed is within what the seed alone moves.
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from spherebench import __version__
+from spherebench import __version__, options
 from spherebench.datasets import inout
 from spherebench.eval.bench.registry import detector_spec
 from spherebench.eval.bench.tasks import dataset_scenes, run_tasks, tasks_for
 from spherebench.eval.metrics.metrics3d import detection_counts, scene_counts
 from spherebench.method import config_for
+from spherebench.method.config import dotted_overrides
 from spherebench.parallel import executor
+
+
+def read_settings(items: list[str], command: str) -> dict:
+    """--set NAME=VALUE items as {path: value} (``options.parse_overrides``); a bare name of before the
+    configuration's groups is read as its path, with one deprecation line on stderr."""
+    return dotted_overrides(options.parse_overrides(items),
+                            lambda line: print(f"spherebench {command}: {line}", file=sys.stderr))
 
 
 def sweep(datasets: list[str], seeds: list[int], method: str = "improved", overrides: dict | None = None,
