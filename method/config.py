@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import operator
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -68,28 +69,31 @@ def _hints(cls) -> dict:
     return typing.get_type_hints(cls)
 
 
-def _group_problems(group, prefix: str, rules: Mapping[str, object], notes: Mapping[str, str] = {}) -> list[str]:
-    """The problems of one group: each field's type (from its annotation), then its rule; a float
-    must be finite unless its note says "inf"; ``None`` passes where the annotation allows it."""
-    hints = _hints(type(group))
+def _bad_value(path: str, v, kind: str, rule, note: str) -> str | None:
+    """A value of the right type against its rule; a float must be finite unless its note admits
+    infinity ("inf for never"), and then positive."""
+    tail = f" ({note})" if note else ""
+    if kind == "float" and not math.isfinite(v) and not (v > 0 and "inf" in note):
+        return f"{path}={v!r} must be {rule}{tail}" if "inf" in note else f"{path}={v!r} must be a finite number"
+    if isinstance(rule, tuple):
+        return None if v in rule else f"{path}={v!r} is not one of {', '.join(rule)}"
+    if rule is not None and _breaks(v, rule):
+        return f"{path}={v!r} must be {'within ' if rule[0] in '[(' else ''}{rule}{tail}"
+    return None
+
+
+def _group_problems(group, prefix: str, rules: Mapping[str, object], notes: Mapping[str, str]) -> list[str]:
+    """The problems of one group: each field's type (from its annotation), then its rule; ``None``
+    passes where the annotation allows it (``float | None``)."""
     out = []
     for f in dataclasses.fields(group):
-        v, path, note = getattr(group, f.name), prefix + f.name, notes.get(f.name, "")
-        kind = typing.get_args(hints[f.name])[0] if typing.get_origin(hints[f.name]) else hints[f.name]
-        if v is None and kind is not hints[f.name]:
+        v, hint = getattr(group, f.name), _hints(type(group))[f.name]
+        optional = typing.get_origin(hint) is not None
+        if v is None and optional:
             continue
-        kind = kind.__name__
-        problem = _bad_type(path, v, kind)
-        if problem is None and kind == "float" and not math.isfinite(v) and not (v > 0 and "inf" in note):
-            rule = rules.get(f.name)
-            problem = (f"{path}={v!r} must be {rule}{f' ({note})' if note else ''}" if "inf" in note
-                       else f"{path}={v!r} must be a finite number")
-        rule = rules.get(f.name)
-        if problem is None and isinstance(rule, tuple) and v not in rule:
-            problem = f"{path}={v!r} is not one of {', '.join(rule)}"
-        elif problem is None and isinstance(rule, str) and _breaks(v, rule):
-            within = "within " if rule[0] in "[(" else ""
-            problem = f"{path}={v!r} must be {within}{rule}{f' ({note})' if note else ''}"
+        kind = (typing.get_args(hint)[0] if optional else hint).__name__
+        problem = _bad_type(prefix + f.name, v, kind) or _bad_value(prefix + f.name, v, kind, rules.get(f.name),
+                                                                   notes.get(f.name, ""))
         if problem:
             out.append(problem)
     return out
@@ -466,10 +470,9 @@ class DetectorConfig:
 
     def get(self, path: str):
         """A setting by its path ("verification.min_score", or a model field such as "radius_m")."""
-        value = self
-        for part in PATHS[path].split("."):
-            value = getattr(value, part)
-        return value
+        if path not in PATHS:
+            raise SphereBenchError(f"unknown detector parameter {path}")
+        return operator.attrgetter(path)(self)
 
     def override(self, changes: Mapping[str, object]) -> DetectorConfig:
         """This configuration with settings changed: {path: value}, a path "group.field" or a model

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 from statistics import NormalDist
 import threading
 from dataclasses import dataclass
@@ -183,6 +184,11 @@ def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
                              config.noise.max_eps_fraction * config.radius_m))
 
 
+#: The parameter vector's slots that hold a setting (``_kernels.PARAMETERS``), and the settings' getters.
+_SETTING_SLOTS = np.array([i for i, (_, path) in enumerate(K.PARAMETERS) if path], np.intp)
+_SETTING_GETTERS = tuple(operator.attrgetter(path) for _, path in K.PARAMETERS if path)
+
+
 def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: int, grid_shape: tuple,
                z_far_m: float, a: float | None = None, corr_px: float = 0.0) -> np.ndarray:
     """The float64 parameter vector (``_kernels.N_PRM``,) of the organised kernels; a: the frame's
@@ -190,9 +196,7 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     length (stream pixels), which widens the search's box-mean tolerances."""
     a = noise_a(config, float(intr.fx)) if a is None else a
     prm = np.zeros(K.N_PRM, np.float64)
-    for index, (_, setting) in enumerate(K.PARAMETERS):  # the slots that hold a setting
-        if setting is not None:
-            prm[index] = config.get(setting)
+    prm[_SETTING_SLOTS] = [get(config) for get in _SETTING_GETTERS]  # the slots that hold a setting
     R = config.radius_m
     prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY] = intr.fx, intr.fy, intr.ppx, intr.ppy
     prm[K.P_NOISE_A] = a
