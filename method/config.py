@@ -262,7 +262,7 @@ class Verification(_Group):
     rescore_band: float = 0.15  # re-verify from six starts a candidate scoring within this of min_score
     rescore_offset_xy: float = 0.2  # the six starts' offsets across the line of sight (fraction of R)
     rescore_offset_z: float = 0.33  # ... and along it (fraction of R)
-    multistart_noise_fraction: float = 0.5  # while none is accepted, verify from seven starts above this noise / R
+    multistart_noise_fraction: float = 0.5  # while none is accepted, seven starts where noise exceeds this * R
     occluded_push_fraction: float = 0.5  # an occluded hypothesis failing: verified again pushed back by this * R ...
     occluded_push_starts: int = 4  # ... from up to this many starts (0: off) ...
     occluded_push_noise_fraction: float = 0.25  # ... where one pixel's noise is below this * R
@@ -311,9 +311,9 @@ class Refinement(_Group):
 class Outline(_Group):
     """Organised clouds at high noise: the centre and size from the ball's outline (depth steps)."""
 
-    outline_noise_fraction: float = 0.25  # re-centre a reported sphere on its outline above this noise / R
-    outline_evidence: bool = True  # re-verify a hypothesis on its outline's ray above the next noise ...
-    outline_evidence_noise_fraction: float = 0.5  # ... this noise / R
+    outline_noise_fraction: float = 0.25  # re-centre a reported sphere on its outline where noise >= this * R
+    outline_evidence: bool = True  # verify a hypothesis again centred on its outline's ray ...
+    outline_evidence_noise_fraction: float = 0.5  # ... where one pixel's noise is at least this * R ...
     outline_evidence_min_move_px: float = 0.25  # ... not where the outline moves the centre less (px)
     outline_evidence_min_score: float = 0.05  # ... nor where the first verification scores below this
     outline_size: bool = True  # take the outline's radius for the size check where all four quarters are seen

@@ -602,8 +602,8 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
     clouds: interior, (1 - min(1, q))^interior_density_power, q the density of points in the ball's
     inner half over that in its shell (a wall it cuts, volumetric noise: a real ball hides its
     interior). size (with ``size_check``): exp(-d^2 / 2), d the free radius's deviation from R in
-    units of (``size_tolerance`` + its standard error). Every exponent and allowance is a
-    ``DetectorConfig`` field (Evidence)."""
+    units of (``size_tolerance`` + its standard error). Every exponent and allowance is a setting
+    of ``DetectorConfig.evidence``."""
     f = {"support": n_inliers / (n_inliers + config.verification.min_inliers)}
     # the free radius's deviation from R in units of the size tolerance and its standard error
     se = free_se if math.isfinite(free_se) else config.radius_m
