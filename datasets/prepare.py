@@ -47,7 +47,7 @@ import numpy as np
 from spherebench import __version__
 from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics, align_to_depth, project
 from spherebench.cloud import Cloud, depth_to_metres
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs, recordings
 from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
 from spherebench.datasets.scene import Scene
 from spherebench.errors import SphereBenchError
@@ -392,7 +392,7 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
     metres of the depth scale used) and, in meta, which colour frame it is and what the alignment
     did."""
     stem = scene_id_from(path.stem)
-    recording = inout.BagRecording(path)
+    recording = recordings.BagRecording(path)
     notes = (recording.colour_note,) if recording.colour_note else ()
     colour = recording.colour
     for bag_frame, rel in selection.apply(recording.frames(stop_after=selection.stop), path.name):
@@ -412,7 +412,7 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
                     depth=bag_frame.depth, meta=meta, colour=aligned, no_colour=bag_frame.no_colour, notes=notes)
 
 
-def _colour_meta(colour: inout.BagColour, frame: inout.BagFrame) -> dict:
+def _colour_meta(colour: recordings.BagColour, frame: recordings.BagFrame) -> dict:
     """What a scene records of its colour frame: which one, its offset in time, the stream."""
     offset = None if frame.colour_timestamp_ms is None else round(frame.colour_timestamp_ms - frame.timestamp_ms, 6)
     intrinsics = colour.intrinsics.to_dict()
@@ -827,7 +827,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
     no_colour, fits, unfit = [], [], []  # frames without their colour image; mask-fit SEs (m); balls without
     # annotations read from out_dir itself (the LabelMe round trip) are carried into the new dataset
     carried = options.labelme_dir is not None and Path(options.labelme_dir).resolve() == out_dir.resolve()
-    with inout.atomic_directory(out_dir, lambda d: inout.replaceable_dataset(d, labelme_carried=carried)) as tmp:
+    with outputs.atomic_directory(out_dir, lambda d: outputs.replaceable_dataset(d, labelme_carried=carried)) as tmp:
         for frame in _progress(plan.frames, plan.total):
             if frame.scene_id in seen:
                 raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "
@@ -894,7 +894,7 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
                 # where LabelMe looks when that image is reopened
                 doc = inout.read_labelme(labelme)
                 drawn = Path(str(doc.get("imagePath") or "").replace("\\", "/")).name
-                on_colour = colour is not None and drawn in (*inout.COLOUR_FILES, *names[len(frame.image_names):])
+                on_colour = colour is not None and drawn in (*outputs.COLOUR_FILES, *names[len(frame.image_names):])
                 kept = colour_name if on_colour else "image.png"
                 doc["imagePath"] = kept
                 inout.write_json(scene_dir / (Path(kept).stem + ".json"), doc, indent=2)

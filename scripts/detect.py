@@ -34,7 +34,7 @@ import numpy as np
 from spherebench import options, viz
 from spherebench.cli import BadInputs
 from spherebench.cloud import in_front_of_camera
-from spherebench.datasets import depth_frames, inout
+from spherebench.datasets import depth_frames, detections, inout, outputs
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
 from spherebench.datasets.prepare import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colorize_depth
@@ -145,24 +145,24 @@ def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
     if outs and len(args.paths) != 1:
         raise SphereBenchError("--out-ply and --out-png take one input: give one PATH")
     sources = [Path(p).resolve() for p in (*args.paths, *([args.intrinsics] if args.intrinsics else []))]
-    inout.check_output_files(outs, sources, args.force)
+    outputs.check_output_files(outs, sources, args.force)
     if args.rerun_save is not None:
         if not args.rerun_save.strip():
             raise SphereBenchError("--rerun-save is empty (an unset shell variable?): give a file name ending in .rrd")
         out = Path(args.rerun_save)
-        inout.check_regular(out, "--rerun-save")
+        outputs.check_regular(out, "--rerun-save")
         if any(out.resolve() == src or src in out.resolve().parents for src in sources):
             raise SphereBenchError(f"--rerun-save {out} is an input or inside one: write it elsewhere")
-        inout.check_not_in_dataset(out, "--rerun-save")
+        outputs.check_not_in_dataset(out, "--rerun-save")
     if args.rerun_save and Path(args.rerun_save).suffix != ".rrd":
         raise SphereBenchError(f"--rerun-save {args.rerun_save}: give a file name ending in .rrd")
     if args.rerun_save and Path(args.rerun_save).exists() and Path(args.rerun_save).stat().st_size:
         raise SphereBenchError(f"--rerun-save {args.rerun_save} exists; it is never overwritten: give a new name")
     if args.labelme_out is not None:
-        inout.check_output_dir(args.labelme_out, inout.owned_by_kind(LABELME_KIND), "--labelme-out", args.paths)
+        outputs.check_output_dir(args.labelme_out, outputs.owned_by_kind(LABELME_KIND), "--labelme-out", args.paths)
 
 
-#: The kind of a --labelme-out folder (inout.OWNER_MARKER): replaced by a later run, never another's files.
+#: The kind of a --labelme-out folder (outputs.OWNER_MARKER): replaced by a later run, never another's files.
 LABELME_KIND = "detect-labelme"
 
 
@@ -207,17 +207,17 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _spheres_json(spheres) -> list[dict]:
-    return [inout.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices),
-                                   s.evidence.get("visible_fraction"))
+    return [detections.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices),
+                                        s.evidence.get("visible_fraction"))
             for s in spheres]
 
 
 def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None) -> None:
     if args.json:
-        print(json.dumps(inout.frame_record(raw, _spheres_json(spheres), ms,
-                                            frame=None if frame is None else frame.number,
-                                            timestamp_ms=None if frame is None else frame.timestamp_ms,
-                                            radius_m=radius, radius_source=source)), flush=True)
+        print(json.dumps(detections.frame_record(raw, _spheres_json(spheres), ms,
+                                                 frame=None if frame is None else frame.number,
+                                                 timestamp_ms=None if frame is None else frame.timestamp_ms,
+                                                 radius_m=radius, radius_source=source)), flush=True)
         return
     parts = [f"({s.center_m[0]:+.3f}, {s.center_m[1]:+.3f}, {s.center_m[2]:.3f}) m score {s.score:.2f} "
              f"{len(s.inlier_indices)} inliers" for s in spheres]
@@ -233,7 +233,7 @@ def _labelme(out_dir: Path | None, scene_id: str, spheres, shape) -> None:
     circles = [s.circle_exact for s in spheres if s.circle_exact is not None]
     scores = [f"score {s.score:.3f}" for s in spheres if s.circle_exact is not None]
     doc = labelme_from_circles(circles, "image.png", shape, descriptions=scores)
-    inout.atomic_write_bytes(out_dir / f"{scene_id}.json", labelme_text(doc).encode())
+    outputs.atomic_write_bytes(out_dir / f"{scene_id}.json", labelme_text(doc).encode())
 
 
 def _stream_summary(raw: str, times_ms, stats: depth_frames.StreamStats, real_time: bool) -> None:
@@ -300,7 +300,7 @@ def run(args: argparse.Namespace) -> int:
     log = None
     if args.rerun or args.rerun_save:
         log = viz.RerunLog("spherebench detect", save=args.rerun_save, spawn=args.rerun)
-    labelme_ctx = (inout.atomic_directory(args.labelme_out, inout.owned_by_kind(LABELME_KIND))
+    labelme_ctx = (outputs.atomic_directory(args.labelme_out, outputs.owned_by_kind(LABELME_KIND))
                    if args.labelme_out is not None else contextlib.nullcontext())
     configs: dict = {}
 
@@ -313,8 +313,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with labelme_ctx as labelme_dir:
             if labelme_dir is not None:
-                inout.write_json(Path(labelme_dir) / inout.OWNER_MARKER, {"kind": LABELME_KIND,
-                                                                           "written_by": "spherebench"})
+                outputs.write_owner_marker(labelme_dir, LABELME_KIND)
             for raw, path, radius, source, eps, streamed in jobs:
                 try:
                     if streamed is not None:
@@ -358,7 +357,7 @@ def run(args: argparse.Namespace) -> int:
                     if args.out_png:
                         drawn = draw_detections(image, [s.circle_exact for s in spheres], [s.score for s in spheres])
                         files[Path(args.out_png)] = inout.encode_png(drawn, args.out_png, mark=True)
-                    inout.replace_files(files)
+                    outputs.replace_files(files)
                 except (SphereBenchError, OSError) as exc:
                     bad.skip(raw, exc)
     except BaseException as exc:
