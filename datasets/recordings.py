@@ -268,9 +268,10 @@ def _played_items(items: queue.Queue, playback, rs, stall_timeout_s: float, path
 
 class _ColourPairing:
     """Depth frames as BagFrames, in recording order, each with the colour frame nearest to it in
-    time (BagRecording says why by timestamp). A depth frame waits until a colour frame at or after it has arrived, or until more than
-    BAG_PENDING_DEPTH_FRAMES wait; the latest BAG_COLOUR_HISTORY colour frames are kept for pairing.
-    Without a colour stream (``colour`` None) each depth frame is handed on at once."""
+    time (BagRecording says why by timestamp). A depth frame waits until a colour frame at or after
+    it has arrived, or until more than BAG_PENDING_DEPTH_FRAMES wait; the latest BAG_COLOUR_HISTORY
+    colour frames are kept for pairing. Without a colour stream (``colour`` None) each depth frame
+    is handed on at once."""
 
     def __init__(self, colour: BagColour | None, depth_scale: float, path: Path):
         self.colour, self.depth_scale, self.path = colour, depth_scale, path
