@@ -16,8 +16,8 @@ Dataset layout (simulated and recorded alike)::
 Writes are atomic, through ``spherebench.datasets.outputs`` (which also says what may be replaced):
 a file is written to a temporary name and renamed; a scene folder and a whole dataset are built
 under a temporary name and renamed when complete, so an interrupted or failed run leaves nothing
-half-written behind. RealSense recordings are read by ``spherebench.datasets.recordings``, the
-detectors' JSON lines written by ``spherebench.datasets.detections``.
+half-written behind. RealSense recordings are played back by ``spherebench.datasets.recordings``;
+the detectors' JSON records are ``spherebench.datasets.detections``'.
 """
 
 from __future__ import annotations
@@ -645,7 +645,7 @@ def read_coco_gt(dataset_dir: str | Path) -> dict:
 
 
 # --------------------------------------------------------------------------- recorded-data readers
-# (added for `spherebench prepare`: raw frames, lenient camera JSON, PCD, LabelMe, RealSense bags)
+# (what `spherebench prepare` reads: raw frames, lenient camera JSON, PCD, LabelMe)
 
 RAW_DTYPES = {"uint16": "u2", "float32": "f4"}
 RAW_BYTE_ORDERS = {"little": "<", "big": ">"}
