@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from spherebench.circles import sphere_circle_exact
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.cache import meta_path
 from spherebench.eval.bench.registry import PAPER_CIRCLE, ROLE_LEARNED_2D, methods_with_role, training_presets
@@ -53,7 +53,7 @@ def _labelme_copies(scenes) -> dict[str, dict]:
     """{scene id: the LabelMe document prepare kept in the scene folder} of the annotated scenes."""
     out = {}
     for s in scenes:
-        for name in inout.LABELME_FILES:
+        for name in outputs.LABELME_FILES:
             if s.annotated and (s.path / name).is_file():
                 out[s.scene_id] = inout.read_json(s.path / name)
                 break
@@ -109,7 +109,7 @@ def facts(data_dir: str | Path) -> dict | None:
            "n_scenes": len(scenes), "annotated": sum(s.annotated for s in scenes),
            "image_less": sum(not s.has_image for s in scenes),
            "resolution": next((s.resolution for s in scenes if s.resolution), None),
-           "colour": sum(any((s.path / name).is_file() for name in inout.COLOUR_FILES) for s in scenes),
+           "colour": sum(any((s.path / name).is_file() for name in outputs.COLOUR_FILES) for s in scenes),
            "annotations": annotation_source(meta.get("name") or root.name, scenes)}
     se, ratios, offsets, authors = [], [], [], []
     n_balls = n_fit = 0
