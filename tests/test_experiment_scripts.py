@@ -69,7 +69,7 @@ def test_per_ball_totals_are_the_sweeps_and_the_ab_is_consistent(train4, tmp_pat
 
 
 def test_oracle_ceiling_rows_follow_the_acceptance_rule(train4, tmp_path, capsys):
-    res, text = _run("oracle_ceiling", [str(train4), "--factors"], tmp_path, capsys)
+    res, text = _run("oracle_ceiling", [str(train4), "--factors", "--by-noise", "0,0.2,1"], tmp_path, capsys)
     min_score = config_for("improved").min_score
     assert len(res["balls"]) == 4 and sum(g["balls"] for g in res["by_family"]) == 4
     for r in res["balls"]:
@@ -81,7 +81,11 @@ def test_oracle_ceiling_rows_follow_the_acceptance_rule(train4, tmp_path, capsys
         assert all(0.0 <= v <= 1.0 for v in t["factors"].values())  # support too: the others' product >= score
         assert 0.5 < t["factors"]["support"] and math.prod(t["factors"].values()) == pytest.approx(t["score"])
         assert 0.0 <= t["visible_fraction"] <= 1.0 and abs(t["free_radius_mm"] - 120.0) < 60.0
+        assert r["accepted_far_rule"] >= r["accepted"]
     assert sum(r["accepted"] for r in res["balls"]) >= 3  # from the truth, these near balls verify
+    for table in (res["by_family"], res["by_noise"]):
+        assert sum(g["balls"] for g in table) == 4
+        assert all(g["truth_accepted"] <= g["balls"] and g["accepted"] <= g["within_2cm"] for g in table)
     assert "| family | balls |" in text
 
 

@@ -34,7 +34,8 @@ from spherebench import options
 from spherebench.datasets import inout
 from spherebench.eval.bench.registry import detector_spec
 from spherebench.eval.bench.tasks import run_tasks, tasks_for
-from spherebench.eval.metrics.metrics3d import MATCH_GATE_M, detection_counts, scene_counts
+from spherebench.eval.metrics.metrics3d import (FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M, MATCH_GATE_M, detection_counts,
+                                                scene_counts)
 from spherebench.parallel import executor
 
 NOISE_EDGES = "0,0.1,0.2,0.25,0.3,0.35,0.4,0.5,0.7,1.0"
@@ -58,9 +59,10 @@ def run_config(ex, dataset: str, scenes, seeds: list[int], method: str, override
             balls.append({"scene": scene.path.name, "family": scene.family, "ball": k, "seed": seed,
                           "z_m": float(centre[2]), "noise_r": support.pixel_noise_over_r(scene, centre, config),
                           "error_mm": 1e3 * err if math.isfinite(err) else None,
-                          "found": bool(err <= 0.02),
-                          "found_far_rule": bool(err <= (0.03 if centre[2] > 3.0 else 0.02)),
-                          "score": None if nearest is None else float(nearest["score"])})
+                          "found": bool(err <= FOUND_M),
+                          "found_far_rule": bool(err <= (FOUND_FAR_M if centre[2] > FAR_RULE_FROM_M else FOUND_M)),
+                          "score": None if nearest is None else float(nearest["score"]),
+                          "sensor_cell": scene.sensor_cell})
     return {"method": method, "overrides": overrides, "balls": balls, "scenes": scene_rows}
 
 
