@@ -45,7 +45,7 @@ def test_every_script_says_what_it_measures_and_how_to_run_it():
 
 
 def test_per_ball_totals_are_the_sweeps_and_the_ab_is_consistent(train4, tmp_path, capsys):
-    res, text = _run("per_ball", [str(train4), "--seeds", "0", "--workers", "1", "--set-b", "min_score=0.9",
+    res, text = _run("per_ball", [str(train4), "--seeds", "0", "--workers", "1", "--set-b", "min_score=0.9", "--frame-noise",
                                   "--by-noise"], tmp_path, capsys)
     a, b = res["a"], res["b"]
     assert len(a["balls"]) == len(b["balls"]) == 4  # one ball per scene, one seed

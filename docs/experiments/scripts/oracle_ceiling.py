@@ -6,7 +6,8 @@ the best score ending within 2 cm, whether the size check passed, the refined ce
 *accepted* (within 2 cm, size check passed, score at least ``min_score``: the detector would
 report it; beside it by issue 20's far rule, 3 cm beyond 3 m) and *separable* (its score beats every clutter sphere the detector verifies in that
 frame with ``min_score`` 0: some threshold would take it and no false detection of the frame).
-Beside it, one pixel's depth noise at the ball over R (the nominal model). ``--factors`` also
+Beside it, one pixel's depth noise at the ball over R (the nominal model; ``--frame-noise``: the
+frame's own). ``--factors`` also
 verifies each ball once from its true centre alone (no early stop) and takes that verification's
 score apart into its factors (``improved.confidence_factors``: coverage, behind, ring_continued,
 size...; the support factor, n / (n + min_inliers), as the score over the others' product), with
@@ -56,7 +57,8 @@ def truth_factors(cloud, centre_m, config) -> dict:
             "factors": {k: float(x) for k, x in factors.items()}}
 
 
-def ceiling_rows(dataset: str, scenes, config, seed: int, separable: bool, factors: bool) -> list[dict]:
+def ceiling_rows(dataset: str, scenes, config, seed: int, separable: bool, factors: bool,
+                 frame_noise: bool = False) -> list[dict]:
     """Per ball: the oracle's ceiling row (and with ``factors`` the verification from the truth, taken apart)."""
     rows = []
     with single_thread_here():
@@ -68,11 +70,12 @@ def ceiling_rows(dataset: str, scenes, config, seed: int, separable: bool, facto
                 continue
             cloud = inout.load_cloud(scene.path)
             centres = [b["center_m"] for _, b in balls]
+            a = support.scene_noise_a(scene, config, frame_noise)
             found = ceiling(cloud, centres, config, seed=detection_seed(seed, scene.index), separable=separable)
             for (k, b), o in zip(balls, found):
                 row = {"scene": scene.path.name, "family": scene.family, "ball": k,
                        "radius_m": float(b.get("radius_m", config.radius_m)), "z_m": float(b["center_m"][2]),
-                       "noise_r": support.pixel_noise_over_r(scene, b["center_m"], config),
+                       "noise_r": support.noise_over_r(a, b["center_m"], config),
                        "score": o["score"], "size_ok": o["size_ok"],
                        "error_mm": 1e3 * o["error_m"] if math.isfinite(o["error_m"]) else None,
                        "accepted": o["within"], "separable": o["separable"], "sensor_cell": scene.sensor_cell}
@@ -140,12 +143,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--factors", action="store_true", help="each ball's factors, verified from its true centre")
     p.add_argument("--by-noise", default=None, type=support.parse_edges, metavar="EDGES",
                    help="add a table by one pixel's noise over R at the ball, e.g. 0,0.5,0.8,1.2")
+    support.add_noise_argument(p)
     support.add_json_argument(p)
     args = p.parse_args(argv)
     overrides = options.parse_overrides(args.overrides)
     config = support.detector_config(args.dataset, overrides)
     scenes = support.frame_scenes(args.dataset, args.limit, args.family)
-    rows = ceiling_rows(args.dataset, scenes, config, args.seed, not args.no_separable, args.factors)
+    rows = ceiling_rows(args.dataset, scenes, config, args.seed, not args.no_separable, args.factors,
+                        args.frame_noise)
     result = {"dataset": str(args.dataset), "scenes": len(scenes), "overrides": overrides, "seed": args.seed,
               "separable": not args.no_separable, "balls": rows,
               "by_family": summary(rows, lambda r: r["family"], config.min_score)}

@@ -3,8 +3,9 @@
 For every ball of every scene with a depth frame, at every run seed: the nearest detection's centre
 error, whether it lies within 2 cm (found), or 3 cm for a ball deeper than 3 m (the far rule), that
 detection's score, the ball's depth and one pixel's depth noise there over R (the configuration's
-nominal noise model). Per scene: false detections (farther than 2 cm from every ball), clutter
-(farther than R from every ball), and the distractor balls accepted. Scene k of run seed s is
+nominal noise model; ``--frame-noise``: the frame's own, as the kernels take it). Per scene: false
+detections (farther than 2 cm from every ball), clutter (farther than R from every ball), and the
+distractor balls accepted. Scene k of run seed s is
 detected with ``detection_seed(s, k)`` on the benchmark's task loop, so the totals are
 ``spherebench sweep``'s on the same scenes.
 
@@ -41,9 +42,11 @@ from spherebench.parallel import executor
 NOISE_EDGES = "0,0.1,0.2,0.25,0.3,0.35,0.4,0.5,0.7,1.0"
 
 
-def run_config(ex, dataset: str, scenes, seeds: list[int], method: str, overrides: dict) -> dict:
+def run_config(ex, dataset: str, scenes, seeds: list[int], method: str, overrides: dict,
+               frame_noise: bool = False) -> dict:
     """One configuration on ``scenes`` at every seed: {"balls": per-ball rows, "scenes": per-scene rows}."""
     config = support.detector_config(dataset, overrides, method)
+    noise = {s.scene_id: support.scene_noise_a(s, config, frame_noise) for s in scenes}
     spec = detector_spec(method, **{"radius_m": config.radius_m, **overrides})
     gts = {s.scene_id: inout.read_scene_gt(s.path) for s in scenes}
     records = run_tasks(ex, [t for seed in seeds for t in tasks_for(spec, scenes, seed)])
@@ -57,7 +60,7 @@ def run_config(ex, dataset: str, scenes, seeds: list[int], method: str, override
         for k, (centre, err) in enumerate(zip(centres, counts["errs"])):
             nearest = min(dets, key=lambda d: np.linalg.norm(np.subtract(d["center_m"], centre)), default=None)
             balls.append({"scene": scene.path.name, "family": scene.family, "ball": k, "seed": seed,
-                          "z_m": float(centre[2]), "noise_r": support.pixel_noise_over_r(scene, centre, config),
+                          "z_m": float(centre[2]), "noise_r": support.noise_over_r(noise[scene.scene_id], centre, config),
                           "error_mm": 1e3 * err if math.isfinite(err) else None,
                           "found": bool(err <= FOUND_M),
                           "found_far_rule": bool(err <= (FOUND_FAR_M if centre[2] > FAR_RULE_FROM_M else FOUND_M)),
@@ -164,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--by-noise", nargs="?", const=NOISE_EDGES, default=None, type=support.parse_edges,
                    metavar="EDGES", help=f"add the table by sigma_z / R (bin edges; default {NOISE_EDGES})")
     p.add_argument("--list", action="store_true", help="print every ball's row")
+    support.add_noise_argument(p)
     p.add_argument("--workers", type=options.workers, default=2, help="worker processes (1: this process)")
     support.add_json_argument(p)
     args = p.parse_args(argv)
@@ -177,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"dataset": str(args.dataset), "scenes": len(scenes), "seeds": seeds, "list": args.list}
     with executor(args.workers) as ex:
         for name, (method, overrides) in configs.items():
-            run = run_config(ex, args.dataset, scenes, seeds, method, overrides)
+            run = run_config(ex, args.dataset, scenes, seeds, method, overrides, args.frame_noise)
             run["totals"] = totals(run, seeds)
             result[name] = run
     if "b" in result:

@@ -17,6 +17,7 @@ from spherebench.datasets import inout
 from spherebench.eval.bench.tasks import SceneInfo, dataset_scenes
 from spherebench.method import config_for
 from spherebench.method.config import DetectorConfig
+from spherebench.method.detector import prepare_frame
 from spherebench.method.improved import noise_a
 
 
@@ -66,13 +67,26 @@ def detector_config(dataset: str | Path, overrides: dict, method: str = "improve
     return config_for(method, **{"radius_m": dataset_radius(dataset), **overrides})
 
 
-def pixel_noise_over_r(scene: SceneInfo, centre_m, config: DetectorConfig) -> float:
-    """One pixel's depth noise at the ball over R, by the configuration's nominal noise model
-    (sigma_z = A z^2, ``improved.noise_a``): how noisy the ball looks to the detector's tolerances."""
+def add_noise_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--frame-noise", action="store_true",
+                   help="one pixel's noise by the frame's own A (what the kernels use), not the nominal model's")
+
+
+def scene_noise_a(scene: SceneInfo, config: DetectorConfig, frame: bool = False) -> float:
+    """sigma_z / z^2 (1/m) of a scene: the configuration's nominal model (``improved.noise_a``), or with
+    ``frame`` the prepared frame's (``PreparedFrame.noise_a``: its own measured A where it differs from
+    the model's by more than ``noise_model_tolerance``, as the kernels take it). NaN without intrinsics."""
     if not (scene.path / "intrinsics.json").is_file():
         return math.nan
-    fx = float(inout.read_intrinsics(scene.path / "intrinsics.json").fx)
-    return noise_a(config, fx) * float(centre_m[2]) ** 2 / config.radius_m
+    if frame:
+        return float(prepare_frame(inout.load_cloud(scene.path), config).noise_a)
+    return noise_a(config, float(inout.read_intrinsics(scene.path / "intrinsics.json").fx))
+
+
+def noise_over_r(a: float, centre_m, config: DetectorConfig) -> float:
+    """One pixel's depth noise at the ball, sigma_z = A z^2, over R: how noisy the ball looks to the
+    detector's tolerances."""
+    return a * float(centre_m[2]) ** 2 / config.radius_m
 
 
 def noise_bin(value: float, edges: list[float]) -> str:
