@@ -45,8 +45,8 @@ def test_every_script_says_what_it_measures_and_how_to_run_it():
 
 
 def test_per_ball_totals_are_the_sweeps_and_the_ab_is_consistent(train4, tmp_path, capsys):
-    res, text = _run("per_ball", [str(train4), "--seeds", "0", "--workers", "1", "--set-b", "min_score=0.9", "--frame-noise",
-                                  "--by-noise"], tmp_path, capsys)
+    res, text = _run("per_ball", [str(train4), "--seeds", "0", "--workers", "1", "--set-b", "min_score=0.9",
+                                  "--frame-noise", "--by-noise", "--list"], tmp_path, capsys)
     a, b = res["a"], res["b"]
     assert len(a["balls"]) == len(b["balls"]) == 4  # one ball per scene, one seed
     for r in a["balls"] + b["balls"]:
@@ -65,7 +65,7 @@ def test_per_ball_totals_are_the_sweeps_and_the_ab_is_consistent(train4, tmp_pat
     only_b = sum(r["found_by"] == "B" for r in res["differ"])
     assert only_a - only_b == mine["found"] - b["totals"]["0"]["found"]
     assert sum(g["balls"] for g in res["by_noise"]["a"]) == 4
-    assert "Balls found by A only" in text and "| sigma_z / R |" in text
+    assert "Balls found by A only" in text and "| sigma_z / R |" in text and sum(line.startswith("| A | ") for line in text.splitlines()) == 4
 
 
 def test_oracle_ceiling_rows_follow_the_acceptance_rule(train4, tmp_path, capsys):

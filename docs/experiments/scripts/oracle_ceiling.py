@@ -4,8 +4,9 @@ For every ball of every scene with a depth frame, ``eval.bench.oracle.ceiling`` 
 its true centre and the six rescore starts about it (the search cannot lose it then) and gives:
 the best score ending within 2 cm, whether the size check passed, the refined centre's error,
 *accepted* (within 2 cm, size check passed, score at least ``min_score``: the detector would
-report it; beside it by issue 20's far rule, 3 cm beyond 3 m) and *separable* (its score beats every clutter sphere the detector verifies in that
-frame with ``min_score`` 0: some threshold would take it and no false detection of the frame).
+report it; beside it by issue 20's far rule, 3 cm beyond 3 m) and *separable* (its score beats
+every clutter sphere the detector verifies in that frame with ``min_score`` 0: some threshold
+would take it and no false detection of the frame).
 Beside it, one pixel's depth noise at the ball over R (the nominal model; ``--frame-noise``: the
 frame's own). ``--factors`` also
 verifies each ball once from its true centre alone (no early stop) and takes that verification's
@@ -122,7 +123,8 @@ def markdown(result: dict) -> str:
                                      g["separable"] if result["separable"] else None,
                                      *((g["truth_accepted"], g["truth_within_2cm"]) if one else ())))
         lines.append("")
-    lines += ["| scene | ball | depth m | sigma_z/R | score | size ok | error mm | accepted | separable | factors below 0.97 |",
+    lines += ["| scene | ball | depth m | sigma_z/R | score | size ok | error mm | accepted | separable | "
+              "factors below 0.97 |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["balls"]:
         low = ""

@@ -56,11 +56,13 @@ def run_config(ex, dataset: str, scenes, seeds: list[int], method: str, override
         dets = rec["detections"]
         counts = scene_counts([d["center_m"] for d in dets], gt)
         scene_rows.append({**counts, "scene": scene.path.name, "family": scene.family, "seed": seed})
-        centres = [b["center_m"] for b in gt["balls"] if b.get("center_m") is not None]
-        for k, (centre, err) in enumerate(zip(centres, counts["errs"])):
+        # ``scene_counts``' errors follow the scene's balls with a known centre; k: the ball's index in gt.json
+        known = [(k, b["center_m"]) for k, b in enumerate(gt["balls"]) if b.get("center_m") is not None]
+        for (k, centre), err in zip(known, counts["errs"]):
             nearest = min(dets, key=lambda d: np.linalg.norm(np.subtract(d["center_m"], centre)), default=None)
             balls.append({"scene": scene.path.name, "family": scene.family, "ball": k, "seed": seed,
-                          "z_m": float(centre[2]), "noise_r": support.noise_over_r(noise[scene.scene_id], centre, config),
+                          "z_m": float(centre[2]),
+                          "noise_r": support.noise_over_r(noise[scene.scene_id], centre, config),
                           "error_mm": 1e3 * err if math.isfinite(err) else None,
                           "found": bool(err <= FOUND_M),
                           "found_far_rule": bool(err <= (FOUND_FAR_M if centre[2] > FAR_RULE_FROM_M else FOUND_M)),
@@ -112,7 +114,8 @@ def _mm(x) -> str:
 def markdown(result: dict) -> str:
     seeds = result["seeds"]
     lines = [f"per_ball on {result['dataset']} ({result['scenes']} scenes), seeds {','.join(map(str, seeds))}", "",
-             "| config | seed | balls | found | far rule | false det. | clutter | on negatives | distractors rejected |",
+             "| config | seed | balls | found | far rule | false det. | clutter | on negatives | "
+             "distractors rejected |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name in ("a", "b"):
         if name not in result:
@@ -147,9 +150,9 @@ def markdown(result: dict) -> str:
         b_bins = {r["bin"]: r for r in result["by_noise"].get("b", [])}
         for r in result["by_noise"]["a"]:
             s = b_bins.get(r["bin"], {})
-            lines.append(f"| {r['bin']} | {r['balls']} | {r['found']} | {s.get('found', '-')} | {_mm(r['median_mm'])} | "
-                         f"{_mm(s.get('median_mm'))} | {_mm(r['mean_mm'])} | {_mm(s.get('mean_mm'))} | "
-                         f"{_mm(r['p90_mm'])} | {_mm(s.get('p90_mm'))} |")
+            lines.append(support.row(r["bin"], r["balls"], r["found"], s.get("found"), _mm(r["median_mm"]),
+                                     _mm(s.get("median_mm")), _mm(r["mean_mm"]), _mm(s.get("mean_mm")),
+                                     _mm(r["p90_mm"]), _mm(s.get("p90_mm"))))
     if result.get("list"):
         lines += ["", "| config | scene | ball | seed | family | depth m | sigma_z/R | found | error mm | score |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
