@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 
 from spherebench.camera import Intrinsics, deproject, project
 from spherebench.circles import mask_circle, sphere_silhouette_mask
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError
 
@@ -58,7 +58,7 @@ BALL_SHAPE_TYPES = ("circle", "polygon")
 #: Offset from LabelMe (Qt: pixel i spans [i, i + 1)) to SphereBench pixel coordinates (centres at i).
 LABELME_OFFSET_PX = -0.5
 #: Image names that every scene folder uses (the reprojected depth, the recorded colour frame).
-SCENE_IMAGE_NAMES = ("image.png", *inout.COLOUR_FILES)
+SCENE_IMAGE_NAMES = ("image.png", *outputs.COLOUR_FILES)
 
 
 # --------------------------------------------------------------------------- geometry
@@ -197,7 +197,7 @@ class AnnotationIndex:
             root = Path(labelme_dir)
             for p in sorted(root.glob("*.json")):
                 self._labelme[p.stem] = p
-            beside = [p for name in inout.LABELME_FILES for p in (*root.glob(f"*/{name}"), *root.glob(f"scenes/*/{name}"))]
+            beside = [p for name in outputs.LABELME_FILES for p in (*root.glob(f"*/{name}"), *root.glob(f"scenes/*/{name}"))]
             for p in sorted(beside):
                 if p.parent.name in self._labelme and self._labelme[p.parent.name] != p:
                     raise SphereBenchError(f"{p}: scene {p.parent.name} has two LabelMe files "

@@ -151,6 +151,137 @@ def _stamp(store, seconds: float):
     return store.types["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=int(nsec))
 
 
+@dataclass(frozen=True)
+class _Stream:
+    """One stream as written: on sensor ``sensor`` (0 or 1), its kind (a _STREAMS key), frames,
+    intrinsics, ROS encoding and bytes per pixel, each frame's timestamp (ms) and number, its
+    nominal rate, timestamp domain and extrinsics from the depth stream ((rotation, translation);
+    None: the identity, the reference stream itself)."""
+
+    sensor: int
+    kind: str
+    frames: Sequence[np.ndarray]
+    intrinsics: Intrinsics
+    encoding: str
+    bpp: int
+    stamps_ms: list[float]
+    numbers: list[int]
+    fps: int
+    domain: str
+    extrinsics: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def _main_stream(frames: Sequence[np.ndarray], intrinsics: Intrinsics, stream: str, fps: int,
+                 first_timestamp_ms: float, frame_numbers: Sequence[int] | None) -> _Stream:
+    """write_realsense_bag's own stream, checked: depth (H, W) uint16 or colour (H, W, 3) uint8
+    frames of the intrinsics' size, numbered increasingly."""
+    h, w = intrinsics.height, intrinsics.width
+    for i, f in enumerate(frames):
+        want = (np.uint16, (h, w)) if stream == "depth" else (np.uint8, (h, w, 3))
+        if f.dtype != want[0] or f.shape != want[1]:
+            raise ValueError(f"frame {i} is {f.dtype} {f.shape}, expected {np.dtype(want[0])} {want[1]}")
+    numbers = list(range(len(frames))) if frame_numbers is None else [int(n) for n in frame_numbers]
+    if len(numbers) != len(frames) or any(b <= a for a, b in zip(numbers, numbers[1:])):
+        raise ValueError("frame_numbers must give one increasing number per frame")
+    _, _, encoding, bpp = _STREAMS[stream]
+    stamps_ms = [first_timestamp_ms + n * 1000.0 / fps for n in numbers]
+    return _Stream(0, stream, frames, intrinsics, encoding, bpp, stamps_ms, numbers, fps, "Hardware Clock")
+
+
+def _colour_stream(colour: ColourStream) -> _Stream:
+    """A ColourStream, checked: its encoding, its frames' size and its rotation."""
+    if colour.encoding not in COLOUR_ENCODINGS:
+        raise ValueError(f"colour encoding must be one of {sorted(COLOUR_ENCODINGS)}, not {colour.encoding!r}")
+    bpp = COLOUR_ENCODINGS[colour.encoding]
+    ci = colour.intrinsics
+    for i, f in enumerate(colour.frames):
+        if f.dtype != np.uint8 or f.size != ci.height * ci.width * bpp or f.shape[:2] != (ci.height, ci.width):
+            raise ValueError(f"colour frame {i} is {f.dtype} {f.shape}, expected uint8 "
+                             f"({ci.height}, {ci.width}) x {bpp} bytes ({colour.encoding})")
+    rot = np.asarray(colour.rotation, dtype=np.float64).reshape(3, 3)
+    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9) or np.linalg.det(rot) <= 0:
+        raise ValueError("the colour stream's rotation must be a rotation matrix")
+    return _Stream(0 if colour.on_depth_sensor else 1, "color", colour.frames, ci, colour.encoding, bpp,
+                   colour.stamps_ms(), list(range(len(colour.frames))), colour.fps, colour.timestamp_domain,
+                   (rot, np.asarray(colour.translation, dtype=np.float64)))
+
+
+class _Topics:
+    """A bag being written: messages put on topics, each topic's connection added on first use."""
+
+    def __init__(self, bag: Writer, store):
+        self.bag, self.store, self.types = bag, store, store.types
+        self._connections: dict = {}
+
+    def put(self, topic: str, msgtype: str, t_ns: int, msg=None, data: bytes | None = None) -> None:
+        """``msg`` (or ``data``, already serialised) on ``topic`` at record time ``t_ns``."""
+        if topic not in self._connections:
+            self._connections[topic] = self.bag.add_connection(topic, msgtype, typestore=self.store)
+        if data is None:
+            data = self.store.serialize_ros1(msg, msgtype)
+        self.bag.write(self._connections[topic], t_ns, data)
+
+
+_KEY_VALUE = "diagnostic_msgs/msg/KeyValue"
+
+
+def _put_description(topics: _Topics, s: _Stream, option_underscores: bool) -> None:
+    """A stream's static description: its StreamInfo, CameraInfo, extrinsics (tf/0) and, for depth,
+    the sensor's Depth Units option."""
+    T, store, intr = topics.types, topics.store, s.intrinsics
+    prefix = f"/device_0/sensor_{s.sensor}"
+    stream_prefix = f"{prefix}/{_STREAMS[s.kind][1]}_0"
+    topics.put(f"{stream_prefix}/info", "realsense_msgs/msg/StreamInfo", STATIC_NS,
+               T["realsense_msgs/msg/StreamInfo"](fps=s.fps, encoding=s.encoding, is_recommended=True))
+    zero_header = T["std_msgs/msg/Header"](seq=0, stamp=_stamp(store, 0.0), frame_id="")
+    K = np.zeros(9)
+    K[[0, 2, 4, 5, 8]] = intr.fx, intr.ppx, intr.fy, intr.ppy, 1.0
+    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    topics.put(f"{stream_prefix}/info/camera_info", "sensor_msgs/msg/CameraInfo", STATIC_NS,
+               T["sensor_msgs/msg/CameraInfo"](
+                   header=zero_header, height=intr.height, width=intr.width,
+                   distortion_model=_distortion_string(intr.model), D=np.asarray(intr.coeffs, dtype=np.float64),
+                   K=K, R=np.zeros(9), P=np.zeros(12), binning_x=0, binning_y=0, roi=roi))
+    # extrinsics from the reference (the depth stream): identity for depth, depth-to-colour for
+    # colour (the reader gives a stream's tf/0 as the reference's get_extrinsics_to(stream))
+    rot, trans = (np.eye(3), np.zeros(3)) if s.extrinsics is None else s.extrinsics
+    qx, qy, qz, qw = _quaternion(rot)
+    topics.put(f"{stream_prefix}/tf/0", "geometry_msgs/msg/Transform", STATIC_NS,
+               T["geometry_msgs/msg/Transform"](
+                   translation=T["geometry_msgs/msg/Vector3"](x=float(trans[0]), y=float(trans[1]), z=float(trans[2])),
+                   rotation=T["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw))))
+    if s.kind == "depth":
+        option = "Depth_Units" if option_underscores else "Depth Units"
+        topics.put(f"{prefix}/option/{option}/value", "std_msgs/msg/Float32", STATIC_NS,
+                   T["std_msgs/msg/Float32"](data=float(intr.depth_scale)))
+        topics.put(f"{prefix}/option/{option}/description", "std_msgs/msg/String", STATIC_NS,
+                   T["std_msgs/msg/String"](data="Number of meters represented by a single depth unit"))
+
+
+def _frame_messages(store, s: _Stream, k: int, t0_ms: float, period_ns: int, frame_depth_units: bool):
+    """Stream ``k``'s frame messages, each (record time ns, k, frame index, topic, msgtype, message or
+    serialised bytes): its Image and its metadata, recorded at its timestamp less ``t0_ms`` plus one
+    depth frame period (``period_ns``)."""
+    T, intr = store.types, s.intrinsics
+    stream_prefix = f"/device_0/sensor_{s.sensor}/{_STREAMS[s.kind][1]}_0"
+    for i, (frame, stamp_ms, number) in enumerate(zip(s.frames, s.stamps_ms, s.numbers)):
+        t_ns = round((stamp_ms - t0_ms) * 1e6) + period_ns
+        header = T["std_msgs/msg/Header"](seq=number, stamp=_stamp(store, stamp_ms / 1000.0),
+                                          frame_id="1" if frame_depth_units else "")
+        pixels = np.ascontiguousarray(frame).astype(frame.dtype.newbyteorder("<"), copy=False)
+        image = T["sensor_msgs/msg/Image"](header=header, height=intr.height, width=intr.width,
+                                           encoding=s.encoding, is_bigendian=0, step=intr.width * s.bpp,
+                                           data=pixels.reshape(-1).view(np.uint8))
+        data = bytes(store.serialize_ros1(image, "sensor_msgs/msg/Image"))
+        if frame_depth_units:
+            # the SDK's extension of sensor_msgs/Image, read when frame_id == "1": 0 for colour
+            data += struct.pack("<f", intr.depth_scale if s.kind == "depth" else 0.0)
+        yield t_ns, k, i, f"{stream_prefix}/image/data", "sensor_msgs/msg/Image", data
+        for key, value in (("system_time", f"{stamp_ms:.6f}"), ("timestamp_domain", s.domain),
+                           ("Frame Counter", str(number)), ("Frame Timestamp", str(int(stamp_ms * 1000)))):
+            yield t_ns, k, i, f"{stream_prefix}/image/metadata", _KEY_VALUE, T[_KEY_VALUE](key=key, value=value)
+
+
 def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsics: Intrinsics, *,
                         stream: str = "depth", fps: int = 30, first_timestamp_ms: float = 1000.0,
                         frame_depth_units: bool = True, option_underscores: bool = False,
@@ -175,113 +306,32 @@ def write_realsense_bag(path: str | Path, frames: Sequence[np.ndarray], intrinsi
         raise ValueError(f"stream must be one of {sorted(_STREAMS)}, not {stream!r}")
     if colour is not None and stream != "depth":
         raise ValueError("a ColourStream goes beside a depth stream")
-    h, w = intrinsics.height, intrinsics.width
-    for i, f in enumerate(frames):
-        want = (np.uint16, (h, w)) if stream == "depth" else (np.uint8, (h, w, 3))
-        if f.dtype != want[0] or f.shape != want[1]:
-            raise ValueError(f"frame {i} is {f.dtype} {f.shape}, expected {np.dtype(want[0])} {want[1]}")
-    numbers = list(range(len(frames))) if frame_numbers is None else [int(n) for n in frame_numbers]
-    if len(numbers) != len(frames) or any(b <= a for a, b in zip(numbers, numbers[1:])):
-        raise ValueError("frame_numbers must give one increasing number per frame")
-    streams = [(0, stream, frames, intrinsics, _STREAMS[stream][2], _STREAMS[stream][3],
-                [first_timestamp_ms + n * 1000.0 / fps for n in numbers], fps, "Hardware Clock", None, numbers)]
+    streams = [_main_stream(frames, intrinsics, stream, fps, first_timestamp_ms, frame_numbers)]
     if colour is not None:
-        if colour.encoding not in COLOUR_ENCODINGS:
-            raise ValueError(f"colour encoding must be one of {sorted(COLOUR_ENCODINGS)}, not {colour.encoding!r}")
-        bpp = COLOUR_ENCODINGS[colour.encoding]
-        ci = colour.intrinsics
-        for i, f in enumerate(colour.frames):
-            if f.dtype != np.uint8 or f.size != ci.height * ci.width * bpp or f.shape[:2] != (ci.height, ci.width):
-                raise ValueError(f"colour frame {i} is {f.dtype} {f.shape}, expected uint8 "
-                                 f"({ci.height}, {ci.width}) x {bpp} bytes ({colour.encoding})")
-        rot = np.asarray(colour.rotation, dtype=np.float64).reshape(3, 3)
-        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9) or np.linalg.det(rot) <= 0:
-            raise ValueError("the colour stream's rotation must be a rotation matrix")
-        streams.append((0 if colour.on_depth_sensor else 1, "color", colour.frames, ci, colour.encoding, bpp,
-                        colour.stamps_ms(), colour.fps, colour.timestamp_domain,
-                        (rot, np.asarray(colour.translation, dtype=np.float64)), list(range(len(colour.frames)))))
+        streams.append(_colour_stream(colour))
 
     store = _typestore()
-    T = store.types
     path = Path(path)
     path.unlink(missing_ok=True)  # rosbags refuses to overwrite
     period_ns = round(1e9 / fps)
-    t0_ms = min((s[6][0] for s in streams if s[6]), default=0.0)  # the earliest first timestamp
-
+    t0_ms = min((s.stamps_ms[0] for s in streams if s.stamps_ms), default=0.0)  # the earliest first timestamp
     with Writer(path) as bag:
-        connections = {}
-
-        def put(topic: str, msgtype: str, t_ns: int, msg=None, data: bytes | None = None) -> None:
-            if topic not in connections:
-                connections[topic] = bag.add_connection(topic, msgtype, typestore=store)
-            bag.write(connections[topic], t_ns, data if data is not None else store.serialize_ros1(msg, msgtype))
-
-        kv = "diagnostic_msgs/msg/KeyValue"
-        put("/file_version", "std_msgs/msg/UInt32", STATIC_NS, T["std_msgs/msg/UInt32"](data=4))
+        topics = _Topics(bag, store)
+        topics.put("/file_version", "std_msgs/msg/UInt32", STATIC_NS, store.types["std_msgs/msg/UInt32"](data=4))
         for key, value in (device_info or D435_DEVICE_INFO).items():
-            put("/device_0/info", kv, STATIC_NS, T[kv](key=key, value=value))
-
-        timed = []  # (record time ns, stream, frame, topic, msgtype, message or serialised bytes)
-        named = set()
-        for k, (sensor_index, kind, stream_frames, intr, encoding, bpp, stamps, stream_fps, domain,
-                extrinsics, stream_numbers) in enumerate(streams):
-            sensor_name, stream_name = _STREAMS[kind][:2]
-            prefix = f"/device_0/sensor_{sensor_index}"
-            stream_prefix = f"{prefix}/{stream_name}_0"
-            if sensor_index not in named:  # a sensor's name, once: its first stream's
-                named.add(sensor_index)
-                put(f"{prefix}/info", kv, STATIC_NS, T[kv](key="Name", value=sensor_name))
-            put(f"{stream_prefix}/info", "realsense_msgs/msg/StreamInfo", STATIC_NS,
-                T["realsense_msgs/msg/StreamInfo"](fps=stream_fps, encoding=encoding, is_recommended=True))
-            zero_header = T["std_msgs/msg/Header"](seq=0, stamp=_stamp(store, 0.0), frame_id="")
-            K = np.zeros(9)
-            K[[0, 2, 4, 5, 8]] = intr.fx, intr.ppx, intr.fy, intr.ppy, 1.0
-            roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-            put(f"{stream_prefix}/info/camera_info", "sensor_msgs/msg/CameraInfo", STATIC_NS,
-                T["sensor_msgs/msg/CameraInfo"](
-                    header=zero_header, height=intr.height, width=intr.width,
-                    distortion_model=_distortion_string(intr.model), D=np.asarray(intr.coeffs, dtype=np.float64),
-                    K=K, R=np.zeros(9), P=np.zeros(12), binning_x=0, binning_y=0, roi=roi))
-            # extrinsics from the reference (the depth stream): identity for depth, depth-to-colour for
-            # colour (the reader gives a stream's tf/0 as the reference's get_extrinsics_to(stream))
-            if extrinsics is None:
-                rot, trans = np.eye(3), np.zeros(3)
-            else:
-                rot, trans = extrinsics
-            qx, qy, qz, qw = _quaternion(rot)
-            put(f"{stream_prefix}/tf/0", "geometry_msgs/msg/Transform", STATIC_NS,
-                T["geometry_msgs/msg/Transform"](
-                    translation=T["geometry_msgs/msg/Vector3"](x=float(trans[0]), y=float(trans[1]), z=float(trans[2])),
-                    rotation=T["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw))))
-            if kind == "depth":
-                option = "Depth_Units" if option_underscores else "Depth Units"
-                put(f"{prefix}/option/{option}/value", "std_msgs/msg/Float32", STATIC_NS,
-                    T["std_msgs/msg/Float32"](data=float(intr.depth_scale)))
-                put(f"{prefix}/option/{option}/description", "std_msgs/msg/String", STATIC_NS,
-                    T["std_msgs/msg/String"](data="Number of meters represented by a single depth unit"))
-
-            for i, (frame, stamp_ms, number) in enumerate(zip(stream_frames, stamps, stream_numbers)):
-                t_ns = round((stamp_ms - t0_ms) * 1e6) + period_ns
-                header = T["std_msgs/msg/Header"](seq=number, stamp=_stamp(store, stamp_ms / 1000.0),
-                                                  frame_id="1" if frame_depth_units else "")
-                pixels = np.ascontiguousarray(frame).astype(frame.dtype.newbyteorder("<"), copy=False)
-                image = T["sensor_msgs/msg/Image"](header=header, height=intr.height, width=intr.width,
-                                                   encoding=encoding, is_bigendian=0, step=intr.width * bpp,
-                                                   data=pixels.reshape(-1).view(np.uint8))
-                data = bytes(store.serialize_ros1(image, "sensor_msgs/msg/Image"))
-                if frame_depth_units:
-                    # the SDK's extension of sensor_msgs/Image, read when frame_id == "1": 0 for colour
-                    data += struct.pack("<f", intr.depth_scale if kind == "depth" else 0.0)
-                timed.append((t_ns, k, i, f"{stream_prefix}/image/data", "sensor_msgs/msg/Image", data))
-                for key, value in (("system_time", f"{stamp_ms:.6f}"), ("timestamp_domain", domain),
-                                   ("Frame Counter", str(number)), ("Frame Timestamp", str(int(stamp_ms * 1000)))):
-                    timed.append((t_ns, k, i, f"{stream_prefix}/image/metadata", kv,
-                                  T[kv](key=key, value=value)))
+            topics.put("/device_0/info", _KEY_VALUE, STATIC_NS, store.types[_KEY_VALUE](key=key, value=value))
+        timed = []
+        for k, s in enumerate(streams):
+            if all(other.sensor != s.sensor for other in streams[:k]):  # a sensor's name, once: its first stream's
+                topics.put(f"/device_0/sensor_{s.sensor}/info", _KEY_VALUE, STATIC_NS,
+                           store.types[_KEY_VALUE](key="Name", value=_STREAMS[s.kind][0]))
+            _put_description(topics, s, option_underscores)
+            timed += _frame_messages(store, s, k, t0_ms, period_ns, frame_depth_units)
         for t_ns, _, _, topic, msgtype, item in sorted(timed, key=lambda e: e[:3]):
             if isinstance(item, bytes):
-                put(topic, msgtype, t_ns, data=item)
+                topics.put(topic, msgtype, t_ns, data=item)
             else:
-                put(topic, msgtype, t_ns, item)
+                topics.put(topic, msgtype, t_ns, item)
     return path
 
 

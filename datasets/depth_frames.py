@@ -8,7 +8,7 @@ runs over them in ``spherebench.method.stream``:
     for frame, spheres, ms in detect_stream(recording_frames("capture.bag"), config_for("improved")):
         print(frame.number, frame.timestamp_ms, [s.center_m for s in spheres], ms)
 
-Frames are ``inout.BagFrame``s (depth in counts of ``intrinsics.depth_scale``). Nothing is
+Frames are ``recordings.BagFrame``s (depth in counts of ``intrinsics.depth_scale``). Nothing is
 accumulated: each frame is read, handed on and let go, so that memory stays bounded over an
 hour-long recording. Offline playback reads every frame; real-time playback and a live camera
 deliver frames at the camera's rate and drop those that arrive while the consumer is still busy
@@ -26,7 +26,7 @@ import numpy as np
 
 from spherebench.camera import Intrinsics
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
-from spherebench.datasets import inout
+from spherebench.datasets import recordings
 from spherebench.datasets.prepare import FrameSelection
 from spherebench.errors import SphereBenchError
 
@@ -57,7 +57,7 @@ class StreamStats:
 
 
 def _rs():
-    return inout.import_pyrealsense2()
+    return recordings.import_pyrealsense2()
 
 
 def cloud_from_rs_depth(depth_frame, rays: np.ndarray | None = None) -> Cloud:
@@ -75,12 +75,12 @@ def is_recording(path: str | Path) -> bool:
 
 
 def recording_frames(path: str | Path, selection=None, real_time: bool = False,
-                     stats: StreamStats | None = None) -> Iterator[inout.BagFrame]:
+                     stats: StreamStats | None = None) -> Iterator[recordings.BagFrame]:
     """The depth frames of a RealSense recording (.bag, .db3) picked by ``selection`` (a
     ``prepare.FrameSelection``; None: every frame). real_time: play at the recording's rate and
     drop what the consumer is too slow for (counted in ``stats.dropped``); else every frame is
     read. Raises SphereBenchError on opening when the file is no recording or has no depth."""
-    recording = inout.BagRecording(path)  # checked here, before the first frame is asked for
+    recording = recordings.BagRecording(path)  # checked here, before the first frame is asked for
     selection = selection or FrameSelection()
     stats = stats if stats is not None else StreamStats()
 
@@ -138,7 +138,7 @@ def find_camera(serial: str | None = None):
 
 
 def camera_frames(serial: str | None = None, width: int = 848, height: int = 480, fps: int = 90,
-                  stats: StreamStats | None = None, timeout_ms: int = CAMERA_TIMEOUT_MS) -> Iterator[inout.BagFrame]:
+                  stats: StreamStats | None = None, timeout_ms: int = CAMERA_TIMEOUT_MS) -> Iterator[recordings.BagFrame]:
     """Depth frames of a live RealSense camera at one of its depth modes (width x height px, fps),
     until the consumer stops. The camera is opened here (an error at once if there is none); frames
     the consumer was too slow for are dropped by librealsense and counted in ``stats.dropped``."""
@@ -171,8 +171,8 @@ def camera_frames(serial: str | None = None, width: int = 848, height: int = 480
                 if intr is None:
                     vp = depth.get_profile().as_video_stream_profile()
                     intr = Intrinsics.from_rs(vp.get_intrinsics(), depth_scale)
-                yield inout.BagFrame(index, int(depth.get_frame_number()), float(depth.get_timestamp()),
-                                     np.array(np.asanyarray(depth.get_data()), dtype=np.uint16, copy=True), intr)
+                yield recordings.BagFrame(index, int(depth.get_frame_number()), float(depth.get_timestamp()),
+                                          np.array(np.asanyarray(depth.get_data()), dtype=np.uint16, copy=True), intr)
                 index += 1
         finally:
             pipeline.stop()

@@ -1,4 +1,4 @@
-"""Every file format of SphereBench, in one module (as the BOP toolkit's inout.py).
+"""The file formats of SphereBench's datasets, read and written (as the BOP toolkit's inout.py).
 
 Dataset layout (simulated and recorded alike)::
 
@@ -13,39 +13,31 @@ Dataset layout (simulated and recorded alike)::
         mask_<k>.png              visible mask of ball k (255 = ball)
         silhouette_<k>.png        full silhouette of ball k (simulated scenes)
 
-Writes are atomic: a file is written to a temporary name and renamed; a scene folder and a whole
-dataset are built under a temporary name and renamed when complete, so an interrupted or failed
-run leaves nothing half-written behind.
+Writes are atomic, through ``spherebench.datasets.outputs`` (which also says what may be replaced):
+a file is written to a temporary name and renamed; a scene folder and a whole dataset are built
+under a temporary name and renamed when complete, so an interrupted or failed run leaves nothing
+half-written behind. RealSense recordings are played back by ``spherebench.datasets.recordings``;
+the detectors' JSON records are ``spherebench.datasets.detections``'.
 """
 
 from __future__ import annotations
 
-import collections
-import contextlib
 import functools
-import glob
 import io
 import json
 import math
-import os
-import queue
 import shutil
-import socket
-import stat
-import tempfile
-import threading
 import warnings
-import zlib
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics, float32_decimal
-from spherebench.circles import circle_bbox
+from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
+from spherebench.datasets.outputs import (COLOUR_FILES, MARK, PNG_SIGNATURE, atomic_directory, atomic_write_bytes,
+                                          is_dataset_dir, mark_png, never_replace)
 from spherebench.datasets.reproject import colorize_depth
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError, require
@@ -54,259 +46,7 @@ CATEGORY_ID = 1
 DEFAULT_CATEGORY = "basketball"
 
 
-# --------------------------------------------------------------------------- atomic, owned writes
-#
-# The tool replaces only what it wrote: an output folder is replaced when it is empty or holds the
-# marker of its kind (a dataset's dataset.json, a results or training folder's OWNER_MARKER), a
-# report's OUT.json when it names the report's kind, a file for the user to look at when it carries
-# the mark (is_marked), and each is refused otherwise; nothing is written inside a dataset but by
-# generate and prepare. Several files are written all or nothing (replace_files). Temporaries are
-# siblings named .tmp-<name>.*; a temporary folder records the process that made it, so that a
-# later run can remove one whose process died (SIGKILL, power).
-
-#: Written into a folder that a command fills over time (evaluate's results, a training run).
-OWNER_MARKER = ".spherebench-output.json"
-_TMP_OWNER = ".spherebench-tmp.json"
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)  # reading the umask means setting it: put it straight back
-    os.umask(mask)
-    return mask
-
-
-def check_folders(path: str | Path, what: str = "--out") -> None:
-    """A one-line error when a part of the folders above ``path`` is a file (where making them would
-    only say "File exists" about that part)."""
-    for parent in Path(path).parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise SphereBenchError(f"{what} {path}: {parent} is a file, not a folder: give a path under a folder")
-            return
-
-
-def named_error(exc: OSError, path: str | Path) -> OSError:
-    """``exc`` naming ``path``, the destination the user gave, rather than a temporary's name (or none,
-    as a full disk's write error has)."""
-    if exc.errno is None:
-        return exc
-    return OSError(exc.errno, exc.strerror or str(exc), str(path))
-
-
-#: What a path is, by its stat mode, where it is neither a regular file nor a folder.
-_SPECIAL_FILES = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-                  (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"))
-
-
-def check_regular(path: str | Path, what: str = "output") -> None:
-    """A one-line error when ``path`` exists as anything but a regular file (a folder, a device, a
-    FIFO, a socket; a link is followed): a write renames a new file over it, which would put a
-    regular file in place of a device or pipe, and --force never allows that."""
-    try:
-        mode = Path(path).stat().st_mode
-    except OSError:  # nothing there (or nothing this user may see): a new file
-        return
-    if stat.S_ISDIR(mode):
-        raise SphereBenchError(f"{what} {path} is a folder: give a file name")
-    kind = next((name for test, name in _SPECIAL_FILES if test(mode)), None if stat.S_ISREG(mode) else "not a file")
-    if kind is not None:
-        raise SphereBenchError(f"{what} {path} is {kind}, not a regular file: only a regular file is ever "
-                               "replaced: give a file name")
-
-
-def _stage(path: Path, data: bytes) -> Path:
-    """``data`` in a new temporary sibling of ``path``, with the mode an ordinary write would give
-    (0666 less the umask), not mkstemp's 0600; its name."""
-    check_regular(path)
-    check_folders(path, "output")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".tmp-{path.name}.", dir=path.parent)
-    except OSError as exc:
-        raise named_error(exc, path) from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), 0o666 & ~_umask())
-            f.write(data)
-    except BaseException as exc:
-        os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise named_error(exc, path) from None
-        raise
-    return Path(tmp)
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename; an error
-    names ``path``."""
-    path = Path(path)
-    tmp = _stage(path, data)
-    try:
-        os.replace(tmp, path)
-    except BaseException as exc:
-        tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise named_error(exc, path) from None
-        raise
-
-
-def replace_files(files: dict[Path, bytes]) -> None:
-    """Write several files all or nothing: each is staged beside its destination, then renamed over
-    it, a replaced file kept (a hard link, else a copy) until every one is in place; on any failure
-    every destination is put back as it was. An error names the destination."""
-    staged: dict[Path, Path] = {}
-    done: list[tuple[Path, Path | None]] = []  # (destination, the file it replaced, set aside)
-    current = None
-    try:
-        for current, data in files.items():
-            staged[Path(current)] = _stage(Path(current), data)
-        for current, tmp in staged.items():
-            backup = None
-            if current.is_file():
-                backup = current.with_name(f".tmp-{current.name}.old-{os.getpid()}")
-                try:
-                    os.link(current, backup)
-                except OSError:  # a file system without hard links
-                    shutil.copy2(current, backup)
-            try:
-                os.replace(tmp, current)
-            except BaseException:
-                if backup is not None:  # a second link to the file still in place
-                    backup.unlink()
-                raise
-            done.append((current, backup))
-    except BaseException as exc:
-        for path, backup in reversed(done):
-            if backup is not None:
-                os.replace(backup, path)
-            else:
-                path.unlink(missing_ok=True)
-        for tmp in staged.values():
-            tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise named_error(exc, current) from None
-        raise
-    for _, backup in done:
-        if backup is not None:
-            backup.unlink(missing_ok=True)
-
-
-# A file a command writes for the user to look at (show, detect: --out-png, --out-ply) carries a
-# mark, so that a later run may replace it, and no file that lacks it: a PNG's tEXt chunk right after
-# the header, a PLY header's comment line.
-_MARK = b"written by spherebench"
-_PNG_MARK_CHUNK = (len(b"Software\x00" + _MARK).to_bytes(4, "big") + b"tEXtSoftware\x00" + _MARK
-                   + zlib.crc32(b"tEXtSoftware\x00" + _MARK).to_bytes(4, "big"))
-_PNG_HEADER_END = 33  # the signature (8 bytes) and the IHDR chunk (25)
-
-
-def is_marked(path: Path) -> bool:
-    """A PNG or PLY that a command wrote with the mark (encode_png's ``mark``, encode_ply)."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(4096)
-    except OSError:
-        return False
-    if head.startswith(_PNG_SIGNATURE):
-        return head[_PNG_HEADER_END:_PNG_HEADER_END + len(_PNG_MARK_CHUNK)] == _PNG_MARK_CHUNK
-    if head.startswith(b"ply"):
-        return b"\ncomment " + _MARK + b"\n" in head.split(b"end_header")[0].replace(b"\r\n", b"\n")
-    return False
-
-
-def check_output_file(path, what: str, inputs=(), force: bool = False) -> Path:
-    """``path`` as a file for the user (a picture, a cloud to view), or a one-line SphereBenchError:
-    refused are an empty path, anything but a regular file (a folder, a device, a FIFO:
-    ``check_regular``), an input of the command or a file inside an input folder, a file inside any
-    dataset (a folder with dataset.json at or above it: only generate and prepare write there), and
-    an existing file without the mark of ours (``is_marked``) unless ``force``."""
-    if path is None or not str(path).strip():
-        raise SphereBenchError(f"{what} is empty (an unset shell variable?): give a file name")
-    path = Path(path)
-    check_regular(path, what)
-    check_folders(path, what)
-    resolved = path.resolve()
-    for source in inputs:
-        src = Path(source).resolve()
-        if resolved == src:
-            raise SphereBenchError(f"{what} {path} is the input: give another file name")
-        if src in resolved.parents:
-            raise SphereBenchError(f"{what} {path} is inside the input scene folder {source}: write it elsewhere")
-    check_not_in_dataset(path, what)
-    if path.exists() and not force and not is_marked(path):
-        raise SphereBenchError(f"{what} {path} exists and was not written by SphereBench: give a new name, or pass "
-                               "--force to replace it")
-    return path
-
-
-def check_output_files(named: dict, inputs=(), force: bool = False) -> dict:
-    """check_output_file for each {option: path}, and no two naming the same file."""
-    checked = {what: check_output_file(p, what, inputs, force) for what, p in named.items()}
-    seen: dict = {}
-    for what, p in checked.items():
-        if p.resolve() in seen:
-            raise SphereBenchError(f"{seen[p.resolve()]} and {what} name the same file {p}: give two names")
-        seen[p.resolve()] = what
-    return checked
-
-
-def check_not_in_dataset(path: str | Path, what: str = "--out") -> None:
-    """A one-line error when ``path`` lies inside an existing dataset (below a folder holding
-    dataset.json): writing there would break it."""
-    for folder in Path(path).resolve().parents:
-        try:
-            inside = is_dataset_dir(folder)
-        except OSError:  # a folder above that this user may not read: no dataset of theirs
-            inside = False
-        if inside:
-            raise SphereBenchError(f"{what} {path} is inside the dataset {folder}, which generate and prepare "
-                                   "write only whole: write it elsewhere")
-
-
-def _report_is_ours(js: Path, kind: str) -> bool:
-    """An existing OUT.json written by the same report: it names the kind ("report": kind, which only
-    write_report writes; a key such as "seed" any JSON file may hold)."""
-    try:
-        old = json.loads(js.read_text())
-    except (OSError, ValueError, UnicodeDecodeError):
-        return False
-    return isinstance(old, dict) and old.get("report") == kind
-
-
-def check_report_out(out: str | Path, kind: str) -> tuple[Path, Path]:
-    """OUT.md and OUT.json for a report of this kind, refused (SphereBenchError) before any work when
-    OUT names a folder, lies inside a dataset, either file is a folder or a link, or an existing pair
-    is not recognisably this report's (``_report_is_ours``): a file the user put there is never
-    overwritten."""
-    if not str(out).strip():
-        raise SphereBenchError("--out is empty (an unset shell variable?): give a path for the report, e.g. "
-                               f"results/{kind}")
-    text, out = str(out), Path(out)
-    if out.name in ("", ".", "..") or text.endswith(("/", os.sep)):  # Path drops a trailing slash
-        raise SphereBenchError(f"--out {text} is a folder; give a path for the report's two files in it, e.g. "
-                               f"{out / kind} (writes {kind}.md and {kind}.json)")
-    md, js = out.with_suffix(".md"), out.with_suffix(".json")
-    check_folders(out)
-    check_not_in_dataset(md)
-    for path in (md, js):
-        if path.is_symlink() or path.is_dir():
-            raise SphereBenchError(f"{path}: is a folder or a link: give --out a path for the report's two files")
-        check_regular(path, "--out")
-    if (md.exists() or js.exists()) and not (js.is_file() and _report_is_ours(js, kind)):
-        raise SphereBenchError(f"--out {out}: {md.name} or {js.name} there was not written by this report; "
-                               "give another --out (nothing was written)")
-    return md, js
-
-
-def write_report(out: str | Path, markdown: str, data: dict, kind: str) -> tuple[Path, Path]:
-    """A script's report: OUT.md (the tables) and OUT.json (the figures, with "report": kind;
-    infinities as null), each written atomically, after ``check_report_out``. Returns the two paths."""
-    md, js = check_report_out(out, kind)
-    data = {"report": kind, **data}
-    replace_files({md: markdown.encode(),
-                   js: json.dumps(data, indent=1, default=lambda x: None if x == math.inf else x).encode()})
-    return md, js
-
+# --------------------------------------------------------------------------- JSON
 
 def json_bytes(obj, indent: int | None = 1) -> bytes:
     """JSON text as write_json writes it; floats as Python writes them (shortest repr: byte-stable)."""
@@ -329,179 +69,6 @@ def read_json(path: str | Path):
         raise SphereBenchError(f"{path}: is a folder, not a JSON file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise SphereBenchError(f"{path}: not valid JSON ({exc}); is the file truncated?") from None
-
-
-def is_dataset_dir(path: Path) -> bool:
-    """A folder that `generate` or `prepare` wrote (its dataset.json)."""
-    return (Path(path) / "dataset.json").is_file()
-
-
-_DATASET_FILES = {"dataset.json", "coco_gt.json", "scenes", OWNER_MARKER}
-#: colour.jpg / colour.png: a recording's colour frame registered to depth (a file kept as recorded,
-#: or a RealSense colour frame aligned to the depth, colour.png);
-#: image.json / colour.json: LabelMe annotations saved beside image.png / the colour frame
-COLOUR_FILES = ("colour.jpg", "colour.png")
-LABELME_FILES = ("image.json", "colour.json")
-_SCENE_FILES = {"depth.png", "intrinsics.json", "cloud.ply", "image.png", "gt.json", *COLOUR_FILES, *LABELME_FILES}
-
-
-def replaceable_dataset(path: Path, labelme_carried: bool = False) -> bool:
-    """A dataset folder that may be replaced whole: ours (dataset.json) and holding nothing else than
-    what `generate` and `prepare` write. A file added by hand is never deleted, nor are LabelMe
-    annotations saved beside a scene's image (image.json) unless this run carries them over
-    (``labelme_carried``: `prepare --labelme` reads this very folder): a one-line error names it."""
-    path = Path(path)
-    if not is_dataset_dir(path):
-        return False
-    for entry in path.iterdir():
-        if entry.name not in _DATASET_FILES:
-            raise SphereBenchError(f"{entry} was not written by SphereBench: move it out of {path} before "
-                                   "replacing the dataset, or write elsewhere")
-    for scene in (path / "scenes").iterdir() if (path / "scenes").is_dir() else ():
-        for entry in scene.iterdir() if scene.is_dir() else (scene,):
-            name = entry.name
-            ours = name in _SCENE_FILES or (name.endswith(".png") and name.startswith(("mask_", "silhouette_")))
-            if not ours:
-                raise SphereBenchError(f"{entry} was not written by SphereBench: move it out of {path} before "
-                                       "replacing the dataset, or write elsewhere")
-            if name in LABELME_FILES and not labelme_carried:
-                raise SphereBenchError(f"{entry} holds LabelMe annotations that replacing {path} would lose: "
-                                       f"pass --labelme {path} to carry them over, or write elsewhere")
-    return True
-
-
-def owned_by_kind(kind: str, legacy: str | None = None):
-    """A test for folders a command fills over time: its OWNER_MARKER names ``kind``, or (written before
-    the marker existed) it holds the file ``legacy``."""
-    def is_ours(path: Path) -> bool:
-        marker = Path(path) / OWNER_MARKER
-        if marker.is_file():
-            with contextlib.suppress(OSError, ValueError, AttributeError):
-                return json.loads(marker.read_text()).get("kind") == kind
-            return False
-        return legacy is not None and (Path(path) / legacy).is_file()
-    return is_ours
-
-
-def never_replace(path: Path) -> bool:
-    """For folders built inside a temporary one: an existing folder there is a clash, never replaced."""
-    return False
-
-
-def check_output_dir(path: str | Path, is_ours, what: str = "--out", inputs=()) -> Path:
-    """``path`` as an output folder, or a one-line SphereBenchError: refused are an empty path, the
-    current folder or one above it, a file, a symbolic link, an input or a folder above or inside an
-    input, and a non-empty folder that ``is_ours`` does not recognise (the tool never deletes or
-    overwrites what it did not write). Returns the path."""
-    text = str(path)
-    if not text.strip():
-        raise SphereBenchError(f"{what} is empty (an unset shell variable?): give the folder to write")
-    path = Path(path)
-    if path.is_symlink():
-        raise SphereBenchError(f"{what} {path} is a symbolic link (to {os.readlink(path)}): give a real folder")
-    resolved = path.resolve()
-    cwd = Path.cwd().resolve()
-    if resolved == cwd or resolved in cwd.parents:
-        raise SphereBenchError(f"{what} {text} is the current folder or one above it: give a new folder, "
-                               "e.g. data/mine")
-    for source in inputs:
-        src = Path(source).resolve()
-        if resolved == src or resolved in src.parents or src in resolved.parents:
-            raise SphereBenchError(f"{what} {text} is the input {source}, or a folder above or inside it: "
-                                   "write the output somewhere else")
-    check_folders(path, what)
-    if path.exists():
-        if not path.is_dir():
-            raise SphereBenchError(f"{what} {text} is a file, not a folder: give a folder to write")
-        if any(path.iterdir()) and not is_ours(path):
-            raise SphereBenchError(f"{what} {text} holds files SphereBench did not write; it is never "
-                                   "replaced: give a new or empty folder")
-    return path
-
-
-def claim_output_dir(path: str | Path, kind: str, legacy: str | None = None, what: str = "--out",
-                     inputs=()) -> Path:
-    """check_output_dir for a folder a command fills over time, then mark it as ours (OWNER_MARKER)."""
-    path = check_output_dir(path, owned_by_kind(kind, legacy), what, inputs)
-    path.mkdir(parents=True, exist_ok=True)
-    if not (path / OWNER_MARKER).is_file():
-        write_json(path / OWNER_MARKER, {"kind": kind, "written_by": "spherebench"})
-    return path
-
-
-@contextlib.contextmanager
-def output_run(path: str | Path, kind: str, resumable=(), resume: str = "rerun the same command to resume",
-               legacy: str | None = None, inputs=()):
-    """claim_output_dir, refused inside a dataset, for the length of a run. On a failure or an
-    interruption, the folder is removed if this run made it and it holds none of ``resumable`` (the
-    names of the files or sub-folders a rerun reuses: evaluate's finished predictions, a training
-    checkpoint); else the exception says what was kept (its ``kept``, which cli.run_guarded prints),
-    so that no message claims a clean slate that is not there."""
-    made = not Path(path).exists()
-    check_not_in_dataset(path)
-    path = claim_output_dir(path, kind, legacy, inputs=inputs)
-    try:
-        yield path
-    except BaseException as exc:
-        kept = [path / name for name in resumable
-                if (path / name).is_file() or any(p.is_file() for p in (path / name).rglob("*"))]
-        if kept:
-            exc.kept = f"completed work is kept in {', '.join(map(str, kept))}: {resume}"
-        elif made:
-            shutil.rmtree(path, ignore_errors=True)
-        raise
-
-
-def _stale_temporaries(final: Path):
-    """Temporary folders of ``final`` whose process on this machine has ended."""
-    for tmp in final.parent.glob(f".tmp-{glob.escape(final.name)}.*"):
-        owner = tmp / _TMP_OWNER
-        try:
-            info = json.loads(owner.read_text())
-            pid, host = int(info["pid"]), str(info["host"])
-        except (OSError, ValueError, KeyError, TypeError):
-            continue  # not ours, or not readable: leave it
-        if host != socket.gethostname() or pid == os.getpid():
-            continue
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            yield tmp
-        except PermissionError:
-            pass  # alive, another user's
-
-
-@contextlib.contextmanager
-def atomic_directory(final: str | Path, is_ours):
-    """Yield a temporary sibling folder; on success it replaces ``final``, on error (or a signal turned
-    into KeyboardInterrupt) it is removed. ``final`` is replaced only if it is empty or ``is_ours``
-    recognises it (see check_output_dir); stale temporaries of ``final`` from dead runs are removed."""
-    final = check_output_dir(final, is_ours)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    for stale in _stale_temporaries(final):
-        shutil.rmtree(stale, ignore_errors=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{final.name}.", dir=final.parent))
-    try:
-        os.chmod(tmp, 0o777 & ~_umask())
-        (tmp / _TMP_OWNER).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
-        yield tmp
-        (tmp / _TMP_OWNER).unlink()
-        if final.exists():
-            # check again: something may have appeared there while the work ran
-            check_output_dir(final, is_ours)
-            old = final.with_name(f".tmp-{final.name}.old-{os.getpid()}")
-            os.replace(final, old)
-            (old / _TMP_OWNER).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
-            os.replace(tmp, final)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, final)
-    except BaseException as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(exc, OSError) and exc.filename is None:  # a write's error (a full disk) names no file
-            raise named_error(exc, final) from None
-        raise
-
 
 # --------------------------------------------------------------------------- schemas
 #
@@ -604,12 +171,12 @@ def check_ball_radius(value: float, what: str = "--radius") -> float:
 
 def encode_png(image: np.ndarray, what: str, mark: bool = False) -> bytes:
     """uint8/uint16 image (grey or BGR) -> PNG bytes; ``mark``: with the mark of a file written for
-    the user (``is_marked``)."""
+    the user (``outputs.is_marked``)."""
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(image))
     if not ok:
         raise SphereBenchError(f"{what}: OpenCV could not encode this image as PNG")
     data = buf.tobytes()
-    return data[:_PNG_HEADER_END] + _PNG_MARK_CHUNK + data[_PNG_HEADER_END:] if mark else data
+    return mark_png(data) if mark else data
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
@@ -617,13 +184,10 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
     atomic_write_bytes(path, encode_png(image, str(path)))
 
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
 def _header_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) px from a PNG's IHDR or a JPEG's frame header; None for another format or
     a header cut short (OpenCV then says what it makes of the file)."""
-    if data[:8] == _PNG_SIGNATURE and data[12:16] == b"IHDR" and len(data) >= 24:
+    if data[:8] == PNG_SIGNATURE and data[12:16] == b"IHDR" and len(data) >= 24:
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     i = 2 if data[:2] == b"\xff\xd8" else len(data)
     while i + 9 <= len(data) and data[i] == 0xFF:
@@ -786,7 +350,7 @@ def write_cloud_ply(path: str | Path, cloud: Cloud) -> None:
 
 def encode_ply(points_m: np.ndarray, colors: np.ndarray | None = None) -> bytes:
     """Binary PLY of points (N, 3) m with optional colours (N, 3) uint8 RGB, for MeshLab, with the
-    mark of a file written for the user (``is_marked``)."""
+    mark of a file written for the user (``outputs.is_marked``)."""
     p = np.asarray(points_m, dtype=np.float32).reshape(-1, 3)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if colors is not None:
@@ -796,7 +360,7 @@ def encode_ply(points_m: np.ndarray, colors: np.ndarray | None = None) -> bytes:
     if colors is not None:
         c = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
         v["red"], v["green"], v["blue"] = c[:, 0], c[:, 1], c[:, 2]
-    return _ply_bytes(v, comments=[_MARK.decode()])
+    return _ply_bytes(v, comments=[MARK.decode()])
 
 
 def write_ply(path: str | Path, points_m: np.ndarray, colors: np.ndarray | None = None) -> None:
@@ -1081,7 +645,7 @@ def read_coco_gt(dataset_dir: str | Path) -> dict:
 
 
 # --------------------------------------------------------------------------- recorded-data readers
-# (added for `spherebench prepare`: raw frames, lenient camera JSON, PCD, LabelMe, RealSense bags)
+# (what `spherebench prepare` reads: raw frames, lenient camera JSON, PCD, LabelMe)
 
 RAW_DTYPES = {"uint16": "u2", "float32": "f4"}
 RAW_BYTE_ORDERS = {"little": "<", "big": ">"}
@@ -1275,318 +839,3 @@ def read_labelme(path: str | Path) -> dict:
         for k, point in enumerate(shape["points"]):
             check_schema(path, point, "xy", fix, f"point {k} of {name}")
     return d
-
-
-#: The first bytes of a recording by suffix, and what they are.
-RECORDING_MAGIC = {".bag": (b"#ROSBAG V2.0\n", "ROS1 bag"), ".db3": (b"SQLite format 3\x00", "ROS2 SQLite")}
-
-
-def import_pyrealsense2():
-    """pyrealsense2 (the ``realsense`` extra), or one line saying how to install it."""
-    return require("pyrealsense2", "realsense", "reading RealSense recordings and cameras (also: apt-get install "
-                   "libusb-1.0-0)")
-
-
-#: Colour formats of a recording's colour stream that prepare keeps (pyrealsense2's rs.format
-#: names) -> OpenCV's conversion to BGR (None: already BGR) and bytes per pixel.
-BAG_COLOUR_FORMATS = {"rgb8": (cv2.COLOR_RGB2BGR, 3), "bgr8": (None, 3), "rgba8": (cv2.COLOR_RGBA2BGR, 4),
-                      "bgra8": (cv2.COLOR_BGRA2BGR, 4), "yuyv": (cv2.COLOR_YUV2BGR_YUY2, 2),
-                      "uyvy": (cv2.COLOR_YUV2BGR_UYVY, 2)}
-#: Depth frames held back while the colour frame after them has not arrived yet; beyond this many
-#: the oldest is paired with the colour frames seen so far (a colour stream that stops early).
-BAG_PENDING_DEPTH_FRAMES = 8
-#: Colour frames kept for pairing (the latest ones).
-BAG_COLOUR_HISTORY = 8
-#: Timestamp jitter (ms) allowed beyond half a colour frame period when pairing colour with depth.
-BAG_COLOUR_SLACK_MS = 1.0
-
-
-@dataclass
-class BagFrame:
-    """One depth frame of a recording or a live camera and, when the recording has a usable colour
-    stream, the colour frame nearest to it in time. index counts depth frames from 0; timestamps
-    are the frames' own (ms). colour: (h, w, 3) uint8 BGR at the colour stream's own size; None, with
-    ``no_colour`` saying why, when no colour frame lies within BagColour.max_offset_ms (the nearest
-    is then still named by colour_number and colour_timestamp_ms) or the two streams' timestamps
-    are in different clock domains. All colour fields stay None without a colour stream."""
-
-    index: int
-    number: int
-    timestamp_ms: float
-    depth: np.ndarray
-    intrinsics: Intrinsics
-    colour: np.ndarray | None = None
-    colour_number: int | None = None
-    colour_timestamp_ms: float | None = None
-    no_colour: str | None = None
-
-
-@dataclass(frozen=True)
-class BagColour:
-    """A recording's colour stream: format (BAG_COLOUR_FORMATS), intrinsics (depth_scale unused),
-    the depth-to-colour extrinsics (a depth point p is at rotation @ p + translation in the colour
-    camera's frame, metres; from the recording's profile.get_extrinsics_to) and the largest time
-    offset (ms) of a colour frame paired with a depth frame: half a colour frame period (the
-    farthest the nearest frame of a regular stream can be) plus BAG_COLOUR_SLACK_MS."""
-
-    format: str
-    intrinsics: Intrinsics
-    rotation: tuple[tuple[float, float, float], ...]
-    translation: tuple[float, float, float]
-    fps: int
-    max_offset_ms: float
-
-
-class BagRecording:
-    """A RealSense recording (.bag, ROS1; .db3, ROS2) opened for pyrealsense2 playback: its depth
-    stream, and its colour stream when it has one that can be kept (``colour``; else ``colour_note``
-    says why there is none). Opening reads the file's description only; ``frames`` plays it back.
-
-    The sensors are started directly (not through rs.pipeline, which drops frames when the consumer
-    is slower than the file) with non-real-time playback and a small blocking queue: the playback
-    thread waits for each frame to be taken, so none is lost and memory stays bounded. Colour is
-    paired with depth by timestamp here, not by rs.syncer, which may emit a frame alone or drop it.
-    """
-
-    def __init__(self, path: str | Path):
-        self.path = path = Path(path)
-        if not path.is_file():
-            raise SphereBenchError(f"{path}: file not found")
-        magic, kind = RECORDING_MAGIC.get(path.suffix.lower(), (b"", ""))
-        with path.open("rb") as f:
-            head = f.read(len(magic))
-        if head != magic:  # refused before librealsense starts (it writes ~/.rum/rum.json)
-            raise SphereBenchError(f"{path}: not a RealSense recording (no {kind} header): "
-                                   "give a .bag or .db3 file recorded by a RealSense camera")
-        rs = import_pyrealsense2()
-        try:
-            self._device = rs.context().load_device(str(path))
-            sensors = self._device.query_sensors()
-            streams = [(i, s, p) for i, s in enumerate(sensors) for p in s.get_stream_profiles()]
-        except RuntimeError as exc:
-            raise SphereBenchError(f"{path}: not a readable RealSense recording, or one cut short ({exc})") from None
-        depth = [(i, s, p) for i, s, p in streams if s.is_depth_sensor() and p.stream_type() == rs.stream.depth]
-        if not depth:
-            found = ", ".join(sorted({str(p.stream_type()).removeprefix("stream.") for *_, p in streams})) or "none"
-            raise SphereBenchError(f"{path}: the recording has no depth stream (streams: {found}); "
-                                   "record with depth enabled")
-        self._depth_index, self._depth_sensor, self._depth_profile = depth[0]
-        if self._depth_profile.format() != rs.format.z16:
-            raise SphereBenchError(f"{path}: the depth stream is {self._depth_profile.format()}, "
-                                   "only z16 depth is supported")
-        self.depth_scale = float(self._depth_sensor.as_depth_sensor().get_depth_scale())
-        self.colour: BagColour | None = None
-        self.colour_note: str | None = None
-        self._colour_index = self._colour_sensor = self._colour_profile = None
-        colour = [(i, s, p) for i, s, p in streams if p.stream_type() == rs.stream.color]
-        if not colour:
-            self.colour_note = (f"{path.name}: the recording has no colour stream: its scenes keep no colour frame "
-                                "(annotate --from-colour needs one)")
-            return
-        sensor_index, sensor, profile = colour[0]
-        fmt = str(profile.format()).removeprefix("format.")
-        if fmt not in BAG_COLOUR_FORMATS:
-            self.colour_note = (f"{path.name}: the colour stream is {fmt}, which prepare does not convert "
-                                f"({', '.join(BAG_COLOUR_FORMATS)}): its scenes keep no colour frame")
-            return
-        try:
-            ext = self._depth_profile.get_extrinsics_to(profile)
-            c_intr = profile.as_video_stream_profile().get_intrinsics()
-            intr = Intrinsics.from_rs(c_intr, 1.0)
-        except (RuntimeError, SphereBenchError) as exc:
-            self.colour_note = (f"{path.name}: the colour stream's calibration cannot be used ({exc}): "
-                                "its scenes keep no colour frame")
-            return
-        r = [float32_decimal(v) for v in ext.rotation]  # column-major, as rs2_extrinsics
-        self.colour = BagColour(format=fmt, intrinsics=intr,
-                                rotation=tuple((r[i], r[3 + i], r[6 + i]) for i in range(3)),
-                                translation=tuple(float32_decimal(v) for v in ext.translation), fps=int(profile.fps()),
-                                max_offset_ms=(500.0 / profile.fps() if profile.fps() > 0 else math.inf)
-                                + BAG_COLOUR_SLACK_MS)
-        self._colour_index, self._colour_sensor, self._colour_profile = sensor_index, sensor, profile
-
-    def frames(self, stop_after: int | None = None, stall_timeout_s: float = 10.0, real_time: bool = False,
-               with_colour: bool = True):
-        """BagFrames in recording order; stop_after: stop once this many have been yielded;
-        with_colour=False plays the depth stream alone (a detector needs no colour).
-
-        real_time: play at the recording's rate, as a camera would deliver it: a frame that
-        arrives while the consumer is still busy with earlier ones is dropped (counted in
-        ``self.dropped``, by stream: "depth", "colour") rather than waited for."""
-
-        rs = import_pyrealsense2()
-        path = self.path
-        playback = self._device.as_playback()
-        playback.set_real_time(bool(real_time))
-        items: queue.Queue = queue.Queue(maxsize=2 if real_time else 4)  # real time: hold little, drop the rest
-        stopping = threading.Event()
-        self.dropped = {"depth": 0, "colour": 0}
-        colour = self.colour if with_colour else None
-        convert, bpp = BAG_COLOUR_FORMATS[colour.format] if colour is not None else (None, 0)
-
-        def on_frame(frame) -> None:
-            # copy out and release the frame at once: librealsense's frame pool is small
-            vp = frame.get_profile().as_video_stream_profile()
-            is_depth = vp.stream_type() == rs.stream.depth
-            data = np.asanyarray(frame.get_data())
-            image = np.array(data, dtype=np.uint16, copy=True) if is_depth else np.array(data, copy=True)
-            item = (is_depth, int(frame.get_frame_number()), float(frame.get_timestamp()), image,
-                    vp.get_intrinsics() if is_depth else (vp.width(), vp.height()),
-                    str(frame.get_frame_timestamp_domain()))
-            if real_time:
-                try:
-                    items.put_nowait(item)
-                except queue.Full:
-                    self.dropped["depth" if is_depth else "colour"] += 1
-                return
-            while not stopping.is_set():
-                try:
-                    items.put(item, timeout=0.05)
-                    return
-                except queue.Full:
-                    continue
-
-        # each sensor opens all of its streams at once (a D405's colour is on its depth sensor)
-        opened = [(self._depth_sensor, [self._depth_profile])]
-        if colour is not None:
-            if self._colour_index == self._depth_index:
-                opened[0][1].append(self._colour_profile)
-            else:
-                opened.append((self._colour_sensor, [self._colour_profile]))
-        started = []
-        try:
-            if colour is not None:
-                playback.pause()  # until every sensor is started: none misses the first frames
-            for sensor, profiles in opened:
-                sensor.open(profiles if len(profiles) > 1 else profiles[0])
-                sensor.start(on_frame)
-                started.append(sensor)
-            if colour is not None:
-                playback.resume()
-        except RuntimeError as exc:
-            _stop_sensors(started)
-            raise SphereBenchError(f"{path}: pyrealsense2 cannot play the recording back ({exc})") from None
-
-        pending: collections.deque = collections.deque()  # depth items waiting for a later colour frame
-        recent: collections.deque = collections.deque(maxlen=BAG_COLOUR_HISTORY)  # colour items
-        domains: dict[str, str] = {}
-        index = 0
-
-        def paired(depth_item):
-            nonlocal index
-            number, stamp, image, rs_intr = depth_item
-            frame = BagFrame(index, number, stamp, image, Intrinsics.from_rs(rs_intr, self.depth_scale))
-            index += 1
-            if colour is None:
-                return frame
-            if not recent:
-                frame.no_colour = "no colour frame was recorded up to it"
-                return frame
-            if domains["depth"] != domains["colour"]:
-                frame.no_colour = (f"its timestamp and the colour stream's are in different clock domains "
-                                   f"({domains['depth'].removeprefix('timestamp_domain.')}, "
-                                   f"{domains['colour'].removeprefix('timestamp_domain.')}): they cannot be paired")
-                return frame
-            # the colour stream is in time order: the first frame at or after the depth and the one before it
-            after = next((i for i, c in enumerate(recent) if c[1] >= stamp), None)
-            candidates = [recent[-1]] if after is None else [recent[after]] + ([recent[after - 1]] if after else [])
-            best = min(candidates, key=lambda c: (abs(c[1] - stamp), c[1]))
-            frame.colour_number, frame.colour_timestamp_ms = best[0], best[1]
-            if abs(best[1] - stamp) <= colour.max_offset_ms:
-                frame.colour = best[2]
-            else:
-                frame.no_colour = (f"the nearest colour frame is {abs(best[1] - stamp):.1f} ms away, more than "
-                                   f"half a colour frame period and {BAG_COLOUR_SLACK_MS:g} ms "
-                                   f"({colour.max_offset_ms:.1f} ms; a colour frame was lost?)")
-            return frame
-
-        def ready(final: bool = False):
-            while pending and (final or colour is None or len(pending) > BAG_PENDING_DEPTH_FRAMES
-                               or (recent and recent[-1][1] >= pending[0][1])):
-                yield paired(pending.popleft())
-
-        try:
-            idle_s, step_s, last = 0.0, 0.05, {}
-            while stop_after is None or index < stop_after:
-                try:
-                    is_depth, number, stamp, image, rs_intr, domain = items.get(timeout=step_s)
-                except queue.Empty:
-                    idle_s += step_s
-                    if playback.current_status() == rs.playback_status.stopped and items.empty() and idle_s > 0.2:
-                        break
-                    if idle_s > stall_timeout_s:
-                        raise SphereBenchError(f"{path}: playback stalled for {stall_timeout_s:g} s; "
-                                               "the file may be damaged")
-                    continue
-                idle_s = 0.0
-                kind = "depth" if is_depth else "colour"
-                if last.get(kind) == (number, stamp):
-                    continue
-                last[kind] = (number, stamp)
-                domains.setdefault(kind, domain)
-                if is_depth:
-                    pending.append((number, stamp, image, rs_intr))
-                else:
-                    recent.append((number, stamp, _colour_to_bgr(image, *rs_intr, bpp, convert, path)))
-                for frame in ready():
-                    yield frame
-                    if stop_after is not None and index >= stop_after:
-                        return
-            for frame in ready(final=True):
-                if stop_after is not None and frame.index >= stop_after:
-                    return
-                yield frame
-        finally:
-            stopping.set()
-            _stop_sensors(started)
-
-
-def _colour_to_bgr(data: np.ndarray, width: int, height: int, bpp: int, convert, path: Path) -> np.ndarray:
-    """A colour frame's pixels (BAG_COLOUR_FORMATS, any array shape) -> (height, width, 3) uint8 BGR."""
-    raw = np.ascontiguousarray(data).view(np.uint8).reshape(-1)
-    if raw.size != width * height * bpp:
-        raise SphereBenchError(f"{path}: a colour frame holds {raw.size} bytes, not the {width}x{height}x{bpp} of "
-                               "its stream: the file is damaged")
-    raw = raw.reshape(height, width, bpp)
-    return raw.copy() if convert is None else cv2.cvtColor(raw, convert)
-
-
-def _stop_sensors(sensors) -> None:
-    for sensor in sensors:
-        try:
-            sensor.stop()
-            sensor.close()
-        except RuntimeError:
-            pass  # already stopped at the end of the file
-
-
-# --------------------------------------------------------------------------- detection records
-#
-# One JSON schema for every detector's output, 3D and 2D alike (docs/formats.md): what
-# `spherebench detect` and `detect-2d` print, one line per input or frame.
-
-def detection_record(score: float, circle_px=None, center_m=None, radius_m: float | None = None,
-                     inliers: int | None = None, visible_fraction: float | None = None) -> dict:
-    """One detection: score; circle_px {center [cx, cy], radius} px (None: it projects nowhere on
-    the image) with its COCO bbox [x, y, w, h] px; center_m [x, y, z] and radius_m, metres, camera
-    frame (None from a 2D detector); inliers, the points on the sphere, and visible_fraction, the
-    share of its silhouette no nearer surface hides (None from a 2D detector or an unorganised cloud)."""
-    circle = None if circle_px is None else [float(v) for v in circle_px[:3]]
-    return {"score": round(float(score), 6),
-            "center_m": None if center_m is None else [round(float(v), 6) for v in center_m],
-            "radius_m": None if radius_m is None else round(float(radius_m), 6),
-            "circle_px": None if circle is None else {"center": [round(circle[0], 3), round(circle[1], 3)],
-                                                      "radius": round(circle[2], 3)},
-            "bbox": None if circle is None else circle_bbox(*circle, decimals=3),
-            "inliers": None if inliers is None else int(inliers),
-            "visible_fraction": None if visible_fraction is None else round(float(visible_fraction), 3)}
-
-
-def frame_record(source: str, detections: list[dict], ms: float, frame: int | None = None,
-                 timestamp_ms: float | None = None, **extra) -> dict:
-    """One input's (or one stream frame's) line: source, frame number and timestamp (ms; None for a
-    file), detections (``detection_record``s, best first), ms (the detection alone), and any extra
-    fields of the command (e.g. radius_m)."""
-    return {"input": str(source), "frame": None if frame is None else int(frame),
-            "timestamp_ms": None if timestamp_ms is None else round(float(timestamp_ms), 3),
-            **extra, "detections": detections, "ms": round(float(ms), 3)}

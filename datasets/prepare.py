@@ -47,7 +47,7 @@ import numpy as np
 from spherebench import __version__
 from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics, align_to_depth, project
 from spherebench.cloud import Cloud, depth_to_metres
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs, recordings
 from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
 from spherebench.datasets.scene import Scene
 from spherebench.errors import SphereBenchError
@@ -392,7 +392,7 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
     metres of the depth scale used) and, in meta, which colour frame it is and what the alignment
     did."""
     stem = scene_id_from(path.stem)
-    recording = inout.BagRecording(path)
+    recording = recordings.BagRecording(path)
     notes = (recording.colour_note,) if recording.colour_note else ()
     colour = recording.colour
     for bag_frame, rel in selection.apply(recording.frames(stop_after=selection.stop), path.name):
@@ -412,7 +412,7 @@ def bag_frames(path: Path, selection: FrameSelection, depth_scale: float | None 
                     depth=bag_frame.depth, meta=meta, colour=aligned, no_colour=bag_frame.no_colour, notes=notes)
 
 
-def _colour_meta(colour: inout.BagColour, frame: inout.BagFrame) -> dict:
+def _colour_meta(colour: recordings.BagColour, frame: recordings.BagFrame) -> dict:
     """What a scene records of its colour frame: which one, its offset in time, the stream."""
     offset = None if frame.colour_timestamp_ms is None else round(frame.colour_timestamp_ms - frame.timestamp_ms, 6)
     intrinsics = colour.intrinsics.to_dict()
@@ -812,6 +812,163 @@ def _check_colour(path: Path, shape: tuple[int, int]) -> None:
                                f"{shape[1]}x{shape[0]}: give colour registered to the depth (the same pixel grid)")
 
 
+@dataclass
+class _Tally:
+    """What ``prepare`` counts and notes over the frames: for its notes, dataset.json and report."""
+
+    notes: list[str]
+    seen: set[str] = field(default_factory=set)  # scene ids
+    annotated: int = 0
+    balls: int = 0
+    image_less: int = 0
+    valid_points: list[int] = field(default_factory=list)
+    empty: list[str] = field(default_factory=list)  # scenes without a valid point
+    non_finite: dict[str, int] = field(default_factory=dict)  # source -> points with NaN/inf coordinates dropped
+    no_colour: list[str] = field(default_factory=list)  # frames without their colour image
+    fits: list[float] = field(default_factory=list)  # the mask-fit centres' standard errors (m)
+    unfit: list[str] = field(default_factory=list)  # scenes of balls without a fitted centre
+
+
+def _check_frame_units(frame: RecordedFrame, options: PrepareOptions) -> None:
+    """check_units on a frame's valid depth (metres) or, for a cloud, its points' ranges."""
+    if frame.depth is None:
+        check_units(np.linalg.norm(frame.cloud.points.astype(np.float64), axis=1), frame.source,
+                    _input_scale(frame, options), what="range")
+        return
+    sample = frame.unit_sample_m
+    if sample is None:
+        sample = frame.depth[frame.depth > 0].astype(np.float64) * frame.intrinsics.depth_scale
+    check_units(sample, frame.source, _input_scale(frame, options), "depth", frame.unit_alternatives,
+                frame.garbage_hint)
+
+
+def _kept_colour(frame: RecordedFrame, tally: _Tally) -> Path | np.ndarray | None:
+    """The frame's colour frame as its scene keeps it (a file checked, or an image aligned to the
+    depth), or None, with the reason in tally.no_colour where the frame has none."""
+    colour = frame.colour
+    if isinstance(colour, np.ndarray):
+        if colour.shape[:2] != frame.depth.shape:  # aligned to the depth by its reader
+            raise SphereBenchError(f"{frame.source}: the aligned colour frame is {colour.shape[1]}x"
+                                   f"{colour.shape[0]} but the depth is {frame.depth.shape[1]}x"
+                                   f"{frame.depth.shape[0]}")
+    elif colour is not None and not colour.is_file():
+        tally.no_colour.append(str(colour))
+        colour = None
+    elif colour is not None:
+        _check_colour(colour, frame.depth.shape)
+    if colour is None and frame.no_colour:
+        tally.no_colour.append(f"{frame.scene_id}: {frame.no_colour}")
+    return colour
+
+
+def _fit_centres(frame: RecordedFrame, balls, options: PrepareOptions, tally: _Tally) -> None:
+    """Each annotated ball's 3D centre, fitted to its mask's depth pixels (``mask_fit_centre``) and
+    noted in the frame's meta; a ball whose mask gives none keeps no centre (tally.unfit)."""
+    for ball in balls:
+        fit = (mask_fit_centre(depth_to_metres(frame.depth, frame.intrinsics), frame.intrinsics,
+                               ball.mask, options.ball_radius_m) if ball.mask is not None else None)
+        if fit is None:
+            tally.unfit.append(frame.scene_id)
+            continue
+        ball.center_m, ball.center_se_m, ball.center_source = fit.center_m, fit.center_se_m, "mask-fit"
+        frame.meta.setdefault("mask_fit", []).append({"rms_m": round(fit.rms_m, 6), "inliers": fit.inliers,
+                                                      "points": fit.points})
+        tally.fits.append(float(np.linalg.norm(fit.center_se_m)))
+
+
+def _keep_labelme(labelme: Path, scene_dir: Path, colour_name: str | None, colour_sources: tuple[str, ...]) -> None:
+    """A scene's LabelMe file kept beside the image it was drawn on (image.png, or the colour frame
+    when its imagePath names the colour frame as kept or as given: ``colour_sources``), where
+    LabelMe looks when that image is reopened."""
+    doc = inout.read_labelme(labelme)
+    drawn = Path(str(doc.get("imagePath") or "").replace("\\", "/")).name
+    on_colour = colour_name is not None and drawn in (*outputs.COLOUR_FILES, *colour_sources)
+    kept = colour_name if on_colour else "image.png"
+    doc["imagePath"] = kept
+    inout.write_json(scene_dir / (Path(kept).stem + ".json"), doc, indent=2)
+
+
+def _prepare_frame(frame: RecordedFrame, scenes_dir: Path, annotations: AnnotationIndex, options: PrepareOptions,
+                   tally: _Tally) -> None:
+    """One frame written as a scene folder under ``scenes_dir``: its units checked, with its colour
+    frame, its annotations (and their mask-fit centres) and its LabelMe file; counted in ``tally``."""
+    if frame.scene_id in tally.seen:
+        raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "
+                               "give inputs whose file names differ")
+    tally.seen.add(frame.scene_id)
+    if options.unit_check:
+        _check_frame_units(frame, options)
+    balls = colour = colour_name = None
+    colour_sources: tuple[str, ...] = ()  # the names the colour frame goes by (as kept, as given)
+    if frame.depth is not None:
+        n_valid = int(np.count_nonzero(frame.depth > 0))
+        colour = _kept_colour(frame, tally)
+        if colour is not None:
+            colour_name = inout.colour_file_name(colour)
+            colour_sources = (colour_name,) if isinstance(colour, np.ndarray) else (colour.name,)
+        balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m,
+                                      frame.image_names + colour_sources)
+        _fit_centres(frame, balls or (), options, tally)
+    else:
+        n_valid = len(frame.cloud)
+        tally.image_less += 1
+    tally.notes.extend(n for n in frame.notes if n not in tally.notes)
+    if frame.meta.get("non_finite_points_dropped"):
+        tally.non_finite[frame.source] = frame.meta["non_finite_points_dropped"]
+    if n_valid == 0:
+        tally.empty.append(frame.scene_id)
+    tally.valid_points.append(n_valid)
+    frame.meta["valid_points"] = n_valid
+    scene = Scene(scene_id=frame.scene_id, family="recorded", intrinsics=frame.intrinsics, depth=frame.depth,
+                  balls=balls or [], seed=None, annotated=balls is not None, cloud=frame.cloud, meta=frame.meta)
+    scene_dir = inout.write_scene(scenes_dir, scene, options.ball_radius_m, colour=colour)
+    # a LabelMe file is kept even when it held no ball shape: it is the user's work
+    labelme = annotations.labelme_file(frame.scene_id) if frame.depth is not None else None
+    if labelme is not None:
+        _keep_labelme(labelme, scene_dir, colour_name, colour_sources)
+    if balls is not None:
+        tally.annotated += 1
+        tally.balls += len(balls)
+
+
+def _closing_notes(tally: _Tally, annotations: AnnotationIndex) -> list[str]:
+    """The notes said once over all frames: points dropped, annotations' notes, frames without colour
+    or valid depth, annotations that applied nowhere."""
+    notes = []
+    if tally.non_finite:
+        first = next(iter(tally.non_finite))
+        notes.append(f"{sum(tally.non_finite.values())} point(s) with NaN or infinite coordinates were dropped from "
+                     f"{len(tally.non_finite)} cloud(s), e.g. {tally.non_finite[first]} in {first}")
+    notes.extend(annotations.notes())
+    if tally.no_colour:
+        notes.append(f"{len(tally.no_colour)} frame(s) have no colour image (e.g. {tally.no_colour[0]}): "
+                     "kept without one")
+    if tally.empty:
+        notes.append(f"{len(tally.empty)} scene(s) have no valid depth at all (e.g. {tally.empty[0]}): kept, "
+                     "but nothing can be found there")
+    if tally.image_less and not annotations.empty:
+        notes.append("annotations apply to scenes with an image only; image-less scenes stay unannotated")
+    unused = annotations.unused()
+    if unused:
+        notes.append(f"{len(unused)} annotation file(s) matched no selected scene, e.g. {unused[0].name}")
+    return notes
+
+
+def _dataset_meta(plan: Plan, options: PrepareOptions, out_dir: Path, preset: str, tally: _Tally) -> dict:
+    """dataset.json of a prepared dataset."""
+    meta = {"name": options.name or out_dir.name, "preset": preset, "ball_radius_m": float(options.ball_radius_m),
+            "category": options.category, "seed": None, "source": plan.source,
+            "scenes": len(tally.seen), "annotated_scenes": tally.annotated, "image_less_scenes": tally.image_less,
+            "notes": tally.notes, "versions": {"spherebench": __version__, "format": 1}}
+    if tally.fits or tally.unfit:  # said in the dataset, not on the terminal: a 2D annotation needs no 3D centre
+        meta["reference_centres"] = {
+            "source": "mask-fit", "radius_m": float(options.ball_radius_m), "balls": len(tally.fits),
+            "se_median_m": round(float(np.median(tally.fits)), 6) if tally.fits else None,
+            "without_centre": len(tally.unfit),
+            "rule": "fixed-radius least squares on the mask's depth pixels (eroded 2 px), block-jackknife SE"}
+    return meta
+
+
 def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: str = "recorded",
             log=note_to_stderr) -> PrepareReport:
     """Write the plan's frames as a dataset at out_dir, atomically (nothing is left on error).
@@ -819,118 +976,20 @@ def prepare(plan: Plan, out_dir: str | Path, options: PrepareOptions, preset: st
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     annotations = AnnotationIndex(options.masks_dir, options.labelme_dir, options.label)
-    notes = list(plan.notes)
-    seen: set[str] = set()
-    counts = {"annotated": 0, "balls": 0, "image_less": 0}
-    valid_points, empty = [], []
-    non_finite: dict[str, int] = {}  # source -> points with NaN/inf coordinates dropped
-    no_colour, fits, unfit = [], [], []  # frames without their colour image; mask-fit SEs (m); balls without
+    tally = _Tally(notes=list(plan.notes))
     # annotations read from out_dir itself (the LabelMe round trip) are carried into the new dataset
     carried = options.labelme_dir is not None and Path(options.labelme_dir).resolve() == out_dir.resolve()
-    with inout.atomic_directory(out_dir, lambda d: inout.replaceable_dataset(d, labelme_carried=carried)) as tmp:
+    with outputs.atomic_directory(out_dir, lambda d: outputs.replaceable_dataset(d, labelme_carried=carried)) as tmp:
         for frame in _progress(plan.frames, plan.total):
-            if frame.scene_id in seen:
-                raise SphereBenchError(f"{frame.source}: two frames are named scene {frame.scene_id}; "
-                                       "give inputs whose file names differ")
-            seen.add(frame.scene_id)
-            balls = colour = None
-            if frame.depth is not None:
-                valid = frame.depth > 0
-                n_valid = int(np.count_nonzero(valid))
-                if options.unit_check:
-                    sample = frame.unit_sample_m
-                    if sample is None:
-                        sample = frame.depth[valid].astype(np.float64) * frame.intrinsics.depth_scale
-                    check_units(sample, frame.source, _input_scale(frame, options), "depth",
-                                frame.unit_alternatives, frame.garbage_hint)
-                colour = frame.colour
-                if isinstance(colour, np.ndarray):
-                    if colour.shape[:2] != frame.depth.shape:  # aligned to the depth by its reader
-                        raise SphereBenchError(f"{frame.source}: the aligned colour frame is {colour.shape[1]}x"
-                                               f"{colour.shape[0]} but the depth is {frame.depth.shape[1]}x"
-                                               f"{frame.depth.shape[0]}")
-                elif colour is not None and not colour.is_file():
-                    no_colour.append(str(colour))
-                    colour = None
-                elif colour is not None:
-                    _check_colour(colour, frame.depth.shape)
-                if colour is None and frame.no_colour:
-                    no_colour.append(f"{frame.scene_id}: {frame.no_colour}")
-                colour_name = inout.colour_file_name(colour) if colour is not None else None
-                names = frame.image_names + ((colour_name,) if isinstance(colour, np.ndarray) else
-                                             (colour.name,) if colour is not None else ())
-                balls = annotations.balls_for(frame.scene_id, frame.depth.shape, options.ball_radius_m, names)
-                for ball in balls or ():
-                    fit = (mask_fit_centre(depth_to_metres(frame.depth, frame.intrinsics), frame.intrinsics,
-                                           ball.mask, options.ball_radius_m) if ball.mask is not None else None)
-                    if fit is None:
-                        unfit.append(frame.scene_id)
-                        continue
-                    ball.center_m, ball.center_se_m, ball.center_source = fit.center_m, fit.center_se_m, "mask-fit"
-                    frame.meta.setdefault("mask_fit", []).append({"rms_m": round(fit.rms_m, 6), "inliers": fit.inliers,
-                                                                  "points": fit.points})
-                    fits.append(float(np.linalg.norm(fit.center_se_m)))
-            else:
-                n_valid = len(frame.cloud)
-                counts["image_less"] += 1
-                if options.unit_check:
-                    check_units(np.linalg.norm(frame.cloud.points.astype(np.float64), axis=1), frame.source,
-                                _input_scale(frame, options), what="range")
-            notes.extend(n for n in frame.notes if n not in notes)
-            if frame.meta.get("non_finite_points_dropped"):
-                non_finite[frame.source] = frame.meta["non_finite_points_dropped"]
-            if n_valid == 0:
-                empty.append(frame.scene_id)
-            valid_points.append(n_valid)
-            frame.meta["valid_points"] = n_valid
-            scene = Scene(scene_id=frame.scene_id, family="recorded", intrinsics=frame.intrinsics, depth=frame.depth,
-                          balls=balls or [], seed=None, annotated=balls is not None, cloud=frame.cloud,
-                          meta=frame.meta)
-            scene_dir = inout.write_scene(tmp / "scenes", scene, options.ball_radius_m, colour=colour)
-            # a LabelMe file is kept even when it held no ball shape: it is the user's work
-            labelme = annotations.labelme_file(frame.scene_id) if frame.depth is not None else None
-            if labelme is not None:
-                # keep the annotation beside the image it was drawn on (image.png or the colour frame),
-                # where LabelMe looks when that image is reopened
-                doc = inout.read_labelme(labelme)
-                drawn = Path(str(doc.get("imagePath") or "").replace("\\", "/")).name
-                on_colour = colour is not None and drawn in (*inout.COLOUR_FILES, *names[len(frame.image_names):])
-                kept = colour_name if on_colour else "image.png"
-                doc["imagePath"] = kept
-                inout.write_json(scene_dir / (Path(kept).stem + ".json"), doc, indent=2)
-            if balls is not None:
-                counts["annotated"] += 1
-                counts["balls"] += len(balls)
-        if not seen:
+            _prepare_frame(frame, tmp / "scenes", annotations, options, tally)
+        if not tally.seen:
             raise SphereBenchError("no frame was selected: check --frames, --every and --time-range against the input")
-        if non_finite:
-            first = next(iter(non_finite))
-            notes.append(f"{sum(non_finite.values())} point(s) with NaN or infinite coordinates were dropped from "
-                         f"{len(non_finite)} cloud(s), e.g. {non_finite[first]} in {first}")
-        notes.extend(annotations.notes())
-        if no_colour:
-            notes.append(f"{len(no_colour)} frame(s) have no colour image (e.g. {no_colour[0]}): kept without one")
-        if empty:
-            notes.append(f"{len(empty)} scene(s) have no valid depth at all (e.g. {empty[0]}): kept, but nothing can be found there")
-        if counts["image_less"] and not annotations.empty:
-            notes.append("annotations apply to scenes with an image only; image-less scenes stay unannotated")
-        unused = annotations.unused()
-        if unused:
-            notes.append(f"{len(unused)} annotation file(s) matched no selected scene, e.g. {unused[0].name}")
-        meta = {"name": options.name or out_dir.name, "preset": preset, "ball_radius_m": float(options.ball_radius_m),
-                "category": options.category, "seed": None, "source": plan.source,
-                "scenes": len(seen), "annotated_scenes": counts["annotated"], "image_less_scenes": counts["image_less"],
-                "notes": notes, "versions": {"spherebench": __version__, "format": 1}}
-        if fits or unfit:  # said in the dataset, not on the terminal: a 2D annotation needs no 3D centre
-            meta["reference_centres"] = {
-                "source": "mask-fit", "radius_m": float(options.ball_radius_m), "balls": len(fits),
-                "se_median_m": round(float(np.median(fits)), 6) if fits else None, "without_centre": len(unfit),
-                "rule": "fixed-radius least squares on the mask's depth pixels (eroded 2 px), block-jackknife SE"}
-        inout.finish_dataset(tmp, meta)
-    for n in notes:
+        tally.notes.extend(_closing_notes(tally, annotations))
+        inout.finish_dataset(tmp, _dataset_meta(plan, options, out_dir, preset, tally))
+    for n in tally.notes:
         log(f"note: {n}")
-    return PrepareReport(out_dir, len(seen), counts["annotated"], counts["balls"], counts["image_less"],
-                         valid_points, time.perf_counter() - t_start, notes)
+    return PrepareReport(out_dir, len(tally.seen), tally.annotated, tally.balls, tally.image_less,
+                         tally.valid_points, time.perf_counter() - t_start, tally.notes)
 
 
 def prepare_preset_source(name: str, out_dir: str | Path, root: str | Path | None = None,

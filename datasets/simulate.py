@@ -34,7 +34,7 @@ import numpy as np
 from spherebench import __version__
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import sphere_circle_amodal, sphere_silhouette_mask
-from spherebench.datasets import inout, wide_scenes
+from spherebench.datasets import inout, outputs, wide_scenes
 from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_view, ball_partly_out, bookcase,
                                           chair, floor_box, room, table, tripod)
 from spherebench.datasets.primitives import Box, Cylinder, SolidSphere, raycast, surface_map
@@ -587,7 +587,7 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         for i, _f, _r in jobs:  # every scene's sensor is valid (e.g. drawn depth limits in order) before any work
             scene_sensor(preset_name, seed, i, sensor, overrides)
     out_dir = Path(out_dir)
-    with inout.atomic_directory(out_dir, inout.replaceable_dataset) as tmp:
+    with outputs.atomic_directory(out_dir, outputs.replaceable_dataset) as tmp:
         scenes_dir = tmp / "scenes"
         scenes_dir.mkdir()
         tasks = [(preset_name, i, f, seed, r, radius_m, sensor, overrides, scenes_dir, clouds) for i, f, r in jobs]

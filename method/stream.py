@@ -26,7 +26,7 @@ from spherebench.method import detect
 
 
 class DepthFrame(Protocol):
-    """What the loop reads of a frame (``inout.BagFrame`` is one): its index in the stream, the
+    """What the loop reads of a frame (``recordings.BagFrame`` is one): its index in the stream, the
     camera's frame number, depth in counts of ``intrinsics.depth_scale``."""
 
     index: int

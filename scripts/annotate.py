@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from spherebench.cloud import depth_to_metres
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.datasets.annotate import (DEFAULT_HSV, LABELME_OFFSET_PX, colour_mask, contact_sheet,
                                            labelme_from_mask, labelme_text, mask_fit_centre, parse_hsv,
                                            polygon_mask, review_tile)
@@ -61,10 +61,10 @@ def _scenes_with_colour(dataset: Path) -> list[tuple[Path, Path]]:
     scenes = [s for s in inout.list_scenes(dataset) if (s / "depth.png").is_file()]
     if not scenes:
         raise SphereBenchError(f"{dataset}: no scene has a depth image (image-less scenes cannot be annotated)")
-    found = [(s, next((s / n for n in inout.COLOUR_FILES if (s / n).is_file()), None)) for s in scenes]
+    found = [(s, next((s / n for n in outputs.COLOUR_FILES if (s / n).is_file()), None)) for s in scenes]
     missing = [s for s, c in found if c is None]
     if len(missing) == len(found):
-        raise SphereBenchError(f"{dataset}: no scene holds a colour frame ({' or '.join(inout.COLOUR_FILES)}); prepare "
+        raise SphereBenchError(f"{dataset}: no scene holds a colour frame ({' or '.join(outputs.COLOUR_FILES)}); prepare "
                                "keeps one for sources that record colour registered to depth")
     if missing:
         raise SphereBenchError(f"{missing[0]}: no colour frame ({len(missing)} of {len(found)} scenes lack one); "
@@ -110,8 +110,8 @@ def write_sheets(out: Path, scenes: list[tuple[Path, Path]], radius_m: float) ->
         if mask is not None:
             closeup.append(review_tile(colour, depth_image, mask, scene.name, intr, centre, radius_m, CLOSEUP_PX))
     written = []
-    with inout.atomic_directory(out, inout.owned_by_kind(SHEET_KIND)) as tmp:
-        inout.write_json(tmp / inout.OWNER_MARKER, {"kind": SHEET_KIND, "written_by": "spherebench"})
+    with outputs.atomic_directory(out, outputs.owned_by_kind(SHEET_KIND)) as tmp:
+        outputs.write_owner_marker(tmp, SHEET_KIND)
         for name, tiles in (("overview", overview), ("closeup", closeup)):
             for page, start in enumerate(range(0, len(tiles), PAGE_SCENES), 1):
                 inout.write_png(tmp / f"{name}_{page:02d}.png",
@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.from_colour and args.sheet is None:
         raise SphereBenchError("say what to do: --from-colour (masks from the colour frames) and/or --sheet DIR")
     hsv = parse_hsv(args.hsv)
-    if not inout.is_dataset_dir(args.dataset):
+    if not outputs.is_dataset_dir(args.dataset):
         raise SphereBenchError(f"{args.dataset}: not a dataset (no dataset.json); prepare one with `spherebench prepare`")
     radius = (inout.check_ball_radius(args.radius) if args.radius is not None
               else inout.read_dataset_meta(args.dataset).get("ball_radius_m"))
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         raise SphereBenchError("--label is empty: give the ball's label, e.g. ball")
     scenes = _scenes_with_colour(args.dataset)
     if args.sheet is not None:
-        inout.check_output_dir(args.sheet, inout.owned_by_kind(SHEET_KIND), "--sheet", inputs=(args.dataset,))
+        outputs.check_output_dir(args.sheet, outputs.owned_by_kind(SHEET_KIND), "--sheet", inputs=(args.dataset,))
     if args.from_colour:
         existing = [s / "colour.json" for s, _ in scenes if (s / "colour.json").is_file()]
         if existing and not args.overwrite:
@@ -152,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
         kept = [p for p in existing if p not in docs]  # this rule found no ball there: the earlier file stays
         # all or nothing: a failed write puts every file back as it was (a replaced one with a person's
         # corrections included)
-        inout.replace_files({path: labelme_text(doc).encode() for path, doc in docs.items()})
+        outputs.replace_files({path: labelme_text(doc).encode() for path, doc in docs.items()})
         print(f"annotated {len(docs)} of {len(scenes)} frames from colour -> {args.dataset}/scenes/<id>/colour.json")
         if none_found:
             print(f"note: {len(none_found)} frame(s) where no component of the colour range fits the ball (e.g. "

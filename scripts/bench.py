@@ -12,7 +12,7 @@ import sys
 
 from spherebench import options
 from spherebench.cli import run_module
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.speed import MIN_SCORES, bench, markdown, run_info
 
@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
         inout.list_scenes(ds)  # a clear error for a missing dataset before any work
     if args.out is not None:
-        inout.check_report_out(args.out, "bench")
+        outputs.check_report_out(args.out, "bench")
     try:
         min_scores = tuple(sorted({float(t) for t in args.min_scores.split(",") if t.strip()}))
     except ValueError:
@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         slim = {k: v for k, v in result.items() if k != "datasets"}
         slim["datasets"] = {ds: {k: v for k, v in d.items() if k != "rows"} for ds, d in result["datasets"].items()}
         slim["rows"] = {ds: d["rows"] for ds, d in result["datasets"].items()}
-        print("wrote {} and {}".format(*inout.write_report(args.out, md, slim, "bench")), file=sys.stderr)
+        print("wrote {} and {}".format(*outputs.write_report(args.out, md, slim, "bench")), file=sys.stderr)
     return 0
 
 

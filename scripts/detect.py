@@ -14,8 +14,9 @@ before the first detection, and every input as far as it can be unread (it exist
 its radius). An input that turns out bad (missing, damaged, refused by the detector) gets one line
 on stderr, ``spherebench detect: error: PATH: what is wrong``, and is skipped: the others are
 detected and printed, and the exit status is then 2. Files are read and written only through
-``spherebench.datasets.inout``; streams come from ``spherebench.datasets.depth_frames`` and are detected by
-``spherebench.method.stream``.
+``spherebench.datasets.inout`` and ``spherebench.datasets.outputs``, the records printed are
+``spherebench.datasets.detections``'; streams come from ``spherebench.datasets.depth_frames`` and
+are detected by ``spherebench.method.stream``.
 """
 
 from __future__ import annotations
@@ -26,15 +27,15 @@ import json
 import sys
 import time
 from array import array
+from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from spherebench import options, viz
 from spherebench.cli import BadInputs
 from spherebench.cloud import in_front_of_camera
-from spherebench.datasets import depth_frames, inout
+from spherebench.datasets import depth_frames, detections, inout, outputs
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
 from spherebench.datasets.prepare import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colorize_depth
@@ -145,24 +146,24 @@ def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
     if outs and len(args.paths) != 1:
         raise SphereBenchError("--out-ply and --out-png take one input: give one PATH")
     sources = [Path(p).resolve() for p in (*args.paths, *([args.intrinsics] if args.intrinsics else []))]
-    inout.check_output_files(outs, sources, args.force)
+    outputs.check_output_files(outs, sources, args.force)
     if args.rerun_save is not None:
         if not args.rerun_save.strip():
             raise SphereBenchError("--rerun-save is empty (an unset shell variable?): give a file name ending in .rrd")
         out = Path(args.rerun_save)
-        inout.check_regular(out, "--rerun-save")
+        outputs.check_regular(out, "--rerun-save")
         if any(out.resolve() == src or src in out.resolve().parents for src in sources):
             raise SphereBenchError(f"--rerun-save {out} is an input or inside one: write it elsewhere")
-        inout.check_not_in_dataset(out, "--rerun-save")
+        outputs.check_not_in_dataset(out, "--rerun-save")
     if args.rerun_save and Path(args.rerun_save).suffix != ".rrd":
         raise SphereBenchError(f"--rerun-save {args.rerun_save}: give a file name ending in .rrd")
     if args.rerun_save and Path(args.rerun_save).exists() and Path(args.rerun_save).stat().st_size:
         raise SphereBenchError(f"--rerun-save {args.rerun_save} exists; it is never overwritten: give a new name")
     if args.labelme_out is not None:
-        inout.check_output_dir(args.labelme_out, inout.owned_by_kind(LABELME_KIND), "--labelme-out", args.paths)
+        outputs.check_output_dir(args.labelme_out, outputs.owned_by_kind(LABELME_KIND), "--labelme-out", args.paths)
 
 
-#: The kind of a --labelme-out folder (inout.OWNER_MARKER): replaced by a later run, never another's files.
+#: The kind of a --labelme-out folder (outputs.OWNER_MARKER): replaced by a later run, never another's files.
 LABELME_KIND = "detect-labelme"
 
 
@@ -207,17 +208,17 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _spheres_json(spheres) -> list[dict]:
-    return [inout.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices),
-                                   s.evidence.get("visible_fraction"))
+    return [detections.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices),
+                                        s.evidence.get("visible_fraction"))
             for s in spheres]
 
 
 def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None) -> None:
     if args.json:
-        print(json.dumps(inout.frame_record(raw, _spheres_json(spheres), ms,
-                                            frame=None if frame is None else frame.number,
-                                            timestamp_ms=None if frame is None else frame.timestamp_ms,
-                                            radius_m=radius, radius_source=source)), flush=True)
+        print(json.dumps(detections.frame_record(raw, _spheres_json(spheres), ms,
+                                                 frame=None if frame is None else frame.number,
+                                                 timestamp_ms=None if frame is None else frame.timestamp_ms,
+                                                 radius_m=radius, radius_source=source)), flush=True)
         return
     parts = [f"({s.center_m[0]:+.3f}, {s.center_m[1]:+.3f}, {s.center_m[2]:.3f}) m score {s.score:.2f} "
              f"{len(s.inlier_indices)} inliers" for s in spheres]
@@ -233,7 +234,7 @@ def _labelme(out_dir: Path | None, scene_id: str, spheres, shape) -> None:
     circles = [s.circle_exact for s in spheres if s.circle_exact is not None]
     scores = [f"score {s.score:.3f}" for s in spheres if s.circle_exact is not None]
     doc = labelme_from_circles(circles, "image.png", shape, descriptions=scores)
-    inout.atomic_write_bytes(out_dir / f"{scene_id}.json", labelme_text(doc).encode())
+    outputs.atomic_write_bytes(out_dir / f"{scene_id}.json", labelme_text(doc).encode())
 
 
 def _stream_summary(raw: str, times_ms, stats: depth_frames.StreamStats, real_time: bool) -> None:
@@ -245,8 +246,9 @@ def _stream_summary(raw: str, times_ms, stats: depth_frames.StreamStats, real_ti
     print(f"{raw}: {stats.frames} frame(s){timing}{dropped}, {stats.missing} missing", file=sys.stderr)
 
 
-def run(args: argparse.Namespace) -> int:
-    # every argument and input first: nothing is detected, printed or written before all are good
+def _check_arguments(args: argparse.Namespace) -> bool:
+    """Every argument checked, before any input is read; whether the inputs hold a stream (a
+    recording or the camera)."""
     if args.radius is not None:
         inout.check_ball_radius(args.radius)
         _tolerance(args, args.radius, "--radius", "--radius")
@@ -268,24 +270,36 @@ def run(args: argparse.Namespace) -> int:
     if args.camera is not None and args.time_range:
         raise SphereBenchError("--time-range is for recordings; with --camera use --frames A:B")
     _check_outputs(args, streaming)
-    selection = FrameSelection.parse(args.every, args.frames, args.time_range)
-    extra = {} if args.depth_noise is None else {"noise": {"noise_z2_per_m": args.depth_noise}}
-    intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
-    bad = BadInputs("spherebench detect")
+    return streaming
 
+
+@dataclass
+class _Job:
+    """One input to detect in: as given (``raw``), its path (None: the camera), its ball radius and
+    the radius's source, the inlier tolerance, and for a stream its frames and their StreamStats."""
+
+    raw: str
+    path: Path | None
+    radius: float
+    source: str
+    eps: float
+    streamed: tuple | None = None
+
+
+def _jobs(args: argparse.Namespace, selection: FrameSelection, bad: BadInputs) -> list[_Job]:
+    """The inputs, each checked as far as it can be unread (a bad one is skipped through ``bad``); a
+    recording is opened now, so that one without depth is refused before any work; the camera last."""
     jobs = []
     for raw in args.paths:
         path = Path(raw)
         try:
             _check_input(path)
             radius, source = ball_radius(path, args.radius)
-            eps = _tolerance(args, radius, source, raw)
-            if depth_frames.is_recording(path):  # opened now: a recording without depth is refused before any work
+            job = _Job(raw, path, radius, source, _tolerance(args, radius, source, raw))
+            if depth_frames.is_recording(path):
                 stats = depth_frames.StreamStats()
-                jobs.append((raw, path, radius, source, eps,
-                             (depth_frames.recording_frames(path, selection, args.real_time, stats), stats)))
-            else:
-                jobs.append((raw, path, radius, source, eps, None))
+                job.streamed = (depth_frames.recording_frames(path, selection, args.real_time, stats), stats)
+            jobs.append(job)
         except (SphereBenchError, OSError) as exc:
             bad.skip(raw, exc)
     if args.camera is not None:
@@ -296,71 +310,105 @@ def run(args: argparse.Namespace) -> int:
         frames = depth_frames.camera_frames(args.camera or None, width, height, args.fps, stats)
         if selection.first or selection.stop is not None or selection.every != 1:
             frames = (f for f, _ in selection.apply(frames, "the camera's stream"))
-        jobs.append((f"camera {args.camera}".strip(), None, radius, source, eps, (frames, stats)))
+        jobs.append(_Job(f"camera {args.camera}".strip(), None, radius, source, eps, (frames, stats)))
+    return jobs
+
+
+def _configs(method: str, extra: dict):
+    """config(radius, eps): the detector's configuration for a ball, made and warmed up once each."""
+    made: dict = {}
+
+    def config(radius: float, eps: float):
+        if (radius, eps) not in made:
+            made[radius, eps] = config_for(method, radius_m=radius, eps_m=eps, **extra)
+            warm_up(made[radius, eps])  # the kernels' one-off loading is no detection time
+        return made[radius, eps]
+
+    return config
+
+
+def _detect_in_stream(args: argparse.Namespace, job: _Job, config, labelme_dir: Path | None, log) -> None:
+    """Each frame of a recording or the camera detected, printed, and kept as LabelMe and in Rerun
+    where asked; the stream's summary at its end."""
+    frames, stats = job.streamed
+    stem = scene_id_from(job.path.stem) if job.path is not None else f"camera{args.camera or ''}"
+    times = array("d")  # floats, not frames: bounded over an hour-long recording
+    for frame, spheres, ms in stream.detect_stream(frames, config(job.radius, job.eps), args.seed, stats):
+        depth_frames.print_notes(stats, f"note: {job.raw}")
+        times.append(ms)
+        _print_result(args, job.raw, spheres, ms, job.radius, job.source, frame)
+        _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
+        if log is not None:
+            log.frame(job.raw, frame, spheres)
+    depth_frames.print_notes(stats, f"note: {job.raw}")
+    _stream_summary(job.raw, times, stats, args.real_time or job.path is None)
+
+
+def _detect_in_file(args: argparse.Namespace, job: _Job, config, intr, labelme_dir: Path | None, log) -> None:
+    """A cloud or scene folder detected and printed, kept as LabelMe and in Rerun where asked, and
+    drawn to --out-ply and --out-png."""
+    raw, path = job.raw, job.path
+    cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)
+    if behind:
+        print(f"note: {raw}: {behind} points at z <= 0 left out (a depth camera sees only z > 0)", file=sys.stderr)
+    image = _image_for(path, cloud) if args.out_png else None  # before the work: it may be refused
+    if labelme_dir is not None and not cloud.organised:
+        raise SphereBenchError(f"{raw}: --labelme-out needs an image: an organised cloud with intrinsics")
+    cfg = config(job.radius, job.eps)
+    t = time.perf_counter()
+    spheres = detect(cloud, cfg, seed=args.seed)
+    ms = (time.perf_counter() - t) * 1e3
+    _print_result(args, raw, spheres, ms, job.radius, job.source)
+    if labelme_dir is not None:
+        scene_id = scene_id_from(path.name if path.is_dir() else path.stem)
+        _labelme(labelme_dir, scene_id, spheres, cloud.intrinsics.shape)
+    if log is not None:
+        log.cloud(raw, cloud, spheres)
+    outputs.replace_files(_drawn_files(args, cloud, spheres, image))
+
+
+def _drawn_files(args: argparse.Namespace, cloud, spheres, image: np.ndarray | None) -> dict[Path, bytes]:
+    """--out-ply (the cloud, inliers red) and --out-png (the circles on the image), to be written
+    both or neither."""
+    files = {}
+    if args.out_ply:
+        colours = np.tile(np.array(OTHER_RGB, np.uint8), (len(cloud.points), 1))
+        for s in spheres:
+            colours[s.inlier_indices] = INLIER_RGB
+        keep = np.isfinite(cloud.points).all(axis=1)
+        files[Path(args.out_ply)] = inout.encode_ply(cloud.points[keep], colours[keep])
+    if args.out_png:
+        drawn = draw_detections(image, [s.circle_exact for s in spheres], [s.score for s in spheres])
+        files[Path(args.out_png)] = inout.encode_png(drawn, args.out_png, mark=True)
+    return files
+
+
+def run(args: argparse.Namespace) -> int:
+    # every argument and input first: nothing is detected, printed or written before all are good
+    _check_arguments(args)
+    selection = FrameSelection.parse(args.every, args.frames, args.time_range)
+    extra = {} if args.depth_noise is None else {"noise": {"noise_z2_per_m": args.depth_noise}}
+    intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
+    bad = BadInputs("spherebench detect")
+    jobs = _jobs(args, selection, bad)
     log = None
     if args.rerun or args.rerun_save:
         log = viz.RerunLog("spherebench detect", save=args.rerun_save, spawn=args.rerun)
-    labelme_ctx = (inout.atomic_directory(args.labelme_out, inout.owned_by_kind(LABELME_KIND))
+    labelme_ctx = (outputs.atomic_directory(args.labelme_out, outputs.owned_by_kind(LABELME_KIND))
                    if args.labelme_out is not None else contextlib.nullcontext())
-    configs: dict = {}
-
-    def config(radius, eps):
-        if (radius, eps) not in configs:
-            configs[radius, eps] = config_for(args.method, radius_m=radius, eps_m=eps, **extra)
-            warm_up(configs[radius, eps])  # the kernels' one-off loading is no detection time
-        return configs[radius, eps]
-
+    config = _configs(args.method, extra)
     try:
         with labelme_ctx as labelme_dir:
             if labelme_dir is not None:
-                inout.write_json(Path(labelme_dir) / inout.OWNER_MARKER, {"kind": LABELME_KIND,
-                                                                           "written_by": "spherebench"})
-            for raw, path, radius, source, eps, streamed in jobs:
+                outputs.write_owner_marker(labelme_dir, LABELME_KIND)
+            for job in jobs:
                 try:
-                    if streamed is not None:
-                        frames, stats = streamed
-                        stem = scene_id_from(path.stem) if path is not None else f"camera{args.camera or ''}"
-                        times = array("d")  # floats, not frames: bounded over an hour-long recording
-                        for frame, spheres, ms in stream.detect_stream(frames, config(radius, eps), args.seed, stats):
-                            depth_frames.print_notes(stats, f"note: {raw}")
-                            times.append(ms)
-                            _print_result(args, raw, spheres, ms, radius, source, frame)
-                            _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
-                            if log is not None:
-                                log.frame(raw, frame, spheres)
-                        depth_frames.print_notes(stats, f"note: {raw}")
-                        _stream_summary(raw, times, stats, args.real_time or path is None)
-                        continue
-                    cloud, behind = in_front_of_camera(inout.load_cloud(path, intr), raw)
-                    if behind:
-                        print(f"note: {raw}: {behind} points at z <= 0 left out (a depth camera sees only z > 0)",
-                              file=sys.stderr)
-                    image = _image_for(path, cloud) if args.out_png else None  # before the work: it may be refused
-                    if labelme_dir is not None and not cloud.organised:
-                        raise SphereBenchError(f"{raw}: --labelme-out needs an image: an organised cloud with intrinsics")
-                    cfg = config(radius, eps)
-                    t = time.perf_counter()
-                    spheres = detect(cloud, cfg, seed=args.seed)
-                    ms = (time.perf_counter() - t) * 1e3
-                    _print_result(args, raw, spheres, ms, radius, source)
-                    if labelme_dir is not None:
-                        _labelme(labelme_dir, scene_id_from(path.name if path.is_dir() else path.stem), spheres,
-                                 cloud.intrinsics.shape)
-                    if log is not None:
-                        log.cloud(raw, cloud, spheres)
-                    files = {}  # both written or neither
-                    if args.out_ply:
-                        colours = np.tile(np.array(OTHER_RGB, np.uint8), (len(cloud.points), 1))
-                        for s in spheres:
-                            colours[s.inlier_indices] = INLIER_RGB
-                        keep = np.isfinite(cloud.points).all(axis=1)
-                        files[Path(args.out_ply)] = inout.encode_ply(cloud.points[keep], colours[keep])
-                    if args.out_png:
-                        drawn = draw_detections(image, [s.circle_exact for s in spheres], [s.score for s in spheres])
-                        files[Path(args.out_png)] = inout.encode_png(drawn, args.out_png, mark=True)
-                    inout.replace_files(files)
+                    if job.streamed is not None:
+                        _detect_in_stream(args, job, config, labelme_dir, log)
+                    else:
+                        _detect_in_file(args, job, config, intr, labelme_dir, log)
                 except (SphereBenchError, OSError) as exc:
-                    bad.skip(raw, exc)
+                    bad.skip(job.raw, exc)
     except BaseException as exc:
         if args.rerun_save and Path(args.rerun_save).exists():  # streamed as it went: what it has is readable
             exc.kept = f"{args.rerun_save} holds what was logged before the stop"

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from spherebench import options
 from spherebench.cli import BadInputs
-from spherebench.datasets import inout
+from spherebench.datasets import detections
 from spherebench.errors import SphereBenchError
 
 
@@ -88,8 +88,8 @@ def run(args) -> int:
             circles = detector.detect(image, min_score=args.min_score, top_k=args.top_k, focal_px=focal)
             ms = 1000 * (time.perf_counter() - t0)
             if args.json:
-                print(json.dumps(inout.frame_record(given, [inout.detection_record(s, (cx, cy, r))
-                                                            for cx, cy, r, s in circles], ms)), flush=True)
+                print(json.dumps(detections.frame_record(given, [detections.detection_record(s, (cx, cy, r))
+                                                                 for cx, cy, r, s in circles], ms)), flush=True)
             else:
                 found = ", ".join(f"({cx:.1f}, {cy:.1f}) r {r:.1f} score {s:.2f}" for cx, cy, r, s in circles) or "none"
                 print(f"{given}: {len(circles)} circle(s) {found} [{ms:.1f} ms]", flush=True)

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from spherebench import options
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import outputs, simulate
 from spherebench.datasets.sensor import PARAMETERS, parse_settings
 
 
@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    inout.check_not_in_dataset(args.out)
+    outputs.check_not_in_dataset(args.out)
     overrides = parse_settings(args.sensor)
     spec = simulate.PRESETS[args.preset].sensor
     for name in sorted(set(overrides) & (spec.grid_parameters if spec else set())):

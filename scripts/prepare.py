@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from spherebench.datasets import inout
+from spherebench.datasets import outputs
 from spherebench.datasets import prepare as prep
 from spherebench.errors import SphereBenchError
 from spherebench.options import out_path
@@ -71,8 +71,8 @@ def run(args: argparse.Namespace) -> int:
     sources = [*args.inputs, *(p for p in (args.masks, args.intrinsics) if p is not None)]
     if args.preset_source and not args.inputs:
         sources.append(prep.default_realdata_dir() / prep.PRESET_SOURCES[args.preset_source][1])
-    inout.check_output_dir(args.out, inout.is_dataset_dir, inputs=sources)
-    inout.check_not_in_dataset(args.out)
+    outputs.check_output_dir(args.out, outputs.is_dataset_dir, inputs=sources)
+    outputs.check_not_in_dataset(args.out)
     selection = prep.FrameSelection.parse(args.every, args.frames, args.time_range)
     common = dict(depth_scale=args.depth_scale, unit_check=not args.skip_unit_check, selection=selection,
                   masks_dir=args.masks, labelme_dir=args.labelme, label=args.label, name=args.name)

@@ -14,7 +14,7 @@ import sys
 
 from spherebench import options
 from spherebench.cli import run_module
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.robustness import markdown, robustness
 from spherebench.eval.bench.sweep import read_settings
@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         if ds:
             inout.list_scenes(ds)
     if args.out is not None:
-        inout.check_report_out(args.out, "robustness")
+        outputs.check_report_out(args.out, "robustness")
     if not ((inout.read_dataset_meta(args.robust).get("sensor_ranges") or {}).get("grid")):
         raise SphereBenchError(f"{args.robust}: no grid of sensor cells in its dataset.json: give the robust "
                                "preset's folder (spherebench generate --preset robust)")
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     md = markdown(res)
     print(md)
     if args.out is not None:
-        print("wrote {} and {}".format(*inout.write_report(args.out, md, res, "robustness")), file=sys.stderr)
+        print("wrote {} and {}".format(*outputs.write_report(args.out, md, res, "robustness")), file=sys.stderr)
     return 0
 
 

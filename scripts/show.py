@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 
 from spherebench import options
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.datasets.annotate import ball_point_colors, draw_detections, draw_ground_truth
 from spherebench.errors import SphereBenchError
 
@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     outs = {"--out-ply": Path(f"{scene.scene_id}_gt.ply") if args.out_ply is None else args.out_ply}
     if image is not None:
         outs = {"--out-png": Path(f"{scene.scene_id}_gt.png") if args.out_png is None else args.out_png, **outs}
-    outs = inout.check_output_files(outs, [scene_dir, *([pred_file] if pred_file else [])], args.force)
+    outs = outputs.check_output_files(outs, [scene_dir, *([pred_file] if pred_file else [])], args.force)
     files = {}
     status = "annotated" if scene.annotated else "unannotated (no ground truth)"
     print(f"scene {scene.scene_id}: {status}, {len(scene.balls)} ball(s)")
@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     points, colors, how = ball_point_colors(scene, radius, args.tolerance)
     out_ply = outs["--out-ply"]
     files[out_ply] = inout.encode_ply(points, colors)
-    inout.replace_files(files)
+    outputs.replace_files(files)
     if image is not None:
         print(f"wrote {out_png}")
     print(f"wrote {out_ply} ({len(points)} points; {how})")

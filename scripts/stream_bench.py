@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from spherebench import options
-from spherebench.datasets import depth_frames, inout, simulate
+from spherebench.datasets import depth_frames, outputs, simulate
 from spherebench.datasets.bagwrite import write_realsense_bag
 from spherebench.method import config_for, stream, warm_up
 
@@ -60,7 +60,7 @@ def measure(path: Path, real_time: bool, seed: int = 0) -> dict:
 def run(args: argparse.Namespace) -> int:
 
     if args.out:
-        inout.check_report_out(args.out, "stream-bench")
+        outputs.check_report_out(args.out, "stream-bench")
     rows = []
     with tempfile.TemporaryDirectory(prefix="spherebench-stream-") as tmp:
         for size in args.sizes:
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     md += [f"| {r['size']} | {r['playback']} | {r['frames']} / {r['recorded']} | {r['median_ms']:.1f} | "
            f"{r['p95_ms']:.1f} | {r['dropped']} |" for r in rows]
     if args.out:
-        paths = inout.write_report(args.out, "\n".join(md) + "\n", {"seed": args.seed, "rows": rows}, "stream-bench")
+        paths = outputs.write_report(args.out, "\n".join(md) + "\n", {"seed": args.seed, "rows": rows}, "stream-bench")
         print("wrote {} and {}".format(*paths), file=sys.stderr)
     return 0
 

@@ -11,7 +11,7 @@ import sys
 
 from spherebench import options
 from spherebench.cli import run_module
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.eval.bench.sweep import markdown, read_settings, sweep
 
 
@@ -33,13 +33,13 @@ def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
         inout.list_scenes(ds)  # a clear error for a missing dataset before any work
     if args.out is not None:
-        inout.check_report_out(args.out, "sweep")
+        outputs.check_report_out(args.out, "sweep")
     result = sweep(args.datasets, options.parse_seeds(args.seeds), args.method, read_settings(args.overrides, "sweep"),
                    args.workers, args.limit, engine=args.engine, address=args.address)
     md = markdown(result)
     print(md)
     if args.out is not None:
-        print("wrote {} and {}".format(*inout.write_report(args.out, md, result, "sweep")), file=sys.stderr)
+        print("wrote {} and {}".format(*outputs.write_report(args.out, md, result, "sweep")), file=sys.stderr)
     return 0
 
 

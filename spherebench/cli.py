@@ -116,7 +116,7 @@ _OS_ADVICE = {
 
 
 def _real_name(path) -> str:
-    """``path`` with each temporary name (.tmp-<name>.<suffix>, inout's atomic writes) as the name it
+    """``path`` with each temporary name (.tmp-<name>.<suffix>, outputs' atomic writes) as the name it
     stands for: a message names what the user asked for, never a file that is gone when it is read."""
     return os.sep.join(_TMP_NAME.sub(r"\1", part) for part in str(path).split(os.sep))
 
@@ -251,7 +251,7 @@ def _run_guarded(prog: str, work) -> int:
 
 
 def _kept(exc: BaseException) -> str:
-    """What a failed command kept for a rerun (``exc.kept``, set by inout.output_run), as the end of
+    """What a failed command kept for a rerun (``exc.kept``, set by outputs.output_run), as the end of
     its one line."""
     kept = getattr(exc, "kept", None)
     return f"; {kept}" if kept else ""

@@ -76,7 +76,7 @@ class RerunLog:
                                              labels=labels))
 
     def frame(self, source: str, frame, spheres) -> None:
-        """One frame of a stream (an ``inout.BagFrame``) and its spheres."""
+        """One frame of a stream (a ``recordings.BagFrame``) and its spheres."""
         if not self.enabled:
             return
         rr = self.rr

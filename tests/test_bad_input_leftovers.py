@@ -21,7 +21,7 @@ import sys
 import pytest
 
 from spherebench import cli
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import inout, outputs, simulate
 from test_bad_input_commands import _fails, _listing, big_ball  # noqa: E402, F401  (tests/ is on sys.path)
 
 
@@ -81,7 +81,7 @@ def test_a_write_through_inout_never_replaces_a_fifo(tmp_path):
     with pytest.raises(inout.SphereBenchError, match="FIFO"):
         inout.write_json(tmp_path / "p.json", {"a": 1})
     with pytest.raises(inout.SphereBenchError, match="FIFO"):
-        inout.replace_files({tmp_path / "a.txt": b"a", tmp_path / "p.json": b"b"})
+        outputs.replace_files({tmp_path / "a.txt": b"a", tmp_path / "p.json": b"b"})
     assert stat.S_ISFIFO((tmp_path / "p.json").lstat().st_mode)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.json"]  # nor the other file, nor a temporary
 

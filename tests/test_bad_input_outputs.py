@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from spherebench import cli
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 
 
 def _tree(root: Path) -> dict:
@@ -65,7 +65,7 @@ def user(tmp_path, monkeypatch) -> Path:
 
 
 def _fail_on(monkeypatch, nth: int, name: str | None = None, err: int = errno.ENOSPC):
-    """os.replace in inout fails (``err``) on its ``nth`` call onto a file called ``name`` (any name)."""
+    """os.replace in outputs fails (``err``) on its ``nth`` call onto a file called ``name`` (any name)."""
     real, calls = os.replace, []
 
     def replace(src, dst):
@@ -74,7 +74,7 @@ def _fail_on(monkeypatch, nth: int, name: str | None = None, err: int = errno.EN
             if len(calls) == nth:
                 raise OSError(err, os.strerror(err), str(src))
         return real(src, dst)
-    monkeypatch.setattr(inout.os, "replace", replace)
+    monkeypatch.setattr(outputs.os, "replace", replace)
 
 
 # --------------------------------------------------------------------------- data lost
@@ -132,9 +132,9 @@ def test_single_file_outputs_replace_their_own_and_force_replaces_a_users(datase
     for _ in range(2):  # the second run replaces what the first wrote: it carries the mark
         assert cli.main(["show", str(scene), "--out-png", "s.png", "--out-ply", "s.ply"]) == 0
         assert cli.main(["detect", str(scene), "--out-png", "d.png", "--out-ply", "d.ply"]) == 0
-    assert all(inout.is_marked(user / n) for n in ("s.png", "s.ply", "d.png", "d.ply"))
+    assert all(outputs.is_marked(user / n) for n in ("s.png", "s.ply", "d.png", "d.ply"))
     assert cli.main(["show", str(scene), "--out-png", "photo.png", "--out-ply", "my_scan.ply", "--force"]) == 0
-    assert inout.is_marked(user / "photo.png")
+    assert outputs.is_marked(user / "photo.png")
 
 
 @pytest.mark.parametrize("command", ["show", "detect"])
@@ -227,7 +227,7 @@ def test_failed_evaluate_removes_the_folder_it_made(dataset, user, capsys, monke
         if len(calls) == 2:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write's error: naming no file
         return real(fd, mode)
-    monkeypatch.setattr(inout.os, "fchmod", fchmod)
+    monkeypatch.setattr(outputs.os, "fchmod", fchmod)
     _fails(capsys, _evaluate(dataset, "ev"), "ev/predictions/ds/improved.json", "disk is full")
     assert not (user / "ev").exists()
 

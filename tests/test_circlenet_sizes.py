@@ -177,3 +177,15 @@ def test_a_model_trained_on_the_earlier_train_preset_says_so():
     spec = registry.circlenet_spec(full, "circlenet-full")
     assert (provenance.file_sha256(full) in registry.EARLIER_TRAIN) == ("earlier train preset" in spec.note)
     assert "earlier train preset" not in registry.circlenet_spec(registry.circlenet_model_path(), "circlenet").note
+
+
+def test_the_training_presets_of_a_shipped_model_come_from_its_card():
+    from spherebench import provenance
+    from spherebench.eval.bench import registry
+    path = registry.circlenet_model_path("circlenet")
+    card = inout.read_json(path.with_name("model_card.json"))
+    named = [d["preset"] for d in card["data"].get("datasets") or [card["data"]]]
+    said = registry.training_presets("circlenet", provenance.file_sha256(path))
+    assert said == " + ".join(f"`{p}`" for p in named)
+    assert registry.training_presets("circlenet", "0" * 64) is None  # another file: not the card's model
+    assert registry.training_presets("hough", provenance.file_sha256(path)) is None

@@ -11,7 +11,7 @@ import pytest
 
 from spherebench import provenance
 from spherebench.baselines.hough import HoughConfig
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import inout, outputs, simulate
 from spherebench.datasets import fingerprint
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import cache, prose, registry, report, result_tables, scoring, seeds, studies, tables, tasks
@@ -235,7 +235,7 @@ def test_tables_are_never_half_written(tmp_path, monkeypatch):
     # the old set is intact, the new one absent, and no temporary folder is left
     assert (tmp_path / "tables" / "t.md").read_text() == before
     assert not (tmp_path / "tables" / "u.csv").exists()
-    assert sorted(p.name for p in tmp_path.iterdir()) == [inout.OWNER_MARKER, "tables"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [outputs.OWNER_MARKER, "tables"]
 
 
 def test_table_formats():

@@ -90,7 +90,7 @@ def test_evaluate_scores_a_recording_against_its_reference_centres(rec, tmp_path
     for said in ("`rec` is a recording, not a simulation", "from a test camera at 160x120", "not a RealSense D435",
                  "reference centre, not a ground truth", f"'{DESCRIPTION}'", "looks about 0.21",
                  "Table 3 on `rec` beside `default` (mAP / mAP.50 / mAP.75): improved",
-                 "Hough's parameters were tuned there", "In 3D, balls of `rec` matched within 2 cm of the reference "
+                 "Hough's parameters were tuned on `train`", "In 3D, balls of `rec` matched within 2 cm of the reference "
                  "centre, of 2: improved 2"):
         assert said in text, said
     beside = markdown_cells((out / "tables" / "table3_rec_beside_default.md").read_text())

@@ -34,14 +34,14 @@ from spherebench.baselines.circlenet.infer import CircleNetDetector
 from spherebench.baselines.circlenet.loss import circlenet_loss
 from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode
 from spherebench.baselines.circlenet.onnx_export import export_onnx
-from spherebench.datasets import inout
+from spherebench.datasets import outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.metrics.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
 from spherebench.parallel import usable_cpus
 from spherebench.plotting import pyplot
 from spherebench.progress import bar as progress_bar, write as progress_write
 
-#: The owner-marker kind of a training run's folder (``inout.claim_output_dir``).
+#: The owner-marker kind of a training run's folder (``outputs.claim_output_dir``).
 TRAINING_RUN_KIND = "training run"
 
 
@@ -250,8 +250,8 @@ def train(train_dir, out_dir, config: TrainConfig | None = None, seed: int = 0, 
     train_recs, val_recs = split_scenes(records, config.val_fraction, seed)
     # a new, empty or earlier training folder only: a run never overwrites files it did not write; a
     # failed run removes the folder it made unless a checkpoint is there to resume from
-    with inout.output_run(out, TRAINING_RUN_KIND, resumable=("checkpoint.pt",),
-                          resume="rerun with --resume to continue", legacy="checkpoint.pt"):
+    with outputs.output_run(out, TRAINING_RUN_KIND, resumable=("checkpoint.pt",),
+                            resume="rerun with --resume to continue", legacy="checkpoint.pt"):
         return _train(config, device, seed, out, ckpt_path, train_dir, records, train_recs, val_recs, state,
                       progress, command)
 

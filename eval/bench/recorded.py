@@ -28,16 +28,14 @@ from typing import Sequence
 import numpy as np
 
 from spherebench.circles import sphere_circle_exact
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.cache import meta_path
-from spherebench.eval.bench.registry import PAPER_CIRCLE
+from spherebench.eval.bench.registry import PAPER_CIRCLE, ROLE_LEARNED_2D, methods_with_role, training_presets
 from spherebench.eval.bench.tables import Table, fmt, rule_label
 from spherebench.eval.bench.tasks import dataset_scenes
 from spherebench.provenance import REPO_ROOT, file_sha256
 
-#: The learned 2D methods (trained on simulated D435 frames) and the one tuned on them.
-LEARNED_2D = ("circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg")
 #: Methods whose Table 3 figures the beside reading quotes, in this order, where present.
 BESIDE_READING = ("improved", "circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg", "hough")
 #: The repository's reviewed annotation sets: <this>/<dataset name>/<scene_id>.json and a README.md card.
@@ -55,7 +53,7 @@ def _labelme_copies(scenes) -> dict[str, dict]:
     """{scene id: the LabelMe document prepare kept in the scene folder} of the annotated scenes."""
     out = {}
     for s in scenes:
-        for name in inout.LABELME_FILES:
+        for name in outputs.LABELME_FILES:
             if s.annotated and (s.path / name).is_file():
                 out[s.scene_id] = inout.read_json(s.path / name)
                 break
@@ -111,7 +109,7 @@ def facts(data_dir: str | Path) -> dict | None:
            "n_scenes": len(scenes), "annotated": sum(s.annotated for s in scenes),
            "image_less": sum(not s.has_image for s in scenes),
            "resolution": next((s.resolution for s in scenes if s.resolution), None),
-           "colour": sum(any((s.path / name).is_file() for name in inout.COLOUR_FILES) for s in scenes),
+           "colour": sum(any((s.path / name).is_file() for name in outputs.COLOUR_FILES) for s in scenes),
            "annotations": annotation_source(meta.get("name") or root.name, scenes)}
     se, ratios, offsets, authors = [], [], [], []
     n_balls = n_fit = 0
@@ -162,69 +160,92 @@ def _ran(s) -> bool:
 def reading(label: str, f: dict, sets: Sequence) -> list[str]:
     """Sentences on a recorded dataset (``facts``) for the results README: what the recording is,
     what its 2D ground truth and its 3D reference are, and what that bounds."""
-    out = []
+    out = [_what_it_is(label, f)]
+    if f["image_less"] == f["n_scenes"]:
+        out.append(f"`{label}` has no images (point clouds only): no 2D method runs on it and no circle mAP is "
+                   "scored; " + ("without ground truth its rows count detections and the free radius, not accuracy."
+                                 if not f["annotated"] else "only the 3D figures score it."))
+        return out
+    out.append(_ground_truth_2d(label, f))
+    if f["mask_fit"]:
+        out.extend(_reference_3d(f, sets))
+    out.extend(_found_3d(label, sets))
+    out.extend(_domain_gap(label, sets))
+    return out
+
+
+def _what_it_is(label: str, f: dict) -> str:
     camera = f" from {f['camera']}" if f.get("camera") else ""
     res = f" at {f['resolution']}" if f.get("resolution") and not f["image_less"] else ""
     radius_src = f" ({f['radius_source']})" if f.get("radius_source") else ""
     not_d435 = ("" if f.get("source_kind") == "realsense-recording" else
                 ", not a RealSense D435: the simulated presets and the improved detector's noise allowances are "
                 "a D435's" + ("" if f["image_less"] == f["n_scenes"] else ", and so are the CircleNets' training images"))
-    out.append(f"`{label}` is a recording, not a simulation: {f['n_scenes']} frames{camera}{res}{not_d435}; its "
-               f"ball has the stated radius R = {f['radius_m']:g} m{radius_src}, which the 3D methods are given.")
-    if f["image_less"] == f["n_scenes"]:
-        out.append(f"`{label}` has no images (point clouds only): no 2D method runs on it and no circle mAP is "
-                   "scored; " + ("without ground truth its rows count detections and the free radius, not accuracy."
-                                 if not f["annotated"] else "only the 3D figures score it."))
-        return out
+    return (f"`{label}` is a recording, not a simulation: {f['n_scenes']} frames{camera}{res}{not_d435}; its "
+            f"ball has the stated radius R = {f['radius_m']:g} m{radius_src}, which the 3D methods are given.")
+
+
+def _ground_truth_2d(label: str, f: dict) -> str:
+    if not f["annotated"]:
+        return f"`{label}` is not annotated: no circle mAP is scored; its rows count detections, not accuracy."
     a = f.get("annotations") or {}
-    if f["annotated"]:
-        where = f", the repository's reviewed set `{a['set']}`" if a.get("set") else ""
-        descs = a.get("descriptions") or {}
-        said = ""
-        if descs:
-            text, count = next(iter(descs.items()))
-            said = (f"; each ball shape says how it was made: '{text}'" if len(descs) == 1 and count == f["n_balls"]
-                    else f"; {count} of its {f['n_balls']} ball shapes say how they were made: '{text}'")
-        card = f"; how they were made and reviewed: `{a['card']}`" if a.get("card") else ""
-        on = (" drawn on the registered colour frames" if f["colour"] == f["n_scenes"] else "")
-        out.append(f"Its 2D ground truth is the ball masks given to `prepare`{where} ({f['annotated']} of "
-                   f"{f['n_scenes']} frames, {f['n_balls']} balls){on}{said}{card}. A ball's circle is its mask's "
-                   "smallest enclosing circle; the 2D methods are given the reprojected depth image of the same "
-                   "pixel grid (image.png), not the colour frame.")
-    else:
-        out.append(f"`{label}` is not annotated: no circle mAP is scored; its rows count detections, not accuracy.")
-    if f["mask_fit"]:
-        se = (f" (standard error median {1000 * f['se_median_m']:.1f} mm, at most {1000 * f['se_max_m']:.1f} mm)"
-              if f["se_median_m"] is not None else "")
-        text = (f"The 3D figures are measured against a reference centre, not a ground truth: a sphere of R = "
-                f"{f['radius_m']:g} m fitted to each mask's depth pixels, {f['mask_fit']} balls{se}; centre "
-                "errors of that size are not resolved.")
-        ratio = f.get("fit_circle_ratio")
-        if ratio is not None:
-            size = "smaller" if ratio > 1 else "larger"
-            apparent = f["radius_m"] * ratio
-            text += (f" That sphere projects to a circle a median {100 * abs(1 - 1 / ratio):.0f} % {size} than the "
-                     f"mask's (centres a median {f['fit_circle_offset_px']:.1f} px apart, the colour-to-depth "
-                     f"registration among it): to this sensor the ball looks about {apparent:.3f} m in radius")
-            imp = _get(sets, "improved")
-            d = (imp.metrics.get("3d") or {}) if imp is not None and _ran(imp) else {}
-            med = (d.get("radius_error_m") or {}).get("median")
-            if med is not None and math.isfinite(med):
-                text += f", and the improved detector's free-radius fit finds a median {f['radius_m'] + med:.3f} m"
-            if abs(apparent - f["radius_m"]) >= 0.002:
-                text += (f". If the stated radius is {1000 * abs(apparent - f['radius_m']):.0f} mm too "
-                         f"{'small' if apparent > f['radius_m'] else 'large'}, the fixed-radius reference centre "
-                         f"sits up to that much too {'near' if apparent > f['radius_m'] else 'far from'} the camera, "
-                         "which its standard error does not include")
-            text += "."
-        if f.get("authors_n"):
-            text += (f" It lies a median {1000 * f['authors_distance_m']:.1f} mm from the recording's own reference "
-                     f"fit in the {f['authors_n']} frames that have one.")
-        out.append(text)
-        if ratio is not None and ratio > 1.02:
-            out.append("So circles drawn with the stated radius (the 3D methods' exact silhouette and the paper's "
-                       "projection) are smaller than the masks', which caps their IoU below 1; the strict IoU "
-                       "thresholds of mAP count this.")
+    where = f", the repository's reviewed set `{a['set']}`" if a.get("set") else ""
+    descs = a.get("descriptions") or {}
+    said = ""
+    if descs:
+        text, count = next(iter(descs.items()))
+        said = (f"; each ball shape says how it was made: '{text}'" if len(descs) == 1 and count == f["n_balls"]
+                else f"; {count} of its {f['n_balls']} ball shapes say how they were made: '{text}'")
+    card = f"; how they were made and reviewed: `{a['card']}`" if a.get("card") else ""
+    on = (" drawn on the registered colour frames" if f["colour"] == f["n_scenes"] else "")
+    return (f"Its 2D ground truth is the ball masks given to `prepare`{where} ({f['annotated']} of "
+            f"{f['n_scenes']} frames, {f['n_balls']} balls){on}{said}{card}. A ball's circle is its mask's "
+            "smallest enclosing circle; the 2D methods are given the reprojected depth image of the same "
+            "pixel grid (image.png), not the colour frame.")
+
+
+def _reference_3d(f: dict, sets: Sequence) -> list[str]:
+    """What the mask-fit reference centres are, and how their sphere projects against the masks."""
+    se = (f" (standard error median {1000 * f['se_median_m']:.1f} mm, at most {1000 * f['se_max_m']:.1f} mm)"
+          if f["se_median_m"] is not None else "")
+    text = (f"The 3D figures are measured against a reference centre, not a ground truth: a sphere of R = "
+            f"{f['radius_m']:g} m fitted to each mask's depth pixels, {f['mask_fit']} balls{se}; centre "
+            "errors of that size are not resolved.")
+    ratio = f.get("fit_circle_ratio")
+    if ratio is not None:
+        text += _apparent_radius(f, ratio, sets)
+    if f.get("authors_n"):
+        text += (f" It lies a median {1000 * f['authors_distance_m']:.1f} mm from the recording's own reference "
+                 f"fit in the {f['authors_n']} frames that have one.")
+    out = [text]
+    if ratio is not None and ratio > 1.02:
+        out.append("So circles drawn with the stated radius (the 3D methods' exact silhouette and the paper's "
+                   "projection) are smaller than the masks', which caps their IoU below 1; the strict IoU "
+                   "thresholds of mAP count this.")
+    return out
+
+
+def _apparent_radius(f: dict, ratio: float, sets: Sequence) -> str:
+    """The radius the sensor shows the ball at (the fitted sphere's circle against the mask's)."""
+    size = "smaller" if ratio > 1 else "larger"
+    apparent = f["radius_m"] * ratio
+    text = (f" That sphere projects to a circle a median {100 * abs(1 - 1 / ratio):.0f} % {size} than the "
+            f"mask's (centres a median {f['fit_circle_offset_px']:.1f} px apart, the colour-to-depth "
+            f"registration among it): to this sensor the ball looks about {apparent:.3f} m in radius")
+    imp = _get(sets, "improved")
+    d = (imp.metrics.get("3d") or {}) if imp is not None and _ran(imp) else {}
+    med = (d.get("radius_error_m") or {}).get("median")
+    if med is not None and math.isfinite(med):
+        text += f", and the improved detector's free-radius fit finds a median {f['radius_m'] + med:.3f} m"
+    if abs(apparent - f["radius_m"]) >= 0.002:
+        text += (f". If the stated radius is {1000 * abs(apparent - f['radius_m']):.0f} mm too "
+                 f"{'small' if apparent > f['radius_m'] else 'large'}, the fixed-radius reference centre "
+                 f"sits up to that much too {'near' if apparent > f['radius_m'] else 'far from'} the camera, "
+                 "which its standard error does not include")
+    return text + "."
+
+
+def _found_3d(label: str, sets: Sequence) -> list[str]:
     found = []
     for s in sets:
         d = s.metrics.get("3d")
@@ -234,19 +255,25 @@ def reading(label: str, f: dict, sets: Sequence) -> list[str]:
             found.append(f"{s.method} {n2}" + (f" (median distance {1000 * med:.1f} mm)" if n2 and med is not None
                                                and math.isfinite(med) else "")
                          + f", {d['false_detections']} false detection{'s' if d['false_detections'] != 1 else ''}")
-    if found:
-        n = next(s.metrics["3d"]["n_gt"] for s in sets if s.metrics.get("3d"))
-        out.append(f"In 3D, balls of `{label}` matched within 2 cm of the reference centre, of {n}: "
-                   + "; ".join(found) + ".")
-    nets = [s for s in sets if s.method in LEARNED_2D and _ran(s) and s.metrics.get("mAP") is not None]
+    if not found:
+        return []
+    n = next(s.metrics["3d"]["n_gt"] for s in sets if s.metrics.get("3d"))
+    return [f"In 3D, balls of `{label}` matched within 2 cm of the reference centre, of {n}: " + "; ".join(found) + "."]
+
+
+def _domain_gap(label: str, sets: Sequence) -> list[str]:
+    """The learned and tuned 2D methods meet another sensor here: say what they were trained on."""
+    learned = {m.name for m in methods_with_role(ROLE_LEARNED_2D)}
+    nets = [s for s in sets if s.method in learned and _ran(s) and s.metrics.get("mAP") is not None]
     hough = any(s.method == "hough" and _ran(s) for s in sets)
-    if nets or hough:
-        who = ", ".join(f"`{s.method}`" for s in nets)
-        out.append((f"{who} were trained on simulated D435 frames only (the `train` preset)" if nets else "")
-                   + (" and " if nets and hough else "") + ("Hough's parameters were tuned there" if hough else "")
-                   + f": on `{label}` {'they meet' if len(nets) + hough > 1 else 'it meets'} another sensor's depth "
-                   "images, the domain gap a user meets.")
-    return out
+    if not (nets or hough):
+        return []
+    trained = "; ".join(f"`{s.method}` on {training_presets(s.method, s.extra_fingerprint) or 'simulated frames'}"
+                        for s in nets)
+    return [(f"The learned 2D methods were trained on simulated D435 frames only ({trained})" if nets else "")
+            + (" and " if nets and hough else "") + ("Hough's parameters were tuned on `train`" if hough else "")
+            + f": on `{label}` {'they meet' if len(nets) + hough > 1 else 'it meets'} another sensor's depth "
+            "images, the domain gap a user meets."]
 
 
 # --------------------------------------------------------------------------- beside another evaluation

@@ -84,12 +84,12 @@ CIRCLENET_MODELS = {
 }
 
 #: Shipped models trained on an earlier `train` preset, by the sha256 of their ONNX file: their rows
-#: say so (the full-size model needs a CUDA machine to retrain, and none was at hand when `train`
-#: began drawing each scene's sensor, bf6a801).
+#: say so (the full-size model needs a CUDA machine to retrain, and none has been at hand since
+#: `train` began drawing each scene's sensor).
 EARLIER_TRAIN = {
     "3b72295ef7ff02b8fd1f939613db8828eb10db18006e57b50997ff17d2236862":
-        "trained on the earlier train preset (nominal sensor, before bf6a801), never on train-stereo (no GPU was "
-        "lent since); `make train-full` on a CUDA machine retrains it on train + train-stereo",
+        "trained on the earlier train preset (the nominal sensor in every scene), never on train-stereo; "
+        "`make train-full` on a CUDA machine retrains it on train + train-stereo",
 }
 
 DETECTOR_PRESETS = ("improved", "paper", "paper-lstsq")
@@ -261,16 +261,36 @@ def hough_spec(config: HoughConfig) -> MethodSpec:
                       modules=_CORE_MODULES + ("spherebench.baselines.hough",))
 
 
+def card_presets(card: dict) -> str:
+    """The presets a CircleNet model card says it was trained on: "`train` + `train-stereo`"."""
+    data = card.get("data", {})
+    return " + ".join(f"`{d.get('preset', '?')}`" for d in data["datasets"]) if data.get("datasets") else \
+        f"`{data.get('preset', 'train')}`"
+
+
 def card_budget(card: dict) -> str:
     """One line of a CircleNet model card: its training budget and validation score."""
     val = card.get("val_onnx") or card.get("val_torch") or {}
     data = card.get("data", {})
     half = "; weights stored as float16" if (card.get("onnx") or {}).get("weights") == "float16" else ""
-    presets = " + ".join(f"`{d.get('preset', '?')}`" for d in data["datasets"]) if data.get("datasets") else \
-        f"`{data.get('preset', 'train')}`"
+    presets = card_presets(card)
     return (f"trained from scratch on {data.get('train_images', '?')} {presets} images, "
             f"{card.get('epochs', '?')} epochs, {card.get('train_seconds', 0) / 60:.0f} min on {card.get('device', '?')}; "
             f"validation mAP.50 {val.get('mAP50', float('nan')):.3f}{half}")
+
+
+@functools.lru_cache(maxsize=16)
+def training_presets(name: str, model_sha256: str) -> str | None:
+    """The presets a shipped CircleNet model was trained on, from its model card ("`train` +
+    `train-stereo`"), or None when ``name`` is no shipped model or its file is not that model."""
+    if name not in CIRCLENET_MODELS:
+        return None
+    path = circlenet_model_path(name)
+    card_path = path.with_name("model_card.json")
+    if not (path.is_file() and card_path.is_file()) or file_sha256(path) != model_sha256:
+        return None
+    card = inout.read_json(card_path)
+    return card_presets(card) if isinstance(card, dict) else None
 
 
 def circlenet_model_path(name: str = "circlenet") -> Path:

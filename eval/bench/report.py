@@ -23,7 +23,7 @@ import shutil
 from pathlib import Path
 from typing import Sequence
 
-from spherebench.datasets import inout
+from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import figures as figs
 from spherebench.eval.bench import recorded, transfer
@@ -40,14 +40,14 @@ from spherebench.provenance import json_safe
 
 #: A results folder is ours if it has the owner marker or (written before the marker) provenance.json.
 RESULTS_KIND, RESULTS_LEGACY_FILE = "results", "provenance.json"
-is_results_dir = inout.owned_by_kind(RESULTS_KIND, RESULTS_LEGACY_FILE)
+is_results_dir = outputs.owned_by_kind(RESULTS_KIND, RESULTS_LEGACY_FILE)
 
 
 def claim_results_dir(out: str | Path) -> Path:
     """``out`` as a results folder (new, empty or a previous one of ours, not inside a dataset), or a
     one-line error."""
-    inout.check_not_in_dataset(out)
-    return inout.claim_output_dir(out, RESULTS_KIND, RESULTS_LEGACY_FILE)
+    outputs.check_not_in_dataset(out)
+    return outputs.claim_output_dir(out, RESULTS_KIND, RESULTS_LEGACY_FILE)
 
 
 #: What a rerun of an evaluation reuses: finished prediction sets, the Hough tuning and its training
@@ -56,10 +56,10 @@ RESULTS_RESUMABLE = ("predictions", "hough_config.json", "train-hough", "oracle_
 
 
 def results_run(out: str | Path):
-    """claim_results_dir for the length of an evaluation (``inout.output_run``): a failed or stopped
+    """claim_results_dir for the length of an evaluation (``outputs.output_run``): a failed or stopped
     run removes a folder it made and holds nothing a rerun reuses (RESULTS_RESUMABLE), and says what
     it kept otherwise."""
-    return inout.output_run(out, RESULTS_KIND, RESULTS_RESUMABLE, legacy=RESULTS_LEGACY_FILE)
+    return outputs.output_run(out, RESULTS_KIND, RESULTS_RESUMABLE, legacy=RESULTS_LEGACY_FILE)
 
 
 def _in_results_dir(folder: Path) -> bool:
@@ -79,7 +79,7 @@ def report_folder(folder: Path):
     `annotate --sheet`'s) is carried over, and one clashing with a name the report writes now is
     refused, naming it. Yields (the temporary folder, a list that holds the carried names after)."""
     kept: list[str] = []
-    with inout.atomic_directory(folder, _in_results_dir) as tmp:
+    with outputs.atomic_directory(folder, _in_results_dir) as tmp:
         yield tmp, kept
         ours = sorted(p.name for p in tmp.iterdir() if not p.name.startswith("."))
         before = set(ours)
@@ -161,11 +161,11 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     fig_paths = _figures(out, per_dataset, facts, metrics, transfer_rows, ceilings) if figures else {}
     write_tables(out / "tables", tables)
     # the summary files together: a failed write leaves the earlier set, never a mix of two runs'
-    inout.replace_files({out / "metrics.json": inout.json_bytes(metrics),
-                         **({out / "table2.json": inout.json_bytes(json_safe(list(t2)))} if t2 else {}),
-                         out / "README.md": readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
+    outputs.replace_files({out / "metrics.json": inout.json_bytes(metrics),
+                           **({out / "table2.json": inout.json_bytes(json_safe(list(t2)))} if t2 else {}),
+                           out / "README.md": readme(title, intro, sets_by, tables, fig_paths, t2, skipped,
                                                    about).encode(),
-                         out / "provenance.json": inout.json_bytes(prov)})
+                           out / "provenance.json": inout.json_bytes(prov)})
     return {"metrics": out / "metrics.json", "tables": out / "tables", "figures": out / "figures",
             "readme": out / "README.md", "provenance": out / "provenance.json"}
 

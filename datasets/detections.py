@@ -1,0 +1,34 @@
+"""The detection records: one JSON schema for every detector's output, 3D and 2D alike
+(docs/formats.md), what `spherebench detect` and `detect-2d` print, one line per input or frame.
+"""
+
+from __future__ import annotations
+
+from spherebench.circles import circle_bbox
+
+
+def detection_record(score: float, circle_px=None, center_m=None, radius_m: float | None = None,
+                     inliers: int | None = None, visible_fraction: float | None = None) -> dict:
+    """One detection: score; circle_px {center [cx, cy], radius} px (None: it projects nowhere on
+    the image) with its COCO bbox [x, y, w, h] px; center_m [x, y, z] and radius_m, metres, camera
+    frame (None from a 2D detector); inliers, the points on the sphere, and visible_fraction, the
+    share of its silhouette no nearer surface hides (None from a 2D detector or an unorganised cloud)."""
+    circle = None if circle_px is None else [float(v) for v in circle_px[:3]]
+    return {"score": round(float(score), 6),
+            "center_m": None if center_m is None else [round(float(v), 6) for v in center_m],
+            "radius_m": None if radius_m is None else round(float(radius_m), 6),
+            "circle_px": None if circle is None else {"center": [round(circle[0], 3), round(circle[1], 3)],
+                                                      "radius": round(circle[2], 3)},
+            "bbox": None if circle is None else circle_bbox(*circle, decimals=3),
+            "inliers": None if inliers is None else int(inliers),
+            "visible_fraction": None if visible_fraction is None else round(float(visible_fraction), 3)}
+
+
+def frame_record(source: str, detections: list[dict], ms: float, frame: int | None = None,
+                 timestamp_ms: float | None = None, **extra) -> dict:
+    """One input's (or one stream frame's) line: source, frame number and timestamp (ms; None for a
+    file), detections (``detection_record``s, best first), ms (the detection alone), and any extra
+    fields of the command (e.g. radius_m)."""
+    return {"input": str(source), "frame": None if frame is None else int(frame),
+            "timestamp_ms": None if timestamp_ms is None else round(float(timestamp_ms), 3),
+            **extra, "detections": detections, "ms": round(float(ms), 3)}
