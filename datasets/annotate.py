@@ -28,7 +28,7 @@ Reference centre (``mask_fit_centre``): a fixed-radius least-squares sphere fit 
 pixels of a ball's mask, with its standard error: a recording's 3D reference, independent of
 any detector's search (``prepare`` stores it as the ball's center_m, center_source "mask-fit").
 
-Drawing: ``draw_ground_truth`` renders circles on the reprojected image; ``ball_point_colors``
+Drawing: ``draw_ground_truth`` renders circles on the reprojected image; ``ball_point_colours``
 colours a scene's cloud (ball red, rest grey) for MeshLab; ``contact_sheet`` puts every scene's
 mask over its colour frame and its reprojected depth image, for review by eye.
 """
@@ -456,13 +456,13 @@ FIT_BLOCK_FRACTION = 0.25
 
 @dataclass(frozen=True)
 class SphereFit:
-    """A fixed-radius sphere fit: center_m (3,) m; center_se_m (3,) m standard errors: the block
+    """A fixed-radius sphere fit: centre_m (3,) m; centre_se_m (3,) m standard errors: the block
     jackknife's when the points came in spatial blocks (it holds for depth noise correlated within
     a block and for local misfit), else the Gauss-Newton covariance's (independent point errors
     only: far smaller on real depth); rms_m the inliers' RMS residual; points used, points given."""
 
-    center_m: tuple[float, float, float]
-    center_se_m: tuple[float, float, float]
+    centre_m: tuple[float, float, float]
+    centre_se_m: tuple[float, float, float]
     rms_m: float
     inliers: int
     points: int
@@ -599,23 +599,23 @@ def contact_sheet(tiles: list[np.ndarray], columns: int = 3) -> np.ndarray:
 
 # --------------------------------------------------------------------------- drawing
 
-GT_COLOR_BGR = (0, 255, 0)
-AMODAL_COLOR_BGR = (255, 255, 255)
-REFERENCE_COLOR_BGR = (0, 255, 255)
+GT_COLOUR_BGR = (0, 255, 0)
+AMODAL_COLOUR_BGR = (255, 255, 255)
+REFERENCE_COLOUR_BGR = (0, 255, 255)
 #: Detections drawn over an image (show --predictions, detect --out-png): magenta, unlike any ground truth.
-DETECTION_COLOR_BGR = (255, 0, 255)
+DETECTION_COLOUR_BGR = (255, 0, 255)
 BALL_RGB = (255, 0, 0)
 REFERENCE_RGB = (255, 200, 0)
 REST_RGB = (150, 150, 150)
 _SHIFT = 4  # cv2 fixed-point bits: sub-pixel circle centres and radii
 
 
-def _dashed_circle(image: np.ndarray, circle, color, thickness: int = 1, dash_deg: float = 12.0) -> None:
+def _dashed_circle(image: np.ndarray, circle, colour, thickness: int = 1, dash_deg: float = 12.0) -> None:
     cx, cy, r = circle
     for start in np.arange(0.0, 360.0, 2 * dash_deg):
         cv2.ellipse(image, (round(cx * (1 << _SHIFT)), round(cy * (1 << _SHIFT))),
                     (round(r * (1 << _SHIFT)), round(r * (1 << _SHIFT))), 0.0, float(start),
-                    float(start + dash_deg), color, thickness, cv2.LINE_AA, _SHIFT)
+                    float(start + dash_deg), colour, thickness, cv2.LINE_AA, _SHIFT)
 
 
 def draw_ground_truth(image_bgr: np.ndarray, scene: Scene) -> np.ndarray:
@@ -625,21 +625,21 @@ def draw_ground_truth(image_bgr: np.ndarray, scene: Scene) -> np.ndarray:
     out = image_bgr.copy()
     for ball in scene.balls:
         if ball.amodal_circle_px is not None:
-            _dashed_circle(out, ball.amodal_circle_px, AMODAL_COLOR_BGR)
+            _dashed_circle(out, ball.amodal_circle_px, AMODAL_COLOUR_BGR)
         if ball.circle_px is not None:
             cx, cy, r = ball.circle_px
             c = (round(cx * (1 << _SHIFT)), round(cy * (1 << _SHIFT)))
-            cv2.circle(out, c, round(r * (1 << _SHIFT)), GT_COLOR_BGR, 2, cv2.LINE_AA, _SHIFT)
-            cv2.drawMarker(out, (round(cx), round(cy)), GT_COLOR_BGR, cv2.MARKER_CROSS, 8, 1)
+            cv2.circle(out, c, round(r * (1 << _SHIFT)), GT_COLOUR_BGR, 2, cv2.LINE_AA, _SHIFT)
+            cv2.drawMarker(out, (round(cx), round(cy)), GT_COLOUR_BGR, cv2.MARKER_CROSS, 8, 1)
     ref = scene.meta.get("reference_center_m")
     if ref is not None and scene.intrinsics is not None and ref[2] > 0:
         u, v = project(scene.intrinsics, np.asarray([ref]))[0]
         if np.isfinite(u) and np.isfinite(v):
-            cv2.drawMarker(out, (round(u), round(v)), REFERENCE_COLOR_BGR, cv2.MARKER_TILTED_CROSS, 12, 2)
+            cv2.drawMarker(out, (round(u), round(v)), REFERENCE_COLOUR_BGR, cv2.MARKER_TILTED_CROSS, 12, 2)
     return out
 
 
-def draw_detections(image_bgr: np.ndarray, circles_px, scores, color=DETECTION_COLOR_BGR,
+def draw_detections(image_bgr: np.ndarray, circles_px, scores, colour=DETECTION_COLOUR_BGR,
                     label: str = "") -> np.ndarray:
     """(H, W, 3) uint8 BGR copy of the image with each detection's circle (cx, cy, r) px, its centre
     and its score (``label`` before it, e.g. the method's name), best first: the best drawn
@@ -651,17 +651,17 @@ def draw_detections(image_bgr: np.ndarray, circles_px, scores, color=DETECTION_C
             continue
         cx, cy, r = (float(v) for v in circle[:3])
         c = (round(cx * (1 << _SHIFT)), round(cy * (1 << _SHIFT)))
-        cv2.circle(out, c, max(1, round(r * (1 << _SHIFT))), color, 2 if k == 0 else 1, cv2.LINE_AA, _SHIFT)
-        cv2.drawMarker(out, (round(cx), round(cy)), color, cv2.MARKER_CROSS, 6, 1)
+        cv2.circle(out, c, max(1, round(r * (1 << _SHIFT))), colour, 2 if k == 0 else 1, cv2.LINE_AA, _SHIFT)
+        cv2.drawMarker(out, (round(cx), round(cy)), colour, cv2.MARKER_CROSS, 6, 1)
         text = f"{label} {score:.2f}".strip()
         scale = max(0.4, h / 800)  # legible at 240 and 720 rows alike
         y = int(cy - r - 5 if cy - r - 5 >= 12 else min(cy + r + 14, h - 4))  # above the circle, else below
         cv2.putText(out, text, (int(max(0, cx - r)), y), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(out, text, (int(max(0, cx - r)), y), cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
+        cv2.putText(out, text, (int(max(0, cx - r)), y), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
     return out
 
 
-def ball_point_colors(scene: Scene, radius_m: float | None = None,
+def ball_point_colours(scene: Scene, radius_m: float | None = None,
                       tolerance_m: float = 0.02) -> tuple[np.ndarray, np.ndarray, str]:
     """The scene's cloud coloured for viewing: (points (N, 3) m, colours (N, 3) uint8 RGB, how).
 
@@ -672,7 +672,7 @@ def ball_point_colors(scene: Scene, radius_m: float | None = None,
     radius_m: the dataset's ball radius, used round the reference centre (default: the balls').
     """
     cloud = scene.to_cloud()
-    colors = np.tile(np.asarray(REST_RGB, np.uint8), (len(cloud), 1))
+    colours = np.tile(np.asarray(REST_RGB, np.uint8), (len(cloud), 1))
     ball = np.zeros(len(cloud), dtype=bool)
     how = []
     if cloud.rows is not None and scene.depth is not None:
@@ -687,23 +687,23 @@ def ball_point_colors(scene: Scene, radius_m: float | None = None,
         if scene.balls:
             how.append("ball = points on the ground-truth mask pixels")
     else:
-        centres = [b.center_m for b in scene.balls if b.center_m is not None]
+        centres = [b.centre_m for b in scene.balls if b.centre_m is not None]
         for b in scene.balls:
-            if b.center_m is not None:
-                ball |= np.linalg.norm(cloud.points - np.asarray(b.center_m, np.float32), axis=1) \
+            if b.centre_m is not None:
+                ball |= np.linalg.norm(cloud.points - np.asarray(b.centre_m, np.float32), axis=1) \
                         <= b.radius_m + tolerance_m
         if centres:
             how.append(f"ball = points within radius + {tolerance_m:g} m of the ground-truth centre")
         elif scene.balls:
             how.append("no 3D ground-truth centre: the ball cannot be coloured in an image-less scene")
-    colors[ball] = BALL_RGB
+    colours[ball] = BALL_RGB
     ref = scene.meta.get("reference_center_m")
     radius = radius_m if radius_m is not None else (scene.balls[0].radius_m if scene.balls else None)
     if not ball.any() and ref is not None and radius is not None:
         near = np.linalg.norm(cloud.points - np.asarray(ref, np.float32), axis=1) <= radius + tolerance_m
-        colors[near] = REFERENCE_RGB
+        colours[near] = REFERENCE_RGB
         how.append(f"orange = within {radius:g} + {tolerance_m:g} m of the source's reference centre (NOT ground truth)")
     if not how:
         how.append("no ground truth: every point grey" if not scene.annotated or not scene.balls
                    else "no ball points")
-    return cloud.points, colors, "; ".join(how)
+    return cloud.points, colours, "; ".join(how)

@@ -6,7 +6,7 @@ runs over them in ``spherebench.method.stream``:
     from spherebench.method.stream import detect_stream
 
     for frame, spheres, ms in detect_stream(recording_frames("capture.bag"), config_for("improved")):
-        print(frame.number, frame.timestamp_ms, [s.center_m for s in spheres], ms)
+        print(frame.number, frame.timestamp_ms, [s.centre_m for s in spheres], ms)
 
 Frames are ``recordings.BagFrame``s (depth in counts of ``intrinsics.depth_scale``). Nothing is
 accumulated: each frame is read, handed on and let go, so that memory stays bounded over an

@@ -7,7 +7,7 @@ from __future__ import annotations
 from spherebench.circles import circle_bbox
 
 
-def detection_record(score: float, circle_px=None, center_m=None, radius_m: float | None = None,
+def detection_record(score: float, circle_px=None, centre_m=None, radius_m: float | None = None,
                      inliers: int | None = None, visible_fraction: float | None = None) -> dict:
     """One detection: score; circle_px {center [cx, cy], radius} px (None: it projects nowhere on
     the image) with its COCO bbox [x, y, w, h] px; center_m [x, y, z] and radius_m, metres, camera
@@ -15,7 +15,7 @@ def detection_record(score: float, circle_px=None, center_m=None, radius_m: floa
     share of its silhouette no nearer surface hides (None from a 2D detector or an unorganised cloud)."""
     circle = None if circle_px is None else [float(v) for v in circle_px[:3]]
     return {"score": round(float(score), 6),
-            "center_m": None if center_m is None else [round(float(v), 6) for v in center_m],
+            "center_m": None if centre_m is None else [round(float(v), 6) for v in centre_m],
             "radius_m": None if radius_m is None else round(float(radius_m), 6),
             "circle_px": None if circle is None else {"center": [round(circle[0], 3), round(circle[1], 3)],
                                                       "radius": round(circle[2], 3)},

@@ -38,7 +38,7 @@ from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets.outputs import (COLOUR_FILES, MARK, PNG_SIGNATURE, atomic_directory, atomic_write_bytes,
                                           is_dataset_dir, mark_png, never_replace)
-from spherebench.datasets.reproject import colorize_depth
+from spherebench.datasets.reproject import colourise_depth
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError, require
 
@@ -348,24 +348,24 @@ def write_cloud_ply(path: str | Path, cloud: Cloud) -> None:
     _write_ply_vertices(path, v)
 
 
-def encode_ply(points_m: np.ndarray, colors: np.ndarray | None = None) -> bytes:
+def encode_ply(points_m: np.ndarray, colours: np.ndarray | None = None) -> bytes:
     """Binary PLY of points (N, 3) m with optional colours (N, 3) uint8 RGB, for MeshLab, with the
     mark of a file written for the user (``outputs.is_marked``)."""
     p = np.asarray(points_m, dtype=np.float32).reshape(-1, 3)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if colors is not None:
+    if colours is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     v = np.empty(len(p), dtype=fields)
     v["x"], v["y"], v["z"] = p[:, 0], p[:, 1], p[:, 2]
-    if colors is not None:
-        c = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+    if colours is not None:
+        c = np.asarray(colours, dtype=np.uint8).reshape(-1, 3)
         v["red"], v["green"], v["blue"] = c[:, 0], c[:, 1], c[:, 2]
     return _ply_bytes(v, comments=[MARK.decode()])
 
 
-def write_ply(path: str | Path, points_m: np.ndarray, colors: np.ndarray | None = None) -> None:
+def write_ply(path: str | Path, points_m: np.ndarray, colours: np.ndarray | None = None) -> None:
     """encode_ply, written atomically."""
-    atomic_write_bytes(path, encode_ply(points_m, colors))
+    atomic_write_bytes(path, encode_ply(points_m, colours))
 
 
 def _write_ply_vertices(path: str | Path, vertices: np.ndarray) -> None:
@@ -468,7 +468,7 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
         balls = []
         for k, ball in enumerate(scene.balls):
             entry = {
-                "center_m": None if ball.center_m is None else [float(x) for x in ball.center_m],
+                "center_m": None if ball.centre_m is None else [float(x) for x in ball.centre_m],
                 "radius_m": float(ball.radius_m),
                 "visible_fraction": None if ball.visible_fraction is None else float(ball.visible_fraction),
                 "circle": _circle(ball.circle_px),
@@ -476,9 +476,9 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
                 "mask": None,
                 "silhouette": None,
             }
-            if ball.center_source is not None:  # a recorded ball's centre: how it was obtained, its error
-                entry["center_source"] = ball.center_source
-                entry["center_se_m"] = None if ball.center_se_m is None else [float(x) for x in ball.center_se_m]
+            if ball.centre_source is not None:  # a recorded ball's centre: how it was obtained, its error
+                entry["center_source"] = ball.centre_source
+                entry["center_se_m"] = None if ball.centre_se_m is None else [float(x) for x in ball.centre_se_m]
             if ball.mask is not None:
                 entry["mask"] = f"mask_{k}.png"
                 write_mask_png(tmp / entry["mask"], ball.mask)
@@ -491,7 +491,7 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
               "has_image": scene.depth is not None, "balls": balls, "meta": scene.meta}
         if scene.depth is not None:
             write_depth_png(tmp / "depth.png", scene.depth)
-            write_png(tmp / "image.png", colorize_depth(scene.depth_m()))
+            write_png(tmp / "image.png", colourise_depth(scene.depth_m()))
         if scene.intrinsics is not None:
             write_intrinsics(tmp / "intrinsics.json", scene.intrinsics)
         if write_cloud or scene.depth is None:
@@ -535,11 +535,11 @@ def read_scene(scene_dir: str | Path, load_masks: bool = True) -> Scene:
         if load_masks and b.get("silhouette"):
             sil = read_mask_png(scene_dir / b["silhouette"], depth.shape if depth is not None else None)
         balls.append(Ball(radius_m=b["radius_m"], mask=mask, silhouette=sil,
-                          center_m=None if b.get("center_m") is None else tuple(b["center_m"]),
+                          centre_m=None if b.get("center_m") is None else tuple(b["center_m"]),
                           circle_px=None if b.get("circle") is None else tuple(b["circle"]),
                           amodal_circle_px=None if b.get("amodal_circle") is None else tuple(b["amodal_circle"]),
-                          visible_fraction=b.get("visible_fraction"), center_source=b.get("center_source"),
-                          center_se_m=None if b.get("center_se_m") is None else tuple(b["center_se_m"])))
+                          visible_fraction=b.get("visible_fraction"), centre_source=b.get("center_source"),
+                          centre_se_m=None if b.get("center_se_m") is None else tuple(b["center_se_m"])))
     return Scene(scene_id=gt["scene_id"], family=gt["family"], intrinsics=intr, depth=depth, balls=balls,
                  seed=gt.get("seed"), annotated=gt.get("annotated", True), cloud=cloud, meta=gt.get("meta", {}))
 

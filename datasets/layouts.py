@@ -172,10 +172,10 @@ def table(rng: np.random.Generator, layout: Layout, x_m: float, z_m: float, top_
                                 np.array([0.0, -1.0, 0.0]), 0.02, top_height_m - t), "support")
 
 
-def tripod(rng: np.random.Generator, layout: Layout, ball_center_m: np.ndarray, ball_radius_m: float) -> None:
+def tripod(rng: np.random.Generator, layout: Layout, ball_centre_m: np.ndarray, ball_radius_m: float) -> None:
     """A tripod from the floor to just under the ball, with a small cup that the ball sits in."""
     floor = layout.floor_y_m
-    bottom = ball_center_m + np.array([0.0, ball_radius_m * 0.92, 0.0])  # cup rim a little up the ball
+    bottom = ball_centre_m + np.array([0.0, ball_radius_m * 0.92, 0.0])  # cup rim a little up the ball
     cup_r = 0.045
     layout.add(Cylinder(bottom + np.array([0.0, 0.05, 0.0]), np.array([0.0, -1.0, 0.0]), cup_r, 0.05), "support")
     head = bottom + np.array([0.0, 0.05, 0.0])

@@ -870,10 +870,10 @@ def _fit_centres(frame: RecordedFrame, balls, options: PrepareOptions, tally: _T
         if fit is None:
             tally.unfit.append(frame.scene_id)
             continue
-        ball.center_m, ball.center_se_m, ball.center_source = fit.center_m, fit.center_se_m, "mask-fit"
+        ball.centre_m, ball.centre_se_m, ball.centre_source = fit.centre_m, fit.centre_se_m, "mask-fit"
         frame.meta.setdefault("mask_fit", []).append({"rms_m": round(fit.rms_m, 6), "inliers": fit.inliers,
                                                       "points": fit.points})
-        tally.fits.append(float(np.linalg.norm(fit.center_se_m)))
+        tally.fits.append(float(np.linalg.norm(fit.centre_se_m)))
 
 
 def _keep_labelme(labelme: Path, scene_dir: Path, colour_name: str | None, colour_sources: tuple[str, ...]) -> None:

@@ -52,11 +52,11 @@ class Plane:
 
 @dataclass
 class SolidSphere:
-    center_m: np.ndarray
+    centre_m: np.ndarray
     radius_m: float
 
     def intersect(self, rays: np.ndarray) -> np.ndarray:
-        c = np.asarray(self.center_m, np.float64)
+        c = np.asarray(self.centre_m, np.float64)
         a = np.einsum("ij,ij->i", rays, rays)
         b = rays @ c
         disc = b * b - a * (c @ c - self.radius_m ** 2)
@@ -67,7 +67,7 @@ class SolidSphere:
         return np.where(hit, _nearest(t_near, t_far), _MISS)
 
     def corners(self) -> np.ndarray:
-        return _box_corners(np.asarray(self.center_m, np.float64), np.eye(3), np.full(3, self.radius_m))
+        return _box_corners(np.asarray(self.centre_m, np.float64), np.eye(3), np.full(3, self.radius_m))
 
     def planar_face(self, points_m: np.ndarray) -> np.ndarray:
         return np.full(len(points_m), CURVED, np.int32)
@@ -77,13 +77,13 @@ class SolidSphere:
 class Box:
     """Oriented box: centre, rotation (columns = the box's axes in the camera frame), half sizes."""
 
-    center_m: np.ndarray
+    centre_m: np.ndarray
     half_size_m: np.ndarray
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def intersect(self, rays: np.ndarray) -> np.ndarray:
         rot = np.asarray(self.rotation, np.float64)
-        origin = -rot.T @ np.asarray(self.center_m, np.float64)  # camera origin in box frame
+        origin = -rot.T @ np.asarray(self.centre_m, np.float64)  # camera origin in box frame
         d = rays @ rot  # ray directions in box frame, (M, 3)
         h = np.asarray(self.half_size_m, np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -97,12 +97,12 @@ class Box:
         return np.where(hit, _nearest(t_enter, t_exit), _MISS)
 
     def corners(self) -> np.ndarray:
-        return _box_corners(np.asarray(self.center_m, np.float64), np.asarray(self.rotation, np.float64),
+        return _box_corners(np.asarray(self.centre_m, np.float64), np.asarray(self.rotation, np.float64),
                             np.asarray(self.half_size_m, np.float64))
 
     def planar_face(self, points_m: np.ndarray) -> np.ndarray:
         """Face 2 a + (side > 0) of the box axis a whose face each surface point lies on."""
-        local = (np.asarray(points_m, np.float64) - np.asarray(self.center_m, np.float64)) \
+        local = (np.asarray(points_m, np.float64) - np.asarray(self.centre_m, np.float64)) \
             @ np.asarray(self.rotation, np.float64)
         ratio = local / np.asarray(self.half_size_m, np.float64)
         axis = np.argmax(np.abs(ratio), axis=1)
@@ -168,9 +168,9 @@ def rotated(obj, rotation: np.ndarray):
     if isinstance(obj, Plane):
         return replace(obj, point_m=rot @ np.asarray(obj.point_m, np.float64), normal=rot @ np.asarray(obj.normal, np.float64))
     if isinstance(obj, SolidSphere):
-        return replace(obj, center_m=rot @ np.asarray(obj.center_m, np.float64))
+        return replace(obj, centre_m=rot @ np.asarray(obj.centre_m, np.float64))
     if isinstance(obj, Box):
-        return replace(obj, center_m=rot @ np.asarray(obj.center_m, np.float64),
+        return replace(obj, centre_m=rot @ np.asarray(obj.centre_m, np.float64),
                        rotation=rot @ np.asarray(obj.rotation, np.float64))
     return replace(obj, base_m=rot @ np.asarray(obj.base_m, np.float64), axis=rot @ np.asarray(obj.axis, np.float64))
 

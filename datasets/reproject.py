@@ -1,6 +1,6 @@
 """The 2D reprojection every 2D method gets (the paper's Figure 21b): the depth image colourised.
 
-One function, ``colorize_depth``, renders it, for training and evaluation alike.
+One function, ``colourise_depth``, renders it, for training and evaluation alike.
 Colour map: OpenCV's JET, blue = near, red = far, as the paper's Figures 2 and 5. The depth
 range is fixed, not per image, so that a colour means the same distance in every scene:
 DEPTH_RANGE_M = (0.2, 5.0) metres, linear in depth, clipped at both ends. Invalid pixels
@@ -17,7 +17,7 @@ DEPTH_RANGE_M = (0.2, 5.0)
 COLORMAP = cv2.COLORMAP_JET
 
 
-def colorize_depth(depth_m: np.ndarray, depth_range_m: tuple[float, float] = DEPTH_RANGE_M) -> np.ndarray:
+def colourise_depth(depth_m: np.ndarray, depth_range_m: tuple[float, float] = DEPTH_RANGE_M) -> np.ndarray:
     """(H, W) float depth in metres (NaN or <= 0 = invalid) -> (H, W, 3) uint8 BGR image."""
     z = np.asarray(depth_m, dtype=np.float32)
     valid = np.isfinite(z) & (z > 0)

@@ -20,24 +20,24 @@ class Ball:
 
     mask: (H, W) bool, pixels where the ball is the first surface hit and depth is valid.
     silhouette: (H, W) bool, the ball's full silhouette ignoring occlusion (simulated only).
-    center_m: (3,) metres, camera frame, or None (recordings annotated in 2D only).
+    centre_m: (3,) metres, camera frame, or None (recordings annotated in 2D only).
     circle_px: (cx, cy, r) smallest enclosing circle of ``mask`` (CircleNet's rule), or of an
         annotated circle/polygon for recordings.
     amodal_circle_px: (cx, cy, r) of the whole silhouette, unclipped by occluders and the frame.
-    center_source: how a recording's center_m was obtained ("mask-fit": a fixed-radius fit to the
-        mask's depth pixels, ``annotate.mask_fit_centre``), with center_se_m its standard error (3,) m;
+    centre_source: how a recording's centre_m was obtained ("mask-fit": a fixed-radius fit to the
+        mask's depth pixels, ``annotate.mask_fit_centre``), with centre_se_m its standard error (3,) m;
         None for simulated balls, whose centre is exact.
     """
 
     radius_m: float
     mask: np.ndarray | None = None
     silhouette: np.ndarray | None = None
-    center_m: tuple[float, float, float] | None = None
+    centre_m: tuple[float, float, float] | None = None
     circle_px: tuple[float, float, float] | None = None
     amodal_circle_px: tuple[float, float, float] | None = None
     visible_fraction: float | None = None
-    center_source: str | None = None
-    center_se_m: tuple[float, float, float] | None = None
+    centre_source: str | None = None
+    centre_se_m: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.circle_px is None and self.mask is not None:

@@ -393,7 +393,7 @@ for _name in HARD_FAMILIES:
 @register_family("classic", "occluded", lambda vis: 0.4 <= vis[0] <= 0.7)  # 30-60 % hidden
 def family_occluded(rng, intr: Intrinsics, radius: float) -> Layout:
     layout = family_hard("occluded", rng, intr, radius)
-    _occlude(rng, intr, layout, np.asarray(layout.targets[0].center_m), radius)
+    _occlude(rng, intr, layout, np.asarray(layout.targets[0].centre_m), radius)
     return layout
 
 
@@ -422,11 +422,11 @@ def render(layout: Layout, intr: Intrinsics, sensor: D435Sensor | StereoSensor, 
     for k, item in enumerate(layout.items):
         if item.kind != "target":
             continue
-        c, r = np.asarray(item.shape.center_m, float), float(item.shape.radius_m)
+        c, r = np.asarray(item.shape.centre_m, float), float(item.shape.radius_m)
         silhouette = sphere_silhouette_mask(intr, c, r)
         mask = (label == k + 1) & (depth > 0)
         full = _full_silhouette_px(intr, c, r, silhouette)
-        balls.append(Ball(radius_m=r, mask=mask, silhouette=silhouette, center_m=tuple(float(x) for x in c),
+        balls.append(Ball(radius_m=r, mask=mask, silhouette=silhouette, centre_m=tuple(float(x) for x in c),
                           amodal_circle_px=sphere_circle_amodal(intr, c, r),
                           visible_fraction=float(mask.sum()) / full if full else 0.0))
     return depth, z_true, balls
@@ -487,7 +487,7 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
             break
     else:
         raise RuntimeError(f"{preset_name} scene {index} ({family}): no layout met the visibility rule")
-    distractors = [{"kind": it.kind, "center_m": [float(x) for x in it.shape.center_m],
+    distractors = [{"kind": it.kind, "center_m": [float(x) for x in it.shape.centre_m],
                     "radius_m": float(it.shape.radius_m)} for it in layout.items if it.kind == "distractor"]
     cylinders = [{"base_m": [float(x) for x in it.shape.base_m], "radius_m": float(it.shape.radius_m),
                   "height_m": float(it.shape.height_m)} for it in layout.items if it.kind == "cylinder"]

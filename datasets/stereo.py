@@ -277,7 +277,7 @@ def _emitter_of(seed: int, n_dots: int, sigma_mrad: float, spread: float, hfov_d
 
 def _shifted(obj, offset_m: np.ndarray):
     """The primitive in the frame of a camera at ``offset_m`` (same orientation)."""
-    name = {Plane: "point_m", SolidSphere: "center_m", Box: "center_m", Cylinder: "base_m"}[type(obj)]
+    name = {Plane: "point_m", SolidSphere: "centre_m", Box: "centre_m", Cylinder: "base_m"}[type(obj)]
     return replace(obj, **{name: np.asarray(getattr(obj, name), np.float64) - offset_m})
 
 
@@ -286,7 +286,7 @@ def _normals(obj, points_m: np.ndarray) -> np.ndarray:
     if isinstance(obj, Plane):
         n = np.broadcast_to(np.asarray(obj.normal, np.float64), points_m.shape)
     elif isinstance(obj, SolidSphere):
-        n = points_m - np.asarray(obj.center_m, np.float64)
+        n = points_m - np.asarray(obj.centre_m, np.float64)
     elif isinstance(obj, Box):
         face = obj.planar_face(points_m)
         n = np.asarray(obj.rotation, np.float64).T[face // 2]

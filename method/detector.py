@@ -10,6 +10,7 @@ Input handling (one rule each, documented here):
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,7 +30,7 @@ Circle = tuple[float, float, float]
 class Sphere:
     """One detected ball.
 
-    center_m (3,): centre, metres, camera frame. radius_m: the known radius R used.
+    centre_m (3,): centre, metres, camera frame. radius_m: the known radius R used.
     free_radius_m: the radius of a free (centre + radius) fit to the inliers, with its standard
         error free_radius_se_m (the size check). inlier_indices (K,): indices into cloud.points.
     score: confidence in [0, 1], comparable across frames (ranks detections for mAP).
@@ -41,7 +42,7 @@ class Sphere:
     trace: the paper pipeline's intermediate values (``PaperTrace``), else None.
     """
 
-    center_m: np.ndarray
+    centre_m: np.ndarray
     radius_m: float
     free_radius_m: float
     inlier_indices: np.ndarray
@@ -53,9 +54,15 @@ class Sphere:
     evidence: dict = field(default_factory=dict, repr=False)
     trace: PaperTrace | None = field(default=None, repr=False)
 
+    @property
+    def center_m(self) -> np.ndarray:
+        """Deprecated spelling of ``centre_m``, kept for one release."""
+        warnings.warn("Sphere.center_m is deprecated: use Sphere.centre_m", DeprecationWarning, stacklevel=2)
+        return self.centre_m
+
     def to_dict(self) -> dict:
         """The JSON record of the command line (circle: the exact rule)."""
-        return {"center": [round(float(v), 6) for v in self.center_m], "radius": float(self.radius_m),
+        return {"center": [round(float(v), 6) for v in self.centre_m], "radius": float(self.radius_m),
                 "free_radius": None if not np.isfinite(self.free_radius_m) else round(float(self.free_radius_m), 6),
                 "score": round(float(self.score), 6), "inliers": int(len(self.inlier_indices)),
                 "circle": None if self.circle_exact is None else [round(float(v), 3) for v in self.circle_exact],
@@ -219,7 +226,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         # the paper has no confidence: a saturating function of the support stands in for it
         score = len(inl_orig) / (len(inl_orig) + 100.0)
         cp, ce = _circles(cloud, centre, R)
-        return [Sphere(center_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
+        return [Sphere(centre_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
                        rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
     if cloud.organised and len(cloud.points) <= config.input.max_points:
         # organised: NaN points get no pixel, so the searched points are the cloud's own
@@ -233,11 +240,11 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
     spheres = []
     for v in found:
         if subsampled:
-            inl = _all_inliers(cloud, v.center_m, R, v.eps_m)
+            inl = _all_inliers(cloud, v.centre_m, R, v.eps_m)
         else:
             inl = v.inliers if index is None else index[v.inliers]
-        cp, ce = _circles(cloud, v.center_m, R, v.stats)
-        spheres.append(Sphere(center_m=v.center_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
+        cp, ce = _circles(cloud, v.centre_m, R, v.stats)
+        spheres.append(Sphere(centre_m=v.centre_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
                               score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
                               circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))
     return spheres

@@ -57,10 +57,10 @@ from spherebench.method.config import DetectorConfig
 class Candidate:
     """One verified sphere before it becomes a ``Sphere`` (indices into the searched points)."""
 
-    center_m: np.ndarray
+    centre_m: np.ndarray
     inliers: np.ndarray
     eps_m: float
-    free_center_m: np.ndarray
+    free_centre_m: np.ndarray
     free_radius_m: float
     free_radius_se_m: float
     rmse_m: float
@@ -678,12 +678,12 @@ def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfi
     v = _verify_once(frame, c0, config, buf, gate, hold_direction)
     o = config.outline
     if (v is None or hold_direction or not o.outline_evidence or v.score < o.outline_evidence_min_score
-            or frame.noise_a * float(v.center_m[2]) ** 2 < o.outline_evidence_noise_fraction * config.radius_m):
+            or frame.noise_a * float(v.centre_m[2]) ** 2 < o.outline_evidence_noise_fraction * config.radius_m):
         return v
-    oc = outline_centre(frame, v.center_m, config)
+    oc = outline_centre(frame, v.centre_m, config)
     size = outline_size(frame, oc, config) if config.outline.outline_size else None
     # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
-    if size is None and (float(np.linalg.norm(oc - v.center_m)) * frame.prm[K.P_FX] / float(oc[2])
+    if size is None and (float(np.linalg.norm(oc - v.centre_m)) * frame.prm[K.P_FX] / float(oc[2])
                          < config.outline.outline_evidence_min_move_px):
         return v
     # the kernel's early stop judges the depth fit's radius, which the outline's replaces
@@ -763,8 +763,8 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
         free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
     score, size_ok = confidence(stats, n, free_r, free_se, config, True)
     # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
-    return Candidate(center_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),
-                     free_center_m=out[K.V_FCX:K.V_FCZ + 1].copy(), free_radius_m=free_r,
+    return Candidate(centre_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),
+                     free_centre_m=out[K.V_FCX:K.V_FCZ + 1].copy(), free_radius_m=free_r,
                      free_radius_se_m=free_se, rmse_m=float(out[K.V_RMSE]), stats=stats, score=score,
                      size_ok=size_ok)
 
@@ -818,7 +818,7 @@ def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: 
     scores = [cand.score]
     size_ok = [cand.size_ok]
     for off in rescore_starts(config):
-        v = verify_organised(frame, cand.center_m + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
+        v = verify_organised(frame, cand.centre_m + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
         scores.append(0.0 if v is None else v.score)
         size_ok.append(v is not None and v.size_ok)
     cand.stats["score_single"] = cand.score
@@ -860,7 +860,7 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     stats = {"inside": inside, "shell": float(n),
              "interior_density_ratio": (inside / max(r_in, 1e-12) ** 3) / (n / v_shell) if r_in > 0 else 0.0}
     score, size_ok = confidence(stats, n, float(free_r), float(free_se), config, False)
-    return Candidate(center_m=c, inliers=idx, eps_m=e, free_center_m=np.asarray(free_c), free_radius_m=float(free_r),
+    return Candidate(centre_m=c, inliers=idx, eps_m=e, free_centre_m=np.asarray(free_c), free_radius_m=float(free_r),
                      free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
 
 
@@ -920,7 +920,7 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         if frame is None and q < config.verification.verify_quality_fraction * quals[0]:
             break
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
-        if any(math.dist(c0, v.center_m) < config.radius_m for v in found):
+        if any(math.dist(c0, v.centre_m) < config.radius_m for v in found):
             continue
         verified.append(c0)
         if frame is None:
@@ -984,16 +984,16 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     kept: list[Candidate] = []
     min_sep = config.verification.nms_distance_fraction * 2.0 * config.radius_m
     for v in found:
-        if all(math.dist(v.center_m, k.center_m) >= min_sep for k in kept):
+        if all(math.dist(v.centre_m, k.centre_m) >= min_sep for k in kept):
             kept.append(v)
         if len(kept) == config.verification.max_spheres:
             break
     if frame is not None:
         for v in kept:
             # where the noise nears R, the outline places the centre across the line of sight
-            if frame.noise_a * float(v.center_m[2]) ** 2 >= config.outline.outline_noise_fraction * config.radius_m:
-                v.center_m = outline_centre(frame, v.center_m, config)
+            if frame.noise_a * float(v.centre_m[2]) ** 2 >= config.outline.outline_noise_fraction * config.radius_m:
+                v.centre_m = outline_centre(frame, v.centre_m, config)
             # verification visited strided windows: collect every inlier of the reported ones
-            n, v.rmse_m = K.final_inliers(frame.points, frame.index_image, v.center_m, frame.prm, v.eps_m, buf)
+            n, v.rmse_m = K.final_inliers(frame.points, frame.index_image, v.centre_m, frame.prm, v.eps_m, buf)
             v.inliers = buf[:n].copy()
     return kept

@@ -28,7 +28,7 @@ from spherebench.method.ransac import draw_distinct, sample_loop
 class PaperTrace:
     """The intermediate values of the paper's pipeline (for Table 2). Indices refer to cloud.points.
 
-    ransac_center_m (3,): the chosen candidate centre (step 4).
+    ransac_centre_m (3,): the chosen candidate centre (step 4).
     ransac_indices (K,): the points assigned to it (R +/- eps).
     zscores (K,) (or (K, 3) for "xyz"): z-scores of the chosen points' variable.
     kept_indices (J,): the points with |z| <= threshold.
@@ -37,7 +37,7 @@ class PaperTrace:
     with the samples each collected and the points assigned in step 3.
     """
 
-    ransac_center_m: np.ndarray
+    ransac_centre_m: np.ndarray
     ransac_radius_m: float
     ransac_indices: np.ndarray
     zscores: np.ndarray
@@ -51,13 +51,13 @@ class PaperTrace:
     candidate_counts: np.ndarray = field(repr=False)
 
 
-def zscore_values(points_m: np.ndarray, center_m: np.ndarray, radius_m: float, variable: str) -> np.ndarray:
+def zscore_values(points_m: np.ndarray, centre_m: np.ndarray, radius_m: float, variable: str) -> np.ndarray:
     """The per-point value that is z-scored: (K,) or (K, 3) for "xyz". points_m (K, 3) metres."""
     p = np.asarray(points_m, np.float64)
     if variable == "distance":
-        return np.linalg.norm(p - center_m, axis=1)
+        return np.linalg.norm(p - centre_m, axis=1)
     if variable == "residual":
-        return np.abs(np.linalg.norm(p - center_m, axis=1) - radius_m)
+        return np.abs(np.linalg.norm(p - centre_m, axis=1) - radius_m)
     if variable == "xyz":
         return p
     return p[:, "xyz".index(variable)]
@@ -139,7 +139,7 @@ def run_paper(points: np.ndarray, config: DetectorConfig, rng: np.random.Generat
     else:
         centre = sm.refine_fixed_radius(points[kept], c0, R)
         inliers = np.flatnonzero(np.abs(sm.residuals(points, centre, R)) <= eps)
-    trace = PaperTrace(ransac_center_m=c0, ransac_radius_m=float(radii[best]), ransac_indices=chosen, zscores=z,
+    trace = PaperTrace(ransac_centre_m=c0, ransac_radius_m=float(radii[best]), ransac_indices=chosen, zscores=z,
                        kept_indices=kept, barycentre_m=bary, zscore_threshold=config.paper.zscore_threshold,
                        zscore_variable=config.paper.zscore_variable, iterations=its, candidate_centres_m=centres,
                        candidate_votes=votes, candidate_counts=counts)

@@ -88,18 +88,18 @@ def solve_eq12_lstsq(p1, p2, p3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return c, r, ok
 
 
-def residuals(points_m: np.ndarray, center_m, radius_m: float) -> np.ndarray:
+def residuals(points_m: np.ndarray, centre_m, radius_m: float) -> np.ndarray:
     """Signed distances (N,) metres of points (N, 3) from the sphere: ||p - c|| - R."""
-    return np.linalg.norm(_as3(points_m) - np.asarray(center_m, np.float64).reshape(1, 3), axis=1) - radius_m
+    return np.linalg.norm(_as3(points_m) - np.asarray(centre_m, np.float64).reshape(1, 3), axis=1) - radius_m
 
 
-def rmse(points_m: np.ndarray, center_m, radius_m: float) -> float:
+def rmse(points_m: np.ndarray, centre_m, radius_m: float) -> float:
     """Root mean square of ``residuals``: the RMSE of Table 2 as defined by this project (metres)."""
-    r = residuals(points_m, center_m, radius_m)
+    r = residuals(points_m, centre_m, radius_m)
     return float(np.sqrt(np.mean(r * r))) if len(r) else float("nan")
 
 
-def refine_fixed_radius(points_m: np.ndarray, center_m, radius_m: float, iterations: int = 10,
+def refine_fixed_radius(points_m: np.ndarray, centre_m, radius_m: float, iterations: int = 10,
                         tol_m: float = 1e-9) -> np.ndarray:
     """Gauss-Newton on sum (||p - c|| - R)^2 over the centre, R fixed: the refined centre (3,).
 
@@ -107,7 +107,7 @@ def refine_fixed_radius(points_m: np.ndarray, center_m, radius_m: float, iterati
     is pulled toward the camera; this is not.
     """
     p = _as3(points_m)
-    c = np.asarray(center_m, np.float64).reshape(3).copy()
+    c = np.asarray(centre_m, np.float64).reshape(3).copy()
     for _ in range(iterations):
         d = p - c
         dist = np.linalg.norm(d, axis=1)
@@ -135,18 +135,18 @@ def fit_free_algebraic(points_m: np.ndarray) -> tuple[np.ndarray, float]:
     return c, float(np.sqrt(max(sol[3] + c @ c, 0.0)))
 
 
-def fit_free_radius(points_m: np.ndarray, center_m=None, radius_m: float | None = None,
+def fit_free_radius(points_m: np.ndarray, centre_m=None, radius_m: float | None = None,
                     iterations: int = 10) -> tuple[np.ndarray, float, float, float]:
-    """Geometric fit of centre and radius (Gauss-Newton from (center_m, radius_m), else algebraic).
+    """Geometric fit of centre and radius (Gauss-Newton from (centre_m, radius_m), else algebraic).
 
     Returns (centre (3,), radius m, standard error of the radius m, RMS residual m). The standard
     error is sqrt(s^2 (J^T J)^-1)[r, r] with s^2 the residual variance; inf when ill-posed.
     """
     p = _as3(points_m)
-    if center_m is None or radius_m is None:
+    if centre_m is None or radius_m is None:
         c, r = fit_free_algebraic(p)
     else:
-        c, r = np.asarray(center_m, np.float64).reshape(3).copy(), float(radius_m)
+        c, r = np.asarray(centre_m, np.float64).reshape(3).copy(), float(radius_m)
     JtJ = np.eye(4)
     for _ in range(iterations):
         d = p - c

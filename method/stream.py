@@ -6,7 +6,7 @@
     from spherebench.method.stream import detect_stream
 
     for frame, spheres, ms in detect_stream(recording_frames("capture.bag"), config_for("improved")):
-        print(frame.number, frame.timestamp_ms, [s.center_m for s in spheres], ms)
+        print(frame.number, frame.timestamp_ms, [s.centre_m for s in spheres], ms)
 
 Each frame is deprojected, detected and let go: memory stays bounded over an hour-long recording.
 """

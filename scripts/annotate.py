@@ -103,9 +103,9 @@ def write_sheets(out: Path, scenes: list[tuple[Path, Path]], radius_m: float) ->
         depth_image = inout.read_image(scene / "image.png")
         mask = _labelme_mask(scene / "colour.json", depth_m.shape)
         fit = mask_fit_centre(depth_m, intr, mask, radius_m) if mask is not None else None
-        centre = fit.center_m if fit is not None else None
+        centre = fit.centre_m if fit is not None else None
         title = scene.name + ("" if mask is not None else "  (no mask)") + (
-            f"  fit se {1000 * math.hypot(*fit.center_se_m):.1f} mm rms {1000 * fit.rms_m:.1f} mm" if fit else "")
+            f"  fit se {1000 * math.hypot(*fit.centre_se_m):.1f} mm rms {1000 * fit.rms_m:.1f} mm" if fit else "")
         overview.append(review_tile(colour, depth_image, mask, title, intr, centre, radius_m, scale=OVERVIEW_SCALE))
         if mask is not None:
             closeup.append(review_tile(colour, depth_image, mask, scene.name, intr, centre, radius_m, CLOSEUP_PX))

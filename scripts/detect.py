@@ -38,7 +38,7 @@ from spherebench.cloud import in_front_of_camera
 from spherebench.datasets import depth_frames, detections, inout, outputs
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
 from spherebench.datasets.prepare import FrameSelection, scene_id_from
-from spherebench.datasets.reproject import colorize_depth
+from spherebench.datasets.reproject import colourise_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import PRESETS, config_for, detect, stream, warm_up
 
@@ -194,7 +194,7 @@ def _image_for(path: Path, cloud) -> np.ndarray:
     depth = np.full(intr.shape, np.nan, np.float32)
     ok = (cloud.rows >= 0) & (cloud.rows < intr.height) & (cloud.cols >= 0) & (cloud.cols < intr.width)
     depth[cloud.rows[ok], cloud.cols[ok]] = cloud.points[ok, 2]
-    return colorize_depth(depth)
+    return colourise_depth(depth)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -208,7 +208,7 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _spheres_json(spheres) -> list[dict]:
-    return [detections.detection_record(s.score, s.circle_exact, s.center_m, s.radius_m, len(s.inlier_indices),
+    return [detections.detection_record(s.score, s.circle_exact, s.centre_m, s.radius_m, len(s.inlier_indices),
                                         s.evidence.get("visible_fraction"))
             for s in spheres]
 
@@ -220,7 +220,7 @@ def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str
                                                  timestamp_ms=None if frame is None else frame.timestamp_ms,
                                                  radius_m=radius, radius_source=source)), flush=True)
         return
-    parts = [f"({s.center_m[0]:+.3f}, {s.center_m[1]:+.3f}, {s.center_m[2]:.3f}) m score {s.score:.2f} "
+    parts = [f"({s.centre_m[0]:+.3f}, {s.centre_m[1]:+.3f}, {s.centre_m[2]:.3f}) m score {s.score:.2f} "
              f"{len(s.inlier_indices)} inliers" for s in spheres]
     where = raw if frame is None else f"{raw} frame {frame.number} ({frame.timestamp_ms:.1f} ms)"
     print(f"{where}: {len(spheres)} sphere(s) of radius {radius:g} m ({RADIUS_SOURCES[source]}) in {ms:.1f} ms"

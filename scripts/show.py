@@ -16,7 +16,7 @@ from pathlib import Path
 
 from spherebench import options
 from spherebench.datasets import inout, outputs
-from spherebench.datasets.annotate import ball_point_colors, draw_detections, draw_ground_truth
+from spherebench.datasets.annotate import ball_point_colours, draw_detections, draw_ground_truth
 from spherebench.errors import SphereBenchError
 
 
@@ -115,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {len(detections)} detection(s) of {pred_file} scoring >= {args.min_score:g}")
     else:
         print("image-less scene: no image to draw on, writing the PLY only")
-    points, colors, how = ball_point_colors(scene, radius, args.tolerance)
+    points, colours, how = ball_point_colours(scene, radius, args.tolerance)
     out_ply = outs["--out-ply"]
-    files[out_ply] = inout.encode_ply(points, colors)
+    files[out_ply] = inout.encode_ply(points, colours)
     outputs.replace_files(files)
     if image is not None:
         print(f"wrote {out_png}")

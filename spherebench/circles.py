@@ -50,9 +50,9 @@ def mask_circle(mask: np.ndarray) -> tuple[float, float, float] | None:
     return float(cx), float(cy), float(r)
 
 
-def sphere_circle_paper(intr: Intrinsics, center_m, radius_m: float) -> tuple[float, float, float] | None:
+def sphere_circle_paper(intr: Intrinsics, centre_m, radius_m: float) -> tuple[float, float, float] | None:
     """The paper's rule: centre projected, radius = pixel distance to the point R to its left."""
-    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    c = np.asarray(centre_m, dtype=np.float64).reshape(3)
     if c[2] <= 0:
         return None
     if not intr.has_distortion:  # a plain pinhole: the same numbers without numpy's per-call cost
@@ -63,13 +63,13 @@ def sphere_circle_paper(intr: Intrinsics, center_m, radius_m: float) -> tuple[fl
     return float(cx), float(cy), float(math.hypot(cx - lx, cy - ly))
 
 
-def sphere_silhouette_mask(intr: Intrinsics, center_m, radius_m: float) -> np.ndarray:
+def sphere_silhouette_mask(intr: Intrinsics, centre_m, radius_m: float) -> np.ndarray:
     """Pixels (H, W) bool whose centre ray meets the sphere: its full, unoccluded silhouette.
 
     A ray meets the sphere iff its angle to the centre's direction is at most asin(R / |c|).
     Exact under the intrinsics' distortion model too, since rays come from ``pixel_rays``.
     """
-    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    c = np.asarray(centre_m, dtype=np.float64).reshape(3)
     mask = np.zeros(intr.shape, dtype=bool)
     dist = norm3(c)
     if dist <= radius_m:  # camera inside the ball: every forward ray meets it
@@ -116,7 +116,7 @@ def _silhouette_box(intr: Intrinsics, c: np.ndarray, radius_m: float):
     return u0, v0, u1, v1
 
 
-def sphere_circle_exact(intr: Intrinsics, center_m, radius_m: float) -> tuple[float, float, float] | None:
+def sphere_circle_exact(intr: Intrinsics, centre_m, radius_m: float) -> tuple[float, float, float] | None:
     """The silhouette's smallest enclosing circle (the ground truth's rule), clipped to the image.
 
     When the intrinsics have no distortion, fx == fy, and the silhouette's amodal enclosing circle
@@ -126,7 +126,7 @@ def sphere_circle_exact(intr: Intrinsics, center_m, radius_m: float) -> tuple[fl
     near ball's silhouette is tens of thousands of pixels). Otherwise the silhouette is rasterised
     within the image and reduced by ``mask_circle``.
     """
-    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    c = np.asarray(centre_m, dtype=np.float64).reshape(3)
     if not intr.has_distortion and abs(intr.fx - intr.fy) <= 1e-9 * intr.fx:
         circ = sphere_circle_amodal(intr, c, radius_m)
         if circ is not None:
@@ -136,14 +136,14 @@ def sphere_circle_exact(intr: Intrinsics, center_m, radius_m: float) -> tuple[fl
     return mask_circle(sphere_silhouette_mask(intr, c, radius_m))
 
 
-def sphere_circle_visible(intr: Intrinsics, center_m, radius_m: float, depth_m: np.ndarray,
+def sphere_circle_visible(intr: Intrinsics, centre_m, radius_m: float, depth_m: np.ndarray,
                           margin_m: float) -> tuple[float, float, float] | None:
     """The smallest enclosing circle of the silhouette's pixels that no nearer surface hides (the
     ground truth's rule for a partly hidden ball: its visible mask): the silhouette clipped to the
     image and to the pixels whose measured depth ``depth_m`` (H, W) metres lies no more than
     ``margin_m`` in front of the sphere's near surface on the pixel's ray (a pixel without depth,
     NaN or 0, counts as seen). None when none is seen."""
-    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    c = np.asarray(centre_m, dtype=np.float64).reshape(3)
     mask = sphere_silhouette_mask(intr, c, radius_m)
     v, u = np.nonzero(mask)
     if len(v) == 0:
@@ -159,7 +159,7 @@ def sphere_circle_visible(intr: Intrinsics, center_m, radius_m: float, depth_m: 
     return mask_circle(mask)
 
 
-def sphere_circle_amodal(intr: Intrinsics, center_m, radius_m: float) -> tuple[float, float, float] | None:
+def sphere_circle_amodal(intr: Intrinsics, centre_m, radius_m: float) -> tuple[float, float, float] | None:
     """Smallest enclosing circle of the whole silhouette ellipse, not clipped to the image.
 
     For an undistorted pinhole with fx = fy the silhouette is an ellipse whose major axis is
@@ -168,7 +168,7 @@ def sphere_circle_amodal(intr: Intrinsics, center_m, radius_m: float) -> tuple[f
     the semi-major axis as radius. With distortion or fx != fy, the silhouette is rasterised on
     an enlarged canvas instead. None when the ball is not wholly in front of the camera.
     """
-    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    c = np.asarray(centre_m, dtype=np.float64).reshape(3)
     dist = norm3(c)
     if dist <= radius_m:
         return None

@@ -64,7 +64,7 @@ class RerunLog:
         for s in spheres:
             colours[s.inlier_indices] = INLIER_RGB
         rr.log("world/cloud", rr.Points3D(cloud.points, colors=colours, radii=0.002))
-        centres = [s.center_m for s in spheres]
+        centres = [s.centre_m for s in spheres]
         rr.log("world/spheres", rr.Ellipsoids3D(centers=centres, half_sizes=[[s.radius_m] * 3 for s in spheres],
                                                 colors=[SPHERE_RGB] * len(spheres),
                                                 labels=[f"{s.score:.2f}" for s in spheres]))

@@ -68,7 +68,7 @@ def test_fixed_radius_fit_finds_a_known_sphere_with_an_honest_error():
     v, u = np.nonzero(ball)
     pts = deproject(CAM, u, v, depth[v, u])
     exact = fit_sphere_fixed_radius(pts, R)
-    assert np.linalg.norm(np.subtract(exact.center_m, CENTRE)) < 1e-6 and exact.rms_m < 1e-6
+    assert np.linalg.norm(np.subtract(exact.centre_m, CENTRE)) < 1e-6 and exact.rms_m < 1e-6
     # 3 mm noise and 5 % of points 10 cm off (background behind the rim): the error is within 4 SE
     errors, ses = [], []
     for seed in range(6):
@@ -78,8 +78,8 @@ def test_fixed_radius_fit_finds_a_known_sphere_with_an_honest_error():
         noisy[bad] *= 1 + 0.1 / noisy[bad, 2:3]
         fit = fit_sphere_fixed_radius(noisy, R)
         assert fit.inliers < 0.97 * fit.points  # the outliers were left out
-        errors.append(np.subtract(fit.center_m, CENTRE))
-        ses.append(fit.center_se_m)
+        errors.append(np.subtract(fit.centre_m, CENTRE))
+        ses.append(fit.centre_se_m)
     errors, ses = np.abs(errors), np.asarray(ses)
     assert (errors < 4 * ses).all() and np.median(errors / ses) < 2.0
     assert np.linalg.norm(errors, axis=1).max() < 0.004
@@ -91,11 +91,11 @@ def test_mask_fit_centre_from_a_depth_image_and_its_mask():
     depth_noisy = depth + np.random.default_rng(2).normal(0, 0.003, depth.shape)
     mask = sphere_silhouette_mask(CAM, CENTRE, R)
     fit = mask_fit_centre(depth_noisy, CAM, mask, R)
-    err = np.abs(np.subtract(fit.center_m, CENTRE))
-    assert err.max() < 0.003 and (err < 4 * np.asarray(fit.center_se_m)).all()
-    assert 0 < max(fit.center_se_m) < 0.003  # the block jackknife's, not zero
+    err = np.abs(np.subtract(fit.centre_m, CENTRE))
+    assert err.max() < 0.003 and (err < 4 * np.asarray(fit.centre_se_m)).all()
+    assert 0 < max(fit.centre_se_m) < 0.003  # the block jackknife's, not zero
     dilated = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    assert np.linalg.norm(np.subtract(mask_fit_centre(depth, CAM, dilated, R).center_m, CENTRE)) < 1e-3
+    assert np.linalg.norm(np.subtract(mask_fit_centre(depth, CAM, dilated, R).centre_m, CENTRE)) < 1e-3
     assert mask_fit_centre(np.full(depth.shape, np.nan), CAM, mask, R) is None
 
 

@@ -241,10 +241,10 @@ def test_detects_ball_before_wall(method):
     spheres = detect(cloud, cfg, seed=0)
     assert spheres, method
     if method == "improved":
-        assert np.linalg.norm(spheres[0].center_m - c) < 0.003
+        assert np.linalg.norm(spheres[0].centre_m - c) < 0.003
     else:  # the RANSAC centre is near; the paper's barycentre is pulled toward the camera
-        assert np.linalg.norm(spheres[0].trace.ransac_center_m - c) < 0.015
-        assert spheres[0].center_m[2] < c[2] - 0.03
+        assert np.linalg.norm(spheres[0].trace.ransac_centre_m - c) < 0.015
+        assert spheres[0].centre_m[2] < c[2] - 0.03
     assert spheres[0].circle_paper is not None and spheres[0].circle_exact is not None
     assert np.all(np.isfinite(cloud.points[spheres[0].inlier_indices]))
 
@@ -275,7 +275,7 @@ def test_unorganised_volumetric_noise_is_no_ball_but_a_ball_in_it_is():
     assert detect(Cloud(noise), seed=0) == []
     c = np.array([0.3, -0.2, 3.0])
     got = detect(Cloud(np.concatenate([noise, cap_points(c, R, 4000, rng)])), seed=0)
-    assert len(got) == 1 and np.linalg.norm(got[0].center_m - c) < 0.003
+    assert len(got) == 1 and np.linalg.norm(got[0].centre_m - c) < 0.003
     assert got[0].evidence["interior_density_ratio"] < 0.1
 
 
@@ -292,7 +292,7 @@ def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypa
     monkeypatch.setattr(I, "search_frame", lambda frame, config, seed, **retry: (starts, np.arange(len(starts), 0, -1.0),
                                                                      np.zeros(len(starts), bool)))
     found = detect(cloud, config_for("improved"), seed=0)
-    assert len(found) == 1 and np.linalg.norm(found[0].center_m - c) < 0.003
+    assert len(found) == 1 and np.linalg.norm(found[0].centre_m - c) < 0.003
     # (the retries would search again, and verify the starts left over: this one is about the first)
     no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False}
     assert detect(cloud, config_for("improved", verification={"verify_candidates_if_none": 6}, retry=no_retry),
@@ -315,7 +315,7 @@ def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
     for margin, n_verified in ((6.0, 2), (100.0, 4)):
         calls.clear()
         found = detect(cloud, config_for("improved", verification={"verify_score_margin": margin}), seed=0)
-        assert len(found) == 1 and np.linalg.norm(found[0].center_m - c) < 0.003
+        assert len(found) == 1 and np.linalg.norm(found[0].centre_m - c) < 0.003
         assert len(calls) == n_verified
 
 
@@ -338,8 +338,8 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     def fake_verify(frame, c0, config, buf, gate=None):
         starts.append(np.asarray(c0))
         s = next(scores)
-        return None if s is None else I.Candidate(center_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
-                                                  free_center_m=c.copy(), free_radius_m=R, free_radius_se_m=0.001,
+        return None if s is None else I.Candidate(centre_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
+                                                  free_centre_m=c.copy(), free_radius_m=R, free_radius_se_m=0.001,
                                                   rmse_m=0.002, stats={}, score=s, size_ok=True)
 
     monkeypatch.setattr(I, "verify_organised", fake_verify)
@@ -373,7 +373,7 @@ def _occluded_frames(n: int, hidden: tuple[float, float], z_max_m: float):
 def test_partly_occluded_balls_are_found():
     """A box 40 % of the way to the camera hides 30-50 % of the ball from the left: the search's
     pretest takes a side of the cap hidden well in front as an occluder (before, 4 of these 10)."""
-    found = sum(any(np.linalg.norm(s.center_m - c) < 0.02 for s in detect(cloud, seed=0))
+    found = sum(any(np.linalg.norm(s.centre_m - c) < 0.02 for s in detect(cloud, seed=0))
                 for c, cloud in _occluded_frames(10, (0.3, 0.5), 2.0))
     assert found >= 7
 
@@ -397,7 +397,7 @@ def test_visible_fraction_measures_the_occluded_share():
     assert len(free) == 1 and free[0].evidence["visible_fraction"] > 0.97
     seen = []
     for c, cloud in _occluded_frames(10, (0.3, 0.5), 2.0):
-        got = [s for s in detect(cloud, seed=0) if np.linalg.norm(s.center_m - c) < 0.02]
+        got = [s for s in detect(cloud, seed=0) if np.linalg.norm(s.centre_m - c) < 0.02]
         seen += [s.evidence["visible_fraction"] for s in got]
     assert len(seen) >= 7 and all(0.45 < v < 0.8 for v in seen)
 
@@ -447,7 +447,7 @@ def test_the_circle_of_a_partly_hidden_ball_is_that_of_its_visible_pixels():
         mask_circle(sphere_silhouette_mask(intr, c, R)))  # no depth: nothing hidden
     ious = []
     for c, cloud in _occluded_frames(8, (0.4, 0.5), 2.0):
-        got = [s for s in detect(cloud, seed=0) if np.linalg.norm(s.center_m - c) < 0.02]
+        got = [s for s in detect(cloud, seed=0) if np.linalg.norm(s.centre_m - c) < 0.02]
         if not got:
             continue
         intr = cloud.intrinsics
@@ -468,7 +468,7 @@ def test_retries_find_more_of_the_hidden_balls():
     found = {False: set(), True: set()}
     for k, (c, cloud) in enumerate(_occluded_frames(16, (0.5, 0.65), 2.5)):
         for retry, cfg in ((False, without), (True, IMPROVED)):
-            if any(np.linalg.norm(s.center_m - c) < 0.02 for s in detect(cloud, cfg, seed=0)):
+            if any(np.linalg.norm(s.centre_m - c) < 0.02 for s in detect(cloud, cfg, seed=0)):
                 found[retry].add(k)
     assert found[False] <= found[True]
     assert len(found[True]) >= len(found[False]) + 2
@@ -491,7 +491,7 @@ def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray():
 
         def found(v):
             return (v is not None and v.size_ok and v.score >= cfg.verification.min_score
-                    and np.linalg.norm(v.center_m - c) < 0.02)
+                    and np.linalg.norm(v.centre_m - c) < 0.02)
 
         plain += found(I.verify_organised(frame, start, cfg, buf))
         pushed += found(I.verify_pushed(frame, start, cfg, buf))
@@ -590,7 +590,7 @@ def test_the_disc_retry_finds_far_balls_the_searches_lose():
     found = {False: set(), True: set()}
     for k, (c, cloud) in enumerate(_far_frames(16)):
         for disc, cfg in ((False, without), (True, IMPROVED)):
-            if any(np.linalg.norm(s.center_m - c) < 0.03 for s in detect(cloud, cfg, seed=0)):
+            if any(np.linalg.norm(s.centre_m - c) < 0.03 for s in detect(cloud, cfg, seed=0)):
                 found[disc].add(k)
     assert found[False] <= found[True]
     assert len(found[True]) >= len(found[False]) + 4
@@ -620,7 +620,7 @@ def test_size_gate_in_the_kernel_agrees_with_the_size_check():
     # a real basketball passes the gate with the same start rule
     cloud = scene(ball_c=tuple(c), ball_r=R)
     v = I.verify_organised(prepare_frame(cloud, gated), c, gated, buf)
-    assert v is not None and v.size_ok and np.linalg.norm(v.center_m - c) < 0.003
+    assert v is not None and v.size_ok and np.linalg.norm(v.centre_m - c) < 0.003
 
 
 def test_confidence_is_the_product_of_its_named_factors():
@@ -658,14 +658,14 @@ def test_point_order_does_not_matter():
     shuffled = cloud.subset(perm)
     a, b = detect(cloud, seed=0), detect(shuffled, seed=0)
     assert len(a) == len(b) == 1
-    assert np.linalg.norm(a[0].center_m - b[0].center_m) < 5e-4
+    assert np.linalg.norm(a[0].centre_m - b[0].centre_m) < 5e-4
     assert abs(len(a[0].inlier_indices) - len(b[0].inlier_indices)) <= 0.02 * len(a[0].inlier_indices)
-    assert np.allclose(np.linalg.norm(shuffled.points[b[0].inlier_indices] - b[0].center_m, axis=1), R, atol=0.02)
+    assert np.allclose(np.linalg.norm(shuffled.points[b[0].inlier_indices] - b[0].centre_m, axis=1), R, atol=0.02)
 
 
 def test_box_corner_is_not_a_ball():
     spheres = detect(scene(ball_c=(0.25, 0.0, 1.2), box=True), seed=0)
-    assert len(spheres) == 1 and np.linalg.norm(spheres[0].center_m - [0.25, 0.0, 1.2]) < 0.005
+    assert len(spheres) == 1 and np.linalg.norm(spheres[0].centre_m - [0.25, 0.0, 1.2]) < 0.005
 
 
 def cylinder_scene(top_y, x0=0.05, z0=1.2, noise=0.002, width=160, height=120, seed=0):
@@ -737,15 +737,15 @@ def test_same_seed_same_output():
     cloud = scene(noise=0.004)
     a = detect(cloud, seed=7)
     b = detect(cloud, seed=7)
-    assert len(a) == len(b) and all(np.array_equal(x.center_m, y.center_m) and x.score == y.score for x, y in zip(a, b))
+    assert len(a) == len(b) and all(np.array_equal(x.centre_m, y.centre_m) and x.score == y.score for x, y in zip(a, b))
     pa, pb = detect(cloud, PAPER, seed=3), detect(cloud, PAPER, seed=3)
-    assert np.array_equal(pa[0].center_m, pb[0].center_m) if pa else not pb
+    assert np.array_equal(pa[0].centre_m, pb[0].centre_m) if pa else not pb
 
 
 def test_unorganised_cloud():
     cloud = scene(ball_c=(0.05, 0.0, 1.1))
     spheres = detect(Cloud(cloud.points), seed=0)
-    assert spheres and np.linalg.norm(spheres[0].center_m - [0.05, 0.0, 1.1]) < 0.005
+    assert spheres and np.linalg.norm(spheres[0].centre_m - [0.05, 0.0, 1.1]) < 0.005
     assert spheres[0].circle_paper is None
 
 
@@ -792,7 +792,7 @@ def test_large_cloud_is_subsampled():
     ball = cap_points(np.array([0.0, 0.0, 2.0]), R, 3000, rng)
     cloud = Cloud(np.vstack([pts, ball]))
     spheres = detect(cloud, config_for("improved", input={"max_points": 10000}), seed=0)
-    assert spheres and np.linalg.norm(spheres[0].center_m - [0, 0, 2.0]) < 0.005
+    assert spheres and np.linalg.norm(spheres[0].centre_m - [0, 0, 2.0]) < 0.005
     assert len(spheres[0].inlier_indices) > 2000  # inliers from the whole cloud, not the subsample
 
 
@@ -838,7 +838,7 @@ def test_kinect_like_ball_a_few_percent_off_nominal_is_found(seed):
     cloud = kinect_like_frame(c, seed=seed)
     config = config_for("improved", radius_m=0.203)
     spheres = detect(cloud, config, seed=0)
-    assert len(spheres) == 1 and np.linalg.norm(spheres[0].center_m - c) < 0.03
+    assert len(spheres) == 1 and np.linalg.norm(spheres[0].centre_m - c) < 0.03
     assert abs(spheres[0].free_radius_m - 0.211) < 0.004
     assert spheres[0].evidence["eps_m"] < eps_at(config, 2.3, cloud.intrinsics.fx)  # narrowed by the data
     # without them the band is the noise model's, wider, and the ball is refused (or kept on that wider band)
@@ -1011,7 +1011,7 @@ def test_noisy_far_ball_is_measured_on_its_outline():
         buf = I.workspace("inliers", (frame.index_image.size + 1,), np.int64)
         on = I.verify_organised(frame, truth, config, buf, frame.no_gate)
         off = I.verify_organised(frame, truth, plain, buf, frame.no_gate)
-        assert across(off.center_m) > 0.003 and across(on.center_m) < 0.002
+        assert across(off.centre_m) > 0.003 and across(on.centre_m) < 0.002
         gains.append(on.score - off.score)
     assert np.mean(gains) > 0.05
 
@@ -1042,6 +1042,16 @@ def test_detect_recentres_only_where_the_noise_nears_r():
     cloud = scene(ball_c=(0.1, -0.05, 1.0), noise=0.002, width=424, height=240)
     on = detect(cloud, seed=0)
     off = detect(cloud, config_for("improved", outline={"outline_noise_fraction": math.inf}), seed=0)
-    assert len(on) == len(off) == 1 and np.array_equal(on[0].center_m, off[0].center_m)
+    assert len(on) == len(off) == 1 and np.array_equal(on[0].centre_m, off[0].centre_m)
     always = detect(cloud, config_for("improved", outline={"outline_noise_fraction": 0.0}), seed=0)
-    assert len(always) == 1 and not np.array_equal(always[0].center_m, off[0].center_m)
+    assert len(always) == 1 and not np.array_equal(always[0].centre_m, off[0].centre_m)
+
+
+def test_the_american_spelling_of_a_spheres_centre_still_answers_with_a_warning():
+    from spherebench.method.detector import Sphere
+    s = Sphere(centre_m=np.array([0.1, 0.0, 1.0]), radius_m=0.12, free_radius_m=0.12,
+               inlier_indices=np.arange(3), score=0.9, rmse_m=0.001)
+    with pytest.warns(DeprecationWarning, match="centre_m"):
+        got = s.center_m
+    np.testing.assert_array_equal(got, s.centre_m)
+    assert s.to_dict()["center"] == [0.1, 0.0, 1.0]  # the JSON record keeps its published field

@@ -224,7 +224,7 @@ def test_huge_cloud_is_bounded_by_max_points():
     ball = cap_points(np.array([0.2, 0.1, 2.0]), R, 40_000, rng)
     cloud = Cloud(np.vstack([pts, ball]))
     spheres = detect(cloud, config_for("improved", input={"max_points": 20_000}), seed=0)
-    assert spheres and np.linalg.norm(spheres[0].center_m - [0.2, 0.1, 2.0]) < 0.005
+    assert spheres and np.linalg.norm(spheres[0].centre_m - [0.2, 0.1, 2.0]) < 0.005
     assert len(spheres[0].inlier_indices) > 30_000
 
 

@@ -10,7 +10,7 @@ from spherebench import cli
 from spherebench.camera import Intrinsics
 from spherebench.cloud import Cloud
 from spherebench.datasets import inout
-from spherebench.datasets.annotate import BALL_RGB, REST_RGB, ball_point_colors
+from spherebench.datasets.annotate import BALL_RGB, REST_RGB, ball_point_colours
 from spherebench.datasets.scene import Ball, Scene
 
 INTR = Intrinsics(width=64, height=48, ppx=31.5, ppy=23.5, fx=60.0, fy=60.0)
@@ -69,7 +69,7 @@ def test_show_image_less(tmp_path, capsys):
 
 def test_image_less_ball_points_round_a_known_centre():
     pts = np.array([[0, 0, 2.0], [0, 0, 1.89], [0, 0.125, 2.0], [0, 0.2, 2.0], [1, 0, 2]], np.float32)
-    scene = Scene("s", "recorded", None, cloud=Cloud(pts), balls=[Ball(radius_m=0.12, center_m=(0, 0, 2.0))])
-    _, colours, how = ball_point_colors(scene, tolerance_m=0.01)
+    scene = Scene("s", "recorded", None, cloud=Cloud(pts), balls=[Ball(radius_m=0.12, centre_m=(0, 0, 2.0))])
+    _, colours, how = ball_point_colours(scene, tolerance_m=0.01)
     assert [tuple(c) == BALL_RGB for c in colours] == [True, True, True, False, False]
     assert "centre" in how

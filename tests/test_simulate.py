@@ -88,7 +88,7 @@ def test_unoccluded_ball_mask_circle_matches_the_analytic_silhouette(paper_datas
                 if ball.visible_fraction < 0.97:
                     continue  # a tripod cup hides the lowest rim
                 cx, cy, r = ball.circle_px
-                ax, ay, ar = sphere_circle_amodal(scene.intrinsics, ball.center_m, ball.radius_m)
+                ax, ay, ar = sphere_circle_amodal(scene.intrinsics, ball.centre_m, ball.radius_m)
                 worst = max(worst, math.hypot(cx - ax, cy - ay), abs(r - ar))
                 n += 1
     print(f"{n} unoccluded balls: worst centre/radius deviation {worst:.3f} px")

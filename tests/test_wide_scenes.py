@@ -36,7 +36,7 @@ def test_existing_presets_keep_their_bytes():
 def _gap_m(shape, centre: np.ndarray, radius: float) -> float:
     """Distance from a ball's surface to a primitive's (inf for planes)."""
     if isinstance(shape, Box):
-        local = np.asarray(shape.rotation).T @ (centre - shape.center_m)
+        local = np.asarray(shape.rotation).T @ (centre - shape.centre_m)
         return float(np.linalg.norm(np.maximum(np.abs(local) - shape.half_size_m, 0))) - radius
     if isinstance(shape, Cylinder):
         a = shape.axis / np.linalg.norm(shape.axis)
@@ -45,7 +45,7 @@ def _gap_m(shape, centre: np.ndarray, radius: float) -> float:
         rho = np.linalg.norm(rel - s * a)
         return math.hypot(max(-s, s - shape.height_m, 0), max(rho - shape.radius_m, 0)) - radius
     if isinstance(shape, SolidSphere):
-        return float(np.linalg.norm(centre - shape.center_m)) - shape.radius_m - radius
+        return float(np.linalg.norm(centre - shape.centre_m)) - shape.radius_m - radius
     return math.inf
 
 
@@ -74,7 +74,7 @@ def test_wide_scenes_rest_the_ball_on_its_support_in_a_pitched_and_rolled_view()
         if not targets:
             continue
         positives += 1
-        c, r = np.asarray(targets[0].center_m), targets[0].radius_m
+        c, r = np.asarray(targets[0].centre_m), targets[0].radius_m
         assert 0.39 <= np.linalg.norm(c) - r <= 4.01
         if name in ("floor", "wall"):  # on the floor: its centre one radius above the floor plane
             assert abs((c - floor.point_m) @ floor.normal) == pytest.approx(r, abs=1e-3)

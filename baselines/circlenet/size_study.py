@@ -31,7 +31,7 @@ from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetect
 from spherebench.baselines.circlenet.train import coco_circle_map
 from spherebench.camera import Intrinsics
 from spherebench.datasets import inout, simulate
-from spherebench.datasets.reproject import colorize_depth
+from spherebench.datasets.reproject import colourise_depth
 
 #: The recorded set's camera (``datasets.prepare.POCHANG_INTRINSICS``), with the D435's depth unit.
 KINECT = Intrinsics(width=640, height=480, ppx=316.6, ppy=256.2, fx=524.6, fy=523.5, model="none", depth_scale=0.001)
@@ -55,7 +55,7 @@ def render(preset: str, index: int, family: str, camera: str):
             scene = simulate.simulate_scene(preset, index, family, 0, camera)
     else:
         scene = simulate.simulate_scene(preset, index, family, 0, camera)
-    rgb = colorize_depth(scene.depth_m())[:, :, ::-1].copy()
+    rgb = colourise_depth(scene.depth_m())[:, :, ::-1].copy()
     gt = np.asarray([b.circle_px for b in scene.balls if b.circle_px is not None], np.float64).reshape(-1, 3)
     return rgb, scene.intrinsics, gt
 

@@ -50,7 +50,7 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
                 v = improved.rescore(frame, v, config, buf)
             if v is None:
                 continue
-            err = float(np.linalg.norm(v.center_m - c))
+            err = float(np.linalg.norm(v.centre_m - c))
             there = err <= CEILING_M and v.size_ok
             # the best sphere that ends near the truth; failing that, the nearest one (diagnostics)
             if (there and (not best["size_ok"] or best["error_m"] > CEILING_M or v.score > best["score"])) or (
@@ -60,7 +60,7 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
         out.append(best)
     if separable and out:
         clutter = [s for s in detect(cloud, config.override({"verification.min_score": 0.0}), seed=seed)
-                   if all(np.linalg.norm(s.center_m - np.asarray(c)) > CEILING_M for c in centres_m)]
+                   if all(np.linalg.norm(s.centre_m - np.asarray(c)) > CEILING_M for c in centres_m)]
         best_clutter = max((s.score for s in clutter), default=0.0)
         for r in out:
             r["separable"] = bool(r["size_ok"] and r["error_m"] <= CEILING_M and r["score"] > best_clutter)

@@ -375,7 +375,7 @@ class DetectorAdapter:
         return inout.load_cloud(scene_dir)
 
     def detect(self, cloud, seed: int) -> list[dict]:
-        return [{"score": float(s.score), "center_m": [float(v) for v in s.center_m],
+        return [{"score": float(s.score), "center_m": [float(v) for v in s.centre_m],
                  "radius_m": float(s.free_radius_m) if self.estimates_radius else None,
                  "circle": s.circle_exact, "circle_paper": s.circle_paper}
                 for s in detect(cloud, self.config, seed=seed)]

@@ -114,7 +114,7 @@ def table2_scene(task: tuple) -> list[dict]:
     cloud = inout.load_cloud(scene_dir)
     truth = None if truth is None else np.asarray(truth, np.float64)
     improved = detect(cloud, IMPROVED, seed=s_seed)
-    err_improved = (min(float(np.linalg.norm(np.asarray(s.center_m) - truth)) for s in improved)
+    err_improved = (min(float(np.linalg.norm(np.asarray(s.centre_m) - truth)) for s in improved)
                     if improved and truth is not None else None)
     ransac_centre, rows = None, []
     # the paper pipeline's kernels loaded before the first timed row (a fresh checkout's first call
@@ -129,12 +129,12 @@ def table2_scene(task: tuple) -> list[dict]:
         row = {"scene": scene_id, "z": float(z), "iterations": int(its), "seed": s_seed, "ms": ms}
         if found and refined:
             tr = found[0].trace
-            if ransac_centre is not None and not np.allclose(tr.ransac_center_m, ransac_centre):
+            if ransac_centre is not None and not np.allclose(tr.ransac_centre_m, ransac_centre):
                 raise SphereBenchError("the paper pipeline's RANSAC draw changed with the z threshold")
-            ransac_centre = tr.ransac_center_m
+            ransac_centre = tr.ransac_centre_m
             pts = cloud.points.astype(np.float64)
-            row.update(table2_row(pts[tr.ransac_indices], pts[tr.kept_indices], tr.ransac_center_m, IMPROVED.radius_m,
-                                  barycentre_m=tr.barycentre_m, refined_centre_m=refined[0].center_m,
+            row.update(table2_row(pts[tr.ransac_indices], pts[tr.kept_indices], tr.ransac_centre_m, IMPROVED.radius_m,
+                                  barycentre_m=tr.barycentre_m, refined_centre_m=refined[0].centre_m,
                                   true_centre_m=truth))
         row["error_improved_m"] = err_improved
         paper = PAPER_TABLE2.get((scene_id, float(z)))

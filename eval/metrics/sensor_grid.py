@@ -57,9 +57,9 @@ def band_of(distance_m: float, bands: Sequence[tuple[float, float]] = RANGE_BAND
     return None
 
 
-def surface_distance_m(center_m, radius_m: float) -> float:
+def surface_distance_m(centre_m, radius_m: float) -> float:
     """Distance from the camera to a ball's nearest surface: ||centre|| - R (m)."""
-    return float(np.linalg.norm(np.asarray(center_m, np.float64))) - float(radius_m)
+    return float(np.linalg.norm(np.asarray(centre_m, np.float64))) - float(radius_m)
 
 
 def grid_key(cell: Mapping | None, axes: Sequence[str] = GRID_AXES) -> tuple | None:

@@ -36,7 +36,7 @@ from spherebench.parallel import single_thread_here
 
 
 def same_detections(a, b) -> bool:
-    return len(a) == len(b) and all(np.array_equal(x.center_m, y.center_m) and x.score == y.score
+    return len(a) == len(b) and all(np.array_equal(x.centre_m, y.centre_m) and x.score == y.score
                                     for x, y in zip(a, b))
 
 

@@ -52,7 +52,7 @@ def truth_factors(cloud, centre_m, config) -> dict:
     rest = math.prod(x for k, x in factors.items() if k != "support")
     factors["support"] = float(v.score) / rest if rest > 0 else 0.0
     return {"verified": True, "score": float(v.score), "size_ok": bool(v.size_ok),
-            "error_mm": 1e3 * float(np.linalg.norm(v.center_m - np.asarray(centre_m))),
+            "error_mm": 1e3 * float(np.linalg.norm(v.centre_m - np.asarray(centre_m))),
             "free_radius_mm": 1e3 * float(v.free_radius_m), "free_radius_se_mm": 1e3 * float(v.free_radius_se_m),
             "visible_fraction": float(v.stats.get("visible_fraction", 1.0)),
             "factors": {k: float(x) for k, x in factors.items()}}
