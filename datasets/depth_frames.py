@@ -27,7 +27,7 @@ import numpy as np
 from spherebench.camera import Intrinsics
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets import recordings
-from spherebench.datasets.prepare import FrameSelection
+from spherebench.datasets.frame_sources import FrameSelection
 from spherebench.errors import SphereBenchError
 
 #: Recording suffixes that pyrealsense2 plays back (ROS1 bag, ROS2 sqlite).
@@ -77,7 +77,7 @@ def is_recording(path: str | Path) -> bool:
 def recording_frames(path: str | Path, selection=None, real_time: bool = False,
                      stats: StreamStats | None = None) -> Iterator[recordings.BagFrame]:
     """The depth frames of a RealSense recording (.bag, .db3) picked by ``selection`` (a
-    ``prepare.FrameSelection``; None: every frame). real_time: play at the recording's rate and
+    ``frame_sources.FrameSelection``; None: every frame). real_time: play at the recording's rate and
     drop what the consumer is too slow for (counted in ``stats.dropped``); else every frame is
     read. Raises SphereBenchError on opening when the file is no recording or has no depth."""
     recording = recordings.BagRecording(path)  # checked here, before the first frame is asked for

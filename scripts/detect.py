@@ -37,7 +37,7 @@ from spherebench.cli import BadInputs
 from spherebench.cloud import in_front_of_camera
 from spherebench.datasets import depth_frames, detections, inout, outputs
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
-from spherebench.datasets.prepare import FrameSelection, scene_id_from
+from spherebench.datasets.frame_sources import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import PRESETS, config_for, detect, stream, warm_up

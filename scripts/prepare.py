@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from spherebench.datasets import outputs
+from spherebench.datasets import frame_sources, outputs
 from spherebench.datasets import prepare as prep
 from spherebench.errors import SphereBenchError
 from spherebench.options import out_path
@@ -54,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="metres per unit of the input depth (default: the file's or sensor's; 0.001 for uint16 "
                         "PNG/raw; 1 for float32 raw and clouds)")
     g.add_argument("--skip-unit-check", action="store_true",
-                   help=f"accept a median depth outside {prep.UNIT_CHECK_RANGE_M[0]:g}-{prep.UNIT_CHECK_RANGE_M[1]:g} m")
+                   help=f"accept a median depth outside {frame_sources.UNIT_CHECK_RANGE_M[0]:g}-{frame_sources.UNIT_CHECK_RANGE_M[1]:g} m")
     g = p.add_argument_group("raw frames")
     g.add_argument("--raw-size", metavar="WxH", help="size of headerless frames (default: the intrinsics')")
     g.add_argument("--raw-dtype", choices=("uint16", "float32"), default="uint16")
@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         sources.append(prep.default_realdata_dir() / prep.PRESET_SOURCES[args.preset_source][1])
     outputs.check_output_dir(args.out, outputs.is_dataset_dir, inputs=sources)
     outputs.check_not_in_dataset(args.out)
-    selection = prep.FrameSelection.parse(args.every, args.frames, args.time_range)
+    selection = frame_sources.FrameSelection.parse(args.every, args.frames, args.time_range)
     common = dict(depth_scale=args.depth_scale, unit_check=not args.skip_unit_check, selection=selection,
                   masks_dir=args.masks, labelme_dir=args.labelme, label=args.label, name=args.name)
     if args.preset_source:
@@ -93,9 +93,9 @@ def run(args: argparse.Namespace) -> int:
         if args.size and args.raw_size:
             raise SphereBenchError("give the image size once: --raw-size (raw frames; it also sizes --fx...) "
                                    "or --size, not both")
-        raw = prep.RawFormat.parse(args.raw_size, args.raw_dtype, args.raw_byte_order)
-        size = prep.RawFormat.parse(args.size, option="--size") if args.size else raw
-        intr = prep.camera_from_options(args.intrinsics, args.fx, args.fy, args.ppx, args.ppy, size.width,
+        raw = frame_sources.RawFormat.parse(args.raw_size, args.raw_dtype, args.raw_byte_order)
+        size = frame_sources.RawFormat.parse(args.size, option="--size") if args.size else raw
+        intr = frame_sources.camera_from_options(args.intrinsics, args.fx, args.fy, args.ppx, args.ppy, size.width,
                                         size.height, args.model, args.coeffs,
                                         size_option="--size" if args.size else "--raw-size")
         report = prep.prepare(prep.plan_inputs(args.inputs, options, intr, raw), args.out, options)

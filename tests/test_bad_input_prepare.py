@@ -9,7 +9,7 @@ import pytest
 
 from spherebench import cli
 from spherebench.cloud import cloud_from_depth
-from spherebench.datasets import inout, prepare
+from spherebench.datasets import frame_sources, inout, prepare
 from test_prepare import INTR, counts, labelme, render, shape, write_intrinsics_json  # tests/ is on sys.path
 
 CAM = ["--fx", str(INTR.fx), "--fy", str(INTR.fy), "--ppx", str(INTR.ppx), "--ppy", str(INTR.ppy)]
@@ -109,10 +109,10 @@ def test_cloud_with_no_finite_point_is_refused(tmp_path, capsys):
 
 
 def test_check_units_ignores_nan_and_infinities():
-    prepare.check_units(np.array([np.nan, np.inf, 2.0, 2.1, 1.9]), "x", 1.0)  # median of the finite: 2 m
-    prepare.check_units(np.array([np.nan, np.nan]), "x", 1.0)  # nothing finite: nothing to check
+    frame_sources.check_units(np.array([np.nan, np.inf, 2.0, 2.1, 1.9]), "x", 1.0)  # median of the finite: 2 m
+    frame_sources.check_units(np.array([np.nan, np.nan]), "x", 1.0)  # nothing finite: nothing to check
     with pytest.raises(prepare.SphereBenchError, match="--depth-scale 0.001"):
-        prepare.check_units(np.array([np.nan, -np.inf, 2000.0, 2100.0]), "x", 1.0)
+        frame_sources.check_units(np.array([np.nan, -np.inf, 2000.0, 2100.0]), "x", 1.0)
 
 
 # --------------------------------------------------------------------------- 2. LabelMe shapes that are not balls
@@ -170,15 +170,15 @@ def test_raw_frame_with_width_and_height_swapped(tmp_path, capsys):
 @pytest.mark.skipif(not KINECT_FRAME.is_file(), reason=f"{KINECT_FRAME} is absent")
 def test_raw_reading_check_on_a_recorded_frame():
     values = np.fromfile(KINECT_FRAME, "<u2").reshape(480, 640)
-    fmt = prepare.RawFormat(640, 480)
-    prepare.check_raw_reading(values, "kinect", prepare._raw_readings(values, values.byteswap(), fmt))
+    fmt = frame_sources.RawFormat(640, 480)
+    frame_sources.check_raw_reading(values, "kinect", frame_sources._raw_readings(values, values.byteswap(), fmt))
     wrong = values.reshape(640, 480)
     with pytest.raises(prepare.SphereBenchError, match="--raw-size 640x480"):
-        prepare.check_raw_reading(wrong, "kinect", prepare._raw_readings(wrong, wrong.byteswap(),
-                                                                         prepare.RawFormat(480, 640)))
+        frame_sources.check_raw_reading(wrong, "kinect", frame_sources._raw_readings(wrong, wrong.byteswap(),
+                                                                         frame_sources.RawFormat(480, 640)))
     big = values.byteswap()
     with pytest.raises(prepare.SphereBenchError, match="--raw-byte-order big"):
-        prepare.check_raw_reading(big, "kinect", prepare._raw_readings(big, values, fmt))
+        frame_sources.check_raw_reading(big, "kinect", frame_sources._raw_readings(big, values, fmt))
 
 
 # --------------------------------------------------------------------------- 4. the unit check's suggestion

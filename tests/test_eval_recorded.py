@@ -15,7 +15,7 @@ import pytest
 from spherebench.baselines.hough import HoughConfig
 from spherebench.circles import sphere_silhouette_mask
 from spherebench.cli import main
-from spherebench.datasets import inout
+from spherebench.datasets import frame_sources, inout
 from spherebench.datasets import prepare as prep
 from spherebench.datasets.annotate import labelme_from_mask, labelme_text
 from spherebench.eval.bench import figures, recorded, registry, report, scoring, tasks
@@ -48,8 +48,8 @@ def rec(tmp_path_factory):
         cv2.imwrite(str(src / "colour.jpg"), colour, [cv2.IMWRITE_JPEG_QUALITY, 98])
         (labelme / f"frame_{i}.json").write_text(labelme_text(labelme_from_mask(mask, "colour.jpg", "ball", DESCRIPTION)))
         depth = np.round(sphere_depth(centre=centre) / CAM.depth_scale).astype(np.uint16)
-        frames.append(prep.RecordedFrame(f"frame_{i}", f"frame_{i}.png", CAM, depth=depth, colour=src / "colour.jpg"))
-    plan = prep.Plan(iter(frames), len(frames), {"kind": "test", "camera": "a test camera"})
+        frames.append(frame_sources.RecordedFrame(f"frame_{i}", f"frame_{i}.png", CAM, depth=depth, colour=src / "colour.jpg"))
+    plan = frame_sources.Plan(iter(frames), len(frames), {"kind": "test", "camera": "a test camera"})
     out = root / "rec"
     prep.prepare(plan, out, prep.PrepareOptions(ball_radius_m=R, labelme_dir=labelme, name="rec"), log=lambda m: None)
     return out

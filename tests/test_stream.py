@@ -17,7 +17,7 @@ from spherebench.camera import Intrinsics  # noqa: E402
 from spherebench.cloud import cloud_from_depth, depth_to_metres  # noqa: E402
 from spherebench.datasets import depth_frames, inout  # noqa: E402
 from spherebench.datasets.bagwrite import write_realsense_bag  # noqa: E402
-from spherebench.datasets.prepare import FrameSelection  # noqa: E402
+from spherebench.datasets.frame_sources import FrameSelection  # noqa: E402
 from spherebench.method import config_for, stream  # noqa: E402
 from test_prepare_bag import INTR, render_frames  # noqa: E402
 
