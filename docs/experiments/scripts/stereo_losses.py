@@ -20,6 +20,9 @@ verified candidate within 12 cm of the ball (the search); (a2) one was, but none
 2 cm. Then the oracle centre's range and lateral error, the factors of the score-low balls, the false
 detections, and the score distributions of true, near (2-12 cm) and false (> 12 cm) candidates.
 
+``check`` compares collected lines with the library: ``detect`` without the log gives the logged
+detections, and ``eval.bench.oracle.ceiling`` the lines' oracle per ball (exit status 1 on a mismatch).
+
 ``outline`` verifies each ball from its true centre, moves the result onto the outline
 (``improved.outline_centre``) and compares the lateral error before and after. ``lateral`` fits a
 sphere of the true radius from the true centre on the ball's own pixels (the simulator's label,
@@ -31,6 +34,7 @@ lateral scatter is in the ball's own depth or in which pixels a fit takes.
         --noise-map out/train-stereo_noise_map.json
     python docs/experiments/scripts/stereo_losses.py collect data/train-stereo out/ts-lag6_q1.jsonl \\
         --set noise.noise_estimate_lag_px=6 --set noise.noise_correlation_max_px=8
+    python docs/experiments/scripts/stereo_losses.py check data/train out/train_q1.jsonl --every 3
     python docs/experiments/scripts/stereo_losses.py report train=out/train_q1.jsonl train-stereo=out/train-stereo_q1.jsonl
     python docs/experiments/scripts/stereo_losses.py outline train=data/train train-stereo=data/train-stereo
     python docs/experiments/scripts/stereo_losses.py lateral train=data/train train-stereo=data/train-stereo
@@ -53,7 +57,7 @@ from spherebench import options
 from spherebench.camera import image_rays
 from spherebench.circles import sphere_silhouette_mask
 from spherebench.datasets import inout
-from spherebench.eval.bench.oracle import CEILING_M
+from spherebench.eval.bench.oracle import CEILING_M, ceiling
 from spherebench.eval.bench.seeds import detection_seed
 from spherebench.method import detect, improved
 from spherebench.method.detector import prepare_frame
@@ -146,6 +150,32 @@ def collect(args) -> int:
     noise = json.loads(Path(args.noise_map).read_text()) if args.noise_map else {}
     ts.collect_jsonl(args.dataset, args.out, lambda k, sd: scene_record(k, sd, config, noise), args.limit)
     return 0
+
+
+def check(args) -> int:
+    """Every ``--every``-th scene of collected lines against the library: ``detect`` without the
+    candidate log gives the logged detections, ``oracle.ceiling`` the lines' oracle per ball."""
+    config = ts.study_config(support.settings(args.set, "stereo_losses.py"), args.radius)
+    recs = {r["scene"]: r for r in ts.read_jsonl(args.out)}
+    bad = checked = 0
+    for k, sd in list(enumerate(inout.list_scenes(args.dataset)))[::args.every]:
+        r = recs.get(sd.name)
+        if r is None:
+            continue
+        checked += 1
+        cloud = inout.load_cloud(sd)
+        got = [round(s.score, 9) for s in detect(cloud, config, seed=detection_seed(0, k))]
+        if got != [round(d["score"], 9) for d in r["detections"]]:
+            bad += 1
+            print(f"{sd.name}: detections differ")
+        if r["balls"]:
+            for o, b in zip(ceiling(cloud, [x["center"] for x in r["balls"]], config, seed=detection_seed(0, k),
+                                    separable=False), r["balls"]):
+                if o["within"] != b["oracle"]["within"] or abs(o["score"] - b["oracle"]["score"]) > 1e-9:
+                    bad += 1
+                    print(f"{sd.name}: the oracle differs")
+    print(f"{checked} scenes checked, {bad} mismatches")
+    return 1 if bad else 0
 
 
 # ---------------------------------------------------------------- report
@@ -478,6 +508,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="{scene: A (1/m)}: noise.noise_z2_per_m per scene (noise_structure.py noise-map)")
     c.add_argument("--radius", type=float, default=ts.BASKETBALL_M, help="the detector's radius (m; default 0.12)")
     c.add_argument("--limit", type=options.count, default=None, help="the first N scenes only")
+    ck = sub.add_parser("check", help="collected lines against detect and oracle.ceiling (exit 1 on a mismatch)")
+    ck.add_argument("dataset")
+    ck.add_argument("out", help="collect's JSON lines of that dataset, run with the same --set and --radius")
+    ck.add_argument("--every", type=options.count, default=3, help="every Nth scene (default 3)")
+    ck.add_argument("--radius", type=float, default=ts.BASKETBALL_M, help="the detector's radius (m; default 0.12)")
     rp = sub.add_parser("report", help="tables from collected lines")
     rp.add_argument("sets", nargs="+", metavar="NAME=JSONL")
     support.add_json_argument(rp)
@@ -489,11 +524,12 @@ def main(argv: list[str] | None = None) -> int:
         support.add_json_argument(s)
         if name == "lateral":
             s.add_argument("--max-range", type=float, default=3.5, help="balls up to this surface distance (m)")
-    for s in (c, sub.choices["outline"]):
+    for s in (c, ck, sub.choices["outline"]):
         s.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                        help="a detector setting overridden, by its path (repeatable)")
     args = p.parse_args(argv)
-    return {"collect": collect, "report": report, "outline": outline, "lateral": lateral}[args.command](args)
+    return {"collect": collect, "check": check, "report": report, "outline": outline,
+            "lateral": lateral}[args.command](args)
 
 
 if __name__ == "__main__":
