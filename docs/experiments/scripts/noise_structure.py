@@ -27,7 +27,8 @@ A = sigma / z^2 (floor and wall, detrended, bins of 200 pixels or more beyond 0.
     python docs/experiments/scripts/noise_structure.py collect data/train-stereo out/train-stereo_q23.jsonl
     python docs/experiments/scripts/noise_structure.py report \\
         train=out/train_q23.jsonl:out/train_q1.jsonl train-stereo=out/train-stereo_q23.jsonl:out/train-stereo_q1.jsonl
-    python docs/experiments/scripts/noise_structure.py noise-map out/train-stereo_q23.jsonl out/train-stereo_noise_map.json
+    python docs/experiments/scripts/noise_structure.py noise-map out/train-stereo_q23.jsonl \\
+        out/train-stereo_noise_map.json
 """
 
 from __future__ import annotations
@@ -174,14 +175,15 @@ def scene_record(sd: Path) -> dict:
             near = pm & (np.abs(z_true - c[2]) <= 0.25)
             row["plane_e_mm"] = mm_median(near, 50)
             for kind in ("floor", "wall"):
-                row[f"{kind}_e_mm"] = mm_median(near & np.isin(label, [j + 1 for j, x in enumerate(kinds) if x == kind]), 50)
+                ids = [j + 1 for j, x in enumerate(kinds) if x == kind]
+                row[f"{kind}_e_mm"] = mm_median(near & np.isin(label, ids), 50)
             m2 = ndimage.binary_erosion(m_all, structure=np.ones((5, 5), bool)) & valid
             for name, sel in (("lsq_all", m), ("lsq_inner", m2)):
                 if sel.sum() < 10:
                     continue
                 f = ts.fit_sphere(z[sel][:, None] * rays[sel], c, R)
-                row[name] = None if f is None else {"r": f[1], "se": f[2], "centre_err": float(np.linalg.norm(f[0] - c)),
-                                                    "n": int(sel.sum()), "kept": f[3]}
+                row[name] = None if f is None else {"r": f[1], "se": f[2], "n": int(sel.sum()), "kept": f[3],
+                                                    "centre_err": float(np.linalg.norm(f[0] - c))}
         spheres.append(row)
     rec["spheres"] = spheres
     return rec
@@ -382,7 +384,7 @@ def report_tables(data: dict) -> tuple[str, dict]:
                             acc[k][0] += row[k][0]
                             acc[k][1] += row[k][1]
             sh = lambda k: f"{acc[k][1] / acc[k][0]:.3f}" if acc[k][0] else "-"  # noqa: E731
-            rows.append([name, band, acc["plane"][0], sh("plane"), acc["all"][0], sh("all"), acc["ball"][0], sh("ball")])
+            rows.append([name, band] + [x for k in ("plane", "all", "ball") for x in (acc[k][0], sh(k))])
     md.append(ts.table(["set", "z band", "plane px", "invalid share (planes)", "all px", "invalid share (all)",
                         "ball px", "invalid share (ball)"], rows))
 

@@ -35,7 +35,8 @@ lateral scatter is in the ball's own depth or in which pixels a fit takes.
     python docs/experiments/scripts/stereo_losses.py collect data/train-stereo out/ts-lag6_q1.jsonl \\
         --set noise.noise_estimate_lag_px=6 --set noise.noise_correlation_max_px=8
     python docs/experiments/scripts/stereo_losses.py check data/train out/train_q1.jsonl --every 3
-    python docs/experiments/scripts/stereo_losses.py report train=out/train_q1.jsonl train-stereo=out/train-stereo_q1.jsonl
+    python docs/experiments/scripts/stereo_losses.py report train=out/train_q1.jsonl \\
+        train-stereo=out/train-stereo_q1.jsonl
     python docs/experiments/scripts/stereo_losses.py outline train=data/train train-stereo=data/train-stereo
     python docs/experiments/scripts/stereo_losses.py lateral train=data/train train-stereo=data/train-stereo
 """
@@ -215,6 +216,11 @@ def merged(verified: list[dict], nms_m: float) -> list[dict]:
     return out
 
 
+def own_band(centre) -> str | None:
+    """The band of a detection or candidate by its own distance (|c| - R, R the basketball's)."""
+    return ts.band_of(float(np.linalg.norm(centre)) - ts.BASKETBALL_M)
+
+
 def quantiles(x, qs=(0.1, 0.25, 0.5, 0.75, 0.9)) -> list[str]:
     x = np.asarray(x, float)
     return ["-"] * len(qs) if len(x) == 0 else [f"{v:.3f}" for v in np.quantile(x, qs)]
@@ -297,7 +303,8 @@ def report_tables(data: dict[str, list[dict]], min_score: float, nms_m: float) -
 
     md.append(f"\nOracle score-low balls (within 2 cm, size ok, score < {min_score:g}): median of each confidence "
               "factor\n")
-    fmed = lambda bb: [f"{np.median([b['o']['factors'].get(k, np.nan) for b in bb]):.3f}" for k in FACTORS]  # noqa: E731
+    def fmed(bb):
+        return [f"{np.median([b['o']['factors'].get(k, np.nan) for b in bb]):.3f}" for k in FACTORS]
     rows = []
     for name, (balls, _f) in per.items():
         for grp in ("score-low", "ok"):
@@ -332,7 +339,8 @@ def report_tables(data: dict[str, list[dict]], min_score: float, nms_m: float) -
         clutter = [d for r, d in falses if all(ts.dist(d["center"], b["center"]) > ts.GATE_M for b in r["balls"])]
         rows.append([name, len(recs), len(falses), len(clutter), len({r["scene"] for r, _ in falses}),
                      sum(len(r["detections"]) for r in recs if not r["balls"]),
-                     sum(b["found"] and b["top_false"] for b in balls), "/".join(quantiles([d["score"] for _, d in falses]))])
+                     sum(b["found"] and b["top_false"] for b in balls),
+                     "/".join(quantiles([d["score"] for _, d in falses]))])
         summary[name]["clutter"] = len(clutter)
     md.append(ts.table(["set", "scenes", "false", "of them > 12 cm (clutter)", "scenes with one",
                         "false on ball-less scenes", "found balls whose frame's best detection is false",
@@ -341,7 +349,7 @@ def report_tables(data: dict[str, list[dict]], min_score: float, nms_m: float) -
     rows = []
     for name, (_b, falses) in per.items():
         for band in bands:
-            ff = [d["score"] for _, d in falses if ts.band_of(float(np.linalg.norm(d["center"])) - ts.BASKETBALL_M) == band]
+            ff = [d["score"] for _, d in falses if own_band(d["center"]) == band]
             rows.append([name, band, len(ff), ", ".join(f"{s:.2f}" for s in sorted(ff))])
     md.append(ts.table(["set", "band", "false", "scores"], rows))
 
@@ -370,9 +378,10 @@ def report_tables(data: dict[str, list[dict]], min_score: float, nms_m: float) -
     rows = []
     clutter_cands = {}
     for name, recs in data.items():
-        clutter_cands[name] = [(r["scene"], ts.band_of(float(np.linalg.norm(v["center"])) - ts.BASKETBALL_M), v["score"])
+        clutter_cands[name] = [(r["scene"], own_band(v["center"]), v["score"])
                                for r in recs for v in merged(r["verified"], nms_m)
-                               if v["size_ok"] and all(ts.dist(v["center"], b["center"]) > ts.GATE_M for b in r["balls"])]
+                               if v["size_ok"] and all(ts.dist(v["center"], b["center"]) > ts.GATE_M
+                                                       for b in r["balls"])]
         balls = per[name][0]
         for band in bands:
             os_ = [b["oracle_score"] for b in balls if b["band"] == band and b["ost"] in ("ok", "score-low")]
@@ -441,7 +450,8 @@ def outline(args) -> int:
                              share(lambda p: min(p["error_m"], p["error_outline_m"]) <= ts.FOUND_M)])
     print("### Verification from the truth, then centred on the outline\n")
     print(ts.table(["set", "band", "balls verified", "frame sigma at ball / R", "lateral mm (verified)",
-                    "lateral mm (outline-centred)", "within 2 cm (verified)", "within 2 cm (outline-centred)", "either"],
+                    "lateral mm (outline-centred)", "within 2 cm (verified)", "within 2 cm (outline-centred)",
+                    "either"],
                    rows))
     support.write_json(args.json, {"balls": result})
     return 0
@@ -501,7 +511,7 @@ def lateral(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
-    c = sub.add_parser("collect", help="one JSON line per scene: detections, verified candidates, the oracle per sphere")
+    c = sub.add_parser("collect", help="one JSON line per scene: detections, verified candidates, the oracle")
     c.add_argument("dataset")
     c.add_argument("out", help="the JSON-lines file (appended to; scenes already in it are skipped)")
     c.add_argument("--noise-map", default=None, metavar="JSON",
