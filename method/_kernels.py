@@ -184,50 +184,118 @@ def ring_spread(out):
 
 
 @kernel
+def _window_bounds(h, w, cx, cy, cz, dist, prm):
+    """The pixels (rows r0-r1, columns c0-c1, inclusive, within an h x w image) that hold the outline
+    ring of the sphere about c (m, dist = |c|, in front of the camera), and the pixel (u0, v0) of its
+    centre."""
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * prm[P_RING_FACTOR] * 1.05 + 2.0
+    u0 = fx * cx / cz + ppx
+    v0 = fy * cy / cz + ppy
+    c0 = max(0, int(math.floor(u0 - rpx)))
+    c1 = min(w - 1, int(math.ceil(u0 + rpx)))
+    r0 = max(0, int(math.floor(v0 - rpx)))
+    r1 = min(h - 1, int(math.ceil(v0 + rpx)))
+    return r0, r1, c0, c1, u0, v0
+
+
+@kernel
+def _ring_pixel(out, pn, tc, du, dv, ring_band, prm):
+    """Count in out (N_STATS,) a pixel of the outline RING (its ray misses the sphere and passes the
+    centre at R to ring_factor R): RING_CONT if its point (range pn m) is within ring_band m of the
+    depth tc m where the ray passes the centre (a surface continuing beyond the outline: a wall, a
+    plane, a bigger object; a band of one sigma of the depth noise rather than eps: at 3 m eps is
+    +/- R, and a background 20 cm behind a ball would count as continuing it), RING_FRONT if it is
+    ring_front_min R to ring_front_max R in front of it (an attached surface in front: a cylinder's
+    body); the same in its angular sector (``ring_sector`` of its offset (du, dv) px from the
+    centre's pixel: ST_SECTOR_RING, ST_SECTOR_ATTACHED)."""
+    radius = prm[P_R]
+    out[ST_RING] += 1.0
+    sector = ring_sector(du, dv)
+    out[ST_SECTOR_RING + sector] += 1.0
+    if abs(pn - tc) <= ring_band:
+        out[ST_RING_CONT] += 1.0
+        out[ST_SECTOR_ATTACHED + sector] += 1.0
+    elif -prm[P_RING_FRONT_MAX] * radius <= pn - tc <= -prm[P_RING_FRONT_MIN] * radius:
+        out[ST_RING_FRONT] += 1.0
+        out[ST_SECTOR_ATTACHED + sector] += 1.0
+
+
+@kernel
+def _disc_pixel(out, dt, m2, du, dv, eps, prm):
+    """Count in out (N_STATS,) a silhouette pixel with a point: dt its ray residual (m), m2 the squared
+    distance (m^2) at which its ray passes the centre, (du, dv) its offset (px) from the centre's pixel.
+
+    INLIER if |dt| <= eps (SSE sums dt^2), else FRONT (an occluder, dt < 0; FRONT_NEAR if also
+    dt >= -R/2: a surface hugging the sphere, as a cylinder of the same radius does) or BEHIND
+    (dt > 0: seen through the ball, evidence against it). VALID_INNER and BEHIND_INNER count the
+    valid and the BEHIND pixels whose rays pass the centre within sqrt(profile_outer) R (short of the
+    outline, where mixed pixels see past a real ball); EDGE_N and EDGE_BEHIND the pixels beyond that,
+    up to the outline, that are INLIER or BEHIND, and the BEHIND ones (a smaller ball leaves this band
+    to the background; an occluder's FRONT pixels tell nothing of the size and are left out).
+    The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
+    the centre within sqrt(profile_inner) R; OUTH_* and OUTV_* those between that and
+    sqrt(profile_outer) R, left or right of the centre (OUTH) or above or below it (OUTV)."""
+    radius, p_in, p_out = prm[P_R], prm[P_PROFILE_INNER], prm[P_PROFILE_OUTER]
+    out[ST_VALID_DISC] += 1.0
+    if m2 <= p_out * radius * radius:  # short of the outline's mixed pixels
+        out[ST_VALID_INNER] += 1.0
+        if dt > eps:
+            out[ST_BEHIND_INNER] += 1.0
+    elif dt >= -eps:
+        out[ST_EDGE_N] += 1.0
+        if dt > eps:
+            out[ST_EDGE_BEHIND] += 1.0
+    # the relief profile: the inliers' mean ray residual per zone (a flat or a less curved surface
+    # fitted by the sphere sits in front of it in the outer zone; occluders, such as a tripod's cup,
+    # are not inliers and do not bias it)
+    if abs(dt) > eps:
+        pass
+    elif m2 <= p_in * radius * radius:
+        out[ST_IN_N] += 1.0
+        out[ST_IN_SUM] += dt
+    elif m2 <= p_out * radius * radius:
+        # left and right of the centre, or above and below: a cylinder or an edge is curved along
+        # one image axis only
+        if abs(du) >= abs(dv):
+            out[ST_OUTH_N] += 1.0
+            out[ST_OUTH_SUM] += dt
+        else:
+            out[ST_OUTV_N] += 1.0
+            out[ST_OUTV_SUM] += dt
+    if abs(dt) <= eps:
+        out[ST_INLIER] += 1.0
+        out[ST_SSE] += dt * dt
+    elif dt < 0.0:
+        out[ST_FRONT] += 1.0
+        if dt >= -0.5 * radius:
+            out[ST_FRONT_NEAR] += 1.0
+    else:
+        out[ST_BEHIND] += 1.0
+
+
+@kernel
 def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, out):
     """Classify the pixels of a candidate's silhouette; out (N_STATS,) float64 gets the counts.
 
-    For a pixel whose ray meets the sphere (the silhouette, undistorted pinhole) with point p and
-    ray residual dt = |p| - t_near: INLIER if |dt| <= eps (SSE sums dt^2), else FRONT (an occluder,
-    dt < 0; FRONT_NEAR if also dt >= -R/2: a surface hugging the sphere, as a cylinder of the same
-    radius does) or BEHIND (dt > 0: seen through the ball, evidence against it). Silhouette pixels
-    without a point count as INVALID_DISC. Rays passing the centre at R to ring_factor R form the
-    outline RING; RING_CONT counts those whose point is within ring_band of the depth where the ray
-    passes the centre (a surface continuing beyond the outline: a wall, a plane, a bigger object;
-    a band of one sigma of the depth noise rather than eps: at 3 m eps is +/- R, and a background
-    20 cm behind a ball would count as continuing it), RING_FRONT those ring_front_min R to
-    ring_front_max R in front of it (an attached surface in front: a cylinder's body); the same by
-    angular sector (``ring_sector``: ST_SECTOR_RING, ST_SECTOR_ATTACHED), and RING_SPREAD
-    (``ring_spread``).
-    VALID_INNER and BEHIND_INNER count the valid and the BEHIND pixels whose rays pass the centre
-    within sqrt(profile_outer) R (short of the outline, where mixed pixels see past a real ball);
-    EDGE_N and EDGE_BEHIND the pixels beyond that, up to the outline, that are INLIER or BEHIND, and
-    the BEHIND ones (a smaller ball leaves this band to the background; an occluder's FRONT pixels
-    tell nothing of the size and are left out).
-    The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
-    the centre within sqrt(profile_inner) R; OUTH_* and OUTV_*
-    those between that and sqrt(profile_outer) R, left or right of the centre (OUTH) or above or
-    below it (OUTV). ``stride`` visits every stride-th pixel (counts
-    scaled by stride^2, except the profile's, which stay the visited ones). The camera, R and the
-    zones' sizes come from prm (see the zones' comment above).
+    A pixel whose ray meets the sphere (the silhouette, undistorted pinhole) with point p has the ray
+    residual dt = |p| - t_near and is classified by it and by where its ray passes the centre
+    (``_disc_pixel``); silhouette pixels without a point count as INVALID_DISC. Rays passing the
+    centre at R to ring_factor R form the outline RING (``_ring_pixel``; RING_CONT within ring_band of
+    the depth where they pass the centre), and RING_SPREAD (``ring_spread``) how its attached pixels
+    spread over its sectors. ``stride`` visits every stride-th pixel (counts scaled by stride^2,
+    except the relief profile's, which stay the visited ones). The camera, R and the zones' sizes
+    come from prm (see the zones' comment above).
     """
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    ring_factor, p_in, p_out = prm[P_RING_FACTOR], prm[P_PROFILE_INNER], prm[P_PROFILE_OUTER]
-    front_min, front_max = prm[P_RING_FRONT_MIN], prm[P_RING_FRONT_MAX]
     for k in range(N_STATS):
         out[k] = 0.0
     h, w = index_image.shape
     dist = math.sqrt(cx * cx + cy * cy + cz * cz)
     if cz <= radius or dist <= radius:
         return
-    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * ring_factor * 1.05 + 2.0
-    u0 = fx * cx / cz + ppx
-    v0 = fy * cy / cz + ppy
-    ring2 = (ring_factor * radius) ** 2
-    c0 = max(0, int(math.floor(u0 - rpx)))
-    c1 = min(w - 1, int(math.ceil(u0 + rpx)))
-    r0 = max(0, int(math.floor(v0 - rpx)))
-    r1 = min(h - 1, int(math.ceil(v0 + rpx)))
+    r0, r1, c0, c1, u0, v0 = _window_bounds(h, w, cx, cy, cz, dist, prm)
+    ring2 = (prm[P_RING_FACTOR] * radius) ** 2
     cos_lim = math.sqrt(1.0 - (radius / dist) ** 2)
     for r in range(r0, r1 + 1, stride):
         for c in range(c0, c1 + 1, stride):
@@ -241,55 +309,11 @@ def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, o
             px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
             pn = math.sqrt(px * px + py * py + pz * pz)
             dt, hit = ray_residual(px, py, pz, cx, cy, cz, radius)
-            if not hit:
-                tc = (px * cx + py * cy + pz * cz) / pn
-                if tc > 0.0 and dist * dist - tc * tc <= ring2:
-                    out[ST_RING] += 1.0
-                    sector = ring_sector(c - u0, r - v0)
-                    out[ST_SECTOR_RING + sector] += 1.0
-                    if abs(pn - tc) <= ring_band:
-                        out[ST_RING_CONT] += 1.0
-                        out[ST_SECTOR_ATTACHED + sector] += 1.0
-                    elif -front_max * radius <= pn - tc <= -front_min * radius:
-                        out[ST_RING_FRONT] += 1.0
-                        out[ST_SECTOR_ATTACHED + sector] += 1.0
-                continue
-            out[ST_VALID_DISC] += 1.0
-            # the relief profile: the inliers' mean ray residual per zone (a flat or a less curved
-            # surface fitted by the sphere sits in front of it in the outer zone; occluders, such as
-            # a tripod's cup, are not inliers and do not bias it)
-            m2 = dist * dist - ((px * cx + py * cy + pz * cz) / pn) ** 2
-            if m2 <= p_out * radius * radius:  # short of the outline's mixed pixels
-                out[ST_VALID_INNER] += 1.0
-                if dt > eps:
-                    out[ST_BEHIND_INNER] += 1.0
-            elif dt >= -eps:
-                out[ST_EDGE_N] += 1.0
-                if dt > eps:
-                    out[ST_EDGE_BEHIND] += 1.0
-            if abs(dt) > eps:
-                pass
-            elif m2 <= p_in * radius * radius:
-                out[ST_IN_N] += 1.0
-                out[ST_IN_SUM] += dt
-            elif m2 <= p_out * radius * radius:
-                # left and right of the centre, or above and below: a cylinder or an edge is
-                # curved along one image axis only
-                if abs(c - u0) >= abs(r - v0):
-                    out[ST_OUTH_N] += 1.0
-                    out[ST_OUTH_SUM] += dt
-                else:
-                    out[ST_OUTV_N] += 1.0
-                    out[ST_OUTV_SUM] += dt
-            if abs(dt) <= eps:
-                out[ST_INLIER] += 1.0
-                out[ST_SSE] += dt * dt
-            elif dt < 0.0:
-                out[ST_FRONT] += 1.0
-                if dt >= -0.5 * radius:
-                    out[ST_FRONT_NEAR] += 1.0
-            else:
-                out[ST_BEHIND] += 1.0
+            tc = (px * cx + py * cy + pz * cz) / pn  # where the ray passes the centre (m)
+            if hit:
+                _disc_pixel(out, dt, dist * dist - tc ** 2, c - u0, r - v0, eps, prm)
+            elif tc > 0.0 and dist * dist - tc * tc <= ring2:
+                _ring_pixel(out, pn, tc, c - u0, r - v0, ring_band, prm)
     s2 = float(stride * stride)
     for k in range(ST_IN_N):  # the profile keeps the visited counts: its means' errors depend on them
         out[k] *= s2
