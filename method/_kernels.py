@@ -697,83 +697,59 @@ def ring_boxes(tab, prm, v, u, front, sig):
 
 
 @kernel
-def front_hypothesis(tab, prm, v, u, out):
-    """A hypothesis from the first cell (v, u), and its O(1) pretest; returns its score (-inf: rejected).
+def _stencil(tab, prm, v, u, rr):
+    """The descent's five box means about cell (v, u), for a ball's disc radius of rr cells: returns
+    (su, sv) (``stencil_stretch``), the boxes' half-side h = box_half r and the side boxes' offsets
+    du, dv = box_offset r along u and v (cells, stretched by su, sv), then (mean range m, valid
+    count) (``box_range``) of the centre box (m0, n0), and of the left (mL, nL), right (mR, nR),
+    upper (mU, nU) and lower (mD, nD) boxes; the side boxes are nan and 0 when m0 is nan."""
+    su, sv = stencil_stretch(prm, v, u)
+    h = max(1, int(prm[P_H_FRAC] * rr + 0.5))
+    du = max(h + 1, int(prm[P_D_FRAC] * rr * su + 0.5))
+    dv = max(h + 1, int(prm[P_D_FRAC] * rr * sv + 0.5))
+    m0, n0 = box_range(tab, prm, v, u, h)
+    if math.isnan(m0):
+        return su, sv, h, du, dv, m0, n0, math.nan, 0, math.nan, 0, math.nan, 0, math.nan, 0
+    mL, nL = box_range(tab, prm, v, u - du, h)
+    mR, nR = box_range(tab, prm, v, u + du, h)
+    mU, nU = box_range(tab, prm, v - dv, u, h)
+    mD, nD = box_range(tab, prm, v + dv, u, h)
+    return su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD
 
-    Descent: the ball's front point is the local minimum of the range |p| (it lies on the ray through
-    the centre). A stencil of five box means (centre, left, right, up, down; half-side box_half r,
-    offset box_offset r, r the ball's disc radius in cells at the centre box's range) and the sphere's
-    known curvature give the step to the front point (``descent_step``), at most r / 2, up to
-    descent_steps times. The means average sigma / sqrt(n) of the per-pixel noise, which is what
-    makes a hypothesis possible at 3 m, where one pixel's depth is +/- 7 cm and the relief between
-    two pixels 1-2 cm.
-    Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
-    cell, all from the table: at least three of the four side boxes must lie on the sphere's cap
-    (range relief ``cap_relief`` above the front, within 3 sigma / sqrt(n) + slack), or two and a
-    third well in front (more than R past the tolerance: an occluder hides that side of the ball;
-    out[4] flags such a hypothesis, which ``improved`` verifies only while no sphere has been
-    accepted), at most one *behind* it (a surface seen through the ball; one box may straddle the
-    outline); of the eight ``ring_boxes`` at most pretest_max_continued may continue the surface at the
-    ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded flag); the score
-    is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of the agreeing ones
-    (at most 16).
-    """
+
+@kernel
+def _descent_move(prm, rr, su, sv, du, dv, m0, n0, mL, mR, mU, mD):
+    """The descent's move (iu, iv) in whole cells toward the front point, from the stencil's means
+    (``_stencil``; m metres, n0 the centre box's valid count): ``descent_step`` along u and along v
+    with the cap's curvature there, at most r / 2 cells (r = rr cells, stretched by su, sv)."""
     R = prm[P_R]
-    fc = prm[P_FX] / prm[P_BIN]
     na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]  # box means: correlated pixels count as fewer
     slack = prm[P_SLACK] * R
-    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
-    s0, n0, a0 = box_sums(tab, v, u, 1)
-    m0 = sums_range(prm, v, u, s0, n0, a0)
-    if math.isnan(m0):
-        return -np.inf
-    # prefilter: inverse depth is affine in the pixel coordinates on any plane, so its second
-    # difference over boxes two disc radii apart (off the ball wherever on it the first cell is)
-    # vanishes on a wall, a floor, a box face (most first cells) and not where a ball stands out
-    if not plane_free(tab, prm, v, u, m0, s0, n0):
-        return -np.inf
-    h = 1
-    du = dv = 2
-    rr = 1.0
-    su = sv = 1.0
-    mL = mR = mU = mD = 0.0
-    nL = nR = nU = nD = 0
-    steps = int(prm[P_DESCENT_STEPS])
-    for step in range(steps + 1):
-        rr = fc * R / m0
-        if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
-            return -np.inf
-        # the side boxes' offsets follow the silhouette's stretch along each axis (``stencil_stretch``)
-        su, sv = stencil_stretch(prm, v, u)
-        h = max(1, int(prm[P_H_FRAC] * rr + 0.5))
-        du = max(h + 1, int(prm[P_D_FRAC] * rr * su + 0.5))
-        dv = max(h + 1, int(prm[P_D_FRAC] * rr * sv + 0.5))
-        m0, n0 = box_range(tab, prm, v, u, h)
-        if math.isnan(m0):
-            return -np.inf
-        mL, nL = box_range(tab, prm, v, u - du, h)
-        mR, nR = box_range(tab, prm, v, u + du, h)
-        mU, nU = box_range(tab, prm, v - dv, u, h)
-        mD, nD = box_range(tab, prm, v + dv, u, h)
-        if step == steps:
-            break
-        off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
-        ku, kv = 0.5 * R / (rr * su) ** 2, 0.5 * R / (rr * sv) ** 2
-        # a side box more than R (and the noise) in front of the centre box lies on no cap through it:
-        # an occluder, which pulls the descent off a partly hidden ball. (Beside a ball, on the
-        # background, the ball's box is nearer by as much: there the bound stops the descent that
-        # would reach the ball, so it is only for ``improved``'s second search)
-        near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[P_OCCLUDER_BOUND] != 0.0 else np.inf
-        iu = int(math.floor(descent_step(m0, mL, mR, du, ku, off, 0.5 * rr * su, near) + 0.5))
-        iv = int(math.floor(descent_step(m0, mU, mD, dv, kv, off, 0.5 * rr * sv, near) + 0.5))
-        if iu == 0 and iv == 0:
-            break
-        u += iu
-        v += iv
-        if u < 0 or u >= wc or v < 0 or v >= hc:
-            return -np.inf
-    # pretest: the side boxes on the cap; offsets and the boxes' half-sides in units of the ball's
-    # angular radius along each axis (the same on the axis)
+    off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
+    ku, kv = 0.5 * R / (rr * su) ** 2, 0.5 * R / (rr * sv) ** 2
+    # a side box more than R (and the noise) in front of the centre box lies on no cap through it:
+    # an occluder, which pulls the descent off a partly hidden ball. (Beside a ball, on the
+    # background, the ball's box is nearer by as much: there the bound stops the descent that
+    # would reach the ball, so it is only for ``improved``'s second search)
+    near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[P_OCCLUDER_BOUND] != 0.0 else np.inf
+    iu = int(math.floor(descent_step(m0, mL, mR, du, ku, off, 0.5 * rr * su, near) + 0.5))
+    iv = int(math.floor(descent_step(m0, mU, mD, dv, kv, off, 0.5 * rr * sv, near) + 0.5))
+    return iu, iv
+
+
+@kernel
+def _cap_pretest(prm, rr, su, sv, h, du, dv, m0, mL, nL, mR, nR, mU, nU, mD, nD):
+    """The pretest's side boxes at the resting cell (the last ``_stencil``'s values): the front range
+    m0 - R cap_relief of the centre box, each side box's mean against the cap's range relief
+    (``cap_relief``) above the front, within 3 sigma / sqrt(n) + slack. Returns (front m, one pixel's
+    noise sig m at the centre box's range, the side boxes that agree, lie behind the cap (a surface
+    seen through the ball) or well in front of it (more than R past the tolerance: an occluder hides
+    that side of the ball), and the agreeing ones' chi^2)."""
+    R = prm[P_R]
+    na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]  # box means: correlated pixels count as fewer
+    slack = prm[P_SLACK] * R
+    # offsets and the boxes' half-sides in units of the ball's angular radius along each axis (the
+    # same on the axis)
     ahu = (h + 0.5) / (rr * su)
     ahv = (h + 0.5) / (rr * sv)
     spread = (ahu * ahu + ahv * ahv) / 3.0
@@ -801,6 +777,67 @@ def front_hypothesis(tab, prm, v, u, out):
             chi += (res / tol) ** 2
         elif res < -(tol + R):  # well in front: an occluder hides this side of the cap
             occl += 1
+    return front, sig, agree, behind, occl, chi
+
+
+@kernel
+def front_hypothesis(tab, prm, v, u, out):
+    """A hypothesis from the first cell (v, u), and its O(1) pretest; returns its score (-inf: rejected).
+
+    Descent: the ball's front point is the local minimum of the range |p| (it lies on the ray through
+    the centre). A stencil of five box means (``_stencil``: centre, left, right, up, down; half-side
+    box_half r, offset box_offset r, r the ball's disc radius in cells at the centre box's range) and
+    the sphere's known curvature give the step to the front point (``_descent_move``), at most r / 2,
+    up to descent_steps times. The means average sigma / sqrt(n) of the per-pixel noise, which is
+    what makes a hypothesis possible at 3 m, where one pixel's depth is +/- 7 cm and the relief
+    between two pixels 1-2 cm.
+    Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
+    cell, all from the table: at least three of the four side boxes must lie on the sphere's cap
+    (``_cap_pretest``), or two and a third well in front (out[4] flags such a hypothesis, which
+    ``improved`` verifies only while no sphere has been accepted), at most one *behind* it (one box
+    may straddle the outline); of the eight ``ring_boxes`` at most pretest_max_continued may continue
+    the surface at the ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded
+    flag); the score is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of
+    the agreeing ones (at most 16).
+    """
+    R = prm[P_R]
+    fc = prm[P_FX] / prm[P_BIN]
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    s0, n0, a0 = box_sums(tab, v, u, 1)
+    m0 = sums_range(prm, v, u, s0, n0, a0)
+    if math.isnan(m0):
+        return -np.inf
+    # prefilter: inverse depth is affine in the pixel coordinates on any plane, so its second
+    # difference over boxes two disc radii apart (off the ball wherever on it the first cell is)
+    # vanishes on a wall, a floor, a box face (most first cells) and not where a ball stands out
+    if not plane_free(tab, prm, v, u, m0, s0, n0):
+        return -np.inf
+    h = 1
+    du = dv = 2
+    rr = 1.0
+    su = sv = 1.0
+    mL = mR = mU = mD = 0.0
+    nL = nR = nU = nD = 0
+    steps = int(prm[P_DESCENT_STEPS])
+    for step in range(steps + 1):
+        rr = fc * R / m0
+        if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
+            return -np.inf
+        # the side boxes' offsets follow the silhouette's stretch along each axis (``stencil_stretch``)
+        su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD = _stencil(tab, prm, v, u, rr)
+        if math.isnan(m0):
+            return -np.inf
+        if step == steps:
+            break
+        iu, iv = _descent_move(prm, rr, su, sv, du, dv, m0, n0, mL, mR, mU, mD)
+        if iu == 0 and iv == 0:
+            break
+        u += iu
+        v += iv
+        if u < 0 or u >= wc or v < 0 or v >= hc:
+            return -np.inf
+    front, sig, agree, behind, occl, chi = _cap_pretest(prm, rr, su, sv, h, du, dv, m0, mL, nL, mR, nR, mU, nU,
+                                                        mD, nD)
     if behind > 1 or agree + min(occl, 1) < 3:
         return -np.inf
     # pretest: the ring around the outline
