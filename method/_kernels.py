@@ -1075,45 +1075,29 @@ def window_stride(cx, cy, cz, radius, fx, max_visits):
 
 
 @kernel
-def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
-                     hold_direction, idx, out, stats):
-    """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
+def _centre_in_front(c, radius):
+    """Whether the centre c (3,) m lies more than the radius (m) in front of the camera and from it."""
+    return c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius
 
-    Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
-    current depth (``gather_window``; in the first round at least prm[P_FIRST_BAND] R, later at
-    least twice the last move, up to prm[P_COARSE_BAND] R), then Gauss-Newton with R fixed: in the
-    first round prm[P_FIRST_STEPS] steps on the 3D residuals (``refine_fixed_radius``), later one step on
-    the ray residuals (``ray_step``), until the centre moves less than its standard error (or
-    0.1 mm). Every window is visited with the stride that keeps it to about 4 ``max_fit_points``
-    pixels (a ball at 0.4 m covers 15,000 pixels at
-    424x240, 140,000 at 1280x720; ``final_inliers`` collects all of them for a reported sphere),
-    and every fit uses at most ``max_fit_points`` of the inliers, evenly strided. Then 2 more steps
-    and a free-radius ray fit (the size check), and the silhouette statistics (``window_stats``).
-    data_noise: before those, narrow the band to noise_k times the robust spread of the candidate's
-    own ray residuals (``ray_residual_sigma``) where that is below the noise model's (never below eps).
-    out[V_N] gets the inlier count (estimated: strided count times stride^2), out[V_RMSE] the RMS of
-    the ray residuals over the fitted inliers, out[V_SIGMA] the per-pixel depth noise used (metres:
-    the model's at the centre's depth, or the measured one where smaller); out[V_N] = 0 when fewer
-    than 3 inliers remain.
-    size_gate (4,): (tolerance m, standard errors) of the size check, the least score and
-    min_inliers (``improved.confidence``); a candidate whose free radius fails the check, or whose
-    support and size factors of the confidence are already below the least score, gets
-    out[V_N] = -1 and no statistics (most candidates fail here, and the statistics' pass over the
-    window is the costliest). inf tolerance: no gate.
-    hold_direction: no refinement rounds, and both fits keep the centre on c0's ray (``fit_range``):
-    c0 is a centre placed across the line of sight by other evidence (the outline).
-    """
+
+@kernel
+def _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_points, s_min, budget, rbuf, idx):
+    """``verify_organised``'s refinement rounds, moving the centre c (3,) m in place; False when the
+    candidate fails (its centre not in front, ``_centre_in_front``, or fewer than 3 inliers).
+
+    Each round: inliers = silhouette pixels with ray residual within the noise-aware eps at the
+    current depth (``gather_window`` into idx, every window visited with the stride that keeps it to
+    about ``budget`` pixels; in the first round at least prm[P_FIRST_BAND] R, later at least twice
+    the last move, up to prm[P_COARSE_BAND] R), then Gauss-Newton with R fixed on at most
+    ``max_fit_points`` of them, evenly strided: in the first round prm[P_FIRST_STEPS] steps on the 3D
+    residuals (``refine_fixed_radius``), later one step on the ray residuals (``ray_step``; rays in
+    rbuf (max_fit_points, 4)), until the centre moves less than its standard error (or 0.1 mm)."""
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    budget = 4.0 * max_fit_points
-    rbuf = np.empty((max_fit_points, 4))  # _strided keeps at most max_fit_points
-    c = c0.copy()
-    out[:] = math.nan
-    out[V_N] = 0.0
     first_band, coarse_band = prm[P_FIRST_BAND] * radius, prm[P_COARSE_BAND] * radius
     moved = coarse_band
-    for it in range(0 if hold_direction else refine_iterations):
-        if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
-            return
+    for it in range(refine_iterations):
+        if not _centre_in_front(c, radius):
+            return False
         e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
         # a hypothesis from box means can be a few cm off, and the sphere's own points then lie up
         # to that far from the current one: near the camera eps is 1 cm, and inliers within it would
@@ -1123,7 +1107,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
         stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
         n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
         if n < 3:
-            return
+            return False
         if it == 0:
             # 3D residuals first: a ray that misses the current sphere (a centre some cm to the side)
             # has a ray residual nearly flat in the centre, and ray steps then creep (a third of the
@@ -1140,18 +1124,29 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
         # noise / sqrt(n)) is that jitter, not progress
         if moved < max(1e-4, noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP]) / math.sqrt(rays.shape[0])):
             break
-    if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
-        return
+    return True
+
+
+@kernel
+def _final_window(points, index_image, c, prm, max_fit_points, data_noise, budget, rbuf, idx):
+    """The inliers of the refined centre c (3,) m at the noise-aware eps (``gather_window`` into idx,
+    strided to about ``budget`` pixels). Returns (band e m, stride, inlier count n (visited), their
+    rays (K, 4) in rbuf, at most ``max_fit_points`` evenly strided, the per-pixel depth noise sigma m);
+    n < 3: the candidate fails.
+
+    sigma is the noise model's at the centre's depth: the most noise expected. A quieter sensor (or a
+    nearer ball) shows less in the candidate's own residuals, and a band wider than that takes in the
+    outline's mixed pixels, a holder, a hand, which bias the free radius upward. With data_noise the
+    band narrows to noise_k times the robust spread of the candidate's own ray residuals
+    (``ray_residual_sigma``) where that is below the model's, never below eps (and never widens: on
+    clutter the residuals' spread is no noise level), and sigma becomes that spread."""
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
     e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
     stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
     n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
     if n < 3:
-        return
+        return e, stride, n, rbuf[:0], math.nan
     rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
-    # the noise model is the most noise expected; a quieter sensor (or a nearer ball) shows less in
-    # the candidate's own residuals, and a band wider than that takes in the outline's mixed pixels,
-    # a holder, a hand, which bias the free radius upward. Narrow the band to the measured noise
-    # (never widen it: on clutter the residuals' spread is no noise level).
     sigma = noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP])
     if sigma <= 0.0:  # no noise model: eps alone
         sigma = prm[P_EPS] / max(prm[P_NOISE_K], 1e-12)
@@ -1164,30 +1159,90 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
                 e = e_data
                 n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
                 if n < 3:
-                    return
+                    return e, stride, n, rbuf[:0], sigma
                 rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
+    return e, stride, n, rays, sigma
+
+
+@kernel
+def _final_fits(rays, c, radius, hold_direction, s_min, se_s_min):
+    """The last fits of the centre c (3,) m on rays (K, 4): 2 more steps with R fixed, then a free-radius
+    fit (4 steps; the size check), by the ray residuals (``fit_ray``), or with hold_direction along
+    c's ray only (``fit_range``). Returns (centre (3,) m, RMS ray residual m of the fixed-radius fit,
+    free centre (3,) m, free radius m, its standard error m)."""
     if hold_direction:
-        c, _, _, rms = fit_range(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
-        fc, fr, fse, _ = fit_range(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
+        c, _, _, rms = fit_range(rays, c[0], c[1], c[2], radius, False, 2, s_min, se_s_min)
+        fc, fr, fse, _ = fit_range(rays, c[0], c[1], c[2], radius, True, 4, s_min, se_s_min)
     else:
-        c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
-        fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
+        c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min, se_s_min)
+        fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min, se_s_min)
+    return c, rms, fc, fr, fse
+
+
+@kernel
+def _fails_size_gate(size_gate, prm, fr, fse, n_est):
+    """Whether a candidate fails ``verify_organised``'s size gate (4,) (tolerance m, standard errors,
+    least score, min_inliers; inf tolerance: no gate): its free radius fr m (standard error fse m)
+    off R by more than the tolerance (or prm[P_SIZE_LIMIT] R), or the support (n_est inliers) and
+    size factors of the confidence (``improved.confidence``) already below the least score."""
+    if not math.isfinite(size_gate[0]):
+        return False
+    radius = prm[P_R]
+    se = fse if math.isfinite(fse) else radius
+    d = abs(fr - radius)
+    if not (d <= size_gate[0] + size_gate[1] * se and d <= prm[P_SIZE_LIMIT] * radius):  # nan fails
+        return True
+    # the confidence's support and size factors bound it (the others are at most 1); 1 - 1e-9 for
+    # the rounding: never stricter than the confidence
+    z = d / (size_gate[0] + se)
+    return n_est / (n_est + size_gate[3]) * math.exp(-0.5 * z * z) < size_gate[2] * (1.0 - 1e-9)
+
+
+@kernel
+def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
+                     hold_direction, idx, out, stats):
+    """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
+
+    The refinement rounds (``_refine_centre``), then the inliers at the final band (``_final_window``,
+    with data_noise narrowed to the candidate's own noise), 2 more steps and a free-radius ray fit
+    (``_final_fits``: the size check), and the silhouette statistics (``window_stats``). Every
+    window is visited with the stride that keeps it to about 4 ``max_fit_points`` pixels (a ball at
+    0.4 m covers 15,000 pixels at 424x240, 140,000 at 1280x720; ``final_inliers`` collects all of
+    them for a reported sphere), and every fit uses at most ``max_fit_points`` of the inliers, evenly
+    strided; idx receives the window's inliers.
+    out[V_N] gets the inlier count (estimated: strided count times stride^2), out[V_RMSE] the RMS of
+    the ray residuals over the fitted inliers, out[V_SIGMA] the per-pixel depth noise used (metres:
+    the model's at the centre's depth, or the measured one where smaller); out[V_N] = 0 when fewer
+    than 3 inliers remain. A candidate that fails the size gate (``_fails_size_gate``) gets
+    out[V_N] = -1 and no statistics (most candidates fail here, and the statistics' pass over the
+    window is the costliest).
+    hold_direction: no refinement rounds, and both fits keep the centre on c0's ray (``fit_range``):
+    c0 is a centre placed across the line of sight by other evidence (the outline).
+    """
+    radius = prm[P_R]
+    budget = 4.0 * max_fit_points
+    rbuf = np.empty((max_fit_points, 4))  # _strided keeps at most max_fit_points
+    c = c0.copy()
+    out[:] = math.nan
+    out[V_N] = 0.0
+    if not hold_direction and not _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_points,
+                                                 s_min, budget, rbuf, idx):
+        return
+    if not _centre_in_front(c, radius):
+        return
+    e, stride, n, rays, sigma = _final_window(points, index_image, c, prm, max_fit_points, data_noise, budget, rbuf,
+                                              idx)
+    if n < 3:
+        return
+    c, rms, fc, fr, fse = _final_fits(rays, c, radius, hold_direction, s_min, prm[P_SE_S_MIN])
     out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
-    if math.isfinite(size_gate[0]):
-        se = fse if math.isfinite(fse) else radius
-        d = abs(fr - radius)
-        if not (d <= size_gate[0] + size_gate[1] * se and d <= prm[P_SIZE_LIMIT] * radius):  # nan fails
-            out[V_N] = -1.0
-            return
-        # the confidence's support and size factors bound it (the others are at most 1)
-        nn = float(n * stride * stride)
-        z = d / (size_gate[0] + se)
-        if nn / (nn + size_gate[3]) * math.exp(-0.5 * z * z) < size_gate[2] * (1.0 - 1e-9):  # rounding: never stricter
-            out[V_N] = -1.0
-            return
+    if _fails_size_gate(size_gate, prm, fr, fse, float(n * stride * stride)):
+        out[V_N] = -1.0
+        return
     ring_band = min(e, max(prm[P_EPS], sigma))
     window_stats(points, index_image, c[0], c[1], c[2], e, ring_band, prm,
-                 window_stride(c[0], c[1], c[2], radius * prm[P_RING_FACTOR], max(fx, fy), budget), stats)
+                 window_stride(c[0], c[1], c[2], radius * prm[P_RING_FACTOR], max(prm[P_FX], prm[P_FY]), budget),
+                 stats)
     out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
     out[V_RMSE] = rms
     out[V_SIGMA] = sigma
