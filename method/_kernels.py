@@ -1679,14 +1679,76 @@ def _draw_in_ranges(state, order, starts, ends, total):
 
 
 @kernel
+def _local_sample(state, points, order, sorted_keys, origin, cell, dims, n, win_m, retries, starts, ends, picks):
+    """A local three-point sample into picks (3,): the 1st point drawn from all n, the 2nd and 3rd from
+    the 27 grid cells around it (their sorted-order ranges left in starts, ends), each kept if within
+    win_m m of the 1st and distinct, up to ``retries`` draws each. Returns (points drawn, 1-3; the
+    number of points in those cells)."""
+    i1 = order[min(int(next_u01(state) * n), n - 1)]
+    m = _cell_ranges(sorted_keys, origin, cell, dims, points[i1, 0], points[i1, 1], points[i1, 2], 1, starts, ends)
+    total = _ranges_size(starts, ends, m)
+    picks[0] = i1
+    got = 1
+    for slot in range(2):
+        for _ in range(retries):
+            j = _draw_in_ranges(state, order, starts, ends, total)
+            if j == i1 or (slot == 1 and j == picks[1]):
+                continue
+            dx, dy, dz = points[j, 0] - points[i1, 0], points[j, 1] - points[i1, 1], points[j, 2] - points[i1, 2]
+            if dx * dx + dy * dy + dz * dz > win_m * win_m:
+                continue
+            picks[got] = j
+            got += 1
+            break
+    return got, total
+
+
+@kernel
+def _near_pretest(state, points, order, starts, ends, tot_s, cx, cy, cz, radius, eps, pretest_n, pretest_frac):
+    """The pretest of the sphere (c, R) m: of 3 pretest_n points drawn from the ranges (tot_s points),
+    those near it (inside the outer shell, R + eps) must be at least 3 and at least pretest_frac of
+    them on the shell (within eps of R)."""
+    near = 0
+    inl = 0
+    for _ in range(pretest_n * 3):
+        j = _draw_in_ranges(state, order, starts, ends, tot_s)
+        dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if d <= radius + eps:
+            near += 1
+            if d >= radius - eps:
+                inl += 1
+    return near >= 3 and inl >= pretest_frac * near
+
+
+@kernel
+def _msac_quality(points, order, starts, ends, ms, step, cx, cy, cz, radius, eps):
+    """The MSAC quality (sum of 1 - (res / eps)^2 over the points with |res| <= eps, res = ||p - c|| - R
+    m) and the inlier count of the sphere (c, R) over every step-th point of the first ms ranges;
+    unscaled by step."""
+    q = 0.0
+    inliers = 0.0
+    for k in range(ms):
+        for t in range(starts[k], ends[k], step):
+            j = order[t]
+            dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
+            res = math.sqrt(dx * dx + dy * dy + dz * dz) - radius
+            if abs(res) <= eps:
+                q += 1.0 - (res / eps) ** 2
+                inliers += 1.0
+    return q, inliers
+
+
+@kernel
 def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, eps, win_m, max_iter, min_iter,
                        confidence, retries, pretest_n, pretest_frac, score_max, seed, cands, quals):
     """Local-sampling RANSAC on an unorganised cloud (grid cells of size ``cell`` >= win_m / 1).
 
-    The 2nd and 3rd points are drawn from the 27 cells around the 1st (kept if within win_m); both
+    The 2nd and 3rd points are drawn from the 27 cells around the 1st (``_local_sample``); both
     known-radius centres facing the camera at the origin; a pretest on points drawn near the
-    candidate; quality = MSAC over the points of the cells covering the sphere (subsampled to
-    about ``score_max``). Returns (iterations run, number of candidates kept).
+    candidate (``_near_pretest``); quality = MSAC over the points of the cells covering the sphere
+    (``_msac_quality``, subsampled to about ``score_max``). Returns (iterations run, number of
+    candidates kept).
     """
     n = points.shape[0]
     state = np.empty(1, np.uint64)
@@ -1703,22 +1765,8 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
         if it >= min_iter and it >= needed:
             break
         it += 1
-        i1 = order[min(int(next_u01(state) * n), n - 1)]
-        m = _cell_ranges(sorted_keys, origin, cell, dims, points[i1, 0], points[i1, 1], points[i1, 2], 1, starts, ends)
-        total = _ranges_size(starts, ends, m)
-        picks[0] = i1
-        got = 1
-        for slot in range(2):
-            for _ in range(retries):
-                j = _draw_in_ranges(state, order, starts, ends, total)
-                if j == i1 or (slot == 1 and j == picks[1]):
-                    continue
-                dx, dy, dz = points[j, 0] - points[i1, 0], points[j, 1] - points[i1, 1], points[j, 2] - points[i1, 2]
-                if dx * dx + dy * dy + dz * dz > win_m * win_m:
-                    continue
-                picks[got] = j
-                got += 1
-                break
+        got, total = _local_sample(state, points, order, sorted_keys, origin, cell, dims, n, win_m, retries, starts,
+                                   ends, picks)
         if got < 3:
             continue
         if known_radius_centres(points, picks[0], picks[1], picks[2], radius, two) == 0:
@@ -1732,30 +1780,11 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
             tot_s = _ranges_size(starts, ends, ms)
             if tot_s == 0:
                 continue
-            # pretest: among near points (inside the outer shell), the share on the shell
-            near = 0
-            inl = 0
-            for _ in range(pretest_n * 3):
-                j = _draw_in_ranges(state, order, starts, ends, tot_s)
-                dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
-                d = math.sqrt(dx * dx + dy * dy + dz * dz)
-                if d <= radius + eps:
-                    near += 1
-                    if d >= radius - eps:
-                        inl += 1
-            if near < 3 or inl < pretest_frac * near:
+            if not _near_pretest(state, points, order, starts, ends, tot_s, cx, cy, cz, radius, eps, pretest_n,
+                                 pretest_frac):
                 continue
             step = max(1, tot_s // score_max)
-            q = 0.0
-            inliers = 0.0
-            for k in range(ms):
-                for t in range(starts[k], ends[k], step):
-                    j = order[t]
-                    dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
-                    res = math.sqrt(dx * dx + dy * dy + dz * dz) - radius
-                    if abs(res) <= eps:
-                        q += 1.0 - (res / eps) ** 2
-                        inliers += 1.0
+            q, inliers = _msac_quality(points, order, starts, ends, ms, step, cx, cy, cz, radius, eps)
             q *= step
             inliers *= step
             if q <= 0.0:
