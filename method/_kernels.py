@@ -20,6 +20,10 @@ from numba import njit
 #: gives inf or nan (the kernels guard the divisors that can vanish) instead of a zero check and a
 #: Python exception path per division, which cost a fifth of the search's and verification's time.
 kernel = njit(cache=True, error_model="numpy")
+#: The same, inlined into its callers by numba (``inline="always"``): for the named parts of a long
+#: kernel, called per pixel or per sample, where a call's cost (its array arguments' reference counts)
+#: would show in the caller's time.
+part = njit(cache=True, error_model="numpy", inline="always")
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -183,7 +187,7 @@ def ring_spread(out):
     return (attached - best) / total
 
 
-@kernel
+@part
 def _window_bounds(h, w, cx, cy, cz, dist, prm):
     """The pixels (rows r0-r1, columns c0-c1, inclusive, within an h x w image) that hold the outline
     ring of the sphere about c (m, dist = |c|, in front of the camera), and the pixel (u0, v0) of its
@@ -199,7 +203,7 @@ def _window_bounds(h, w, cx, cy, cz, dist, prm):
     return r0, r1, c0, c1, u0, v0
 
 
-@kernel
+@part
 def _ring_pixel(out, pn, tc, du, dv, ring_band, prm):
     """Count in out (N_STATS,) a pixel of the outline RING (its ray misses the sphere and passes the
     centre at R to ring_factor R): RING_CONT if its point (range pn m) is within ring_band m of the
@@ -221,7 +225,7 @@ def _ring_pixel(out, pn, tc, du, dv, ring_band, prm):
         out[ST_SECTOR_ATTACHED + sector] += 1.0
 
 
-@kernel
+@part
 def _disc_pixel(out, dt, m2, du, dv, eps, prm):
     """Count in out (N_STATS,) a silhouette pixel with a point: dt its ray residual (m), m2 the squared
     distance (m^2) at which its ray passes the centre, (du, dv) its offset (px) from the centre's pixel.
@@ -696,7 +700,7 @@ def ring_boxes(tab, prm, v, u, front, sig):
     return rr, bg, cont
 
 
-@kernel
+@part
 def _stencil(tab, prm, v, u, rr):
     """The descent's five box means about cell (v, u), for a ball's disc radius of rr cells: returns
     (su, sv) (``stencil_stretch``), the boxes' half-side h = box_half r and the side boxes' offsets
@@ -717,7 +721,7 @@ def _stencil(tab, prm, v, u, rr):
     return su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD
 
 
-@kernel
+@part
 def _descent_move(prm, rr, su, sv, du, dv, m0, n0, mL, mR, mU, mD):
     """The descent's move (iu, iv) in whole cells toward the front point, from the stencil's means
     (``_stencil``; m metres, n0 the centre box's valid count): ``descent_step`` along u and along v
@@ -737,7 +741,7 @@ def _descent_move(prm, rr, su, sv, du, dv, m0, n0, mL, mR, mU, mD):
     return iu, iv
 
 
-@kernel
+@part
 def _cap_pretest(prm, rr, su, sv, h, du, dv, m0, mL, nL, mR, nR, mU, nU, mD, nD):
     """The pretest's side boxes at the resting cell (the last ``_stencil``'s values): the front range
     m0 - R cap_relief of the centre box, each side box's mean against the cap's range relief
@@ -1074,13 +1078,13 @@ def window_stride(cx, cy, cz, radius, fx, max_visits):
     return max(1, int(side / math.sqrt(max_visits)))
 
 
-@kernel
+@part
 def _centre_in_front(c, radius):
     """Whether the centre c (3,) m lies more than the radius (m) in front of the camera and from it."""
     return c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius
 
 
-@kernel
+@part
 def _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_points, s_min, budget, rbuf, idx):
     """``verify_organised``'s refinement rounds, moving the centre c (3,) m in place; False when the
     candidate fails (its centre not in front, ``_centre_in_front``, or fewer than 3 inliers).
@@ -1127,7 +1131,7 @@ def _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_point
     return True
 
 
-@kernel
+@part
 def _final_window(points, index_image, c, prm, max_fit_points, data_noise, budget, rbuf, idx):
     """The inliers of the refined centre c (3,) m at the noise-aware eps (``gather_window`` into idx,
     strided to about ``budget`` pixels). Returns (band e m, stride, inlier count n (visited), their
@@ -1164,7 +1168,7 @@ def _final_window(points, index_image, c, prm, max_fit_points, data_noise, budge
     return e, stride, n, rays, sigma
 
 
-@kernel
+@part
 def _final_fits(rays, c, radius, hold_direction, s_min, se_s_min):
     """The last fits of the centre c (3,) m on rays (K, 4): 2 more steps with R fixed, then a free-radius
     fit (4 steps; the size check), by the ray residuals (``fit_ray``), or with hold_direction along
@@ -1179,7 +1183,7 @@ def _final_fits(rays, c, radius, hold_direction, s_min, se_s_min):
     return c, rms, fc, fr, fse
 
 
-@kernel
+@part
 def _fails_size_gate(size_gate, prm, fr, fse, n_est):
     """Whether a candidate fails ``verify_organised``'s size gate (4,) (tolerance m, standard errors,
     least score, min_inliers; inf tolerance: no gate): its free radius fr m (standard error fse m)
@@ -1678,7 +1682,7 @@ def _draw_in_ranges(state, order, starts, ends, total):
     return order[starts[k] + t]
 
 
-@kernel
+@part
 def _local_sample(state, points, order, sorted_keys, origin, cell, dims, n, win_m, retries, starts, ends, picks):
     """A local three-point sample into picks (3,): the 1st point drawn from all n, the 2nd and 3rd from
     the 27 grid cells around it (their sorted-order ranges left in starts, ends), each kept if within
@@ -1703,7 +1707,7 @@ def _local_sample(state, points, order, sorted_keys, origin, cell, dims, n, win_
     return got, total
 
 
-@kernel
+@part
 def _near_pretest(state, points, order, starts, ends, tot_s, cx, cy, cz, radius, eps, pretest_n, pretest_frac):
     """The pretest of the sphere (c, R) m: of 3 pretest_n points drawn from the ranges (tot_s points),
     those near it (inside the outer shell, R + eps) must be at least 3 and at least pretest_frac of
@@ -1721,7 +1725,7 @@ def _near_pretest(state, points, order, starts, ends, tot_s, cx, cy, cz, radius,
     return near >= 3 and inl >= pretest_frac * near
 
 
-@kernel
+@part
 def _msac_quality(points, order, starts, ends, ms, step, cx, cy, cz, radius, eps):
     """The MSAC quality (sum of 1 - (res / eps)^2 over the points with |res| <= eps, res = ||p - c|| - R
     m) and the inlier count of the sphere (c, R) over every step-th point of the first ms ranges;
