@@ -20,6 +20,10 @@ from numba import njit
 #: gives inf or nan (the kernels guard the divisors that can vanish) instead of a zero check and a
 #: Python exception path per division, which cost a fifth of the search's and verification's time.
 kernel = njit(cache=True, error_model="numpy")
+#: The same, inlined into its callers by numba (``inline="always"``): for the named parts of a long
+#: kernel, called per pixel or per sample, where a call's cost (its array arguments' reference counts)
+#: would show in the caller's time.
+part = njit(cache=True, error_model="numpy", inline="always")
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -183,51 +187,119 @@ def ring_spread(out):
     return (attached - best) / total
 
 
+@part
+def _window_bounds(h, w, cx, cy, cz, dist, prm):
+    """The pixels (rows r0-r1, columns c0-c1, inclusive, within an h x w image) that hold the outline
+    ring of the sphere about c (m, dist = |c|, in front of the camera), and the pixel (u0, v0) of its
+    centre."""
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
+    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * prm[P_RING_FACTOR] * 1.05 + 2.0
+    u0 = fx * cx / cz + ppx
+    v0 = fy * cy / cz + ppy
+    c0 = max(0, int(math.floor(u0 - rpx)))
+    c1 = min(w - 1, int(math.ceil(u0 + rpx)))
+    r0 = max(0, int(math.floor(v0 - rpx)))
+    r1 = min(h - 1, int(math.ceil(v0 + rpx)))
+    return r0, r1, c0, c1, u0, v0
+
+
+@part
+def _ring_pixel(out, pn, tc, du, dv, ring_band, prm):
+    """Count in out (N_STATS,) a pixel of the outline RING (its ray misses the sphere and passes the
+    centre at R to ring_factor R): RING_CONT if its point (range pn m) is within ring_band m of the
+    depth tc m where the ray passes the centre (a surface continuing beyond the outline: a wall, a
+    plane, a bigger object; a band of one sigma of the depth noise rather than eps: at 3 m eps is
+    +/- R, and a background 20 cm behind a ball would count as continuing it), RING_FRONT if it is
+    ring_front_min R to ring_front_max R in front of it (an attached surface in front: a cylinder's
+    body); the same in its angular sector (``ring_sector`` of its offset (du, dv) px from the
+    centre's pixel: ST_SECTOR_RING, ST_SECTOR_ATTACHED)."""
+    radius = prm[P_R]
+    out[ST_RING] += 1.0
+    sector = ring_sector(du, dv)
+    out[ST_SECTOR_RING + sector] += 1.0
+    if abs(pn - tc) <= ring_band:
+        out[ST_RING_CONT] += 1.0
+        out[ST_SECTOR_ATTACHED + sector] += 1.0
+    elif -prm[P_RING_FRONT_MAX] * radius <= pn - tc <= -prm[P_RING_FRONT_MIN] * radius:
+        out[ST_RING_FRONT] += 1.0
+        out[ST_SECTOR_ATTACHED + sector] += 1.0
+
+
+@part
+def _disc_pixel(out, dt, m2, du, dv, eps, prm):
+    """Count in out (N_STATS,) a silhouette pixel with a point: dt its ray residual (m), m2 the squared
+    distance (m^2) at which its ray passes the centre, (du, dv) its offset (px) from the centre's pixel.
+
+    INLIER if |dt| <= eps (SSE sums dt^2), else FRONT (an occluder, dt < 0; FRONT_NEAR if also
+    dt >= -R/2: a surface hugging the sphere, as a cylinder of the same radius does) or BEHIND
+    (dt > 0: seen through the ball, evidence against it). VALID_INNER and BEHIND_INNER count the
+    valid and the BEHIND pixels whose rays pass the centre within sqrt(profile_outer) R (short of the
+    outline, where mixed pixels see past a real ball); EDGE_N and EDGE_BEHIND the pixels beyond that,
+    up to the outline, that are INLIER or BEHIND, and the BEHIND ones (a smaller ball leaves this band
+    to the background; an occluder's FRONT pixels tell nothing of the size and are left out).
+    The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
+    the centre within sqrt(profile_inner) R; OUTH_* and OUTV_* those between that and
+    sqrt(profile_outer) R, left or right of the centre (OUTH) or above or below it (OUTV)."""
+    radius, p_in, p_out = prm[P_R], prm[P_PROFILE_INNER], prm[P_PROFILE_OUTER]
+    out[ST_VALID_DISC] += 1.0
+    if m2 <= p_out * radius * radius:  # short of the outline's mixed pixels
+        out[ST_VALID_INNER] += 1.0
+        if dt > eps:
+            out[ST_BEHIND_INNER] += 1.0
+    elif dt >= -eps:
+        out[ST_EDGE_N] += 1.0
+        if dt > eps:
+            out[ST_EDGE_BEHIND] += 1.0
+    # the relief profile: the inliers' mean ray residual per zone (a flat or a less curved surface
+    # fitted by the sphere sits in front of it in the outer zone; occluders, such as a tripod's cup,
+    # are not inliers and do not bias it)
+    if abs(dt) > eps:
+        pass
+    elif m2 <= p_in * radius * radius:
+        out[ST_IN_N] += 1.0
+        out[ST_IN_SUM] += dt
+    elif m2 <= p_out * radius * radius:
+        # left and right of the centre, or above and below: a cylinder or an edge is curved along
+        # one image axis only
+        if abs(du) >= abs(dv):
+            out[ST_OUTH_N] += 1.0
+            out[ST_OUTH_SUM] += dt
+        else:
+            out[ST_OUTV_N] += 1.0
+            out[ST_OUTV_SUM] += dt
+    if abs(dt) <= eps:
+        out[ST_INLIER] += 1.0
+        out[ST_SSE] += dt * dt
+    elif dt < 0.0:
+        out[ST_FRONT] += 1.0
+        if dt >= -0.5 * radius:
+            out[ST_FRONT_NEAR] += 1.0
+    else:
+        out[ST_BEHIND] += 1.0
+
+
 @kernel
 def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, out):
     """Classify the pixels of a candidate's silhouette; out (N_STATS,) float64 gets the counts.
 
-    For a pixel whose ray meets the sphere (the silhouette, undistorted pinhole) with point p and
-    ray residual dt = |p| - t_near: INLIER if |dt| <= eps (SSE sums dt^2), else FRONT (an occluder,
-    dt < 0; FRONT_NEAR if also dt >= -R/2: a surface hugging the sphere, as a cylinder of the same
-    radius does) or BEHIND (dt > 0: seen through the ball, evidence against it). Silhouette pixels
-    without a point count as INVALID_DISC. Rays passing the centre at R to ring_factor R form the
-    outline RING; RING_CONT counts those whose point is within ring_band of the depth where the ray
-    passes the centre (a surface continuing beyond the outline: a wall, a plane, a bigger object;
-    a band of one sigma of the depth noise rather than eps: at 3 m eps is +/- R, and a background
-    20 cm behind a ball would count as continuing it), RING_FRONT those ring_front_min R to
-    ring_front_max R in front of it (an attached surface in front: a cylinder's body); the same by
-    angular sector (``ring_sector``: ST_SECTOR_RING, ST_SECTOR_ATTACHED), and RING_SPREAD
-    (``ring_spread``).
-    VALID_INNER and BEHIND_INNER count the valid and the BEHIND pixels whose rays pass the centre
-    within sqrt(profile_outer) R (short of the outline, where mixed pixels see past a real ball);
-    EDGE_N and EDGE_BEHIND the pixels beyond that, up to the outline, that are INLIER or BEHIND, and
-    the BEHIND ones (a smaller ball leaves this band to the background; an occluder's FRONT pixels
-    tell nothing of the size and are left out).
-    The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
-    the centre within sqrt(profile_inner) R; OUTH_* and OUTV_*
-    those between that and sqrt(profile_outer) R, left or right of the centre (OUTH) or above or
-    below it (OUTV). ``stride`` visits every stride-th pixel (counts
-    scaled by stride^2, except the profile's, which stay the visited ones). The camera, R and the
-    zones' sizes come from prm (see the zones' comment above).
+    A pixel whose ray meets the sphere (the silhouette, undistorted pinhole) with point p has the ray
+    residual dt = |p| - t_near and is classified by it and by where its ray passes the centre
+    (``_disc_pixel``); silhouette pixels without a point count as INVALID_DISC. Rays passing the
+    centre at R to ring_factor R form the outline RING (``_ring_pixel``; RING_CONT within ring_band of
+    the depth where they pass the centre), and RING_SPREAD (``ring_spread``) how its attached pixels
+    spread over its sectors. ``stride`` visits every stride-th pixel (counts scaled by stride^2,
+    except the relief profile's, which stay the visited ones). The camera, R and the zones' sizes
+    come from prm (see the zones' comment above).
     """
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    ring_factor, p_in, p_out = prm[P_RING_FACTOR], prm[P_PROFILE_INNER], prm[P_PROFILE_OUTER]
-    front_min, front_max = prm[P_RING_FRONT_MIN], prm[P_RING_FRONT_MAX]
     for k in range(N_STATS):
         out[k] = 0.0
     h, w = index_image.shape
     dist = math.sqrt(cx * cx + cy * cy + cz * cz)
     if cz <= radius or dist <= radius:
         return
-    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * ring_factor * 1.05 + 2.0
-    u0 = fx * cx / cz + ppx
-    v0 = fy * cy / cz + ppy
-    ring2 = (ring_factor * radius) ** 2
-    c0 = max(0, int(math.floor(u0 - rpx)))
-    c1 = min(w - 1, int(math.ceil(u0 + rpx)))
-    r0 = max(0, int(math.floor(v0 - rpx)))
-    r1 = min(h - 1, int(math.ceil(v0 + rpx)))
+    r0, r1, c0, c1, u0, v0 = _window_bounds(h, w, cx, cy, cz, dist, prm)
+    ring2 = (prm[P_RING_FACTOR] * radius) ** 2
     cos_lim = math.sqrt(1.0 - (radius / dist) ** 2)
     for r in range(r0, r1 + 1, stride):
         for c in range(c0, c1 + 1, stride):
@@ -241,55 +313,11 @@ def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, o
             px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
             pn = math.sqrt(px * px + py * py + pz * pz)
             dt, hit = ray_residual(px, py, pz, cx, cy, cz, radius)
-            if not hit:
-                tc = (px * cx + py * cy + pz * cz) / pn
-                if tc > 0.0 and dist * dist - tc * tc <= ring2:
-                    out[ST_RING] += 1.0
-                    sector = ring_sector(c - u0, r - v0)
-                    out[ST_SECTOR_RING + sector] += 1.0
-                    if abs(pn - tc) <= ring_band:
-                        out[ST_RING_CONT] += 1.0
-                        out[ST_SECTOR_ATTACHED + sector] += 1.0
-                    elif -front_max * radius <= pn - tc <= -front_min * radius:
-                        out[ST_RING_FRONT] += 1.0
-                        out[ST_SECTOR_ATTACHED + sector] += 1.0
-                continue
-            out[ST_VALID_DISC] += 1.0
-            # the relief profile: the inliers' mean ray residual per zone (a flat or a less curved
-            # surface fitted by the sphere sits in front of it in the outer zone; occluders, such as
-            # a tripod's cup, are not inliers and do not bias it)
-            m2 = dist * dist - ((px * cx + py * cy + pz * cz) / pn) ** 2
-            if m2 <= p_out * radius * radius:  # short of the outline's mixed pixels
-                out[ST_VALID_INNER] += 1.0
-                if dt > eps:
-                    out[ST_BEHIND_INNER] += 1.0
-            elif dt >= -eps:
-                out[ST_EDGE_N] += 1.0
-                if dt > eps:
-                    out[ST_EDGE_BEHIND] += 1.0
-            if abs(dt) > eps:
-                pass
-            elif m2 <= p_in * radius * radius:
-                out[ST_IN_N] += 1.0
-                out[ST_IN_SUM] += dt
-            elif m2 <= p_out * radius * radius:
-                # left and right of the centre, or above and below: a cylinder or an edge is
-                # curved along one image axis only
-                if abs(c - u0) >= abs(r - v0):
-                    out[ST_OUTH_N] += 1.0
-                    out[ST_OUTH_SUM] += dt
-                else:
-                    out[ST_OUTV_N] += 1.0
-                    out[ST_OUTV_SUM] += dt
-            if abs(dt) <= eps:
-                out[ST_INLIER] += 1.0
-                out[ST_SSE] += dt * dt
-            elif dt < 0.0:
-                out[ST_FRONT] += 1.0
-                if dt >= -0.5 * radius:
-                    out[ST_FRONT_NEAR] += 1.0
-            else:
-                out[ST_BEHIND] += 1.0
+            tc = (px * cx + py * cy + pz * cz) / pn  # where the ray passes the centre (m)
+            if hit:
+                _disc_pixel(out, dt, dist * dist - tc ** 2, c - u0, r - v0, eps, prm)
+            elif tc > 0.0 and dist * dist - tc * tc <= ring2:
+                _ring_pixel(out, pn, tc, c - u0, r - v0, ring_band, prm)
     s2 = float(stride * stride)
     for k in range(ST_IN_N):  # the profile keeps the visited counts: its means' errors depend on them
         out[k] *= s2
@@ -672,84 +700,60 @@ def ring_boxes(tab, prm, v, u, front, sig):
     return rr, bg, cont
 
 
-@kernel
-def front_hypothesis(tab, prm, v, u, out):
-    """A hypothesis from the first cell (v, u), and its O(1) pretest; returns its score (-inf: rejected).
+@part
+def _stencil(tab, prm, v, u, rr):
+    """The descent's five box means about cell (v, u), for a ball's disc radius of rr cells: returns
+    (su, sv) (``stencil_stretch``), the boxes' half-side h = box_half r and the side boxes' offsets
+    du, dv = box_offset r along u and v (cells, stretched by su, sv), then (mean range m, valid
+    count) (``box_range``) of the centre box (m0, n0), and of the left (mL, nL), right (mR, nR),
+    upper (mU, nU) and lower (mD, nD) boxes; the side boxes are nan and 0 when m0 is nan."""
+    su, sv = stencil_stretch(prm, v, u)
+    h = max(1, int(prm[P_H_FRAC] * rr + 0.5))
+    du = max(h + 1, int(prm[P_D_FRAC] * rr * su + 0.5))
+    dv = max(h + 1, int(prm[P_D_FRAC] * rr * sv + 0.5))
+    m0, n0 = box_range(tab, prm, v, u, h)
+    if math.isnan(m0):
+        return su, sv, h, du, dv, m0, n0, math.nan, 0, math.nan, 0, math.nan, 0, math.nan, 0
+    mL, nL = box_range(tab, prm, v, u - du, h)
+    mR, nR = box_range(tab, prm, v, u + du, h)
+    mU, nU = box_range(tab, prm, v - dv, u, h)
+    mD, nD = box_range(tab, prm, v + dv, u, h)
+    return su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD
 
-    Descent: the ball's front point is the local minimum of the range |p| (it lies on the ray through
-    the centre). A stencil of five box means (centre, left, right, up, down; half-side box_half r,
-    offset box_offset r, r the ball's disc radius in cells at the centre box's range) and the sphere's
-    known curvature give the step to the front point (``descent_step``), at most r / 2, up to
-    descent_steps times. The means average sigma / sqrt(n) of the per-pixel noise, which is what
-    makes a hypothesis possible at 3 m, where one pixel's depth is +/- 7 cm and the relief between
-    two pixels 1-2 cm.
-    Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
-    cell, all from the table: at least three of the four side boxes must lie on the sphere's cap
-    (range relief ``cap_relief`` above the front, within 3 sigma / sqrt(n) + slack), or two and a
-    third well in front (more than R past the tolerance: an occluder hides that side of the ball;
-    out[4] flags such a hypothesis, which ``improved`` verifies only while no sphere has been
-    accepted), at most one *behind* it (a surface seen through the ball; one box may straddle the
-    outline); of the eight ``ring_boxes`` at most pretest_max_continued may continue the surface at the
-    ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded flag); the score
-    is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of the agreeing ones
-    (at most 16).
-    """
+
+@part
+def _descent_move(prm, rr, su, sv, du, dv, m0, n0, mL, mR, mU, mD):
+    """The descent's move (iu, iv) in whole cells toward the front point, from the stencil's means
+    (``_stencil``; m metres, n0 the centre box's valid count): ``descent_step`` along u and along v
+    with the cap's curvature there, at most r / 2 cells (r = rr cells, stretched by su, sv)."""
     R = prm[P_R]
-    fc = prm[P_FX] / prm[P_BIN]
     na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]  # box means: correlated pixels count as fewer
     slack = prm[P_SLACK] * R
-    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
-    s0, n0, a0 = box_sums(tab, v, u, 1)
-    m0 = sums_range(prm, v, u, s0, n0, a0)
-    if math.isnan(m0):
-        return -np.inf
-    # prefilter: inverse depth is affine in the pixel coordinates on any plane, so its second
-    # difference over boxes two disc radii apart (off the ball wherever on it the first cell is)
-    # vanishes on a wall, a floor, a box face (most first cells) and not where a ball stands out
-    if not plane_free(tab, prm, v, u, m0, s0, n0):
-        return -np.inf
-    h = 1
-    du = dv = 2
-    rr = 1.0
-    su = sv = 1.0
-    mL = mR = mU = mD = 0.0
-    nL = nR = nU = nD = 0
-    steps = int(prm[P_DESCENT_STEPS])
-    for step in range(steps + 1):
-        rr = fc * R / m0
-        if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
-            return -np.inf
-        # the side boxes' offsets follow the silhouette's stretch along each axis (``stencil_stretch``)
-        su, sv = stencil_stretch(prm, v, u)
-        h = max(1, int(prm[P_H_FRAC] * rr + 0.5))
-        du = max(h + 1, int(prm[P_D_FRAC] * rr * su + 0.5))
-        dv = max(h + 1, int(prm[P_D_FRAC] * rr * sv + 0.5))
-        m0, n0 = box_range(tab, prm, v, u, h)
-        if math.isnan(m0):
-            return -np.inf
-        mL, nL = box_range(tab, prm, v, u - du, h)
-        mR, nR = box_range(tab, prm, v, u + du, h)
-        mU, nU = box_range(tab, prm, v - dv, u, h)
-        mD, nD = box_range(tab, prm, v + dv, u, h)
-        if step == steps:
-            break
-        off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
-        ku, kv = 0.5 * R / (rr * su) ** 2, 0.5 * R / (rr * sv) ** 2
-        # a side box more than R (and the noise) in front of the centre box lies on no cap through it:
-        # an occluder, which pulls the descent off a partly hidden ball. (Beside a ball, on the
-        # background, the ball's box is nearer by as much: there the bound stops the descent that
-        # would reach the ball, so it is only for ``improved``'s second search)
-        near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[P_OCCLUDER_BOUND] != 0.0 else np.inf
-        iu = int(math.floor(descent_step(m0, mL, mR, du, ku, off, 0.5 * rr * su, near) + 0.5))
-        iv = int(math.floor(descent_step(m0, mU, mD, dv, kv, off, 0.5 * rr * sv, near) + 0.5))
-        if iu == 0 and iv == 0:
-            break
-        u += iu
-        v += iv
-        if u < 0 or u >= wc or v < 0 or v >= hc:
-            return -np.inf
-    # pretest: the side boxes on the cap; offsets and the boxes' half-sides in units of the ball's
-    # angular radius along each axis (the same on the axis)
+    off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
+    ku, kv = 0.5 * R / (rr * su) ** 2, 0.5 * R / (rr * sv) ** 2
+    # a side box more than R (and the noise) in front of the centre box lies on no cap through it:
+    # an occluder, which pulls the descent off a partly hidden ball. (Beside a ball, on the
+    # background, the ball's box is nearer by as much: there the bound stops the descent that
+    # would reach the ball, so it is only for ``improved``'s second search)
+    near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[P_OCCLUDER_BOUND] != 0.0 else np.inf
+    iu = int(math.floor(descent_step(m0, mL, mR, du, ku, off, 0.5 * rr * su, near) + 0.5))
+    iv = int(math.floor(descent_step(m0, mU, mD, dv, kv, off, 0.5 * rr * sv, near) + 0.5))
+    return iu, iv
+
+
+@part
+def _cap_pretest(prm, rr, su, sv, h, du, dv, m0, mL, nL, mR, nR, mU, nU, mD, nD):
+    """The pretest's side boxes at the resting cell (the last ``_stencil``'s values): the front range
+    m0 - R cap_relief of the centre box, each side box's mean against the cap's range relief
+    (``cap_relief``) above the front, within 3 sigma / sqrt(n) + slack. Returns (front m, one pixel's
+    noise sig m at the centre box's range, the side boxes that agree, lie behind the cap (a surface
+    seen through the ball) or well in front of it (more than R past the tolerance: an occluder hides
+    that side of the ball), and the agreeing ones' chi^2)."""
+    R = prm[P_R]
+    na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]  # box means: correlated pixels count as fewer
+    slack = prm[P_SLACK] * R
+    # offsets and the boxes' half-sides in units of the ball's angular radius along each axis (the
+    # same on the axis)
     ahu = (h + 0.5) / (rr * su)
     ahv = (h + 0.5) / (rr * sv)
     spread = (ahu * ahu + ahv * ahv) / 3.0
@@ -777,6 +781,67 @@ def front_hypothesis(tab, prm, v, u, out):
             chi += (res / tol) ** 2
         elif res < -(tol + R):  # well in front: an occluder hides this side of the cap
             occl += 1
+    return front, sig, agree, behind, occl, chi
+
+
+@kernel
+def front_hypothesis(tab, prm, v, u, out):
+    """A hypothesis from the first cell (v, u), and its O(1) pretest; returns its score (-inf: rejected).
+
+    Descent: the ball's front point is the local minimum of the range |p| (it lies on the ray through
+    the centre). A stencil of five box means (``_stencil``: centre, left, right, up, down; half-side
+    box_half r, offset box_offset r, r the ball's disc radius in cells at the centre box's range) and
+    the sphere's known curvature give the step to the front point (``_descent_move``), at most r / 2,
+    up to descent_steps times. The means average sigma / sqrt(n) of the per-pixel noise, which is
+    what makes a hypothesis possible at 3 m, where one pixel's depth is +/- 7 cm and the relief
+    between two pixels 1-2 cm.
+    Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
+    cell, all from the table: at least three of the four side boxes must lie on the sphere's cap
+    (``_cap_pretest``), or two and a third well in front (out[4] flags such a hypothesis, which
+    ``improved`` verifies only while no sphere has been accepted), at most one *behind* it (one box
+    may straddle the outline); of the eight ``ring_boxes`` at most pretest_max_continued may continue
+    the surface at the ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded
+    flag); the score is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of
+    the agreeing ones (at most 16).
+    """
+    R = prm[P_R]
+    fc = prm[P_FX] / prm[P_BIN]
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    s0, n0, a0 = box_sums(tab, v, u, 1)
+    m0 = sums_range(prm, v, u, s0, n0, a0)
+    if math.isnan(m0):
+        return -np.inf
+    # prefilter: inverse depth is affine in the pixel coordinates on any plane, so its second
+    # difference over boxes two disc radii apart (off the ball wherever on it the first cell is)
+    # vanishes on a wall, a floor, a box face (most first cells) and not where a ball stands out
+    if not plane_free(tab, prm, v, u, m0, s0, n0):
+        return -np.inf
+    h = 1
+    du = dv = 2
+    rr = 1.0
+    su = sv = 1.0
+    mL = mR = mU = mD = 0.0
+    nL = nR = nU = nD = 0
+    steps = int(prm[P_DESCENT_STEPS])
+    for step in range(steps + 1):
+        rr = fc * R / m0
+        if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
+            return -np.inf
+        # the side boxes' offsets follow the silhouette's stretch along each axis (``stencil_stretch``)
+        su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD = _stencil(tab, prm, v, u, rr)
+        if math.isnan(m0):
+            return -np.inf
+        if step == steps:
+            break
+        iu, iv = _descent_move(prm, rr, su, sv, du, dv, m0, n0, mL, mR, mU, mD)
+        if iu == 0 and iv == 0:
+            break
+        u += iu
+        v += iv
+        if u < 0 or u >= wc or v < 0 or v >= hc:
+            return -np.inf
+    front, sig, agree, behind, occl, chi = _cap_pretest(prm, rr, su, sv, h, du, dv, m0, mL, nL, mR, nR, mU, nU,
+                                                        mD, nD)
     if behind > 1 or agree + min(occl, 1) < 3:
         return -np.inf
     # pretest: the ring around the outline
@@ -1013,46 +1078,30 @@ def window_stride(cx, cy, cz, radius, fx, max_visits):
     return max(1, int(side / math.sqrt(max_visits)))
 
 
-@kernel
-def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
-                     hold_direction, idx, out, stats):
-    """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
+@part
+def _centre_in_front(c, radius):
+    """Whether the centre c (3,) m lies more than the radius (m) in front of the camera and from it."""
+    return c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius
 
-    Rounds of: inliers = silhouette pixels with ray residual within the noise-aware eps at the
-    current depth (``gather_window``; in the first round at least prm[P_FIRST_BAND] R, later at
-    least twice the last move, up to prm[P_COARSE_BAND] R), then Gauss-Newton with R fixed: in the
-    first round prm[P_FIRST_STEPS] steps on the 3D residuals (``refine_fixed_radius``), later one step on
-    the ray residuals (``ray_step``), until the centre moves less than its standard error (or
-    0.1 mm). Every window is visited with the stride that keeps it to about 4 ``max_fit_points``
-    pixels (a ball at 0.4 m covers 15,000 pixels at
-    424x240, 140,000 at 1280x720; ``final_inliers`` collects all of them for a reported sphere),
-    and every fit uses at most ``max_fit_points`` of the inliers, evenly strided. Then 2 more steps
-    and a free-radius ray fit (the size check), and the silhouette statistics (``window_stats``).
-    data_noise: before those, narrow the band to noise_k times the robust spread of the candidate's
-    own ray residuals (``ray_residual_sigma``) where that is below the noise model's (never below eps).
-    out[V_N] gets the inlier count (estimated: strided count times stride^2), out[V_RMSE] the RMS of
-    the ray residuals over the fitted inliers, out[V_SIGMA] the per-pixel depth noise used (metres:
-    the model's at the centre's depth, or the measured one where smaller); out[V_N] = 0 when fewer
-    than 3 inliers remain.
-    size_gate (4,): (tolerance m, standard errors) of the size check, the least score and
-    min_inliers (``improved.confidence``); a candidate whose free radius fails the check, or whose
-    support and size factors of the confidence are already below the least score, gets
-    out[V_N] = -1 and no statistics (most candidates fail here, and the statistics' pass over the
-    window is the costliest). inf tolerance: no gate.
-    hold_direction: no refinement rounds, and both fits keep the centre on c0's ray (``fit_range``):
-    c0 is a centre placed across the line of sight by other evidence (the outline).
-    """
+
+@part
+def _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_points, s_min, budget, rbuf, idx):
+    """``verify_organised``'s refinement rounds, moving the centre c (3,) m in place; False when the
+    candidate fails (its centre not in front, ``_centre_in_front``, or fewer than 3 inliers).
+
+    Each round: inliers = silhouette pixels with ray residual within the noise-aware eps at the
+    current depth (``gather_window`` into idx, every window visited with the stride that keeps it to
+    about ``budget`` pixels; in the first round at least prm[P_FIRST_BAND] R, later at least twice
+    the last move, up to prm[P_COARSE_BAND] R), then Gauss-Newton with R fixed on at most
+    ``max_fit_points`` of them, evenly strided: in the first round prm[P_FIRST_STEPS] steps on the 3D
+    residuals (``refine_fixed_radius``), later one step on the ray residuals (``ray_step``; rays in
+    rbuf (max_fit_points, 4)), until the centre moves less than its standard error (or 0.1 mm)."""
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    budget = 4.0 * max_fit_points
-    rbuf = np.empty((max_fit_points, 4))  # _strided keeps at most max_fit_points
-    c = c0.copy()
-    out[:] = math.nan
-    out[V_N] = 0.0
     first_band, coarse_band = prm[P_FIRST_BAND] * radius, prm[P_COARSE_BAND] * radius
     moved = coarse_band
-    for it in range(0 if hold_direction else refine_iterations):
-        if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
-            return
+    for it in range(refine_iterations):
+        if not _centre_in_front(c, radius):
+            return False
         e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
         # a hypothesis from box means can be a few cm off, and the sphere's own points then lie up
         # to that far from the current one: near the camera eps is 1 cm, and inliers within it would
@@ -1062,7 +1111,7 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
         stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
         n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
         if n < 3:
-            return
+            return False
         if it == 0:
             # 3D residuals first: a ray that misses the current sphere (a centre some cm to the side)
             # has a ray residual nearly flat in the centre, and ray steps then creep (a third of the
@@ -1079,18 +1128,29 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
         # noise / sqrt(n)) is that jitter, not progress
         if moved < max(1e-4, noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP]) / math.sqrt(rays.shape[0])):
             break
-    if not (c[2] > radius and c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > radius * radius):
-        return
+    return True
+
+
+@part
+def _final_window(points, index_image, c, prm, max_fit_points, data_noise, budget, rbuf, idx):
+    """The inliers of the refined centre c (3,) m at the noise-aware eps (``gather_window`` into idx,
+    strided to about ``budget`` pixels). Returns (band e m, stride, inlier count n (visited), their
+    rays (K, 4) in rbuf, at most ``max_fit_points`` evenly strided, the per-pixel depth noise sigma m);
+    n < 3: the candidate fails.
+
+    sigma is the noise model's at the centre's depth: the most noise expected. A quieter sensor (or a
+    nearer ball) shows less in the candidate's own residuals, and a band wider than that takes in the
+    outline's mixed pixels, a holder, a hand, which bias the free radius upward. With data_noise the
+    band narrows to noise_k times the robust spread of the candidate's own ray residuals
+    (``ray_residual_sigma``) where that is below the model's, never below eps (and never widens: on
+    clutter the residuals' spread is no noise level), and sigma becomes that spread."""
+    fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
     e = noise_eps(c[2], prm[P_EPS], prm[P_NOISE_A], prm[P_NOISE_K], prm[P_EPS_CAP])
     stride = window_stride(c[0], c[1], c[2], radius, max(fx, fy), budget)
     n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
     if n < 3:
-        return
+        return e, stride, n, rbuf[:0], math.nan
     rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
-    # the noise model is the most noise expected; a quieter sensor (or a nearer ball) shows less in
-    # the candidate's own residuals, and a band wider than that takes in the outline's mixed pixels,
-    # a holder, a hand, which bias the free radius upward. Narrow the band to the measured noise
-    # (never widen it: on clutter the residuals' spread is no noise level).
     sigma = noise_eps(c[2], 0.0, prm[P_NOISE_A], 1.0, prm[P_EPS_CAP])
     if sigma <= 0.0:  # no noise model: eps alone
         sigma = prm[P_EPS] / max(prm[P_NOISE_K], 1e-12)
@@ -1103,30 +1163,90 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
                 e = e_data
                 n = gather_window(points, index_image, c[0], c[1], c[2], radius, e, fx, fy, ppx, ppy, stride, idx)
                 if n < 3:
-                    return
+                    return e, stride, n, rbuf[:0], sigma
                 rays = unit_rays(points, _strided(idx, n, max_fit_points), rbuf)
+    return e, stride, n, rays, sigma
+
+
+@part
+def _final_fits(rays, c, radius, hold_direction, s_min, se_s_min):
+    """The last fits of the centre c (3,) m on rays (K, 4): 2 more steps with R fixed, then a free-radius
+    fit (4 steps; the size check), by the ray residuals (``fit_ray``), or with hold_direction along
+    c's ray only (``fit_range``). Returns (centre (3,) m, RMS ray residual m of the fixed-radius fit,
+    free centre (3,) m, free radius m, its standard error m)."""
     if hold_direction:
-        c, _, _, rms = fit_range(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
-        fc, fr, fse, _ = fit_range(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
+        c, _, _, rms = fit_range(rays, c[0], c[1], c[2], radius, False, 2, s_min, se_s_min)
+        fc, fr, fse, _ = fit_range(rays, c[0], c[1], c[2], radius, True, 4, s_min, se_s_min)
     else:
-        c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min, prm[P_SE_S_MIN])
-        fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min, prm[P_SE_S_MIN])
+        c, _, _, rms = fit_ray(rays, c[0], c[1], c[2], radius, False, 2, s_min, se_s_min)
+        fc, fr, fse, _ = fit_ray(rays, c[0], c[1], c[2], radius, True, 4, s_min, se_s_min)
+    return c, rms, fc, fr, fse
+
+
+@part
+def _fails_size_gate(size_gate, prm, fr, fse, n_est):
+    """Whether a candidate fails ``verify_organised``'s size gate (4,) (tolerance m, standard errors,
+    least score, min_inliers; inf tolerance: no gate): its free radius fr m (standard error fse m)
+    off R by more than the tolerance (or prm[P_SIZE_LIMIT] R), or the support (n_est inliers) and
+    size factors of the confidence (``improved.confidence``) already below the least score."""
+    if not math.isfinite(size_gate[0]):
+        return False
+    radius = prm[P_R]
+    se = fse if math.isfinite(fse) else radius
+    d = abs(fr - radius)
+    if not (d <= size_gate[0] + size_gate[1] * se and d <= prm[P_SIZE_LIMIT] * radius):  # nan fails
+        return True
+    # the confidence's support and size factors bound it (the others are at most 1); 1 - 1e-9 for
+    # the rounding: never stricter than the confidence
+    z = d / (size_gate[0] + se)
+    return n_est / (n_est + size_gate[3]) * math.exp(-0.5 * z * z) < size_gate[2] * (1.0 - 1e-9)
+
+
+@kernel
+def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
+                     hold_direction, idx, out, stats):
+    """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
+
+    The refinement rounds (``_refine_centre``), then the inliers at the final band (``_final_window``,
+    with data_noise narrowed to the candidate's own noise), 2 more steps and a free-radius ray fit
+    (``_final_fits``: the size check), and the silhouette statistics (``window_stats``). Every
+    window is visited with the stride that keeps it to about 4 ``max_fit_points`` pixels (a ball at
+    0.4 m covers 15,000 pixels at 424x240, 140,000 at 1280x720; ``final_inliers`` collects all of
+    them for a reported sphere), and every fit uses at most ``max_fit_points`` of the inliers, evenly
+    strided; idx receives the window's inliers.
+    out[V_N] gets the inlier count (estimated: strided count times stride^2), out[V_RMSE] the RMS of
+    the ray residuals over the fitted inliers, out[V_SIGMA] the per-pixel depth noise used (metres:
+    the model's at the centre's depth, or the measured one where smaller); out[V_N] = 0 when fewer
+    than 3 inliers remain. A candidate that fails the size gate (``_fails_size_gate``) gets
+    out[V_N] = -1 and no statistics (most candidates fail here, and the statistics' pass over the
+    window is the costliest).
+    hold_direction: no refinement rounds, and both fits keep the centre on c0's ray (``fit_range``):
+    c0 is a centre placed across the line of sight by other evidence (the outline).
+    """
+    radius = prm[P_R]
+    budget = 4.0 * max_fit_points
+    rbuf = np.empty((max_fit_points, 4))  # _strided keeps at most max_fit_points
+    c = c0.copy()
+    out[:] = math.nan
+    out[V_N] = 0.0
+    if not hold_direction and not _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_points,
+                                                 s_min, budget, rbuf, idx):
+        return
+    if not _centre_in_front(c, radius):
+        return
+    e, stride, n, rays, sigma = _final_window(points, index_image, c, prm, max_fit_points, data_noise, budget, rbuf,
+                                              idx)
+    if n < 3:
+        return
+    c, rms, fc, fr, fse = _final_fits(rays, c, radius, hold_direction, s_min, prm[P_SE_S_MIN])
     out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
-    if math.isfinite(size_gate[0]):
-        se = fse if math.isfinite(fse) else radius
-        d = abs(fr - radius)
-        if not (d <= size_gate[0] + size_gate[1] * se and d <= prm[P_SIZE_LIMIT] * radius):  # nan fails
-            out[V_N] = -1.0
-            return
-        # the confidence's support and size factors bound it (the others are at most 1)
-        nn = float(n * stride * stride)
-        z = d / (size_gate[0] + se)
-        if nn / (nn + size_gate[3]) * math.exp(-0.5 * z * z) < size_gate[2] * (1.0 - 1e-9):  # rounding: never stricter
-            out[V_N] = -1.0
-            return
+    if _fails_size_gate(size_gate, prm, fr, fse, float(n * stride * stride)):
+        out[V_N] = -1.0
+        return
     ring_band = min(e, max(prm[P_EPS], sigma))
     window_stats(points, index_image, c[0], c[1], c[2], e, ring_band, prm,
-                 window_stride(c[0], c[1], c[2], radius * prm[P_RING_FACTOR], max(fx, fy), budget), stats)
+                 window_stride(c[0], c[1], c[2], radius * prm[P_RING_FACTOR], max(prm[P_FX], prm[P_FY]), budget),
+                 stats)
     out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
     out[V_RMSE] = rms
     out[V_SIGMA] = sigma
@@ -1562,15 +1682,77 @@ def _draw_in_ranges(state, order, starts, ends, total):
     return order[starts[k] + t]
 
 
+@part
+def _local_sample(state, points, order, sorted_keys, origin, cell, dims, n, win_m, retries, starts, ends, picks):
+    """A local three-point sample into picks (3,): the 1st point drawn from all n, the 2nd and 3rd from
+    the 27 grid cells around it (their sorted-order ranges left in starts, ends), each kept if within
+    win_m m of the 1st and distinct, up to ``retries`` draws each. Returns (points drawn, 1-3; the
+    number of points in those cells)."""
+    i1 = order[min(int(next_u01(state) * n), n - 1)]
+    m = _cell_ranges(sorted_keys, origin, cell, dims, points[i1, 0], points[i1, 1], points[i1, 2], 1, starts, ends)
+    total = _ranges_size(starts, ends, m)
+    picks[0] = i1
+    got = 1
+    for slot in range(2):
+        for _ in range(retries):
+            j = _draw_in_ranges(state, order, starts, ends, total)
+            if j == i1 or (slot == 1 and j == picks[1]):
+                continue
+            dx, dy, dz = points[j, 0] - points[i1, 0], points[j, 1] - points[i1, 1], points[j, 2] - points[i1, 2]
+            if dx * dx + dy * dy + dz * dz > win_m * win_m:
+                continue
+            picks[got] = j
+            got += 1
+            break
+    return got, total
+
+
+@part
+def _near_pretest(state, points, order, starts, ends, tot_s, cx, cy, cz, radius, eps, pretest_n, pretest_frac):
+    """The pretest of the sphere (c, R) m: of 3 pretest_n points drawn from the ranges (tot_s points),
+    those near it (inside the outer shell, R + eps) must be at least 3 and at least pretest_frac of
+    them on the shell (within eps of R)."""
+    near = 0
+    inl = 0
+    for _ in range(pretest_n * 3):
+        j = _draw_in_ranges(state, order, starts, ends, tot_s)
+        dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if d <= radius + eps:
+            near += 1
+            if d >= radius - eps:
+                inl += 1
+    return near >= 3 and inl >= pretest_frac * near
+
+
+@part
+def _msac_quality(points, order, starts, ends, ms, step, cx, cy, cz, radius, eps):
+    """The MSAC quality (sum of 1 - (res / eps)^2 over the points with |res| <= eps, res = ||p - c|| - R
+    m) and the inlier count of the sphere (c, R) over every step-th point of the first ms ranges;
+    unscaled by step."""
+    q = 0.0
+    inliers = 0.0
+    for k in range(ms):
+        for t in range(starts[k], ends[k], step):
+            j = order[t]
+            dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
+            res = math.sqrt(dx * dx + dy * dy + dz * dz) - radius
+            if abs(res) <= eps:
+                q += 1.0 - (res / eps) ** 2
+                inliers += 1.0
+    return q, inliers
+
+
 @kernel
 def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, eps, win_m, max_iter, min_iter,
                        confidence, retries, pretest_n, pretest_frac, score_max, seed, cands, quals):
     """Local-sampling RANSAC on an unorganised cloud (grid cells of size ``cell`` >= win_m / 1).
 
-    The 2nd and 3rd points are drawn from the 27 cells around the 1st (kept if within win_m); both
+    The 2nd and 3rd points are drawn from the 27 cells around the 1st (``_local_sample``); both
     known-radius centres facing the camera at the origin; a pretest on points drawn near the
-    candidate; quality = MSAC over the points of the cells covering the sphere (subsampled to
-    about ``score_max``). Returns (iterations run, number of candidates kept).
+    candidate (``_near_pretest``); quality = MSAC over the points of the cells covering the sphere
+    (``_msac_quality``, subsampled to about ``score_max``). Returns (iterations run, number of
+    candidates kept).
     """
     n = points.shape[0]
     state = np.empty(1, np.uint64)
@@ -1587,22 +1769,8 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
         if it >= min_iter and it >= needed:
             break
         it += 1
-        i1 = order[min(int(next_u01(state) * n), n - 1)]
-        m = _cell_ranges(sorted_keys, origin, cell, dims, points[i1, 0], points[i1, 1], points[i1, 2], 1, starts, ends)
-        total = _ranges_size(starts, ends, m)
-        picks[0] = i1
-        got = 1
-        for slot in range(2):
-            for _ in range(retries):
-                j = _draw_in_ranges(state, order, starts, ends, total)
-                if j == i1 or (slot == 1 and j == picks[1]):
-                    continue
-                dx, dy, dz = points[j, 0] - points[i1, 0], points[j, 1] - points[i1, 1], points[j, 2] - points[i1, 2]
-                if dx * dx + dy * dy + dz * dz > win_m * win_m:
-                    continue
-                picks[got] = j
-                got += 1
-                break
+        got, total = _local_sample(state, points, order, sorted_keys, origin, cell, dims, n, win_m, retries, starts,
+                                   ends, picks)
         if got < 3:
             continue
         if known_radius_centres(points, picks[0], picks[1], picks[2], radius, two) == 0:
@@ -1616,30 +1784,11 @@ def search_unorganised(points, order, sorted_keys, origin, cell, dims, radius, e
             tot_s = _ranges_size(starts, ends, ms)
             if tot_s == 0:
                 continue
-            # pretest: among near points (inside the outer shell), the share on the shell
-            near = 0
-            inl = 0
-            for _ in range(pretest_n * 3):
-                j = _draw_in_ranges(state, order, starts, ends, tot_s)
-                dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
-                d = math.sqrt(dx * dx + dy * dy + dz * dz)
-                if d <= radius + eps:
-                    near += 1
-                    if d >= radius - eps:
-                        inl += 1
-            if near < 3 or inl < pretest_frac * near:
+            if not _near_pretest(state, points, order, starts, ends, tot_s, cx, cy, cz, radius, eps, pretest_n,
+                                 pretest_frac):
                 continue
             step = max(1, tot_s // score_max)
-            q = 0.0
-            inliers = 0.0
-            for k in range(ms):
-                for t in range(starts[k], ends[k], step):
-                    j = order[t]
-                    dx, dy, dz = points[j, 0] - cx, points[j, 1] - cy, points[j, 2] - cz
-                    res = math.sqrt(dx * dx + dy * dy + dz * dz) - radius
-                    if abs(res) <= eps:
-                        q += 1.0 - (res / eps) ** 2
-                        inliers += 1.0
+            q, inliers = _msac_quality(points, order, starts, ends, ms, step, cx, cy, cz, radius, eps)
             q *= step
             inliers *= step
             if q <= 0.0:
