@@ -382,3 +382,30 @@ def test_provenance_dirty_means_changed_code_not_the_runs_own_outputs(tmp_path):
     assert provenance.git_state(tmp_path)["dirty"] is True
     (tmp_path / "code.py").write_text("x = 2\n")
     assert provenance.git_state(tmp_path, outputs=(tmp_path / "results",))["dirty"] is True
+
+
+
+def test_an_evaluation_after_make_eval_is_not_dirty_for_what_make_eval_wrote(tmp_path):
+    """evaluate leaves what `make eval` writes (results/, a single file: the Hough copy) out of its
+    dirty check; a changed file beside them still counts."""
+    import subprocess
+
+    from spherebench.eval.bench import evaluate as ev
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    assert provenance.REPO_ROOT / "results" in ev.BENCHMARK_OUTPUTS
+    git("init", "-q")
+    (tmp_path / "results").mkdir()
+    (tmp_path / "baselines").mkdir()
+    for name in ("results/table.md", "baselines/hough_config.json", "baselines/other.json"):
+        (tmp_path / name).write_text("old\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "init")
+    outputs = (tmp_path / "results", tmp_path / "baselines" / "hough_config.json")
+    for name in ("results/table.md", "baselines/hough_config.json"):
+        (tmp_path / name).write_text("new\n")
+    assert provenance.git_state(tmp_path, outputs=outputs)["dirty"] is False
+    (tmp_path / "baselines" / "other.json").write_text("new\n")
+    assert provenance.git_state(tmp_path, outputs=outputs)["dirty"] is True
