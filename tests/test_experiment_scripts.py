@@ -182,3 +182,21 @@ def test_noise_structure_and_size_separation_on_the_rebuilt_truth(stereo2, stere
                      tmp_path, capsys)
     for row in res["balls"]["s"]:
         assert all(0.0 <= row[k] <= 1.0 for k in ("0-1px", "1-2px", "2-3px", "0-1px_invalid"))
+
+
+def test_code_sizes_counts_a_checkouts_modules_and_long_functions(tmp_path, capsys):
+    import subprocess
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "tests").mkdir()
+    body = "\n".join(f"    x{i} = {i}" for i in range(90))
+    (tmp_path / "pkg" / "long.py").write_text(f"def long():\n{body}\n\n\ndef short():\n    return 1\n")
+    (tmp_path / "tests" / "test_x.py").write_text("def test_left_out():\n    pass\n")
+    git("add", ".")
+    sizes, out = _run("code_sizes", [str(tmp_path), "--over", "80"], tmp_path, capsys)
+    assert sizes["functions"] == 2 and sizes["long_functions"] == [[91, "pkg/long.py:long"]]
+    assert sizes["modules"] == [[95, "pkg/long.py"]] and "over 80 lines: 1" in out
