@@ -25,11 +25,14 @@ missing over 30-70 % of its visible face, as where a glossy ball saturates the i
 a slightly irregular blob around the ball's specular point (for a light at the camera, the point
 on the ray through its centre), jittered, leaving a ring of valid depth (``Hole``). Both sensor
 models set the hole's pixels to 0 after their own depth (the analytic noise, the stereo match):
-the same drawn share of the ball's valid pixels in either, so that the fraction is what the
-scene asked for, not what SGBM made of a saturated spot. The ball's ground truth is that of the
-ball without the hole: the hole is a sensor effect, so its mask (the ball's first-surface pixels
-of valid depth before the hole), circle and centre are its silhouette's; gt.json's meta records
-per ball the fraction the hole took of its valid pixels (``hole_fraction``, None: no hole).
+the same drawn share of the ball's valid pixels in either. In the stereo model this stands for
+the depth the unit loses where its imagers saturate: a cap rendered bright enough to saturate
+the 10-bit imagers still matches (SGBM carries the disparity into the flat patch from its
+edges), so the hole is not left to the matcher. The hole is a sensor effect, not the ball's
+outline: the ball's mask stays its first-surface pixels of valid depth before the hole (the
+hole's pixels stay in it), and its circles and centre are those of the ball without the hole;
+gt.json's meta records per ball the share of its valid pixels the hole took, measured on the
+depth (``hole_fraction``; None: no hole).
 """
 
 from __future__ import annotations
