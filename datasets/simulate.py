@@ -18,6 +18,21 @@ exactly as ``--preset BASE --sensor ...`` would be.
 A preset may draw each scene's sensor (``SensorRanges``: ranges, a grid of conditions), from a
 stream of the scene's seed of its own, and ``--sensor`` settings override any parameter; a
 scene's gt.json then records its sensor (and its grid cell), the dataset.json the ranges.
+
+The ``holed`` family (presets ``holes`` and its stereo twin ``holes-stereo``, not benchmark
+presets) is a ball in clear view 0.7-4 m away, in a bare or a cluttered room, whose depth is
+missing over 30-70 % of its visible face, as where a glossy ball saturates the infrared imager:
+a slightly irregular blob around the ball's specular point (for a light at the camera, the point
+on the ray through its centre), jittered, leaving a ring of valid depth (``Hole``). Both sensor
+models set the hole's pixels to 0 after their own depth (the analytic noise, the stereo match):
+the same drawn share of the ball's valid pixels in either. In the stereo model this stands for
+the depth the unit loses where its imagers saturate: a cap rendered bright enough to saturate
+the 10-bit imagers still matches (SGBM carries the disparity into the flat patch from its
+edges), so the hole is not left to the matcher. The hole is a sensor effect, not the ball's
+outline: the ball's mask stays its first-surface pixels of valid depth before the hole (the
+hole's pixels stay in it), and its circles and centre are those of the ball without the hole;
+gt.json's meta records per ball the share of its valid pixels the hole took, measured on the
+depth (``hole_fraction``; None: no hole).
 """
 
 from __future__ import annotations
@@ -32,7 +47,7 @@ from typing import Callable
 import numpy as np
 
 from spherebench import __version__
-from spherebench.camera import Intrinsics, image_rays
+from spherebench.camera import Intrinsics, image_rays, project
 from spherebench.circles import sphere_circle_amodal, sphere_silhouette_mask
 from spherebench.datasets import inout, outputs, wide_scenes
 from spherebench.datasets.layouts import (DISTRACTOR_RADII_M, Layout, ball_in_view, ball_partly_out, bookcase,
@@ -184,6 +199,10 @@ register_preset(_stereo_twin("train", 8, TRAIN_STEREO))
 register_preset(Preset("wide", 9, 200, wide_scenes.SHARES, (("424x240", 0.7), ("848x480", 0.3)), grammar="wide",
                        benchmark=True))
 register_preset(_stereo_twin("wide", 10))
+# a ball in clear view with its depth missing over 30-70 % of its face (the holed family)
+register_preset(Preset("holes", 11, 100, (("holed", 1.0),), (("424x240", 0.7), ("848x480", 0.3)),
+                       description="a ball in clear view whose depth is missing over 30-70 % of its face"))
+register_preset(_stereo_twin("holes", 12))
 # hard's scenes (the same layouts, seeds and records) under the robust grid's span of sensors, drawn
 # per scene: far and partly hidden balls on noisier, correlated units with low-texture dropouts
 register_preset(replace(PRESETS["hard"], name="hard-sensor", benchmark=False, role="", variant_of="hard",
@@ -397,6 +416,72 @@ def family_occluded(rng, intr: Intrinsics, radius: float) -> Layout:
     return layout
 
 
+@dataclass(frozen=True)
+class Hole:
+    """Missing depth over part of a ball's face: the ``fraction`` of its valid pixels nearest the
+    hole's centre, the image of the ball's specular point shifted by ``offset`` (ball image radii,
+    (du, dv)), nearness measured along an edge that wobbles by ``wobble`` (the relative amplitudes
+    and phases of its 2nd and 3rd angular harmonics: a slightly irregular blob)."""
+
+    fraction: float
+    offset: tuple[float, float]
+    wobble: tuple[float, float, float, float]
+
+
+#: The share of a holed ball's valid pixels its hole takes, and the most its centre is shifted
+#: from the specular point (ball image radii).
+HOLE_FRACTION = (0.3, 0.7)
+HOLE_JITTER = 0.3
+
+
+def draw_hole(rng: np.random.Generator) -> Hole:
+    """A hole of HOLE_FRACTION, shifted by up to HOLE_JITTER, less where a disc of its area so
+    shifted would reach within 5 % of the rim: a ring of valid depth stays around it."""
+    fraction = float(rng.uniform(*HOLE_FRACTION))
+    wobble = (float(rng.uniform(0.0, 0.1)), float(rng.uniform(0.0, 2 * math.pi)),
+              float(rng.uniform(0.0, 0.06)), float(rng.uniform(0.0, 2 * math.pi)))
+    reach = min(HOLE_JITTER, max(0.0, 0.95 - math.sqrt(fraction) * (1.0 + wobble[0] + wobble[2])))
+    rho, phi = reach * math.sqrt(rng.uniform()), rng.uniform(0.0, 2 * math.pi)
+    return Hole(fraction, (rho * math.cos(phi), rho * math.sin(phi)), wobble)
+
+
+def punch_hole(depth: np.ndarray, mask: np.ndarray, intr: Intrinsics, centre: np.ndarray, radius: float,
+               hole: Hole) -> float:
+    """Set the hole's pixels of ``mask`` (the ball's valid pixels) to 0 in ``depth`` (in place);
+    returns the fraction of them it took, measured on the depth (1 - valid after / valid before)."""
+    before = int(mask.sum())
+    circle = sphere_circle_amodal(intr, centre, radius)
+    if before == 0 or circle is None:
+        return 0.0
+    specular = project(intr, centre * (1.0 - radius / float(np.linalg.norm(centre))))[0]
+    hx, hy = specular + np.asarray(hole.offset) * circle[2]
+    vs, us = np.nonzero(mask)
+    dx, dy = us - hx, vs - hy
+    theta = np.arctan2(dy, dx)
+    a2, p2, a3, p3 = hole.wobble
+    nearness = np.hypot(dx, dy) / (1.0 + a2 * np.cos(2 * theta + p2) + a3 * np.cos(3 * theta + p3))
+    taken = np.argsort(nearness, kind="stable")[: int(round(hole.fraction * before))]
+    depth[vs[taken], us[taken]] = 0
+    return 1.0 - int((mask & (depth > 0)).sum()) / before
+
+
+@register_family("classic", "holed", _in_full_view)
+def family_holed(rng, intr: Intrinsics, radius: float) -> Layout:
+    """A ball 0.7-4 m away in clear view, in a bare room or a cluttered one, with a Hole."""
+    centre = ball_in_view(rng, intr, radius, (0.7, 4.0))
+    cluttered = rng.random() < 0.5
+    how = ("tripod" if rng.random() < 0.5 else "table") if cluttered else ("floor" if rng.random() < 0.25 else "air")
+    layout = Layout(floor_y_m=_place_floor_for(rng, centre, radius, how))
+    wall_z = centre[2] + radius + rng.uniform(0.5, 2.0)
+    if cluttered:
+        _clutter_room(rng, intr, layout, [centre], max(wall_z, 2.0))
+    else:
+        room(rng, layout, wall_z)
+    _ball_support(rng, layout, centre, radius, how)
+    layout.add(SolidSphere(centre, radius), "target").hole = draw_hole(rng)
+    return layout
+
+
 register_family("classic", "out_of_frame", lambda vis: 0.3 <= vis[0] <= 0.85)(partial(family_hard, "out_of_frame"))
 for _name, _share in wide_scenes.SHARES:  # furniture beside it and a pitched view may hide some of it
     register_family("wide", _name, lambda vis: all(v >= 0.5 for v in vis))(wide_scenes.FAMILIES[_name])
@@ -487,6 +572,9 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
             break
     else:
         raise RuntimeError(f"{preset_name} scene {index} ({family}): no layout met the visibility rule")
+    holes = [it.hole for it in layout.items if it.kind == "target"]
+    hole_fraction = [None if hole is None else punch_hole(depth, b.mask, intr, np.asarray(b.centre_m), b.radius_m, hole)
+                     for b, hole in zip(balls, holes)]
     distractors = [{"kind": it.kind, "center_m": [float(x) for x in it.shape.centre_m],
                     "radius_m": float(it.shape.radius_m)} for it in layout.items if it.kind == "distractor"]
     cylinders = [{"base_m": [float(x) for x in it.shape.base_m], "radius_m": float(it.shape.radius_m),
@@ -500,6 +588,8 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
         meta["sensor_model"] = "stereo"
     if cell is not None:
         meta["sensor_cell"] = cell
+    if any(f is not None for f in hole_fraction):  # the scenes of the other families read as before
+        meta["hole_fraction"] = hole_fraction
     meta.update(layout.meta)  # the grammar's record: the camera's pose, the support
     return Scene(scene_id=scene_id, family=family, intrinsics=intr, depth=depth, balls=balls, seed=s, meta=meta)
 
