@@ -33,6 +33,27 @@ from spherebench.method.detector import prepare_frame
 CEILING_M = 0.02
 
 
+def truth_verifications(frame, centre_m, config: DetectorConfig, buf):
+    """The verifications of one ball from its true centre ``centre_m`` (3,) m and from the rescoring
+    starts around it, each rescored where its score lies near the threshold: Candidates, or None
+    where a start verifies nothing, in the order of the starts."""
+    c = np.asarray(centre_m, np.float64)
+    for off in ((0.0, 0.0, 0.0),) + improved.rescore_starts(config):
+        v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
+        if v is not None and abs(v.score - config.verification.min_score) < config.verification.rescore_band:
+            v = improved.rescore(frame, v, config, buf)
+        yield v
+
+
+def beats(best: dict, score: float, size_ok: bool, error_m: float) -> bool:
+    """Whether a sphere (score, size check, distance to the truth m) replaces ``best`` (the same keys):
+    the best-scoring one that ends near the truth with its size passed; failing that, the nearest
+    (diagnostics)."""
+    there = error_m <= CEILING_M and size_ok
+    best_there = best["size_ok"] and best["error_m"] <= CEILING_M
+    return (there and (not best_there or score > best["score"])) or (not best_there and error_m < best["error_m"])
+
+
 def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int = 0,
             separable: bool = True) -> list[dict]:
     """Per true ball (``centres_m``: (B, 3) metres): {score, size_ok, error_m, within (the ceiling),
@@ -40,23 +61,16 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
     frame = prepare_frame(cloud, config)
     buf = improved.workspace("inliers", (frame.index_image.size + 1,), np.int64)
     out = []
-    offsets = ((0.0, 0.0, 0.0),) + improved.rescore_starts(config)
     for c in centres_m:
-        c = np.asarray(c, np.float64)
         best = {"score": 0.0, "size_ok": False, "error_m": math.inf, "within": False, "separable": None}
-        for off in offsets:
-            v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
-            if v is not None and abs(v.score - config.verification.min_score) < config.verification.rescore_band:
-                v = improved.rescore(frame, v, config, buf)
+        for v in truth_verifications(frame, c, config, buf):
             if v is None:
                 continue
-            err = float(np.linalg.norm(v.centre_m - c))
-            there = err <= CEILING_M and v.size_ok
-            # the best sphere that ends near the truth; failing that, the nearest one (diagnostics)
-            if (there and (not best["size_ok"] or best["error_m"] > CEILING_M or v.score > best["score"])) or (
-                    not (best["size_ok"] and best["error_m"] <= CEILING_M) and err < best["error_m"]):
+            err = float(np.linalg.norm(v.centre_m - np.asarray(c, np.float64)))
+            if beats(best, v.score, v.size_ok, err):
                 best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                        "within": bool(there and v.score >= config.verification.min_score), "separable": None}
+                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_score),
+                        "separable": None}
         out.append(best)
     if separable and out:
         clutter = [s for s in detect(cloud, config.override({"verification.min_score": 0.0}), seed=seed)

@@ -58,7 +58,7 @@ from spherebench import options
 from spherebench.camera import image_rays
 from spherebench.circles import sphere_silhouette_mask
 from spherebench.datasets import inout
-from spherebench.eval.bench.oracle import CEILING_M, ceiling
+from spherebench.eval.bench.oracle import CEILING_M, beats, ceiling, truth_verifications
 from spherebench.eval.bench.seeds import detection_seed
 from spherebench.method import detect, improved
 from spherebench.method.detector import prepare_frame
@@ -74,12 +74,8 @@ def oracle_verify(frame, centre, config, buf) -> dict:
     """``oracle.ceiling``'s loop for one sphere, keeping the chosen Candidate's free radius, centre and
     factors, and "first": the verification from the true centre alone."""
     c = np.asarray(centre, np.float64)
-    min_score, band = config.verification.min_score, config.verification.rescore_band
     best, keep, first = {"score": 0.0, "size_ok": False, "error_m": math.inf, "within": False}, None, None
-    for off in ((0.0, 0.0, 0.0),) + improved.rescore_starts(config):
-        v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
-        if v is not None and abs(v.score - min_score) < band:
-            v = improved.rescore(frame, v, config, buf)
+    for v in truth_verifications(frame, c, config, buf):
         if first is None:
             first = {"verified": v is not None}
             if v is not None:
@@ -89,11 +85,9 @@ def oracle_verify(frame, centre, config, buf) -> dict:
         if v is None:
             continue
         err = float(np.linalg.norm(v.centre_m - c))
-        there = err <= CEILING_M and v.size_ok
-        if (there and (not best["size_ok"] or best["error_m"] > CEILING_M or v.score > best["score"])) or (
-                not (best["size_ok"] and best["error_m"] <= CEILING_M) and err < best["error_m"]):
+        if beats(best, v.score, v.size_ok, err):
             best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                    "within": bool(there and v.score >= min_score)}
+                    "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_score)}
             keep = v
     if keep is not None:
         best["free_radius"] = float(keep.free_radius_m)
