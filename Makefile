@@ -111,7 +111,7 @@ train-hg: venv data-train data-train-stereo  ## the hourglass CircleNet on train
 bench: venv data data-hard  ## detection and CPU time of the 3D detector -> results/bench.md
 	$(SB) bench $(DATA)/default $(DATA)/hard --out results/bench
 
-# the improved detector across sensor conditions (robust) over seeds 0-3, against issue 16's targets,
+# the improved detector across sensor conditions (robust) over seeds 0-3, against its targets (eval.metrics.targets),
 # with the oracle's ceilings, default's and hard's figures and the time against paper-lstsq
 robustness: venv data data-hard data-robust  ## the detector over the sensor grid, seeds 0-3 -> results/robustness.md
 	$(SB) robustness $(DATA)/robust --default $(DATA)/default --hard $(DATA)/hard \

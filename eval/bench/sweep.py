@@ -75,7 +75,7 @@ def markdown(result: dict) -> str:
     seeds = result["seeds"]
     head = f"{result['method']}" + (f" with {result['overrides']}" if result["overrides"] else "")
     lines = [f"### {head}: detections per run seed (scene k detected with SeedSequence((seed, k)); centre within 2 cm; "
-             "[in brackets where it differs: within 3 cm for a ball deeper than 3 m, issue 20's far rule])", "",
+             "[in brackets where it differs: within 3 cm for a ball deeper than 3 m, the far rule])", "",
              "| dataset | seed | balls found | false det. | of them clutter (> R off) | det. on negatives | "
              "distractors rejected |", "|---|---|---|---|---|---|---|"]
     for name, d in result["datasets"].items():
