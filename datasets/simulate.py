@@ -32,7 +32,10 @@ edges), so the hole is not left to the matcher. The hole is a sensor effect, not
 outline: the ball's mask stays its first-surface pixels of valid depth before the hole (the
 hole's pixels stay in it), and its circles and centre are those of the ball without the hole;
 gt.json's meta records per ball the share of its valid pixels the hole took, measured on the
-depth (``hole_fraction``; None: no hole).
+depth (``hole_fraction``; None: no hole). A preset may also give holes to a share of its other
+families' scenes (``Preset.holes``: ``train`` and its twin, a fifth of their clean and cluttered
+scenes), drawn from a stream of the scene's seed of its own, so that the scenes left whole are
+byte for byte the scenes they were.
 """
 
 from __future__ import annotations
@@ -65,6 +68,9 @@ RESOLUTIONS = {"424x240": (424, 240), "848x480": (848, 480), "1280x720": (1280, 
 HARD_FAMILIES = ("distractor", "negative", "cylinder", "occluded", "out_of_frame", "far", "two")
 #: Enters the seed of a scene's sensor draws beside the scene seed (a stream apart from the scene's).
 SENSOR_STREAM = 0x5E4502
+#: The stream a preset's hole draws come from (``Preset.holes``): apart from the layout's and the
+#: sensor's, so that a scene left whole is the scene it was before the preset had holes.
+HOLE_STREAM = 0x401E
 #: The sensor models a scene can be rendered through: the analytic noise model (``sensor``) or the
 #: rendered infrared pair matched by SGBM (``stereo``); the name selects the model's default parameters.
 SENSOR_MODELS = {"analytic": D435Sensor, "stereo": StereoSensor}
@@ -113,6 +119,7 @@ class Preset:
     description: str = ""                       # what the reading says it is
     variant_of: str | None = None               # a variant: that preset's scenes with sensor_overrides
     sensor_overrides: Mapping = field(default_factory=dict)
+    holes: tuple[tuple[str, float], ...] = ()   # family -> share of its scenes whose balls get a Hole (HOLE_STREAM)
 
 
 #: The roles the results' reading (``eval.bench.prose``) looks presets up by, rather than by name.
@@ -169,7 +176,8 @@ for _preset in (
     # consumers read image.png only)
     Preset("train", 4, 2000, (("clean", 0.3), ("cluttered", 0.35))
            + tuple((f, 0.35 / len(HARD_FAMILIES)) for f in HARD_FAMILIES),
-           (("424x240", 0.7), ("848x480", 0.15), ("1280x720", 0.15)), TRAIN_SENSOR, clouds=False),
+           (("424x240", 0.7), ("848x480", 0.15), ("1280x720", 0.15)), TRAIN_SENSOR, clouds=False,
+           holes=(("clean", 0.2), ("cluttered", 0.2))),  # a fifth of its balls in view with a hole
     # default's families over a grid of sensor conditions (ROBUST_SENSOR): 20 cells x 20 scenes,
     # each cell half clean, half cluttered, 80 % at 424x240
     Preset("robust", 5, 400, (("clean", 0.5), ("cluttered", 0.5)), (("424x240", 0.8), ("848x480", 0.2)),
@@ -546,6 +554,20 @@ def scene_stereo(preset_name: str, seed: int, index: int, sensor: StereoSensor =
     return draw_stereo(sensor, preset.stereo, rng)
 
 
+def _overlay_holes(preset: Preset, family: str, scene_seed: int, layout: Layout) -> None:
+    """Give every ball of the layout a Hole (drawn from HOLE_STREAM) in the preset's share of its
+    family's scenes (``Preset.holes``); a ball that has one keeps it."""
+    share = dict(preset.holes).get(family, 0.0)
+    if share <= 0.0:
+        return
+    rng = np.random.default_rng([scene_seed, HOLE_STREAM])
+    if rng.random() >= share:
+        return
+    for item in layout.items:
+        if item.kind == "target" and item.hole is None:
+            item.hole = draw_hole(rng)
+
+
 def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolution: str,
                    radius_m: float = BASKETBALL_RADIUS_M, sensor: D435Sensor = D435Sensor(),
                    sensor_overrides: Mapping | None = None) -> Scene:
@@ -572,6 +594,7 @@ def simulate_scene(preset_name: str, index: int, family: str, seed: int, resolut
             break
     else:
         raise RuntimeError(f"{preset_name} scene {index} ({family}): no layout met the visibility rule")
+    _overlay_holes(preset, family, s, layout)
     holes = [it.hole for it in layout.items if it.kind == "target"]
     hole_fraction = [None if hole is None else punch_hole(depth, b.mask, intr, np.asarray(b.centre_m), b.radius_m, hole)
                      for b, hole in zip(balls, holes)]

@@ -146,11 +146,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--by-noise", default=None, type=support.parse_edges, metavar="EDGES",
                    help="add a table by one pixel's noise over R at the ball, e.g. 0,0.5,0.8,1.2")
     support.add_noise_argument(p)
+    support.add_holes_argument(p)
     support.add_json_argument(p)
     args = p.parse_args(argv)
     overrides = support.settings(args.overrides, "oracle_ceiling")
     config = support.detector_config(args.dataset, overrides)
-    scenes = support.frame_scenes(args.dataset, args.limit, args.family)
+    scenes = support.frame_scenes(args.dataset, args.limit, args.family, args.holes)
     rows = ceiling_rows(args.dataset, scenes, config, args.seed, not args.no_separable, args.factors,
                         args.frame_noise)
     result = {"dataset": str(args.dataset), "scenes": len(scenes), "overrides": overrides, "seed": args.seed,

@@ -171,11 +171,12 @@ def main(argv: list[str] | None = None) -> int:
                    metavar="EDGES", help=f"add the table by sigma_z / R (bin edges; default {NOISE_EDGES})")
     p.add_argument("--list", action="store_true", help="print every ball's row")
     support.add_noise_argument(p)
+    support.add_holes_argument(p)
     p.add_argument("--workers", type=options.workers, default=2, help="worker processes (1: this process)")
     support.add_json_argument(p)
     args = p.parse_args(argv)
     seeds = options.parse_seeds(args.seeds)
-    scenes = support.frame_scenes(args.dataset, args.limit, args.family)
+    scenes = support.frame_scenes(args.dataset, args.limit, args.family, args.holes)
     configs = {"a": (args.method, support.settings(args.a, "per_ball"))}
     if args.b or args.method_b:
         configs["b"] = (args.method_b or args.method, support.settings(args.b, "per_ball"))

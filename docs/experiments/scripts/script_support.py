@@ -48,12 +48,24 @@ def add_json_argument(p: argparse.ArgumentParser) -> None:
                    help="also write the whole result (every row) to PATH as JSON")
 
 
-def frame_scenes(dataset: str | Path, limit: int | None = None, families: list[str] | None = None) -> list[SceneInfo]:
+def add_holes_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--holes", choices=("only", "none"), default=None,
+                   help="only the scenes whose balls have a hole in their depth (gt.json meta hole_fraction), "
+                        "or only those without")
+
+
+def frame_scenes(dataset: str | Path, limit: int | None = None, families: list[str] | None = None,
+                 holes: str | None = None) -> list[SceneInfo]:
     """The dataset's scenes with a depth frame (``SceneInfo.has_frame``), in scene-id order, their
-    indices those of the whole dataset (so that ``detection_seed(seed, index)`` is the benchmark's)."""
+    indices those of the whole dataset (so that ``detection_seed(seed, index)`` is the benchmark's);
+    ``families``: of those families only; ``holes``: "only" the scenes with a holed ball, "none" those without."""
     scenes = [s for s in dataset_scenes(dataset, limit) if s.has_frame]
     if families:
         scenes = [s for s in scenes if s.family in families]
+    if holes is not None:
+        holed = {s.scene_id: any(f is not None for f in inout.read_scene_gt(s.path)["meta"].get("hole_fraction", []))
+                 for s in scenes}
+        scenes = [s for s in scenes if holed[s.scene_id] == (holes == "only")]
     return scenes
 
 
