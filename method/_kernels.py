@@ -935,6 +935,110 @@ def disc_hypotheses(tab, prm, z_min_m, inner_fraction, side_offset_fraction, sid
     return n_kept
 
 
+@part
+def _ring_hit(tab, prm, v, u, dv, du, reach, min_cell):
+    """March from cell (v, u) along (dv, du) cells per step, up to ``reach`` steps, to the first cell
+    with at least ``min_cell`` valid pixels: (steps taken, that cell's mean range m); (0, nan) when
+    none is met (off the grid, or the reach spent)."""
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    for t in range(1, reach + 1):
+        vv, uu = v + dv * t, u + du * t
+        if vv < 0 or vv >= hc or uu < 0 or uu >= wc:
+            return 0, math.nan
+        s, n, a = box_sums(tab, vv, uu, 0)
+        if n >= min_cell:
+            return t, sums_range(prm, vv, uu, s, n, a)
+    return 0, math.nan
+
+
+@kernel
+def hole_hypotheses(tab, prm, z_min_m, step, min_ring, min_hole_fraction, cands):
+    """Hypotheses of balls whose depth is missing over the middle of their face (a saturated or
+    specular cap) and valid on a ring around it, which the descent cannot reach (its boxes in the
+    hole have no mean). Every ``step``-th cell in both directions without a valid pixel is a first
+    cell; from it, in the 4 axis and 4 diagonal directions, ``_ring_hit`` finds the hole's edge
+    within the disc radius of a ball at z_min_m. A hole of a ball: at least ``min_ring`` of the
+    eight edges found, their ranges within R (and 3 sigma of one pixel, and the slack) of their
+    median, the hole's mean radius within the disc radius r of a ball at that range and at least
+    ``min_hole_fraction`` r (smaller holes leave the descent its boxes). The hypothesis is the
+    ray through the mean of the edge points (the hole's centre; a hole lies about the ball's
+    specular point, on the ray through its centre), its front the edges' ranges less the cap's
+    relief at their offsets; at most pretest_max_continued of its ``ring_boxes`` may continue the
+    surface at its depth. Score: the edges found and the background ring boxes, less 2 per
+    continued one and a thousandth of the front range; kept as ``search_organised`` keeps its (cands (K, 6): v, u, front m, r cells, score, 0). Returns the
+    number kept.
+    """
+    R = prm[P_R]
+    fc = prm[P_FX] / prm[P_BIN]
+    hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
+    reach = int(fc * R / z_min_m) + 1
+    min_cell = max(1.0, 0.5 * prm[P_CELL_PX])
+    slack = prm[P_SLACK] * R
+    dist = np.empty(8)
+    rng = np.empty(8)
+    ev = np.empty(8)
+    eu = np.empty(8)
+    work = np.empty(8)
+    n_kept = 0
+    for v in range(0, hc, step):
+        for u in range(0, wc, step):
+            _s, n0, _a = box_sums(tab, v, u, 0)
+            if n0 > 0:
+                continue
+            k = 0
+            for j in range(8):
+                dv = 1 if j == 0 else (-1 if j == 1 else (0 if j < 4 else (1 if j < 6 else -1)))
+                du = 0 if j < 2 else (1 if j == 2 else (-1 if j == 3 else (1 if j % 2 == 0 else -1)))
+                t, m = _ring_hit(tab, prm, v, u, dv, du, reach, min_cell)
+                if t == 0 or math.isnan(m):
+                    continue
+                # the edge lies half a cell before the first valid cell's centre
+                ev[k], eu[k], rng[k] = v + dv * (t - 0.5), u + du * (t - 0.5), m
+                k += 1
+            if k < min_ring:
+                continue
+            work[:k] = rng[:k]
+            med = np.median(work[:k])
+            tol = R + 3.0 * prm[P_NOISE_A] * med * med + slack
+            cv = 0.0
+            cu = 0.0
+            ring = 0
+            for j in range(k):
+                if abs(rng[j] - med) <= tol:
+                    cv += ev[j]
+                    cu += eu[j]
+                    ring += 1
+            if ring < min_ring:
+                continue
+            cv /= ring
+            cu /= ring
+            r = fc * R / med
+            front = 0.0
+            mean_d = 0.0
+            for j in range(k):
+                if abs(rng[j] - med) <= tol:
+                    d = math.sqrt((ev[j] - cv) ** 2 + (eu[j] - cu) ** 2)
+                    dist[j] = d
+                    mean_d += d
+                    front += rng[j] - R * cap_relief((d / r) ** 2)
+            mean_d /= ring
+            front /= ring
+            if mean_d > r or mean_d < min_hole_fraction * r:
+                continue
+            vc, uc = int(math.floor(cv + 0.5)), int(math.floor(cu + 0.5))
+            # a ball stands out of what is around it: the boxes about its outline lie behind it (a
+            # hole in a wall, a dropout on a low-texture floor, has the wall or floor all round)
+            sig = prm[P_NOISE_A] * prm[P_MEAN_NOISE] * med * med
+            rr, bg, cont = ring_boxes(tab, prm, vc, uc, front, sig)
+            if cont > prm[P_MAX_CONTINUED]:
+                continue
+            q = ring + bg - 2.0 * cont - 1e-3 * front
+            # one hole's first cells give fronts that differ by the ring's few noisy pixels: the same ball
+            n_kept = _keep_hypothesis(cands, n_kept, float(vc), float(uc), front, rr, q, 0.0,
+                                      R + 2.0 * sig / math.sqrt(ring))
+    return n_kept
+
+
 @kernel
 def cell_centres(prm, hyp):
     """The sphere centres (M, 3) of hypotheses hyp (M, >= 3) rows (v, u, front m, ...): on the ray

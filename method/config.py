@@ -227,7 +227,7 @@ class Stencil(_Group):
 
 @dataclass(frozen=True)
 class Retry(_Group):
-    """Organised clouds, while no sphere is accepted: the searches again, and the disc search."""
+    """Organised clouds, while no sphere is accepted: the searches again, the disc search, the hole search."""
 
     retry_occluder: bool = True  # search again leaving out side boxes more than R in front (occluders)
     retry_off_axis: bool = True  # ... then with the stencil stretched off the axis
@@ -241,14 +241,21 @@ class Retry(_Group):
     disc_gap_sigmas: float = 3.0  # ... and this many standard errors
     disc_min_behind: int = 3  # at least this many of the four side boxes behind
     disc_step_fraction: float = 0.5  # visit every k-th cell, k this * the disc radius at max_range_m
+    retry_hole: bool = True  # ... then for holes in the depth ringed by a ball's face (a saturated cap)
+    hole_min_ring: int = 6  # of the eight directions from a hole cell, at least this many reach its ring
+    hole_min_fraction: float = 0.45  # the hole's mean radius at least this fraction of r (smaller: blobs of dropout)
+    hole_step_fraction: float = 0.25  # visit every k-th cell, k this * the disc radius at max_range_m
+    hole_min_range_m: float = 0.3  # its ring is looked for within the disc radius of a ball this near (m)
 
     RULES: typing.ClassVar[dict] = {
         "retry_new_fraction": "[0, 2]", "disc_noise_fraction": ">= 0", "disc_inner_fraction": _FRACTION_OF_R,
         "disc_side_offset_fraction": _FRACTION_OF_R, "disc_side_half_fraction": _FRACTION_OF_R,
         "disc_gap_fraction": ">= 0", "disc_gap_sigmas": ">= 0", "disc_min_behind": "1-4",
-        "disc_step_fraction": _FRACTION_OF_R}
+        "disc_step_fraction": _FRACTION_OF_R, "hole_min_ring": "1-8", "hole_min_fraction": "[0, 1]",
+        "hole_step_fraction": _FRACTION_OF_R, "hole_min_range_m": "> 0"}
     NOTES: typing.ClassVar[dict] = {"retry_new_fraction": "a fraction of R",
-                                    "disc_min_behind": "of the disc search's four side boxes"}
+                                    "disc_min_behind": "of the disc search's four side boxes",
+                                    "hole_min_ring": "of the hole search's eight directions"}
 
 
 @dataclass(frozen=True)

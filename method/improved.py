@@ -450,6 +450,19 @@ def disc_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarra
     return K.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)
 
 
+def hole_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run ``_kernels.hole_hypotheses`` on the frame (every ``hole_step_fraction`` of a far ball's disc);
+    returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
+    R = config.radius_m
+    fc = frame.prm[K.P_FX] / frame.bin
+    retry = config.retry
+    step = max(1, int(retry.hole_step_fraction * fc * R / config.search.max_range_m))
+    hyp = np.zeros((config.search.search_candidates, 6), np.float64)
+    m = K.hole_hypotheses(frame.tab, frame.prm, retry.hole_min_range_m, step, retry.hole_min_ring, retry.hole_min_fraction, hyp)
+    frame.hypotheses = hyp[:m]
+    return K.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)
+
+
 def search_unorganised(points: np.ndarray, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Run the compiled unorganised search. Returns (candidate centres (M, 3), qualities (M,))."""
     k = max(2 * config.verification.max_spheres, 4)
@@ -963,13 +976,14 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     found: list[Candidate] = []
     verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found)
     # organised frames where none is accepted: search again, the descent past occluders, then the
-    # stencil stretched off the axis, then for discs standing out of their background, and verify the
-    # hypotheses not verified before
+    # stencil stretched off the axis, then for discs standing out of their background, then for holes
+    # ringed by a ball's face, and verify the hypotheses not verified before
     retries = [] if frame is None else (
         ([lambda: search_frame(frame, config, seed, occluder_bound=True)] if config.retry.retry_occluder else [])
         + ([lambda: search_frame(frame, config, seed, off_axis=True)]
            if config.retry.retry_off_axis and not config.stencil.search_off_axis else [])
-        + ([lambda: disc_search(frame, config)] if config.retry.retry_disc else []))
+        + ([lambda: disc_search(frame, config)] if config.retry.retry_disc else [])
+        + ([lambda: hole_search(frame, config)] if config.retry.retry_hole else []))
     for retry in retries:
         if found:  # a frame with a ball found pays nothing for the retries
             break

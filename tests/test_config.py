@@ -66,8 +66,11 @@ def test_slot_constants_follow_the_declared_list():
 def test_flat_form_keeps_the_published_names_and_order():
     flat = IMPROVED.flat()
     assert list(flat)[:5] == ["radius_m", "eps_m", "pipeline", "sampling", "sample_radius_m"]
-    assert list(flat)[-3:] == ["ring_spread_power", "interior_density_power", "calibrate_evidence"]
-    assert len(flat) == len(FLAT_NAMES) == 134 and flat["min_score"] == 0.35
+    # the 134 settings of before the groups keep their order; those added since follow them
+    assert list(flat)[131:134] == ["ring_spread_power", "interior_density_power", "calibrate_evidence"]
+    assert list(flat)[134:] == ["retry_hole", "hole_min_ring", "hole_min_fraction", "hole_step_fraction",
+                                "hole_min_range_m"]
+    assert len(flat) == len(FLAT_NAMES) == 139 and flat["min_score"] == 0.35
     for preset in (IMPROVED, PAPER, PAPER_LSTSQ):
         assert DetectorConfig.from_flat({"engine": "detector", **preset.flat()}) == preset
     grouped = sum(len(dataclasses.fields(cls)) for cls in GROUPS.values())

@@ -294,7 +294,7 @@ def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypa
     found = detect(cloud, config_for("improved"), seed=0)
     assert len(found) == 1 and np.linalg.norm(found[0].centre_m - c) < 0.003
     # (the retries would search again, and verify the starts left over: this one is about the first)
-    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False}
+    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False, "retry_hole": False}
     assert detect(cloud, config_for("improved", verification={"verify_candidates_if_none": 6}, retry=no_retry),
                   seed=0) == []
 
@@ -509,7 +509,7 @@ def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
 
     cloud = scene(ball_c=None, width=424, height=240)
     searches = iter([np.empty((0, 3))] + [np.array([[x, y, 4.5] for x in (-1.0, -0.5, 0.0, 0.5, 1.0)
-                                                     for y in (-0.3 + 0.1 * k, 0.3 + 0.1 * k)]) for k in range(3)])
+                                                     for y in (-0.3 + 0.1 * k, 0.3 + 0.1 * k)]) for k in range(4)])
 
     def fake_search(frame, config, seed, **retry):
         starts = next(searches)
@@ -519,28 +519,30 @@ def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
     verify = I.verify_organised
     monkeypatch.setattr(I, "search_frame", fake_search)
     monkeypatch.setattr(I, "disc_search", lambda frame, config: fake_search(frame, config, 0))
+    monkeypatch.setattr(I, "hole_search", lambda frame, config: fake_search(frame, config, 0))
     monkeypatch.setattr(I, "verify_organised", lambda *a, **kw: calls.append(a[1]) or verify(*a, **kw))
     config = config_for("improved")
     ver = config.verification
     assert ver.verify_candidates == 6 and 0.0075 * 4.5 ** 2 > ver.multistart_noise_fraction * R
-    assert detect(cloud, config, seed=0) == [] and len(calls) == 18  # three retries, 6 each
+    assert detect(cloud, config, seed=0) == [] and len(calls) == 24  # four retries, 6 each
 
 
 def test_retries_only_while_none_is_accepted(monkeypatch):
-    """A frame whose first search gives a ball is searched once; an empty wall four times (the first
-    search and the three retries), and without the retries once."""
+    """A frame whose first search gives a ball is searched once; an empty wall five times (the first
+    search and the four retries), and without the retries once."""
     from spherebench.method import improved as I
 
     calls = []
-    real, real_disc = I.search_frame, I.disc_search
+    real, real_disc, real_hole = I.search_frame, I.disc_search, I.hole_search
     monkeypatch.setattr(I, "search_frame", lambda *a, **kw: calls.append(kw) or real(*a, **kw))
     monkeypatch.setattr(I, "disc_search", lambda *a: calls.append("disc") or real_disc(*a))
+    monkeypatch.setattr(I, "hole_search", lambda *a: calls.append("hole") or real_hole(*a))
     assert len(detect(scene(ball_c=(0.1, -0.05, 1.0)), seed=0)) == 1 and calls == [{}]
     calls.clear()
     assert detect(scene(ball_c=None), seed=0) == [] and calls == [{}, {"occluder_bound": True}, {"off_axis": True},
-                                                                  "disc"]
+                                                                  "disc", "hole"]
     calls.clear()
-    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False}
+    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False, "retry_hole": False}
     detect(scene(ball_c=None), config_for("improved", retry=no_retry),
            seed=0)
     assert calls == [{}]
