@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import markdown_cells  # tests/ is on sys.path under pytest
 
 from spherebench.errors import SphereBenchError
 from spherebench.eval.metrics.calibration import (detection_correct, expected_calibration_error,
@@ -99,3 +100,52 @@ def test_no_detections_have_no_calibration():
     assert math.isnan(expected_calibration_error([], []))
     assert math.isnan(maximum_calibration_error([], []))
     assert reliability([], []).count.tolist() == [0] * 10
+
+
+# ---------------------------------------------------------------- the bench: files in, table and figure out
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    """Four `default` scenes in data/default and `spherebench evaluate --methods improved` on them."""
+    from spherebench.cli import main
+    from spherebench.datasets import simulate
+    root = tmp_path_factory.mktemp("calib")
+    data = simulate.generate_dataset("default", root / "data" / "default", n=4, progress=False)
+    assert main(["evaluate", "--data", str(data), "--out", str(root / "results"), "--methods", "improved",
+                 "--workers", "1", "--quiet"]) == 0
+    return root
+
+
+def test_evaluate_writes_the_calibration_table_and_figure(evaluated):
+    results = evaluated / "results"
+    md = markdown_cells((results / "tables" / "calibration.md").read_text())
+    assert "| default | improved | " in md and "ECE" in md
+    assert (results / "tables" / "calibration.csv").read_text().startswith("preset,method,detections,correct,ECE")
+    assert (results / "figures" / "reliability.png").stat().st_size > 10_000
+    assert "figures/reliability.png" in (results / "README.md").read_text()
+
+
+def test_read_from_files_as_the_report_did(evaluated):
+    from spherebench.eval.bench import calibration as bench
+    frame = bench.read_calibration(evaluated / "data", evaluated / "results")
+    assert list(frame.columns) == bench.COLUMNS
+    assert set(frame["preset"]) == {"default"} and set(frame["method"]) == {"improved"}  # one row per run
+    assert len(frame) == 10 and frame["count"].sum() == frame["detections"].iloc[0]
+    # the improved detector finds the four balls within 2 cm (tests/test_eval_pipeline.py): four correct
+    assert frame["correct"].iloc[0] == 4
+    full = frame[frame["count"] > 0]
+    gaps = (full["fraction_correct"] - full["mean_score"]).abs()
+    assert frame["ece"].iloc[0] == pytest.approx(float((full["count"] * gaps).sum() / full["count"].sum()))
+    text = (evaluated / "results" / "tables" / "calibration.csv").read_text()
+    assert bench.calibration_table(frame).csv() == text
+
+
+def test_scores_that_are_no_probabilities_are_named_not_binned():
+    from spherebench.eval.bench import calibration as bench
+    frame = bench._frame({("p", "good"): (np.array([0.2, 0.9]), np.array([False, True])),
+                          ("p", "counts"): (np.array([3.0]), np.array([True]))}, 10)
+    assert set(frame["method"]) == {"good"} and frame.attrs["not_probabilities"] == ["counts on `p`"]
+    table = bench.calibration_table(frame)
+    assert table.rows[0][:6] == ["p", "good", 2, 1, "0.150", "0.200"]
+    assert "counts on `p`" in table.notes[-1]
+    assert bench.calibration_table(bench._frame({}, 10)) is None
