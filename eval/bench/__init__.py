@@ -17,6 +17,7 @@ and the baselines. Import the modules by name (this package imports nothing):
     figures       the benchmark's figures
     recorded      what a recorded dataset's ground truth is; Table 3 beside another evaluation
     transfer      each analytic preset beside its stereo twin
+    calibration   the 3D methods' scores against their correctness: reliability bins, ECE
     speed         the 3D detector's accuracy and speed per configuration (`spherebench bench`)
     sweep         the 3D detector over several seeds (`spherebench sweep`)
     robustness    the improved detector across sensor conditions (`spherebench robustness`)

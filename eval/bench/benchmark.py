@@ -12,7 +12,8 @@ Steps of ``run_benchmark`` (each resumable; finished work with the same inputs i
    OUT/oracle_robust.json), drawn beside its rates in the robustness figure;
 4. (``evaluate.evaluate``) metrics.json, tables/, figures/ (on `robust` also the robustness figure: rates per sensor
    condition and range band; the transfer table and figure, each analytic preset beside its
-   stereo twin), README.md, provenance.json.
+   stereo twin; the calibration table and reliability figure of the 3D methods' scores),
+   README.md, provenance.json.
 Each CircleNet baseline joins when its model exists (baselines/circlenet/model.onnx, full/model.onnx,
 hg/model.onnx); otherwise the tables say it was skipped.
 """

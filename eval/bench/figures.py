@@ -1,9 +1,11 @@
 """The benchmark's figures (matplotlib, Agg): precision-recall curves, centre error against
-distance, latency per method, a grid of example scenes with true and predicted circles, and the
-robustness figure of a grid preset (rates per sensor condition and range band).
+distance, latency per method, a grid of example scenes with true and predicted circles, the
+robustness figure of a grid preset (rates per sensor condition and range band), and the reliability
+diagram of the 3D methods' scores.
 
-Each function draws from scored prediction sets (``eval.bench.scoring.ScoredSet``), or ``robustness`` from
-the per-cell rows that metrics.json holds, and writes one PNG.
+Each function draws from scored prediction sets (``eval.bench.scoring.ScoredSet``), ``robustness`` from
+the per-cell rows that metrics.json holds, ``reliability_diagram`` from ``eval.bench.calibration``'s
+frame, and writes one PNG.
 """
 
 from __future__ import annotations
@@ -297,4 +299,47 @@ def transfer(rows: Sequence[dict], path: Path) -> None:
             if col == 0:
                 ax.set_ylabel(what)
     fig.tight_layout()
+    _save(fig, path)
+
+
+def reliability_diagram(frame, path: Path) -> None:
+    """The reliability diagram of ``eval.bench.calibration``'s frame: one panel per preset, each method's
+    non-empty bins as points (mean score, fraction correct), their area and the number beside them the
+    bin's detections, over the diagonal of a calibrated score; the legend gives each method's ECE and detections."""
+    plt = pyplot()
+    presets = list(dict.fromkeys(frame["preset"]))
+    methods = list(dict.fromkeys(frame["method"]))
+    colours = dict(zip(methods, _colours(len(methods))))
+    n_cols = min(4, max(1, len(presets)))
+    n_rows = -(-max(1, len(presets)) // n_cols)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(3.6 * n_cols, 3.6 * n_rows + 0.4), sharex=True, sharey=True,
+                             squeeze=False, layout="constrained")
+    for ax in axes.flat[len(presets):]:
+        ax.set_visible(False)
+    for ax, preset in zip(axes.flat, presets):
+        ax.plot([0, 1], [0, 1], color="grey", lw=0.8, ls=":")
+        mine = frame[frame["preset"] == preset]
+        for method, g in mine.groupby("method", sort=False):
+            g = g[g["count"] > 0]
+            n = int(g["count"].sum())
+            ece = g["ece"].iloc[0] if n else float("nan")
+            ax.plot(g["mean_score"], g["fraction_correct"], "-", color=colours[method], lw=0.8, alpha=0.6)
+            ax.scatter(g["mean_score"], g["fraction_correct"], s=12 + 180 * np.sqrt(g["count"] / max(n, 1)),
+                       color=colours[method], alpha=0.7, label=f"{method}: ECE {ece:.3f}, {n} det.")
+            for x, y, k in zip(g["mean_score"], g["fraction_correct"], g["count"]):
+                ax.annotate(str(k), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=6,
+                            color=colours[method])
+        ax.set_title(f"`{preset}`", fontsize=9)
+        ax.set_xlim(-0.02, 1.05)
+        ax.set_ylim(-0.04, 1.08)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc="best")
+    for col in range(n_cols):  # the lowest panel drawn in each column
+        ax = axes[(len(presets) - 1 - col) // n_cols, col]
+        ax.xaxis.set_tick_params(labelbottom=True)
+        ax.set_xlabel("mean score of the bin", fontsize=8)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("fraction correct", fontsize=8)
+    fig.suptitle("Reliability of the 3D methods' scores: correct = within 2 cm of a ball (3 cm beyond 3 m), one "
+                 "per ball; point area and number = the bin's detections", fontsize=9)
     _save(fig, path)

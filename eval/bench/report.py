@@ -6,7 +6,8 @@
     tables/*.csv, *.md    (``eval.bench.result_tables``, written by pandas) Table 3 per dataset (beside
                           the paper's reported numbers; beside another evaluation's with ``beside``,
                           ``eval.bench.recorded``), per-family mAP, 3D metrics, timings, Table 2,
-                          detection statistics of unannotated data
+                          detection statistics of unannotated data, the calibration of the 3D
+                          methods' scores (``eval.bench.calibration``)
     figures/*.png         (``eval.bench.figures``)
     README.md             the tables, the figures, and a reading of them (``eval.bench.prose``)
     provenance.json       commit, package versions, seeds, configurations, machine, date
@@ -26,7 +27,7 @@ from typing import Sequence
 from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import figures as figs
-from spherebench.eval.bench import recorded, transfer
+from spherebench.eval.bench import calibration, recorded, transfer
 from spherebench.eval.bench.prose import reading
 from spherebench.eval.bench.registry import ROLE_DETECTOR, method_with_role
 from spherebench.eval.bench.result_tables import (detections_table, family_table, metrics3d_table, sensor_table,
@@ -135,6 +136,11 @@ ROBUSTNESS_CAPTION = ("Robustness on `{label}`: the 3D detection rate (matched c
                       "bands ignored (COCO's rule); a detection matched to no ball is a false positive in every band")
 
 
+RELIABILITY_CAPTION = ("Reliability of the 3D methods' scores: per preset, each method's detections binned by score "
+                       "(0.1 wide), the bin's fraction correct (within 2 cm of a ball, 3 cm beyond 3 m deep, one per "
+                       "ball) against its mean score; on the diagonal a score is the probability it claims to be")
+
+
 def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[ScoredSet]]], t2: Sequence[dict] | None,
                   skipped: dict[str, str], prov: dict, title: str, intro: list[str],
                   paper_rows_for: Sequence[str] = ("default", "hard"), figures: bool = True,
@@ -156,9 +162,11 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     sets_by = {k: v[2] for k, v in per_dataset.items()}
     facts = {label: recorded.facts(data_dir) for label, (data_dir, _, _) in per_dataset.items()}
     about = {label: recorded.reading(label, f, per_dataset[label][2]) for label, f in facts.items() if f is not None}
-    tables, transfer_rows = _tables(per_dataset, facts, about, t2, paper_rows_for, beside)
+    calib = calibration.sets_calibration({label: (data_dir, sets) for label, (data_dir, _, sets) in per_dataset.items()
+                                          if facts[label] is None})  # a recording's centres are fits
+    tables, transfer_rows = _tables(per_dataset, facts, about, t2, paper_rows_for, beside, calib)
     metrics = metrics_json(sets_by)
-    fig_paths = _figures(out, per_dataset, facts, metrics, transfer_rows, ceilings) if figures else {}
+    fig_paths = _figures(out, per_dataset, facts, metrics, transfer_rows, ceilings, calib) if figures else {}
     write_tables(out / "tables", tables)
     # the summary files together: a failed write leaves the earlier set, never a mix of two runs'
     outputs.replace_files({out / "metrics.json": inout.json_bytes(metrics),
@@ -171,9 +179,9 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
 
 
 def _tables(per_dataset: dict, facts: dict, about: dict[str, list[str]], t2: Sequence[dict] | None,
-            paper_rows_for: Sequence[str], beside) -> tuple[list[Table], list]:
+            paper_rows_for: Sequence[str], beside, calib) -> tuple[list[Table], list]:
     """Every table of the results, in the README's order, and the transfer table's rows; the sentences
-    the beside and transfer tables give are added to ``about``."""
+    the beside and transfer tables give are added to ``about``. calib: ``calibration.sets_calibration``."""
     sets_by = {k: v[2] for k, v in per_dataset.items()}
     tables: list[Table] = []
     for label, (_, _, sets) in per_dataset.items():
@@ -195,6 +203,9 @@ def _tables(per_dataset: dict, facts: dict, about: dict[str, list[str]], t2: Seq
         tables.append(t)
         for label, said in transfer.transfer_reading(transfer_rows).items():
             about.setdefault(label, []).extend(said)
+    t = calibration.calibration_table(calib)
+    if t is not None:
+        tables.append(t)
     tables.append(timing_table(sets_by))
     if t2:
         tables.append(table2_table(t2))
@@ -202,9 +213,9 @@ def _tables(per_dataset: dict, facts: dict, about: dict[str, list[str]], t2: Seq
 
 
 def _figures(out: Path, per_dataset: dict, facts: dict, metrics: dict, transfer_rows: list,
-             ceilings: dict[str, dict] | None) -> dict[str, str | None]:
+             ceilings: dict[str, dict] | None, calib) -> dict[str, str | None]:
     """Draw every figure into figures/ (replaced whole); {caption: its path, or None for a sub-folder
-    another tool wrote, kept}."""
+    another tool wrote, kept}. calib: ``calibration.sets_calibration``."""
     sets_by = {k: v[2] for k, v in per_dataset.items()}
     fig_paths: dict[str, str | None] = {}
     with report_folder(out / "figures") as (tmp, kept):
@@ -238,6 +249,9 @@ def _figures(out: Path, per_dataset: dict, facts: dict, metrics: dict, transfer_
         if transfer_rows:
             figs.transfer(transfer_rows, tmp / "transfer.png")
             fig_paths[TRANSFER_CAPTION] = "figures/transfer.png"
+        if not calib.empty:
+            figs.reliability_diagram(calib, tmp / "reliability.png")
+            fig_paths[RELIABILITY_CAPTION] = "figures/reliability.png"
         figs.latency(sets_by, tmp / "latency.png")
         fig_paths["Latency per method"] = "figures/latency.png"
     for name in kept:

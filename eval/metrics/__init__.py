@@ -7,4 +7,5 @@ the baselines may score with them. ``spherebench.eval`` re-exports the common on
     table2       the paper's Table 2 (sphere RMSE, barycentre)
     sensor_grid  rates per sensor condition and range band of a grid preset
     targets      the robustness targets and verdicts of the improved detector
+    calibration  the scores' calibration: correct detections, reliability bins, ECE
 """
