@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from spherebench.datasets import simulate
+from spherebench.datasets import inout, simulate
 from spherebench.eval.bench.sweep import sweep
 from spherebench.method import config_for
 
@@ -200,3 +200,16 @@ def test_code_sizes_counts_a_checkouts_modules_and_long_functions(tmp_path, caps
     sizes, out = _run("code_sizes", [str(tmp_path), "--over", "80"], tmp_path, capsys)
     assert sizes["functions"] == 2 and sizes["long_functions"] == [[91, "pkg/long.py:long"]]
     assert sizes["modules"] == [[95, "pkg/long.py"]] and "over 80 lines: 1" in out
+
+
+def test_holes_only_and_none_split_a_dataset_by_its_gt_hole_fraction(train4, tmp_path):
+    support = _script("script_support")
+    holes2 = simulate.generate_dataset("holes", tmp_path / "holes2", n=2, progress=False)
+    for data in (train4, holes2):
+        every = support.frame_scenes(data)
+        only, none = support.frame_scenes(data, holes="only"), support.frame_scenes(data, holes="none")
+        assert sorted(s.scene_id for s in only + none) == sorted(s.scene_id for s in every)
+        for s in every:
+            fractions = inout.read_scene_gt(s.path)["meta"].get("hole_fraction", [])
+            assert (s in only) == any(f is not None for f in fractions)
+    assert len(support.frame_scenes(holes2, holes="only")) == 2
