@@ -9,6 +9,7 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from spherebench.datasets import inout, simulate
@@ -213,3 +214,22 @@ def test_holes_only_and_none_split_a_dataset_by_its_gt_hole_fraction(train4, tmp
             fractions = inout.read_scene_gt(s.path)["meta"].get("hole_fraction", [])
             assert (s in only) == any(f is not None for f in fractions)
     assert len(support.frame_scenes(holes2, holes="only")) == 2
+
+
+def test_score_calibration_collects_fits_a_monotone_map_and_reports(train4, tmp_path, capsys):
+    cal = _script("score_calibration")
+    lines = tmp_path / "lines.jsonl"
+    assert cal.main(["collect", str(train4), str(lines), "--seeds", "0", "--workers", "1"]) == 0
+    rows = [json.loads(t) for t in lines.read_text().splitlines()]
+    swept = sweep([str(train4)], [0], workers=1)["datasets"][train4.name]["per_seed"][0]["total"]
+    assert sum(r["correct"] for r in rows) == swept["found"]  # one correct detection per found ball
+    assert len(rows) == swept["found"] + swept["false_detections"]
+    knots = tmp_path / "map.json"
+    assert cal.main(["fit", str(lines), "--out", str(knots)]) == 0
+    m = json.loads(knots.read_text())
+    assert np.all(np.diff(m["score"]) >= 0) and np.all(np.diff(m["probability"]) >= 0)
+    assert 0.0 <= min(m["probability"]) and max(m["probability"]) <= 1.0
+    capsys.readouterr()
+    assert cal.main(["report", str(knots), f"train4={lines}"]) == 0
+    out = capsys.readouterr().out
+    assert "| train4 |" in out and "ECE mapped" in out

@@ -1,0 +1,210 @@
+"""How far a monotone map of the detector's score goes toward a probability: the expected calibration
+error (ECE) of the raw score and of an isotonic map fitted on the training splits, per dataset.
+
+``collect`` runs the detector on every scene of a dataset at the given run seeds, as the benchmark
+does (``eval.bench.tasks``: scene k of run seed s detected with ``detection_seed(s, k)``), and writes
+one JSON line per detection: the dataset, scene, seed, the ball's depth where it is correct (else
+the detection's), its score and whether it is correct (``eval.metrics.calibration.detection_correct``:
+within 2 cm of a true ball, 3 cm beyond 3 m deep, one per ball). ``predictions`` writes the same
+lines from a benchmark run's prediction sets (``results/predictions/<preset>/improved.json``), so
+that the benchmark presets are read as `make eval` scored them, not run again.
+
+``fit`` fits the isotonic regression of correct on score (``scipy.optimize.isotonic_regression``) on
+collected lines, the scenes of even index only with ``--half even`` (the odd ones held apart), and
+writes the map as knots (score, probability; ``numpy.interp`` between them); ``--platt``, a logistic
+map of the score's logit instead (two parameters, strictly increasing: every ranking kept). ``report`` prints, per
+set of lines, the detections, the share correct, the ECE and MCE of the raw score and of the map
+(``--half odd``: the held-apart scenes only).
+
+    python docs/experiments/scripts/score_calibration.py collect data/train out/cal_train.jsonl --seeds 0-3
+    python docs/experiments/scripts/score_calibration.py collect data/train-stereo out/cal_ts.jsonl --seeds 0-3
+    python docs/experiments/scripts/score_calibration.py predictions data results out/cal_bench.jsonl
+    python docs/experiments/scripts/score_calibration.py fit out/cal_train.jsonl out/cal_ts.jsonl \\
+        --half even --out out/cal_map.json
+    python docs/experiments/scripts/score_calibration.py report out/cal_map.json \\
+        train=out/cal_train.jsonl train-stereo=out/cal_ts.jsonl --half odd
+    python docs/experiments/scripts/score_calibration.py report out/cal_map.json bench=out/cal_bench.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import isotonic_regression, minimize
+
+import script_support as support
+from spherebench import options
+from spherebench.datasets import inout
+from spherebench.eval.bench.calibration import scene_truths
+from spherebench.eval.bench.registry import detector_spec
+from spherebench.eval.bench.tasks import run_tasks, tasks_for
+from spherebench.eval.metrics.calibration import (detection_correct, expected_calibration_error,
+                                                  maximum_calibration_error)
+from spherebench.parallel import executor
+
+
+def _lines(dataset: str, index_of: dict, truths: dict, scene_id: str, seed: int, dets: list) -> list[dict]:
+    """One line per detection of a scene: correct or not, its score, the depth it is at."""
+    gt = truths.get(scene_id)
+    if gt is None:
+        return []
+    scores = np.asarray([d["score"] for d in dets], np.float64)
+    correct = detection_correct([d["center_m"] for d in dets], scores, gt)
+    return [{"dataset": dataset, "scene": scene_id, "index": index_of[scene_id], "seed": seed,
+             "z_m": float(d["center_m"][2]), "score": float(d["score"]), "correct": bool(ok)}
+            for d, ok in zip(dets, correct)]
+
+
+def collect(dataset: str, out: Path, seeds: list[int], overrides: dict, workers: int) -> int:
+    scenes = support.frame_scenes(dataset)
+    truths = scene_truths(dataset)
+    index_of = {s.scene_id: s.index for s in scenes}
+    config = support.detector_config(dataset, overrides)
+    spec = detector_spec("improved", **{"radius_m": config.radius_m, **overrides})
+    name = Path(dataset).name
+    with executor(workers) as ex:
+        records = run_tasks(ex, [t for seed in seeds for t in tasks_for(spec, scenes, seed)])
+    lines = []
+    for (seed, scene), rec in zip(((seed, s) for seed in seeds for s in scenes), records):
+        lines += _lines(name, index_of, truths, scene.scene_id, seed, rec["detections"])
+    _write_lines(out, lines)
+    return len(lines)
+
+
+def from_predictions(data: Path, results: Path, out: Path, method: str = "improved") -> int:
+    lines = []
+    for pred in sorted((results / "predictions").glob(f"*/{method}.json")):
+        preset = pred.parent.name
+        if not (data / preset / "coco_gt.json").is_file():
+            continue
+        meta = json.loads(pred.with_suffix(".meta.json").read_text())
+        truths = scene_truths(data / preset)
+        index_of = {sid: k for k, sid in enumerate(sorted(truths))}
+        for r in meta["scenes"]:
+            lines += _lines(preset, index_of, truths, r["scene_id"], int(meta.get("seed", 0)), r["detections"])
+    _write_lines(out, lines)
+    return len(lines)
+
+
+def _write_lines(out: Path, lines: list[dict]) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    tmp.replace(out)
+
+
+def read_lines(paths, half: str | None = None) -> list[dict]:
+    lines = [json.loads(t) for p in paths for t in Path(p).read_text().splitlines() if t]
+    if half is not None:
+        lines = [x for x in lines if x["index"] % 2 == (0 if half == "even" else 1)]
+    return lines
+
+
+def fit_isotonic(scores: np.ndarray, correct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The isotonic (non-decreasing) regression of correct on score as knots: (scores (K,),
+    probabilities (K,)), one knot per distinct score's block mean."""
+    order = np.argsort(scores, kind="stable")
+    fitted = isotonic_regression(correct[order].astype(np.float64)).x
+    return scores[order], fitted
+
+
+def _logit(s: np.ndarray) -> np.ndarray:
+    s = np.clip(s, 1e-6, 1.0 - 1e-6)
+    return np.log(s / (1.0 - s))
+
+
+def fit_platt(scores: np.ndarray, correct: np.ndarray) -> tuple[float, float]:
+    """(a, b) of p = 1 / (1 + exp(-(a logit(score) + b))), by maximum likelihood
+    (``scipy.optimize.minimize``): strictly increasing where a > 0, so it keeps every ranking."""
+    x, y = _logit(scores), correct.astype(np.float64)
+
+    def loss(ab):
+        t = ab[0] * x + ab[1]
+        return float(np.sum(np.logaddexp(0.0, t) - y * t))
+
+    a, b = minimize(loss, np.array([1.0, 0.0]), method="BFGS").x
+    return float(a), float(b)
+
+
+def apply_map(knots: dict, scores: np.ndarray) -> np.ndarray:
+    """The map's probabilities of scores: Platt's where the map has ``platt`` (a, b), else the knots'."""
+    if "platt" in knots:
+        a, b = knots["platt"]
+        return 1.0 / (1.0 + np.exp(-(a * _logit(scores) + b)))
+    return np.interp(scores, np.asarray(knots["score"]), np.asarray(knots["probability"]))
+
+
+def report_rows(knots: dict, named: dict[str, list[dict]]) -> list[list]:
+    rows = []
+    for name, lines in named.items():
+        for dataset in sorted({x["dataset"] for x in lines}) if name == "bench" else [None]:
+            sel = [x for x in lines if dataset is None or x["dataset"] == dataset]
+            s = np.asarray([x["score"] for x in sel])
+            c = np.asarray([x["correct"] for x in sel], bool)
+            p = apply_map(knots, s)
+            rows.append([dataset or name, len(sel), f"{c.mean():.3f}" if sel else "-",
+                         f"{expected_calibration_error(s, c):.3f}", f"{maximum_calibration_error(s, c):.3f}",
+                         f"{expected_calibration_error(p, c):.3f}", f"{maximum_calibration_error(p, c):.3f}"])
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("collect", help="detect on a dataset, one line per detection")
+    c.add_argument("dataset")
+    c.add_argument("out", type=Path)
+    c.add_argument("--seeds", default="0")
+    c.add_argument("--set", dest="a", action="append", default=[], metavar="PATH=VALUE")
+    c.add_argument("--workers", type=options.workers, default=2)
+    pr = sub.add_parser("predictions", help="the lines of a benchmark run's prediction sets")
+    pr.add_argument("data", type=Path)
+    pr.add_argument("results", type=Path)
+    pr.add_argument("out", type=Path)
+    f = sub.add_parser("fit", help="fit the isotonic map on collected lines")
+    f.add_argument("lines", nargs="+")
+    f.add_argument("--half", choices=("even", "odd"), default=None)
+    f.add_argument("--out", type=Path, required=True)
+    f.add_argument("--platt", action="store_true", help="a logistic map of the score's logit (keeps rankings)")
+    r = sub.add_parser("report", help="ECE and MCE of the raw score and of the map")
+    r.add_argument("map", type=Path)
+    r.add_argument("named", nargs="+", metavar="NAME=LINES")
+    r.add_argument("--half", choices=("even", "odd"), default=None)
+    args = p.parse_args(argv)
+    if args.cmd == "collect":
+        n = collect(args.dataset, args.out, options.parse_seeds(args.seeds), support.settings(args.a, "score_calibration"),
+                    args.workers)
+        print(f"{n} detections -> {args.out}")
+    elif args.cmd == "predictions":
+        print(f"{from_predictions(args.data, args.results, args.out)} detections -> {args.out}")
+    elif args.cmd == "fit":
+        lines = read_lines(args.lines, args.half)
+        s = np.asarray([x["score"] for x in lines])
+        c = np.asarray([x["correct"] for x in lines], bool)
+        fitted = {"fitted_on": [str(x) for x in args.lines], "half": args.half, "detections": len(lines)}
+        if args.platt:
+            fitted["platt"] = list(fit_platt(s, c))
+        else:
+            knots_s, knots_p = fit_isotonic(s, c)
+            fitted.update(score=knots_s.tolist(), probability=knots_p.tolist())
+        inout.write_json(args.out, fitted)
+        print(f"{'Platt' if args.platt else 'isotonic'} map of {len(lines)} detections -> {args.out}")
+    else:
+        knots = json.loads(args.map.read_text())
+        named = {}
+        for item in args.named:
+            name, _, path = item.partition("=")
+            named[name] = read_lines([path], args.half)
+        print("| set | detections | correct | ECE raw | MCE raw | ECE mapped | MCE mapped |")
+        print("|---|---|---|---|---|---|---|")
+        for row in report_rows(knots, named):
+            print(support.row(*row))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
