@@ -12,9 +12,12 @@ that the benchmark presets are read as `make eval` scored them, not run again.
 ``fit`` fits the isotonic regression of correct on score (``scipy.optimize.isotonic_regression``) on
 collected lines, the scenes of even index only with ``--half even`` (the odd ones held apart), and
 writes the map as knots (score, probability; ``numpy.interp`` between them); ``--platt``, a logistic
-map of the score's logit instead (two parameters, strictly increasing: every ranking kept). ``report`` prints, per
+map of the score's logit instead (two parameters, strictly increasing: every ranking kept);
+``--logistic``, a logistic map of the logit and of what the detector measures on the frame and the
+detection (FEATURES: collected beside each line). ``report`` prints, per
 set of lines, the detections, the share correct, the ECE and MCE of the raw score and of the map
-(``--half odd``: the held-apart scenes only).
+(``--half odd``: the held-apart scenes only), and the ECE a perfectly calibrated detector with the
+map's probabilities would show on that many detections (``ece_floor``: the sampling noise).
 
     python docs/experiments/scripts/score_calibration.py collect data/train out/cal_train.jsonl --seeds 0-3
     python docs/experiments/scripts/score_calibration.py collect data/train-stereo out/cal_ts.jsonl --seeds 0-3
@@ -44,19 +47,46 @@ from spherebench.eval.bench.registry import detector_spec
 from spherebench.eval.bench.tasks import run_tasks, tasks_for
 from spherebench.eval.metrics.calibration import (detection_correct, expected_calibration_error,
                                                   maximum_calibration_error)
+from spherebench.method.detector import prepare_frame
+from spherebench.method.improved import noise_a
 from spherebench.parallel import executor
 
 
-def _lines(dataset: str, index_of: dict, truths: dict, scene_id: str, seed: int, dets: list) -> list[dict]:
-    """One line per detection of a scene: correct or not, its score, the depth it is at."""
+#: What ``--logistic`` maps besides the score's logit: the frame's measured noise over the nominal
+#: model's (log), its correlation length (px), one pixel's noise at the detection over R, its
+#: inliers (log), its visible share.
+FEATURES = ("log_noise_ratio", "corr_px", "noise_r", "log_inliers", "visible")
+
+
+def frame_features(scene_path: Path, config) -> dict:
+    """What the detector measures on a scene's frame (``PreparedFrame``): its noise A over the model's
+    and its noise correlation length (px)."""
+    frame = prepare_frame(inout.load_cloud(scene_path), config)
+    model = noise_a(config, float(frame.cloud.intrinsics.fx))
+    return {"noise_a": float(frame.noise_a), "log_noise_ratio": float(np.log(frame.noise_a / model)),
+            "corr_px": float(frame.noise_corr_px)}
+
+
+def _lines(dataset: str, index_of: dict, truths: dict, scene_id: str, seed: int, dets: list,
+           frame: dict | None = None, radius_m: float = 0.12) -> list[dict]:
+    """One line per detection of a scene: correct or not, its score, the depth it is at, and with
+    ``frame`` (``frame_features``) the features ``--logistic`` takes."""
     gt = truths.get(scene_id)
     if gt is None:
         return []
     scores = np.asarray([d["score"] for d in dets], np.float64)
     correct = detection_correct([d["center_m"] for d in dets], scores, gt)
-    return [{"dataset": dataset, "scene": scene_id, "index": index_of[scene_id], "seed": seed,
-             "z_m": float(d["center_m"][2]), "score": float(d["score"]), "correct": bool(ok)}
-            for d, ok in zip(dets, correct)]
+    out = []
+    for d, ok in zip(dets, correct):
+        z = float(d["center_m"][2])
+        line = {"dataset": dataset, "scene": scene_id, "index": index_of[scene_id], "seed": seed,
+                "z_m": z, "score": float(d["score"]), "correct": bool(ok)}
+        if frame is not None:
+            line.update(log_noise_ratio=frame["log_noise_ratio"], corr_px=frame["corr_px"],
+                        noise_r=frame["noise_a"] * z * z / radius_m, log_inliers=float(np.log1p(d.get("inliers") or 0)),
+                        visible=float(d.get("visible_fraction") or 1.0))
+        out.append(line)
+    return out
 
 
 def collect(dataset: str, out: Path, seeds: list[int], overrides: dict, workers: int) -> int:
@@ -68,9 +98,11 @@ def collect(dataset: str, out: Path, seeds: list[int], overrides: dict, workers:
     name = Path(dataset).name
     with executor(workers) as ex:
         records = run_tasks(ex, [t for seed in seeds for t in tasks_for(spec, scenes, seed)])
+    frames = {s.scene_id: frame_features(s.path, config) for s in scenes}
     lines = []
     for (seed, scene), rec in zip(((seed, s) for seed in seeds for s in scenes), records):
-        lines += _lines(name, index_of, truths, scene.scene_id, seed, rec["detections"])
+        lines += _lines(name, index_of, truths, scene.scene_id, seed, rec["detections"], frames[scene.scene_id],
+                        config.radius_m)
     _write_lines(out, lines)
     return len(lines)
 
@@ -84,8 +116,11 @@ def from_predictions(data: Path, results: Path, out: Path, method: str = "improv
         meta = json.loads(pred.with_suffix(".meta.json").read_text())
         truths = scene_truths(data / preset)
         index_of = {sid: k for k, sid in enumerate(sorted(truths))}
+        config = support.detector_config(data / preset, {})
         for r in meta["scenes"]:
-            lines += _lines(preset, index_of, truths, r["scene_id"], int(meta.get("seed", 0)), r["detections"])
+            frame = frame_features(data / preset / "scenes" / r["scene_id"], config) if r["detections"] else None
+            lines += _lines(preset, index_of, truths, r["scene_id"], int(meta.get("seed", 0)), r["detections"], frame,
+                            config.radius_m)
     _write_lines(out, lines)
     return len(lines)
 
@@ -130,12 +165,43 @@ def fit_platt(scores: np.ndarray, correct: np.ndarray) -> tuple[float, float]:
     return float(a), float(b)
 
 
-def apply_map(knots: dict, scores: np.ndarray) -> np.ndarray:
-    """The map's probabilities of scores: Platt's where the map has ``platt`` (a, b), else the knots'."""
+def design(lines: list[dict], scores: np.ndarray) -> np.ndarray:
+    """(N, 2 + len(FEATURES)): the score's logit, 1, then FEATURES."""
+    cols = [_logit(scores), np.ones(len(scores))] + [np.asarray([x[f] for x in lines], np.float64) for f in FEATURES]
+    return np.stack(cols, axis=1)
+
+
+def fit_logistic(x: np.ndarray, correct: np.ndarray) -> np.ndarray:
+    """Weights w of p = 1 / (1 + exp(-x w)) by maximum likelihood (a tiny ridge keeps it finite
+    where the classes separate)."""
+    y = correct.astype(np.float64)
+
+    def loss(w):
+        t = x @ w
+        return float(np.sum(np.logaddexp(0.0, t) - y * t) + 1e-3 * np.sum(w[2:] ** 2))
+
+    w0 = np.zeros(x.shape[1])
+    w0[0] = 1.0
+    return minimize(loss, w0, method="BFGS").x
+
+
+def apply_map(knots: dict, scores: np.ndarray, lines: list[dict] | None = None) -> np.ndarray:
+    """The map's probabilities of scores: the logistic's (``weights``, with the lines' features),
+    Platt's (``platt`` (a, b)), else the knots' (isotonic)."""
+    if "weights" in knots:
+        return 1.0 / (1.0 + np.exp(-(design(lines, scores) @ np.asarray(knots["weights"]))))
     if "platt" in knots:
         a, b = knots["platt"]
         return 1.0 / (1.0 + np.exp(-(a * _logit(scores) + b)))
     return np.interp(scores, np.asarray(knots["score"]), np.asarray(knots["probability"]))
+
+
+def ece_floor(p: np.ndarray, draws: int = 400, seed: int = 0) -> float:
+    """The median ECE of a perfectly calibrated detector with these probabilities (N,): each
+    detection correct with probability p, drawn ``draws`` times. An ECE near it is all that this
+    many detections can tell apart from calibrated."""
+    rng = np.random.default_rng(seed)
+    return float(np.median([expected_calibration_error(p, rng.random(p.size) < p) for _ in range(draws)]))
 
 
 def report_rows(knots: dict, named: dict[str, list[dict]]) -> list[list]:
@@ -145,10 +211,11 @@ def report_rows(knots: dict, named: dict[str, list[dict]]) -> list[list]:
             sel = [x for x in lines if dataset is None or x["dataset"] == dataset]
             s = np.asarray([x["score"] for x in sel])
             c = np.asarray([x["correct"] for x in sel], bool)
-            p = apply_map(knots, s)
+            p = apply_map(knots, s, sel)
             rows.append([dataset or name, len(sel), f"{c.mean():.3f}" if sel else "-",
                          f"{expected_calibration_error(s, c):.3f}", f"{maximum_calibration_error(s, c):.3f}",
-                         f"{expected_calibration_error(p, c):.3f}", f"{maximum_calibration_error(p, c):.3f}"])
+                         f"{expected_calibration_error(p, c):.3f}", f"{maximum_calibration_error(p, c):.3f}",
+                         f"{ece_floor(p):.3f}"])
     return rows
 
 
@@ -170,6 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("--half", choices=("even", "odd"), default=None)
     f.add_argument("--out", type=Path, required=True)
     f.add_argument("--platt", action="store_true", help="a logistic map of the score's logit (keeps rankings)")
+    f.add_argument("--logistic", action="store_true", help="a logistic map of the logit and the frame's FEATURES")
     r = sub.add_parser("report", help="ECE and MCE of the raw score and of the map")
     r.add_argument("map", type=Path)
     r.add_argument("named", nargs="+", metavar="NAME=LINES")
@@ -186,21 +254,24 @@ def main(argv: list[str] | None = None) -> int:
         s = np.asarray([x["score"] for x in lines])
         c = np.asarray([x["correct"] for x in lines], bool)
         fitted = {"fitted_on": [str(x) for x in args.lines], "half": args.half, "detections": len(lines)}
-        if args.platt:
+        if args.logistic:
+            fitted.update(weights=fit_logistic(design(lines, s), c).tolist(), features=list(FEATURES))
+        elif args.platt:
             fitted["platt"] = list(fit_platt(s, c))
         else:
             knots_s, knots_p = fit_isotonic(s, c)
             fitted.update(score=knots_s.tolist(), probability=knots_p.tolist())
         inout.write_json(args.out, fitted)
-        print(f"{'Platt' if args.platt else 'isotonic'} map of {len(lines)} detections -> {args.out}")
+        kind = "logistic" if args.logistic else ("Platt" if args.platt else "isotonic")
+        print(f"{kind} map of {len(lines)} detections -> {args.out}")
     else:
         knots = json.loads(args.map.read_text())
         named = {}
         for item in args.named:
             name, _, path = item.partition("=")
             named[name] = read_lines([path], args.half)
-        print("| set | detections | correct | ECE raw | MCE raw | ECE mapped | MCE mapped |")
-        print("|---|---|---|---|---|---|---|")
+        print("| set | detections | correct | ECE raw | MCE raw | ECE mapped | MCE mapped | ECE floor |")
+        print("|---|---|---|---|---|---|---|---|")
         for row in report_rows(knots, named):
             print(support.row(*row))
     return 0
