@@ -146,6 +146,20 @@ def test_scores_that_are_no_probabilities_are_named_not_binned():
                           ("p", "counts"): (np.array([3.0]), np.array([True]))}, 10)
     assert set(frame["method"]) == {"good"} and frame.attrs["not_probabilities"] == ["counts on `p`"]
     table = bench.calibration_table(frame)
-    assert table.rows[0][:6] == ["p", "good", 2, 1, "0.150", "0.200"]
+    from spherebench.eval.metrics.calibration import ece_floor
+    assert table.rows[0][:7] == ["p", "good", 2, 1, "0.150", f"{ece_floor([0.2, 0.9]):.3f}", "0.200"]
     assert "counts on `p`" in table.notes[-1]
     assert bench.calibration_table(bench._frame({}, 10)) is None
+
+
+def test_the_ece_floor_is_the_sampling_noise_of_a_calibrated_score():
+    from spherebench.eval.metrics.calibration import ece_floor
+
+    assert ece_floor(np.ones(50)) == 0.0 and np.isnan(ece_floor([]))
+    # one bin, N detections at 0.5: ECE = |k/N - 1/2|, k ~ Binomial(N, 1/2); its median is about
+    # 0.6745 x 0.5 / sqrt(N) (the normal's quartile)
+    for n in (100, 400, 1600):
+        assert ece_floor(np.full(n, 0.5)) == pytest.approx(0.6745 * 0.5 / np.sqrt(n), rel=0.2), n
+    scores = np.random.default_rng(1).uniform(0.4, 1.0, 60)
+    assert ece_floor(scores) == ece_floor(scores)  # seeded
+    assert ece_floor(scores) > 2 * ece_floor(np.tile(scores, 16))  # 16x the detections: a quarter of it

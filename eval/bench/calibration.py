@@ -28,12 +28,12 @@ from spherebench.eval.bench.cache import meta_path, read_predictions
 from spherebench.eval.bench.scoring import ScoredSet, not_run
 from spherebench.eval.bench.tables import Table, fmt
 from spherebench.eval.bench.tasks import dataset_scenes
-from spherebench.eval.metrics.calibration import (N_BINS, detection_correct, expected_calibration_error,
+from spherebench.eval.metrics.calibration import (N_BINS, detection_correct, ece_floor, expected_calibration_error,
                                                   maximum_calibration_error, reliability)
 
 #: The frame's columns: one row per (preset, method, bin); the last four repeat per (preset, method).
 COLUMNS = ["preset", "method", "bin", "bin_low", "bin_high", "count", "mean_score", "fraction_correct",
-           "detections", "correct", "ece", "mce"]
+           "detections", "correct", "ece", "mce", "ece_floor"]
 
 
 def scene_truths(data_dir: str | Path) -> dict[str, dict]:
@@ -67,9 +67,10 @@ def calibration_frame(labelled: dict[tuple[str, str], tuple[np.ndarray, np.ndarr
         r = reliability(scores, correct, n_bins)
         ece = expected_calibration_error(scores, correct, n_bins)
         mce = maximum_calibration_error(scores, correct, n_bins)
+        floor = ece_floor(scores, n_bins)
         for b in range(n_bins):
             rows.append([preset, method, b, r.edges[b], r.edges[b + 1], int(r.count[b]), r.mean_score[b],
-                         r.fraction_correct[b], r.n, int(np.count_nonzero(correct)), ece, mce])
+                         r.fraction_correct[b], r.n, int(np.count_nonzero(correct)), ece, mce, floor])
     return pd.DataFrame(rows, columns=COLUMNS)
 
 
@@ -128,18 +129,21 @@ def calibration_table(frame: pd.DataFrame) -> Table | None:
         bins = g.sort_values("bin").to_dict("records")
         first = bins[0]
         rows.append([preset, method, int(first["detections"]), int(first["correct"]), fmt(first["ece"]),
-                     fmt(first["mce"])] + [f"{fmt(b['mean_score'], 2)} / {fmt(b['fraction_correct'], 2)} ({b['count']})"
+                     fmt(first["ece_floor"]), fmt(first["mce"])] + [f"{fmt(b['mean_score'], 2)} / {fmt(b['fraction_correct'], 2)} ({b['count']})"
                                            if b["count"] else "–" for b in bins])
     notes = ["A detection is correct when its centre lies within 2 cm of a true ball's centre (3 cm for a ball "
              "deeper than 3 m), at most one per ball (the best-scored; the others are duplicates); a detection of "
              "a distractor ball or of anything else is not (`eval/metrics/calibration.py`).",
              "Bins of equal width over the score; each cell: mean score / fraction correct (detections); '–': "
              "none. ECE = sum over bins of n_b / N |fraction correct - mean score|, MCE = the largest gap; a "
-             "calibrated score has both near 0 (figure `figures/reliability.png`)."]
+             "calibrated score has both near 0 (figure `figures/reliability.png`).",
+             "ECE floor: the median ECE of a perfectly calibrated detector with the same scores on as many "
+             "detections (each correct with its score's probability, 400 seeded draws): an ECE near it is "
+             "within what the set's size can tell."]
     if frame.attrs.get("not_probabilities"):
         notes.append("Not calibrated (scores outside [0, 1]): " + ", ".join(frame.attrs["not_probabilities"]) + ".")
     return Table(name="calibration", title="Calibration of the 3D methods' scores",
-                 columns=["preset", "method", "detections", "correct", "ECE", "MCE"]
+                 columns=["preset", "method", "detections", "correct", "ECE", "ECE floor", "MCE"]
                  + [f"{lo:.1f}-{hi:.1f}" for lo, hi in edges.itertuples(index=False)], rows=rows, notes=notes)
 
 
