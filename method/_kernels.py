@@ -974,7 +974,6 @@ def hole_hypotheses(tab, prm, z_min_m, step, min_ring, min_hole_fraction, cands)
     reach = int(fc * R / z_min_m) + 1
     min_cell = max(1.0, 0.5 * prm[P_CELL_PX])
     slack = prm[P_SLACK] * R
-    dist = np.empty(8)
     rng = np.empty(8)
     ev = np.empty(8)
     eu = np.empty(8)
@@ -1018,7 +1017,6 @@ def hole_hypotheses(tab, prm, z_min_m, step, min_ring, min_hole_fraction, cands)
             for j in range(k):
                 if abs(rng[j] - med) <= tol:
                     d = math.sqrt((ev[j] - cv) ** 2 + (eu[j] - cu) ** 2)
-                    dist[j] = d
                     mean_d += d
                     front += rng[j] - R * cap_relief((d / r) ** 2)
             mean_d /= ring

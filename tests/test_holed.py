@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -75,7 +76,7 @@ def test_trains_share_of_holes_leaves_its_whole_scenes_as_they_were(monkeypatch)
             and job[2] == "424x240"][:30]
     holed = [simulate.simulate_scene("train", i, f, 0, r) for i, f, r in jobs]
     monkeypatch.setitem(simulate.PRESETS, "train",
-                        simulate.replace(simulate.PRESETS["train"], holes=()))
+                        dataclasses.replace(simulate.PRESETS["train"], holes=()))
     whole = [simulate.simulate_scene("train", i, f, 0, r) for i, f, r in jobs]
     with_hole = [a for a in holed if "hole_fraction" in a.meta]
     assert 2 <= len(with_hole) <= 14, len(with_hole)  # a fifth of 30, loosely

@@ -17,7 +17,7 @@ map of the score's logit instead (two parameters, strictly increasing: every ran
 detection (FEATURES: collected beside each line). ``report`` prints, per
 set of lines, the detections, the share correct, the ECE and MCE of the raw score and of the map
 (``--half odd``: the held-apart scenes only), and the ECE a perfectly calibrated detector with the
-map's probabilities would show on that many detections (``ece_floor``: the sampling noise).
+map's probabilities would show on that many detections (``eval.metrics.calibration.ece_floor``: the sampling noise).
 
     python docs/experiments/scripts/score_calibration.py collect data/train out/cal_train.jsonl --seeds 0-3
     python docs/experiments/scripts/score_calibration.py collect data/train-stereo out/cal_ts.jsonl --seeds 0-3
@@ -42,10 +42,12 @@ from scipy.optimize import isotonic_regression, minimize
 import script_support as support
 from spherebench import options
 from spherebench.datasets import inout
+from spherebench.datasets.outputs import atomic_write_bytes
+from spherebench.eval.bench.cache import read_predictions
 from spherebench.eval.bench.calibration import scene_truths
 from spherebench.eval.bench.registry import detector_spec
 from spherebench.eval.bench.tasks import run_tasks, tasks_for
-from spherebench.eval.metrics.calibration import (detection_correct, expected_calibration_error,
+from spherebench.eval.metrics.calibration import (detection_correct, ece_floor, expected_calibration_error,
                                                   maximum_calibration_error)
 from spherebench.method.detector import prepare_frame
 from spherebench.method.improved import noise_a
@@ -113,7 +115,7 @@ def from_predictions(data: Path, results: Path, out: Path, method: str = "improv
         preset = pred.parent.name
         if not (data / preset / "coco_gt.json").is_file():
             continue
-        meta = json.loads(pred.with_suffix(".meta.json").read_text())
+        meta = read_predictions(pred)[1]
         truths = scene_truths(data / preset)
         index_of = {sid: k for k, sid in enumerate(sorted(truths))}
         config = support.detector_config(data / preset, {})
@@ -126,10 +128,7 @@ def from_predictions(data: Path, results: Path, out: Path, method: str = "improv
 
 
 def _write_lines(out: Path, lines: list[dict]) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text("".join(json.dumps(x) + "\n" for x in lines))
-    tmp.replace(out)
+    atomic_write_bytes(out, "".join(json.dumps(x) + "\n" for x in lines).encode())
 
 
 def read_lines(paths, half: str | None = None) -> list[dict]:
@@ -196,14 +195,6 @@ def apply_map(knots: dict, scores: np.ndarray, lines: list[dict] | None = None) 
     return np.interp(scores, np.asarray(knots["score"]), np.asarray(knots["probability"]))
 
 
-def ece_floor(p: np.ndarray, draws: int = 400, seed: int = 0) -> float:
-    """The median ECE of a perfectly calibrated detector with these probabilities (N,): each
-    detection correct with probability p, drawn ``draws`` times. An ECE near it is all that this
-    many detections can tell apart from calibrated."""
-    rng = np.random.default_rng(seed)
-    return float(np.median([expected_calibration_error(p, rng.random(p.size) < p) for _ in range(draws)]))
-
-
 def report_rows(knots: dict, named: dict[str, list[dict]]) -> list[list]:
     rows = []
     for name, lines in named.items():
@@ -244,8 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--half", choices=("even", "odd"), default=None)
     args = p.parse_args(argv)
     if args.cmd == "collect":
-        n = collect(args.dataset, args.out, options.parse_seeds(args.seeds), support.settings(args.a, "score_calibration"),
-                    args.workers)
+        overrides = support.settings(args.a, "score_calibration")
+        n = collect(args.dataset, args.out, options.parse_seeds(args.seeds), overrides, args.workers)
         print(f"{n} detections -> {args.out}")
     elif args.cmd == "predictions":
         print(f"{from_predictions(args.data, args.results, args.out)} detections -> {args.out}")
