@@ -8,11 +8,14 @@ from spherebench.circles import circle_bbox
 
 
 def detection_record(score: float, circle_px=None, centre_m=None, radius_m: float | None = None,
-                     inliers: int | None = None, visible_fraction: float | None = None) -> dict:
-    """One detection: score; circle_px {center [cx, cy], radius} px (None: it projects nowhere on
+                     inliers: int | None = None, visible_fraction: float | None = None,
+                     raw_score: float | None = None) -> dict:
+    """One detection: score (the 3D detector's: the probability that it is a ball within 2 cm; a 2D
+    detector's own confidence); circle_px {center [cx, cy], radius} px (None: it projects nowhere on
     the image) with its COCO bbox [x, y, w, h] px; center_m [x, y, z] and radius_m, metres, camera
     frame (None from a 2D detector); inliers, the points on the sphere, and visible_fraction, the
-    share of its silhouette no nearer surface hides (None from a 2D detector or an unorganised cloud)."""
+    share of its silhouette no nearer surface hides (None from a 2D detector or an unorganised cloud);
+    raw_score, the 3D detector's evidence product that the score is mapped from (None from a 2D detector)."""
     circle = None if circle_px is None else [float(v) for v in circle_px[:3]]
     return {"score": round(float(score), 6),
             "center_m": None if centre_m is None else [round(float(v), 6) for v in centre_m],
@@ -21,7 +24,8 @@ def detection_record(score: float, circle_px=None, centre_m=None, radius_m: floa
                                                       "radius": round(circle[2], 3)},
             "bbox": None if circle is None else circle_bbox(*circle, decimals=3),
             "inliers": None if inliers is None else int(inliers),
-            "visible_fraction": None if visible_fraction is None else round(float(visible_fraction), 3)}
+            "visible_fraction": None if visible_fraction is None else round(float(visible_fraction), 3),
+            "raw_score": None if raw_score is None else round(float(raw_score), 6)}
 
 
 def frame_record(source: str, detections: list[dict], ms: float, frame: int | None = None,

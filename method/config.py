@@ -277,7 +277,10 @@ class Verification(_Group):
     min_inliers: int = 30  # fewer inliers: no detection
     max_spheres: int = 4  # at most this many spheres per frame
     nms_distance_fraction: float = 0.75  # suppress a sphere within this fraction of 2R of a better one
-    min_score: float = 0.35  # report only detections scoring at least this
+    min_score: float = 0.67  # report only detections whose score (a probability, below) is at least this
+    score_calibration: bool = True  # score: the probability of a ball within 2 cm (3 beyond 3 m); False: the raw product
+    calibration_slope: float = 2.102  # probability = sigmoid(slope logit(raw) + offset), fitted on train + train-stereo
+    calibration_offset: float = 2.018  # ... (see docs/detector.md, "What the score means")
 
     RULES: typing.ClassVar[dict] = {
         "verify_candidates": ">= 1", "verify_candidates_if_none": ">= 1", "verify_score_margin": ">= 0",
@@ -285,9 +288,26 @@ class Verification(_Group):
         "rescore_offset_z": ">= 0", "multistart_noise_fraction": "> 0", "occluded_push_fraction": _FRACTION_OF_R,
         "occluded_push_starts": "0-10", "occluded_push_noise_fraction": ">= 0", "interior_bands": ">= 0",
         "min_inliers": ">= 3", "max_spheres": ">= 1", "nms_distance_fraction": "[0, 1]",
-        "min_score": "[0, 1]"}
+        "min_score": "[0, 1]", "calibration_slope": "> 0"}
     NOTES: typing.ClassVar[dict] = {"multistart_noise_fraction": "a fraction of R; inf for never",
-                                    "occluded_push_starts": "0: off"}
+                                    "occluded_push_starts": "0: off",
+                                    "calibration_slope": "the map must rise with the evidence"}
+
+    def probability(self, raw: float) -> float:
+        """A detection's score from its raw evidence product in [0, 1]: the calibration map (strictly
+        increasing, 0 and 1 fixed), or the product itself without ``score_calibration``."""
+        if not self.score_calibration or raw <= 0.0 or raw >= 1.0:
+            return float(raw)
+        return 1.0 / (1.0 + math.exp(-(self.calibration_slope * math.log(raw / (1.0 - raw)) + self.calibration_offset)))
+
+    @property
+    def min_raw_score(self) -> float:
+        """``min_score`` on the raw evidence product: the map's inverse, which every decision inside the
+        detector compares the product with."""
+        p = self.min_score
+        if not self.score_calibration or p <= 0.0 or p >= 1.0:
+            return float(p)
+        return 1.0 / (1.0 + math.exp(-(math.log(p / (1.0 - p)) - self.calibration_offset) / self.calibration_slope))
 
 
 @dataclass(frozen=True)
@@ -547,7 +567,8 @@ _FLAT_ORDER = """
     behind_power occlusion_discount occlusion_ring_max occlusion_min_visible occlusion_size_sigmas hug_power
     ring_continued_power ring_front_free ring_front_power see_through_free see_through_power see_through_sigmas
     edge_behind_free edge_behind_power edge_behind_sigmas relief_floor_fraction relief_free_sigmas
-    ring_spread_free ring_spread_power interior_density_power calibrate_evidence""".split()
+    ring_spread_free ring_spread_power interior_density_power calibrate_evidence retry_hole hole_min_ring
+    hole_min_fraction hole_step_fraction hole_min_range_m""".split()
 #: Bare name -> path, in the flat form's order (bare names are unique across the groups).
 FLAT_NAMES = {**{n: _BY_NAME[n] for n in _FLAT_ORDER}, **{n: p for n, p in _BY_NAME.items() if n not in _FLAT_ORDER}}
 #: Every accepted path -> itself, and the model fields' bare names.
@@ -569,7 +590,8 @@ DEFAULT = DetectorConfig()
 PAPER = DEFAULT.override({"pipeline": "paper", "search": {"sampling": "global", "solver": "known_radius",
                                                           "iterations": 1000, "adaptive": False},
                           "paper.refine": "barycentre", "verification": {"max_spheres": 1, "min_inliers": 3,
-                                                                         "min_score": 0.0}})
+                                                                         "min_score": 0.0,
+                                                                         "score_calibration": False}})
 #: The ablation: the printed Eq. (12) solved by least squares (minimum-norm solution).
 PAPER_LSTSQ = PAPER.override({"search.solver": "lstsq_eq12"})
 #: The default: the paper's future work and the fixes of docs/detector.md.

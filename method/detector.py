@@ -33,7 +33,10 @@ class Sphere:
     centre_m (3,): centre, metres, camera frame. radius_m: the known radius R used.
     free_radius_m: the radius of a free (centre + radius) fit to the inliers, with its standard
         error free_radius_se_m (the size check). inlier_indices (K,): indices into cloud.points.
-    score: confidence in [0, 1], comparable across frames (ranks detections for mAP).
+    score: in [0, 1], comparable across frames (ranks detections for mAP): for the improved pipeline
+        the estimated probability that a ball of radius R lies within 2 cm (3 cm beyond 3 m deep) of
+        centre_m (``Verification.probability`` of raw_score); for the paper's, its support ratio.
+    raw_score: the product of the evidence factors the score is mapped from (``improved.confidence_factors``).
     rmse_m: RMS of ||p - c|| - R over the inliers (the RMSE of Table 2, as this project defines it).
     circle_paper, circle_exact: (cx, cy, r) pixels by the paper's rule and by the exact silhouette,
         clipped to the image and, for a partly hidden sphere, to its visible pixels
@@ -49,6 +52,7 @@ class Sphere:
     score: float
     rmse_m: float
     free_radius_se_m: float = float("nan")
+    raw_score: float = float("nan")
     circle_paper: Circle | None = None
     circle_exact: Circle | None = None
     evidence: dict = field(default_factory=dict, repr=False)
@@ -64,7 +68,7 @@ class Sphere:
         """The JSON record of the command line (circle: the exact rule)."""
         return {"center": [round(float(v), 6) for v in self.centre_m], "radius": float(self.radius_m),
                 "free_radius": None if not np.isfinite(self.free_radius_m) else round(float(self.free_radius_m), 6),
-                "score": round(float(self.score), 6), "inliers": int(len(self.inlier_indices)),
+                "score": round(float(self.score), 6), "raw_score": round(float(self.raw_score), 6), "inliers": int(len(self.inlier_indices)),
                 "circle": None if self.circle_exact is None else [round(float(v), 3) for v in self.circle_exact],
                 "circle_paper": None if self.circle_paper is None else [round(float(v), 3) for v in self.circle_paper]}
 
@@ -227,7 +231,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         score = len(inl_orig) / (len(inl_orig) + 100.0)
         cp, ce = _circles(cloud, centre, R)
         return [Sphere(centre_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
-                       rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
+                       raw_score=score, rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
     if cloud.organised and len(cloud.points) <= config.input.max_points:
         # organised: NaN points get no pixel, so the searched points are the cloud's own
         frame = prepare_frame(cloud, config)
@@ -245,6 +249,6 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
             inl = v.inliers if index is None else index[v.inliers]
         cp, ce = _circles(cloud, v.centre_m, R, v.stats)
         spheres.append(Sphere(centre_m=v.centre_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
-                              score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
+                              score=config.verification.probability(v.score), raw_score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
                               circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))
     return spheres

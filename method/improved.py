@@ -405,7 +405,7 @@ class PreparedFrame:
         # (candidates within rescore_band below min_score get their whole evidence: ``rescore``)
         fit, ver = config.refinement, config.verification
         self.gate = np.array([size_tolerance(config) if fit.size_check else math.inf, fit.size_sigmas,
-                              max(0.0, ver.min_score - ver.rescore_band), ver.min_inliers], np.float64)
+                              max(0.0, ver.min_raw_score - ver.rescore_band), ver.min_inliers], np.float64)
         #: no early stop (``rescore``: a start's whole score and size verdict count)
         self.no_gate = np.array([math.inf, fit.size_sigmas, 0.0, ver.min_inliers], np.float64)
         self.vout = np.empty(K.N_VOUT, np.float64)
@@ -817,7 +817,7 @@ def verify_pushed(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
     v = None
     for j in range(1 + (config.verification.occluded_push_starts if quiet else 0)):
         v = verify_organised(frame, c0 + j * config.verification.occluded_push_fraction * R * ray, config, buf)
-        if v is not None and v.size_ok and v.score >= config.verification.min_score - config.verification.rescore_band:
+        if v is not None and v.size_ok and v.score >= config.verification.min_raw_score - config.verification.rescore_band:
             break
     return v
 
@@ -948,9 +948,9 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
             # a hypothesis with an occluded side (verified only while none is accepted): pushed back too
             v = (verify_pushed(frame, np.asarray(c0, np.float64), config, buf) if occluded[k]
                  else verify_organised(frame, c0, config, buf))
-            if v is not None and abs(v.score - config.verification.min_score) < config.verification.rescore_band:
+            if v is not None and abs(v.score - config.verification.min_raw_score) < config.verification.rescore_band:
                 v = rescore(frame, v, config, buf)
-        if v is None or not v.size_ok or v.score < config.verification.min_score:
+        if v is None or not v.size_ok or v.score < config.verification.min_raw_score:
             continue
         found.append(v)
         q_accepted = max(q_accepted, float(q))

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
         min_scores = tuple(sorted({float(t) for t in args.min_scores.split(",") if t.strip()}))
     except ValueError:
         raise SphereBenchError(f"--min-scores {args.min_scores!r}: give thresholds in [0, 1] separated by commas, "
-                               "e.g. 0.3,0.35,0.4") from None
+                               "e.g. 0.6,0.67,0.75") from None
     if not all(0.0 <= t <= 1.0 for t in min_scores):
         raise SphereBenchError(f"--min-scores {args.min_scores!r}: every threshold must be within [0, 1]")
     info = run_info()

@@ -209,7 +209,7 @@ def _size(text: str) -> tuple[int, int]:
 
 def _spheres_json(spheres) -> list[dict]:
     return [detections.detection_record(s.score, s.circle_exact, s.centre_m, s.radius_m, len(s.inlier_indices),
-                                        s.evidence.get("visible_fraction"))
+                                        s.evidence.get("visible_fraction"), s.raw_score)
             for s in spheres]
 
 

@@ -69,8 +69,8 @@ def test_flat_form_keeps_the_published_names_and_order():
     # the 134 settings of before the groups keep their order; those added since follow them
     assert list(flat)[131:134] == ["ring_spread_power", "interior_density_power", "calibrate_evidence"]
     assert list(flat)[134:] == ["retry_hole", "hole_min_ring", "hole_min_fraction", "hole_step_fraction",
-                                "hole_min_range_m"]
-    assert len(flat) == len(FLAT_NAMES) == 139 and flat["min_score"] == 0.35
+                                "hole_min_range_m", "score_calibration", "calibration_slope", "calibration_offset"]
+    assert len(flat) == len(FLAT_NAMES) == 142 and flat["min_score"] == 0.67
     for preset in (IMPROVED, PAPER, PAPER_LSTSQ):
         assert DetectorConfig.from_flat({"engine": "detector", **preset.flat()}) == preset
     grouped = sum(len(dataclasses.fields(cls)) for cls in GROUPS.values())
@@ -86,7 +86,7 @@ def test_presets_and_overrides():
     a = config_for("improved", {"verification.min_score": 0.4}, radius_m=0.2, search={"iterations": 500})
     assert (a.verification.min_score, a.radius_m, a.search.iterations) == (0.4, 0.2, 500)
     assert a.get("verification.min_score") == 0.4 and a.get("radius_m") == 0.2
-    assert IMPROVED.verification.min_score == 0.35  # presets are not changed
+    assert IMPROVED.verification.min_score == 0.67  # presets are not changed
     with pytest.raises(SphereBenchError, match=r"unknown detector parameter min_score \(now verification.min_score\)"):
         config_for("improved", min_score=0.4)
     with pytest.raises(SphereBenchError, match="unknown detector parameter"):
@@ -107,6 +107,7 @@ def test_presets_and_overrides():
     ({"paper.zscore_threshold": 0.0}, "paper.zscore_threshold=0.0 must be > 0"),
     ({"eps_m": 0.2}, "eps_m=0.2 must be smaller than the radius 0.12"),
     ({"pipeline": "paper"}, "the paper pipeline samples globally"),
+    ({"verification.calibration_slope": 0.0}, "verification.calibration_slope=0.0 must be > 0 (the map must rise"),
 ])
 def test_each_group_checks_its_settings(bad, says):
     with pytest.raises(SphereBenchError, match="invalid detector configuration: .*" + says.replace("(", r"\(")
@@ -120,3 +121,20 @@ def test_infinity_means_never_only_where_a_setting_says_so():
     assert config_for("improved", never).outline.outline_max_bias_px == math.inf
     with pytest.raises(SphereBenchError, match="evidence.ring_factor=inf must be a finite number"):
         config_for("improved", {"evidence.ring_factor": math.inf})
+
+
+def test_the_score_map_is_increasing_and_min_score_its_image():
+    """score = sigmoid(a logit(raw) + b): strictly increasing, 0 and 1 fixed; min_score (a probability)
+    is compared inside the detector as its inverse image on the raw product; off, the two are one."""
+    v = IMPROVED.verification
+    raws = [0.0, 1e-9, 0.1, 0.3, 0.35, 0.5, 0.9, 1.0 - 1e-6, 1.0]
+    probs = [v.probability(r) for r in raws]
+    assert probs[0] == 0.0 and probs[-1] == 1.0 and all(a < b for a, b in zip(probs, probs[1:]))
+    assert v.probability(v.min_raw_score) == pytest.approx(v.min_score, abs=1e-12)
+    assert v.min_raw_score == pytest.approx(0.349, abs=1e-3)  # the raw threshold of before the map
+    for p in (0.0, 0.2, 0.9, 1.0):
+        w = config_for("improved", {"verification.min_score": p}).verification
+        assert w.probability(w.min_raw_score) == pytest.approx(p, abs=1e-12)
+    off = config_for("improved", {"verification.score_calibration": False}).verification
+    assert off.probability(0.42) == 0.42 and off.min_raw_score == off.min_score
+    assert not PAPER.verification.score_calibration and PAPER.verification.probability(0.42) == 0.42

@@ -17,16 +17,17 @@ NUMBER = (int, float)
 
 def check_detection(d: dict, three_d: bool) -> None:
     """One detection of the schema: every field present, with its type and unit."""
-    assert set(d) == {"score", "center_m", "radius_m", "circle_px", "bbox", "inliers", "visible_fraction"}
+    assert set(d) == {"score", "center_m", "radius_m", "circle_px", "bbox", "inliers", "visible_fraction", "raw_score"}
     assert isinstance(d["score"], NUMBER) and math.isfinite(d["score"])
     if three_d:
         assert len(d["center_m"]) == 3 and all(isinstance(v, NUMBER) for v in d["center_m"]) and d["center_m"][2] > 0
         assert isinstance(d["radius_m"], NUMBER) and 0 < d["radius_m"] < 1  # metres, not pixels
         assert isinstance(d["inliers"], int) and d["inliers"] > 0
         assert d["visible_fraction"] is None or 0.0 <= d["visible_fraction"] <= 1.0
+        assert 0.0 < d["raw_score"] <= 1.0 and 0.0 < d["score"] <= 1.0
     else:
         assert d["center_m"] is None and d["radius_m"] is None and d["inliers"] is None
-        assert d["visible_fraction"] is None
+        assert d["visible_fraction"] is None and d["raw_score"] is None
     c = d["circle_px"]
     if c is None:
         assert d["bbox"] is None

@@ -323,7 +323,7 @@ def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
                                                    (0.40, [0.50] * 5 + [None], True),
                                                    (0.80, [None] * 6, True)])
 def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, again, accepted):
-    """rescore_band: a candidate scoring within 0.15 of min_score (0.35) is verified again from 6
+    """rescore_band: a candidate whose raw score lies within 0.15 of min_score's (0.35) is verified again from 6
     starts about its centre and takes the mean score (a failed start counts 0); one far above it is
     not (0.80 stands though every other start would fail)."""
     from spherebench.method import improved as I
@@ -345,12 +345,12 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     monkeypatch.setattr(I, "verify_organised", fake_verify)
     found = detect(cloud, config_for("improved"), seed=0)
     assert (len(found) == 1) == accepted
-    rescored = abs(first - 0.35) < 0.15
+    rescored = abs(first - config_for("improved").verification.min_raw_score) < 0.15
     assert len(starts) == (7 if rescored else 1)
     if rescored:
         assert np.allclose(np.linalg.norm(np.array(starts[1:]) - c, axis=1), R * np.array([0.2] * 4 + [0.33] * 2))
     if accepted and rescored:
-        assert found[0].score == pytest.approx((first + sum(s or 0.0 for s in again)) / 7)
+        assert found[0].raw_score == pytest.approx((first + sum(s or 0.0 for s in again)) / 7)
         assert found[0].evidence["score_single"] == first
 
 
@@ -490,7 +490,7 @@ def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray():
         start = c - 1.2 * R * c / np.linalg.norm(c)
 
         def found(v):
-            return (v is not None and v.size_ok and v.score >= cfg.verification.min_score
+            return (v is not None and v.size_ok and v.score >= cfg.verification.min_raw_score
                     and np.linalg.norm(v.centre_m - c) < 0.02)
 
         plain += found(I.verify_organised(frame, start, cfg, buf))
@@ -1057,3 +1057,16 @@ def test_the_american_spelling_of_a_spheres_centre_still_answers_with_a_warning(
         got = s.center_m
     np.testing.assert_array_equal(got, s.centre_m)
     assert s.to_dict()["center"] == [0.1, 0.0, 1.0]  # the JSON record keeps its published field
+
+
+def test_reported_score_is_the_mapped_raw_score():
+    """A detection's score is its raw evidence product through the calibration map; with the map off,
+    the same detection reports the product itself."""
+    cloud = scene(ball_c=(0.05, -0.02, 1.1), wall_z=1.8, width=424, height=240)
+    on = detect(cloud, config_for("improved"), seed=0)
+    off = detect(cloud, config_for("improved", {"verification.score_calibration": False,
+                                                "verification.min_score": IMPROVED.verification.min_raw_score}), seed=0)
+    assert len(on) == len(off) >= 1
+    for a, b in zip(on, off):
+        assert a.raw_score == b.raw_score == b.score and np.allclose(a.centre_m, b.centre_m)
+        assert a.score == pytest.approx(IMPROVED.verification.probability(a.raw_score)) and a.score > a.raw_score

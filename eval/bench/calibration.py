@@ -6,7 +6,8 @@ Read from a dataset folder and a prediction set as ``eval.bench.cache`` writes i
 per-scene records hold every detection's center_m and score): ``read_calibration`` from a results
 folder's predictions/<preset>/, ``sets_calibration`` from the scored sets of a report. Only the
 scenes whose balls all have a known centre are labelled (the annotated ones); a negative scene's
-detections are all incorrect. A recorded dataset is left out by the report: its centres are fits.
+detections are all incorrect. A recorded dataset's centres are references (fits to its points), and
+its table says so.
 
     python -m spherebench.eval.bench.calibration --data data --results results
 
@@ -87,16 +88,20 @@ def _frame(labelled: dict, n_bins: int) -> pd.DataFrame:
     return frame
 
 
-def sets_calibration(per_dataset: dict[str, tuple[Path, Sequence[ScoredSet]]], n_bins: int = N_BINS) -> pd.DataFrame:
+def sets_calibration(per_dataset: dict[str, tuple[Path, Sequence[ScoredSet]]], n_bins: int = N_BINS,
+                     references: Sequence[str] = ()) -> pd.DataFrame:
     """calibration_frame of the 3D methods' sets (one per detection run: the exact-rule one) that ran,
     {label: (dataset folder, its scored sets)}; sets whose scores leave [0, 1] are named in
-    attrs["not_probabilities"] instead."""
+    attrs["not_probabilities"] instead. references: the labels whose true centres are reference fits
+    (recorded data), named in attrs["references"]."""
     labelled = {}
     for label, (data_dir, sets) in per_dataset.items():
         mine = [s for s in sets if s.kind == "3d" and s.rule != "paper" and not not_run(s)]
         truths = scene_truths(data_dir) if mine else {}
         labelled.update({(label, s.method): labelled_detections(truths, s.scenes) for s in mine})
-    return _frame(labelled, n_bins)
+    frame = _frame(labelled, n_bins)
+    frame.attrs["references"] = [label for label in references if label in per_dataset]
+    return frame
 
 
 def read_calibration(data: str | Path, results: str | Path, presets: Sequence[str] | None = None,
@@ -140,6 +145,9 @@ def calibration_table(frame: pd.DataFrame) -> Table | None:
              "ECE floor: the median ECE of a perfectly calibrated detector with the same scores on as many "
              "detections (each correct with its score's probability, 400 seeded draws): an ECE near it is "
              "within what the set's size can tell."]
+    if frame.attrs.get("references"):
+        notes.append("On " + ", ".join(f"`{r}`" for r in frame.attrs["references"]) + " (recorded) a true centre is "
+                     "the dataset's reference, a fit to its points, not a measured truth.")
     if frame.attrs.get("not_probabilities"):
         notes.append("Not calibrated (scores outside [0, 1]): " + ", ".join(frame.attrs["not_probabilities"]) + ".")
     return Table(name="calibration", title="Calibration of the 3D methods' scores",

@@ -40,7 +40,7 @@ def truth_verifications(frame, centre_m, config: DetectorConfig, buf):
     c = np.asarray(centre_m, np.float64)
     for off in ((0.0, 0.0, 0.0),) + improved.rescore_starts(config):
         v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
-        if v is not None and abs(v.score - config.verification.min_score) < config.verification.rescore_band:
+        if v is not None and abs(v.score - config.verification.min_raw_score) < config.verification.rescore_band:
             v = improved.rescore(frame, v, config, buf)
         yield v
 
@@ -69,13 +69,13 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
             err = float(np.linalg.norm(v.centre_m - np.asarray(c, np.float64)))
             if beats(best, v.score, v.size_ok, err):
                 best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_score),
+                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_raw_score),
                         "separable": None}
         out.append(best)
     if separable and out:
         clutter = [s for s in detect(cloud, config.override({"verification.min_score": 0.0}), seed=seed)
                    if all(np.linalg.norm(s.centre_m - np.asarray(c)) > CEILING_M for c in centres_m)]
-        best_clutter = max((s.score for s in clutter), default=0.0)
+        best_clutter = max((s.raw_score for s in clutter), default=0.0)
         for r in out:
             r["separable"] = bool(r["size_ok"] and r["error_m"] <= CEILING_M and r["score"] > best_clutter)
     return out

@@ -162,8 +162,8 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     sets_by = {k: v[2] for k, v in per_dataset.items()}
     facts = {label: recorded.facts(data_dir) for label, (data_dir, _, _) in per_dataset.items()}
     about = {label: recorded.reading(label, f, per_dataset[label][2]) for label, f in facts.items() if f is not None}
-    calib = calibration.sets_calibration({label: (data_dir, sets) for label, (data_dir, _, sets) in per_dataset.items()
-                                          if facts[label] is None})  # a recording's centres are fits
+    calib = calibration.sets_calibration({label: (data_dir, sets) for label, (data_dir, _, sets) in per_dataset.items()},
+                                         references=[label for label, f in facts.items() if f is not None])
     tables, transfer_rows = _tables(per_dataset, facts, about, t2, paper_rows_for, beside, calib)
     metrics = metrics_json(sets_by)
     fig_paths = _figures(out, per_dataset, facts, metrics, transfer_rows, ceilings, calib) if figures else {}

@@ -45,7 +45,7 @@ from spherebench.provenance import dist_version, machine_info
 
 NEAR_M = 2.0            # the median centre error is over balls at most this far
 CONFIGS = ("improved", "paper", "paper-lstsq", "pyransac3d")
-MIN_SCORES = (0.30, 0.325, 0.35, 0.375, 0.40)  # the operating points (improved's min_score)
+MIN_SCORES = (0.55, 0.60, 0.67, 0.75, 0.80)  # the operating points (improved's min_score, a probability)
 EPS_M = 0.01            # the detectors' eps, and the peer's radius tolerance
 
 

@@ -87,7 +87,7 @@ def oracle_verify(frame, centre, config, buf) -> dict:
         err = float(np.linalg.norm(v.centre_m - c))
         if beats(best, v.score, v.size_ok, err):
             best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                    "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_score)}
+                    "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_raw_score)}
             keep = v
     if keep is not None:
         best["free_radius"] = float(keep.free_radius_m)
@@ -134,7 +134,7 @@ def scene_record(k: int, sd: Path, config, noise: dict) -> dict:
     return {"scene": sd.name, "index": k, "family": gt.get("family"), "resolution": gt["meta"]["resolution"],
             "noise_a": float(frame.noise_a), "noise_corr_px": float(frame.noise_corr_px),
             "balls": balls, "distractors": dists,
-            "detections": [{"center": [float(x) for x in s.centre_m], "score": float(s.score),
+            "detections": [{"center": [float(x) for x in s.centre_m], "score": float(s.raw_score),
                             "free_radius": float(s.free_radius_m), "free_radius_se": float(s.free_radius_se_m)}
                            for s in spheres],
             "verified": [candidate_row(v) for v in log.records]}
@@ -159,7 +159,7 @@ def check(args) -> int:
             continue
         checked += 1
         cloud = inout.load_cloud(sd)
-        got = [round(s.score, 9) for s in detect(cloud, config, seed=detection_seed(0, k))]
+        got = [round(s.raw_score, 9) for s in detect(cloud, config, seed=detection_seed(0, k))]
         if got != [round(d["score"], 9) for d in r["detections"]]:
             bad += 1
             print(f"{sd.name}: detections differ")
@@ -402,7 +402,7 @@ def report(args) -> int:
     config = ts.study_config()
     nms_m = config.verification.nms_distance_fraction * 2 * config.radius_m
     data = {name: ts.read_jsonl(path) for name, path in ts.named_paths(args.sets)}
-    text, summary = report_tables(data, config.verification.min_score, nms_m)
+    text, summary = report_tables(data, config.verification.min_raw_score, nms_m)
     print(text)
     support.write_json(args.json, {"summary": summary})
     return 0
