@@ -40,7 +40,7 @@ from spherebench.datasets.annotate import draw_detections, labelme_from_circles,
 from spherebench.datasets.frame_sources import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.errors import SphereBenchError
-from spherebench.method import PRESETS, config_for, detect, stream, warm_up
+from spherebench.method import IMPROVED, PRESETS, config_for, detect, stream, warm_up
 
 #: The ball radius without --radius or a scene's own, metres: a basketball's.
 DEFAULT_RADIUS_M = 0.12
@@ -70,6 +70,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the sensor's depth noise as sigma_z = A z^2 (A in 1/m) for organised clouds, in place of "
                         "the D435 stereo model at the stream's fx (0.08 / (fx 0.05 m)); set it for a sensor "
                         "noisier than that (a quieter one is measured from the data)")
+    p.add_argument("--min-score", type=options.fraction, default=None, metavar="P",
+                   help="report only detections whose score, the estimated probability that it is a ball within "
+                        f"2 cm, is at least P (default {IMPROVED.verification.min_score:g}; the improved method only)")
     p.add_argument("--intrinsics", default=None, help="intrinsics.json for clouds without their own")
     p.add_argument("--seed", type=options.seed, default=0, help="random seed (same seed, same output)")
     p.add_argument("--json", action="store_true", help="one JSON line per input or frame (docs/formats.md)")
@@ -254,6 +257,9 @@ def _check_arguments(args: argparse.Namespace) -> bool:
         _tolerance(args, args.radius, "--radius", "--radius")
     if args.depth_noise is not None and not (np.isfinite(args.depth_noise) and args.depth_noise >= 0):
         raise SphereBenchError(f"--depth-noise {args.depth_noise}: give sigma_z / z^2 in 1/m, >= 0 (e.g. 0.0015)")
+    if args.min_score is not None and PRESETS[args.method].pipeline != "improved":
+        raise SphereBenchError(f"--min-score: the {args.method} method reports every sphere it finds; --min-score "
+                               "applies to --method improved")
     camera = args.camera or ""
     if camera and ("/" in camera or Path(camera).suffix or Path(camera).exists()):
         raise SphereBenchError(f"--camera {camera}: --camera takes a serial number; give the file as a PATH argument "
@@ -388,6 +394,8 @@ def run(args: argparse.Namespace) -> int:
     _check_arguments(args)
     selection = FrameSelection.parse(args.every, args.frames, args.time_range)
     extra = {} if args.depth_noise is None else {"noise": {"noise_z2_per_m": args.depth_noise}}
+    if args.min_score is not None:
+        extra["verification"] = {"min_score": args.min_score}
     intr = inout.read_intrinsics(args.intrinsics) if args.intrinsics else None
     bad = BadInputs("spherebench detect")
     jobs = _jobs(args, selection, bad)

@@ -111,3 +111,17 @@ def test_sweep_script_on_small_dataset(small_default, tmp_path, capsys):
         assert sweep.main([str(small_default), *bad]) == 2
         err = capsys.readouterr().err
         assert err.startswith(("sweep: error:", "spherebench-sweep: error: argument")) and err.count("\n") == 1
+
+
+def test_detect_min_score_is_the_probability_threshold(paper_dataset, capsys):
+    """--min-score P reports only detections of score (probability) at least P; the paper's pipeline,
+    which has no such threshold, refuses it in one line."""
+    scene = str(inout.list_scenes(paper_dataset)[0])
+    assert cli.main(["detect", scene, "--json"]) == 0
+    plain = json.loads(capsys.readouterr().out)["detections"]
+    assert plain and all(d["score"] >= 0.67 for d in plain)
+    assert cli.main(["detect", scene, "--json", "--min-score", "1"]) == 0
+    assert json.loads(capsys.readouterr().out)["detections"] == []
+    assert cli.main(["detect", scene, "--method", "paper", "--min-score", "0.5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--min-score applies to --method improved" in err[0]
