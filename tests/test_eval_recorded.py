@@ -98,6 +98,9 @@ def test_evaluate_scores_a_recording_against_its_reference_centres(rec, tmp_path
     assert "a test's results" in beside
     m3d = (out / "tables" / "metrics3d_rec.md").read_text()
     assert "against its reference centres" in m3d and "within one radius (0.2 m)" in m3d
+    # the scores' calibration against the reference centres, which the table names as such
+    calib = (out / "tables" / "calibration.md").read_text()
+    assert "| rec | improved | 2 | 2 |" in markdown_cells(calib) and "`rec` (recorded)" in calib
     # the review sheets of another tool are kept, and named; the examples are drawn on colour
     assert (sheets / "overview_01.png").read_bytes() == b"a review sheet"
     assert "figures/annotation/" in text and (out / "figures" / "examples_rec.png").is_file()

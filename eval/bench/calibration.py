@@ -91,13 +91,15 @@ def _frame(labelled: dict, n_bins: int) -> pd.DataFrame:
 def sets_calibration(per_dataset: dict[str, tuple[Path, Sequence[ScoredSet]]], n_bins: int = N_BINS,
                      references: Sequence[str] = ()) -> pd.DataFrame:
     """calibration_frame of the 3D methods' sets (one per detection run: the exact-rule one) that ran,
-    {label: (dataset folder, its scored sets)}; sets whose scores leave [0, 1] are named in
+    {label: (dataset folder, its scored sets)}, those with labelled scenes; sets whose scores leave [0, 1] are named in
     attrs["not_probabilities"] instead. references: the labels whose true centres are reference fits
     (recorded data), named in attrs["references"]."""
     labelled = {}
     for label, (data_dir, sets) in per_dataset.items():
         mine = [s for s in sets if s.kind == "3d" and s.rule != "paper" and not not_run(s)]
         truths = scene_truths(data_dir) if mine else {}
+        if not truths:  # nothing to label against (an unannotated recording)
+            continue
         labelled.update({(label, s.method): labelled_detections(truths, s.scenes) for s in mine})
     frame = _frame(labelled, n_bins)
     frame.attrs["references"] = [label for label in references if label in per_dataset]
