@@ -428,21 +428,22 @@ def qq_figures(data: dict[str, list[dict]], folder: Path) -> list[str]:
     written = []
     for test in QQ_TESTS:
         key = TESTS[test]
+        lim = 5.0 if test in ("relief", "size") else 20.0
         fig, ax = plt.subplots(figsize=(4.2, 4.0), dpi=80)
-        for name, recs in data.items():
+        for j, (name, recs) in enumerate(data.items()):
             balls = [b for b in verified_balls(recs) if b["resolution"] == "424x240"]
             for k, style in ((key, "-"), (z_key_true(key), ":")):
                 z = np.sort([x for b in balls for x in standardised(b, test, k)])
-                z = z[np.isfinite(z)]
                 if len(z) < 5:
                     continue
                 theo = sps.norm.ppf((np.arange(1, len(z) + 1) - 0.5) / len(z))
                 label = name + (" (true noise)" if k != key else "")
-                ax.plot(theo, np.clip(z, -10, 10), style, lw=1.5, label=label)
+                ax.plot(theo, np.clip(z, -lim, lim), style, color=f"C{j}", lw=1.5, label=label)
         ax.plot([-3, 3], [-3, 3], "k--", lw=0.8)
-        ax.set(xlim=(-3.2, 3.2), ylim=(-10, 10), xlabel="N(0, 1) quantile", ylabel=f"{test} {key} (clipped at 10)",
+        ax.set(xlim=(-3.2, 3.2), ylim=(-lim, lim), xlabel="N(0, 1) quantile", ylabel=f"{test} {key} (clipped at {lim:g})",
                title=f"{test}: true balls at 424x240")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
         fig.tight_layout()
         path = folder / f"null_qq_{test}.png"
         fig.savefig(path)
