@@ -415,8 +415,17 @@ def noise_table(data: dict[str, list[dict]]) -> str:
             nr = [b["noise_r"] for r in rr for b in r["balls"]]
             rows.append([name, res, len(rr), len(known), _quantiles(used), _quantiles(meas),
                          f"{np.median([r['noise_corr_px'] for r in rr]):.2f}", _quantiles(nr)])
-    return ts.table(["set", "resolution", "scenes", "with true A", "A used / true q10/q50/q90",
-                     "A measured / true", "frame corr. px (median)", "sigma_z / R at the ball"], rows)
+    md = ts.table(["set", "resolution", "scenes", "with true A", "A used / true q10/q50/q90",
+                   "A measured / true", "frame corr. px (median)", "sigma_z / R at the ball"], rows)
+    rows = []
+    for name, recs in data.items():
+        for family in sorted({r["family"] for r in recs}):
+            meas = [r["noise_a_measured"] / r["noise_a_true"] for r in recs
+                    if r["family"] == family and r["noise_a_true"] and r["noise_a_measured"]]
+            if meas:
+                rows.append([name, family, len(meas), _quantiles(meas)])
+    return md + "\nPer family (every scene with a measured and a true A, all resolutions):\n\n" + ts.table(
+        ["set", "family", "scenes", "A measured / true q10/q50/q90"], rows)
 
 
 def qq_figures(data: dict[str, list[dict]], folder: Path) -> list[str]:
