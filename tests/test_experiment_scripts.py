@@ -233,3 +233,37 @@ def test_score_calibration_collects_fits_a_monotone_map_and_reports(train4, tmp_
     assert cal.main(["report", str(knots), f"train4={lines}"]) == 0
     out = capsys.readouterr().out
     assert "| train4 |" in out and "ECE mapped" in out
+
+
+def test_null_checks_records_each_tests_statistic_of_true_balls(train4, stereo2, tmp_path, capsys):
+    script = _script("null_checks")
+    quiet = simulate.generate_dataset("train", tmp_path / "quiet2", n=2, progress=False,
+                                      sensor_overrides={"subpixel": 0.02, "correlation_px": 0.0})
+    lines = {}
+    for name, data, extra in (("train4", train4, []), ("quiet", quiet, []), ("stereo", stereo2, ["--truth-noise"])):
+        lines[name] = tmp_path / f"{name}.jsonl"
+        assert script.main(["collect", str(data), str(lines[name]), "--workers", "1", *extra]) == 0
+    min_score = config_for("improved").verification.min_score
+    for name, path in lines.items():
+        recs = _lines(path)
+        assert recs and all(set(r) >= {"scene", "resolution", "noise_a", "noise_a_measured", "noise_a_true",
+                                       "noise_corr_px", "balls"} for r in recs)
+        for b in (b for r in recs for b in r["balls"] if b["verified"]):
+            assert set(b) >= {"z_m", "band", "noise_r", "score", "size_ok", "accepted", "factors", "tests", "stride"}
+            assert set(b["tests"]) == set(script.TESTS) and b["accepted"] == (b["size_ok"] and b["score"] >= min_score)
+            t = b["tests"]
+            # the detector's factors fall below 1 exactly where the statistic passes its allowance
+            assert (b["factors"]["relief"] < 1.0) == (t["relief"]["t"] > 1.0)
+            assert (b["factors"]["ring_front"] < 1.0) == (t["ring_front"]["share"] > t["ring_front"]["allowed"])
+            if t["see_through"]["share"] is not None:
+                assert (b["factors"]["see_through"] < 1.0) == (t["see_through"]["share"] > t["see_through"]["allowed"])
+            assert all(0.0 <= t[k]["nominal"] <= 1.0 for k in ("relief", "see_through", "coverage", "behind"))
+    # analytic scenes know their true noise; the quiet scene's true balls have a finite relief t
+    assert all(r["noise_a_true"] > 0 for name in ("train4", "quiet") for r in _lines(lines[name]))
+    quiet_balls = [b for r in _lines(lines["quiet"]) for b in r["balls"] if b["verified"]]
+    assert quiet_balls and all(math.isfinite(b["tests"]["relief"]["t0_h"]) for b in quiet_balls)
+    assert any(r["noise_a_true"] for r in _lines(lines["stereo"]))  # the rebuilt truth's
+    res, text = _run("null_checks", ["report", *(f"{n}={p}" for n, p in lines.items()), "--figures",
+                                     str(tmp_path / "fig")], tmp_path, capsys)
+    assert "### Per test at 424x240" in text and "| relief |" in text and "### ring_spread" in text
+    assert len(res["figures"]) == len(script.QQ_TESTS) and all(Path(f).stat().st_size < 150_000 for f in res["figures"])
