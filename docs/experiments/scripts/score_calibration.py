@@ -99,7 +99,7 @@ def collect(dataset: str, out: Path, seeds: list[int], overrides: dict, workers:
     spec = detector_spec("improved", **{"radius_m": config.radius_m, **overrides})
     name = Path(dataset).name
     with executor(workers) as ex:
-        records = run_tasks(ex, [t for seed in seeds for t in tasks_for(spec, scenes, seed)])
+        records = list(run_tasks(ex, [t for seed in seeds for t in tasks_for(spec, scenes, seed)]))
     frames = {s.scene_id: frame_features(s.path, config) for s in scenes}
     lines = []
     for (seed, scene), rec in zip(((seed, s) for seed in seeds for s in scenes), records):
