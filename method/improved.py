@@ -539,12 +539,17 @@ def see_through_excess(stats: dict, free: float, sigmas: float = 3.0) -> float:
     plus ``sigmas`` binomial standard errors (``see_through_sigmas``) plus ``free``
     (``see_through_free``: flying pixels, a band narrowed to the data)."""
     n = stats.get("valid_inner", 0.0)
-    sigma = stats.get("sigma_m", 0.0)
     if n < 1:
         return 0.0
+    return max(0.0, stats["behind_inner"] / n - see_through_allowance(stats, free, sigmas))
+
+
+def see_through_allowance(stats: dict, free: float, sigmas: float = 3.0) -> float:
+    """The inner disc's share behind the sphere that ``see_through_excess`` allows: the normal tail
+    beyond the band, ``sigmas`` binomial errors over effective samples, and ``free``."""
+    n, sigma = max(stats.get("valid_inner", 0.0), 1.0), stats.get("sigma_m", 0.0)
     q = 0.5 * math.erfc(stats["eps_m"] / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
-    allowed = q + sigmas * math.sqrt(q * (1.0 - q) * stats.get("pixels_per_sample", 1.0) / n) + free
-    return max(0.0, stats["behind_inner"] / n - allowed)
+    return q + sigmas * math.sqrt(q * (1.0 - q) * stats.get("pixels_per_sample", 1.0) / n) + free
 
 
 def edge_behind_excess(stats: dict, free: float, sigmas: float = 2.0) -> float:
@@ -560,8 +565,14 @@ def edge_behind_excess(stats: dict, free: float, sigmas: float = 2.0) -> float:
     n = stats.get("edge_n", 0.0)
     if n < 1:
         return 0.0
-    allowed = free + sigmas * math.sqrt(free * (1.0 - free) * stats.get("pixels_per_sample", 1.0) / n)
-    return max(0.0, stats["edge_behind"] / n - allowed)
+    return max(0.0, stats["edge_behind"] / n - edge_behind_allowance(stats, free, sigmas))
+
+
+def edge_behind_allowance(stats: dict, free: float, sigmas: float = 2.0) -> float:
+    """The edge band's share behind the sphere that ``edge_behind_excess`` allows: ``free`` plus
+    ``sigmas`` binomial errors over effective samples."""
+    n = max(stats.get("edge_n", 0.0), 1.0)
+    return free + sigmas * math.sqrt(free * (1.0 - free) * stats.get("pixels_per_sample", 1.0) / n)
 
 
 def size_tolerance(config: DetectorConfig) -> float:
@@ -588,6 +599,27 @@ def noise_shares(stats: dict, config: DetectorConfig) -> tuple[float, float]:
         return 1.0, 0.0
     z, z_full = capped / (sigma * math.sqrt(2.0)), band / (sigma * math.sqrt(2.0))
     return max(math.erf(z) / math.erf(z_full), 1e-6), 0.5 * (math.erfc(z) - math.erfc(z_full))
+
+
+def size_deviation(free_r: float, free_se: float, config: DetectorConfig) -> float:
+    """The free radius's deviation from R in units of the size tolerance and its standard error (R
+    standing in for an unknown error; inf without a free radius)."""
+    se = free_se if math.isfinite(free_se) else config.radius_m
+    return (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
+
+
+def coverage_visible_share(stats: dict, size_d: float, config: DetectorConfig) -> float:
+    """The visible share coverage is taken over: ``visible_fraction`` for a ball standing free (its
+    outline ring not continued at its depth beyond occlusion_ring_max), seen enough and of the right
+    size (``size_deviation`` size_d within occlusion_size_sigmas), so that the pixels a nearer surface
+    hides count neither for nor against it; 1 elsewhere."""
+    ev = config.evidence
+    ring = stats["ring_continued"] / max(stats["ring"], 1.0)
+    visible = stats.get("visible_fraction", 1.0)
+    if (ring > ev.occlusion_ring_max or visible < ev.occlusion_min_visible
+            or not (config.refinement.size_check and abs(size_d) <= ev.occlusion_size_sigmas)):
+        return 1.0
+    return visible
 
 
 def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
@@ -618,9 +650,7 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
     units of (``size_tolerance`` + its standard error). Every exponent and allowance is a setting
     of ``DetectorConfig.evidence``."""
     f = {"support": n_inliers / (n_inliers + config.verification.min_inliers)}
-    # the free radius's deviation from R in units of the size tolerance and its standard error
-    se = free_se if math.isfinite(free_se) else config.radius_m
-    size_d = (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
+    size_d = size_deviation(free_r, free_se, config)
     if organised:
         vd = max(stats["valid_disc"], 1.0)
         p_in, q_behind = noise_shares(stats, config)
@@ -631,12 +661,7 @@ def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: floa
         seen = see_through_excess(stats, config.evidence.see_through_free, config.evidence.see_through_sigmas)
         edge = edge_behind_excess(stats, config.evidence.edge_behind_free, config.evidence.edge_behind_sigmas)
         spread = max(0.0, stats.get("ring_spread", 0.0) - config.evidence.ring_spread_free)
-        # a ball standing free (its outline ring not continued at its depth), seen enough and of the
-        # right size: the pixels a nearer surface hides count neither for nor against (discount 1)
-        visible = stats.get("visible_fraction", 1.0)
-        if (ring > config.evidence.occlusion_ring_max or visible < config.evidence.occlusion_min_visible
-                or not (config.refinement.size_check and abs(size_d) <= config.evidence.occlusion_size_sigmas)):
-            visible = 1.0
+        visible = coverage_visible_share(stats, size_d, config)
         discount = config.evidence.occlusion_discount
         f.update(coverage=min(1.0, stats["inlier"] / vd / p_in / max(visible, 1e-6) ** discount),
                  behind=(1.0 - behind) ** config.evidence.behind_power,

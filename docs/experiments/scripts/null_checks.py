@@ -155,20 +155,6 @@ def band_shares(eps: float, sigma: float) -> tuple[float, float]:
     return math.erf(x), 0.5 * math.erfc(x)
 
 
-def coverage_visible(st: dict, free_r: float, free_se: float, config) -> float:
-    """The visible share the coverage factor divides by: ``visible_fraction`` where the detector's
-    three conditions hold (a ball standing free, seen enough, of the right size), else 1."""
-    ev, R = config.evidence, config.radius_m
-    se = free_se if math.isfinite(free_se) else R
-    d = (free_r - R) / (improved.size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
-    ring = st["ring_continued"] / max(st["ring"], 1.0)
-    visible = st.get("visible_fraction", 1.0)
-    if (ring > ev.occlusion_ring_max or visible < ev.occlusion_min_visible
-            or not (config.refinement.size_check and abs(d) <= ev.occlusion_size_sigmas)):
-        return 1.0
-    return visible
-
-
 def tests(st: dict, free_r: float, free_se: float, config, a_ratio: float | None) -> dict:
     """Every test's statistic of one verification (module docstring)."""
     ev = config.evidence
@@ -177,16 +163,14 @@ def tests(st: dict, free_r: float, free_se: float, config, a_ratio: float | None
     pt_band, qt_tail = band_shares(eps, sigma / a_ratio) if a_ratio else (None, None)
     vd = max(st["valid_disc"], 1.0)
     p_in, q_behind = improved.noise_shares(st, config)
-    visible = coverage_visible(st, free_r, free_se, config)
-    q_st = 0.5 * math.erfc(eps / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
-    see_allowed = q_st + ev.see_through_sigmas * math.sqrt(
-        q_st * (1.0 - q_st) * per / max(st.get("valid_inner", 0.0), 1.0)) + ev.see_through_free
+    visible = improved.coverage_visible_share(st, improved.size_deviation(free_r, free_se, config), config)
+    see_allowed = improved.see_through_allowance(st, ev.see_through_free, ev.see_through_sigmas)
     edge_n = st.get("edge_n", 0.0)
     edge = {"share": st["edge_behind"] / edge_n if edge_n >= 1 else None, "allowed": ev.edge_behind_free}
     if edge_n >= 1:
         se = math.sqrt(ev.edge_behind_free * (1.0 - ev.edge_behind_free) * per / edge_n)
         edge["z"] = (edge["share"] - ev.edge_behind_free) / se
-        edge["allowed"] = ev.edge_behind_free + ev.edge_behind_sigmas * se
+        edge["allowed"] = improved.edge_behind_allowance(st, ev.edge_behind_free, ev.edge_behind_sigmas)
     ring = max(st["ring"], 1.0)
     return {
         "relief": relief_test(st, config, a_ratio),
