@@ -277,7 +277,9 @@ class Verification(_Group):
     min_inliers: int = 30  # fewer inliers: no detection
     max_spheres: int = 4  # at most this many spheres per frame
     nms_distance_fraction: float = 0.75  # suppress a sphere within this fraction of 2R of a better one
-    min_score: float = 0.67  # report only detections whose score (a probability, below) is at least this
+    accept_score: float = 0.67  # a candidate this probable (below) is taken as a ball: the search narrows, the retries stop
+    min_score: float = 0.67  # detect() reports the candidates at least this probable (the search is the same at any)
+    rank_floor: float = 0.01  # candidates less probable than this are not ranked (the benchmark's floor, as CircleNet's)
     score_calibration: bool = True  # score: the probability of a ball within 2 cm (3 beyond 3 m); False: the raw product
     calibration_slope: float = 2.102  # probability = sigmoid(slope logit(raw) + offset), fitted on train + train-stereo
     calibration_offset: float = 2.018  # ... (see docs/detector.md, "What the score means")
@@ -288,7 +290,7 @@ class Verification(_Group):
         "rescore_offset_z": ">= 0", "multistart_noise_fraction": "> 0", "occluded_push_fraction": _FRACTION_OF_R,
         "occluded_push_starts": "0-10", "occluded_push_noise_fraction": ">= 0", "interior_bands": ">= 0",
         "min_inliers": ">= 3", "max_spheres": ">= 1", "nms_distance_fraction": "[0, 1]",
-        "min_score": "[0, 1]", "calibration_slope": "> 0"}
+        "accept_score": "[0, 1]", "min_score": "[0, 1]", "rank_floor": "[0, 1]", "calibration_slope": "> 0"}
     NOTES: typing.ClassVar[dict] = {"multistart_noise_fraction": "a fraction of R; inf for never",
                                     "occluded_push_starts": "0: off",
                                     "calibration_slope": "the map must rise with the evidence"}
@@ -300,14 +302,22 @@ class Verification(_Group):
             return float(raw)
         return 1.0 / (1.0 + math.exp(-(self.calibration_slope * math.log(raw / (1.0 - raw)) + self.calibration_offset)))
 
-    @property
-    def min_raw_score(self) -> float:
-        """``min_score`` on the raw evidence product: the map's inverse, which every decision inside the
-        detector compares the product with."""
-        p = self.min_score
+    def raw(self, p: float) -> float:
+        """The raw evidence product whose probability is p: the map's inverse, which the decisions inside
+        the detector compare the product with."""
         if not self.score_calibration or p <= 0.0 or p >= 1.0:
             return float(p)
         return 1.0 / (1.0 + math.exp(-(math.log(p / (1.0 - p)) - self.calibration_offset) / self.calibration_slope))
+
+    @property
+    def accept_raw_score(self) -> float:
+        """``accept_score`` on the raw evidence product."""
+        return self.raw(self.accept_score)
+
+    @property
+    def floor_raw_score(self) -> float:
+        """``rank_floor`` on the raw evidence product, never above ``accept_raw_score``."""
+        return min(self.raw(self.rank_floor), self.accept_raw_score)
 
 
 @dataclass(frozen=True)
@@ -568,7 +578,8 @@ _FLAT_ORDER = """
     ring_continued_power ring_front_free ring_front_power see_through_free see_through_power see_through_sigmas
     edge_behind_free edge_behind_power edge_behind_sigmas relief_floor_fraction relief_free_sigmas
     ring_spread_free ring_spread_power interior_density_power calibrate_evidence retry_hole hole_min_ring
-    hole_min_fraction hole_step_fraction hole_min_range_m""".split()
+    hole_min_fraction hole_step_fraction hole_min_range_m score_calibration calibration_slope calibration_offset
+    accept_score rank_floor""".split()
 #: Bare name -> path, in the flat form's order (bare names are unique across the groups).
 FLAT_NAMES = {**{n: _BY_NAME[n] for n in _FLAT_ORDER}, **{n: p for n, p in _BY_NAME.items() if n not in _FLAT_ORDER}}
 #: Every accepted path -> itself, and the model fields' bare names.

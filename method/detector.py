@@ -132,7 +132,7 @@ def prepare_frame(cloud: Cloud, config: DetectorConfig) -> PreparedFrame:
 VISIBLE_CIRCLE_BELOW = 0.9
 
 
-def _circles(cloud: Cloud, c: np.ndarray, R: float,
+def sphere_circles(cloud: Cloud, c: np.ndarray, R: float,
              evidence: dict | None = None) -> tuple[Circle | None, Circle | None]:
     """(paper's circle, exact circle) px of a sphere; the exact one is of the visible silhouette where an
     occluder hides part of it (evidence: the improved pipeline's, with visible_fraction and sigma_m)."""
@@ -204,12 +204,17 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
     K.shell_counts(organised.points, centre.reshape(1, 3), config.radius_m, config.eps_m)
 
 
-def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0) -> list[Sphere]:
-    """Find balls of radius ``config.radius_m`` in ``cloud``; best first (at most ``config.verification.max_spheres``).
+def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0, *,
+           min_score: float | None = None, max_spheres: int | None = None) -> list[Sphere]:
+    """Find balls of radius ``config.radius_m`` in ``cloud``; best first.
 
     cloud: points (N, 3) metres in the camera frame (camera at the origin, z forward), organised
         (pixel rows/cols + intrinsics: image-window sampling and silhouette checks) or not.
     seed: the random seed (same seed, same output); None for a fresh one.
+    min_score, max_spheres: report the distinct spheres whose score is at least min_score (default
+        ``config.verification.min_score``; the improved pipeline ranks none below its ``rank_floor``),
+        at most max_spheres (default ``config.verification.max_spheres``). The search is the same
+        whatever they are: a lower min_score adds spheres below the others, it changes none.
     Raises SphereBenchError on bad input (see the module docstring).
     """
     if not isinstance(config, DetectorConfig):
@@ -229,25 +234,26 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         rmse = float(np.sqrt(np.mean(res * res))) if len(res) else float("nan")
         # the paper has no confidence: a saturating function of the support stands in for it
         score = len(inl_orig) / (len(inl_orig) + 100.0)
-        cp, ce = _circles(cloud, centre, R)
+        cp, ce = sphere_circles(cloud, centre, R)
         return [Sphere(centre_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
                        raw_score=score, rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
+    least = None if min_score is None else config.verification.raw(float(min_score))
     if cloud.organised and len(cloud.points) <= config.input.max_points:
         # organised: NaN points get no pixel, so the searched points are the cloud's own
         frame = prepare_frame(cloud, config)
         work, index, subsampled = cloud, None, False
-        found = run_improved(cloud.points, frame, config, search_seed(seed))
+        found = run_improved(cloud.points, frame, config, search_seed(seed), least, max_spheres)
     else:
         rng = np.random.default_rng(seed)
         work, index, subsampled = prepare_cloud(cloud, config, rng)
-        found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)))
+        found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)), least, max_spheres)
     spheres = []
     for v in found:
         if subsampled:
             inl = _all_inliers(cloud, v.centre_m, R, v.eps_m)
         else:
             inl = v.inliers if index is None else index[v.inliers]
-        cp, ce = _circles(cloud, v.centre_m, R, v.stats)
+        cp, ce = sphere_circles(cloud, v.centre_m, R, v.stats)
         spheres.append(Sphere(centre_m=v.centre_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
                               score=config.verification.probability(v.score), raw_score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
                               circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))

@@ -401,11 +401,13 @@ class PreparedFrame:
         self.iterations = -(-hc // self.stratum[0]) * -(-wc // self.stratum[1])
         self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m, self.noise_a,
                               self.noise_corr_px)
-        # verification's size/score gate (``_kernels.verify_organised``) and its output buffers
-        # (candidates within rescore_band below min_score get their whole evidence: ``rescore``)
+        # verification's size/score gate (``_kernels.verify_organised``) and its output buffers: every
+        # candidate that may rank (``rank_floor``) gets its whole evidence, and those within rescore_band
+        # below accept_score too (``rescore``)
         fit, ver = config.refinement, config.verification
+        least = min(ver.floor_raw_score, max(0.0, ver.accept_raw_score - ver.rescore_band))
         self.gate = np.array([size_tolerance(config) if fit.size_check else math.inf, fit.size_sigmas,
-                              max(0.0, ver.min_raw_score - ver.rescore_band), ver.min_inliers], np.float64)
+                              least, ver.min_inliers], np.float64)
         #: no early stop (``rescore``: a start's whole score and size verdict count)
         self.no_gate = np.array([math.inf, fit.size_sigmas, 0.0, ver.min_inliers], np.float64)
         self.vout = np.empty(K.N_VOUT, np.float64)
@@ -842,7 +844,7 @@ def verify_pushed(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
     v = None
     for j in range(1 + (config.verification.occluded_push_starts if quiet else 0)):
         v = verify_organised(frame, c0 + j * config.verification.occluded_push_fraction * R * ray, config, buf)
-        if v is not None and v.size_ok and v.score >= config.verification.min_raw_score - config.verification.rescore_band:
+        if v is not None and v.size_ok and v.score >= config.verification.accept_raw_score - config.verification.rescore_band:
             break
     return v
 
@@ -934,10 +936,12 @@ def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorC
 
 def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: np.ndarray, quals: np.ndarray,
                        occluded: np.ndarray, config: DetectorConfig, buf: np.ndarray | None,
-                       found: list[Candidate], limit_none: int | None = None,
+                       found: list[Candidate], ranked: list[Candidate], limit_none: int | None = None,
                        multistart: bool = True) -> list[np.ndarray]:
-    """Verify the search's candidates (M, 3) m, best first, appending the accepted ones to ``found``;
-    returns the starts verified. While none is accepted, an organised frame verifies up to
+    """Verify the search's candidates (M, 3) m, best first, appending the accepted ones
+    (``accept_score``) to ``found`` and the others that pass the size check and may rank
+    (``rank_floor``) to ``ranked``; returns the starts verified. While none is accepted, an
+    organised frame verifies up to
     ``verify_candidates_if_none`` (or ``limit_none``), and the hypotheses that passed the search's
     pretest only by an occluded side: a frame with a ball pays nothing for either. multistart: a
     noisy hypothesis is verified from several starts while none is accepted (``verify_multistart``)."""
@@ -973,9 +977,12 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
             # a hypothesis with an occluded side (verified only while none is accepted): pushed back too
             v = (verify_pushed(frame, np.asarray(c0, np.float64), config, buf) if occluded[k]
                  else verify_organised(frame, c0, config, buf))
-            if v is not None and abs(v.score - config.verification.min_raw_score) < config.verification.rescore_band:
+            if v is not None and abs(v.score - config.verification.accept_raw_score) < config.verification.rescore_band:
                 v = rescore(frame, v, config, buf)
-        if v is None or not v.size_ok or v.score < config.verification.min_raw_score:
+        if v is None or not v.size_ok or v.score < config.verification.floor_raw_score:
+            continue
+        if v.score < config.verification.accept_raw_score:
+            ranked.append(v)  # ranked, but the search goes on as if it were not there
             continue
         found.append(v)
         q_accepted = max(q_accepted, float(q))
@@ -983,11 +990,17 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
 
 
 def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
-                 seed: int) -> list[Candidate]:
+                 seed: int, min_raw_score: float | None = None, max_spheres: int | None = None) -> list[Candidate]:
     """Search, verify the best candidates, drop the failed ones, suppress duplicates. Best first.
 
     frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
+    The search and its verdicts are the same whatever is reported: the distinct verified spheres
+    whose raw score is at least min_raw_score (default: ``min_score``'s, never below ``rank_floor``'s),
+    at most max_spheres (default ``verification.max_spheres``), are returned.
     """
+    ver = config.verification
+    least = max(ver.raw(ver.min_score) if min_raw_score is None else min_raw_score, ver.floor_raw_score)
+    most = ver.max_spheres if max_spheres is None else max_spheres
     if frame is not None:
         cands, quals, occluded = search_frame(frame, config, seed)
         # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
@@ -999,7 +1012,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         occluded = np.zeros(len(cands), bool)
         buf = None
     found: list[Candidate] = []
-    verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found)
+    ranked: list[Candidate] = []
+    verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found, ranked)
     # organised frames where none is accepted: search again, the descent past occluders, then the
     # stencil stretched off the axis, then for discs standing out of their background, then for holes
     # ringed by a ball's face, and verify the hypotheses not verified before
@@ -1018,15 +1032,16 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         # the best verify_candidates of a retry's new hypotheses, each verified from one start: on `train`
         # 16, or the multistart of noisy ones, found about as many balls, at twice the time on an empty frame
         verified += _verify_candidates(points, frame, cands[new], quals[new], occluded[new], config, buf, found,
-                                       limit_none=config.verification.verify_candidates, multistart=False)
-    found.sort(key=lambda v: -v.score)
+                                       ranked, limit_none=config.verification.verify_candidates, multistart=False)
+    # suppression before the cut, so that the spheres reported at any threshold are those above it at
+    # the floor: a sphere is only ever suppressed by a better one
     kept: list[Candidate] = []
     min_sep = config.verification.nms_distance_fraction * 2.0 * config.radius_m
-    for v in found:
+    for v in sorted(found + ranked, key=lambda v: -v.score):
+        if v.score < least or len(kept) == most:
+            break
         if all(math.dist(v.centre_m, k.centre_m) >= min_sep for k in kept):
             kept.append(v)
-        if len(kept) == config.verification.max_spheres:
-            break
     if frame is not None:
         for v in kept:
             # where the noise nears R, the outline places the centre across the line of sight

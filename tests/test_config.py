@@ -69,8 +69,9 @@ def test_flat_form_keeps_the_published_names_and_order():
     # the 134 settings of before the groups keep their order; those added since follow them
     assert list(flat)[131:134] == ["ring_spread_power", "interior_density_power", "calibrate_evidence"]
     assert list(flat)[134:] == ["retry_hole", "hole_min_ring", "hole_min_fraction", "hole_step_fraction",
-                                "hole_min_range_m", "score_calibration", "calibration_slope", "calibration_offset"]
-    assert len(flat) == len(FLAT_NAMES) == 142 and flat["min_score"] == 0.67
+                                "hole_min_range_m", "score_calibration", "calibration_slope", "calibration_offset",
+                                "accept_score", "rank_floor"]
+    assert len(flat) == len(FLAT_NAMES) == 144 and flat["min_score"] == 0.67
     for preset in (IMPROVED, PAPER, PAPER_LSTSQ):
         assert DetectorConfig.from_flat({"engine": "detector", **preset.flat()}) == preset
     grouped = sum(len(dataclasses.fields(cls)) for cls in GROUPS.values())
@@ -123,18 +124,23 @@ def test_infinity_means_never_only_where_a_setting_says_so():
         config_for("improved", {"evidence.ring_factor": math.inf})
 
 
-def test_the_score_map_is_increasing_and_min_score_its_image():
-    """score = sigmoid(a logit(raw) + b): strictly increasing, 0 and 1 fixed; min_score (a probability)
-    is compared inside the detector as its inverse image on the raw product; off, the two are one."""
+def test_the_score_map_is_increasing_and_raw_its_inverse():
+    """score = sigmoid(a logit(raw) + b): strictly increasing, 0 and 1 fixed; accept_score and rank_floor
+    (probabilities) are compared inside the detector as their inverse images on the raw product; off,
+    the two are one."""
     v = IMPROVED.verification
     raws = [0.0, 1e-9, 0.1, 0.3, 0.35, 0.5, 0.9, 1.0 - 1e-6, 1.0]
     probs = [v.probability(r) for r in raws]
     assert probs[0] == 0.0 and probs[-1] == 1.0 and all(a < b for a, b in zip(probs, probs[1:]))
-    assert v.probability(v.min_raw_score) == pytest.approx(v.min_score, abs=1e-12)
-    assert v.min_raw_score == pytest.approx(0.349, abs=1e-3)  # the raw threshold of before the map
+    assert v.probability(v.accept_raw_score) == pytest.approx(v.accept_score, abs=1e-12)
+    assert v.accept_raw_score == pytest.approx(0.349, abs=1e-3)  # the raw threshold of before the map
+    assert v.probability(v.floor_raw_score) == pytest.approx(v.rank_floor, abs=1e-12)
     for p in (0.0, 0.2, 0.9, 1.0):
-        w = config_for("improved", {"verification.min_score": p}).verification
-        assert w.probability(w.min_raw_score) == pytest.approx(p, abs=1e-12)
+        w = config_for("improved", {"verification.accept_score": p}).verification
+        assert w.probability(w.accept_raw_score) == pytest.approx(p, abs=1e-12)
+    # the floor never lies above acceptance: every accepted candidate ranks
+    high = config_for("improved", {"verification.rank_floor": 0.9}).verification
+    assert high.floor_raw_score == high.accept_raw_score
     off = config_for("improved", {"verification.score_calibration": False}).verification
-    assert off.probability(0.42) == 0.42 and off.min_raw_score == off.min_score
+    assert off.probability(0.42) == 0.42 and off.accept_raw_score == off.accept_score
     assert not PAPER.verification.score_calibration and PAPER.verification.probability(0.42) == 0.42

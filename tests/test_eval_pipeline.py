@@ -307,8 +307,8 @@ def test_circlenet_runs_from_an_onnx_file(tiny, tmp_path):
     results, meta = cache.read_predictions(paths["circlenet"])
     assert meta["kind"] == "2d" and len(meta["scenes"]) == 4
     assert all(RESULT_KEYS <= set(r) and "center_m" not in r for r in results)
-    assert all(registry.CIRCLENET_MIN_SCORE < r["score"] <= 1.0 for r in results)
-    assert all(len(s["detections"]) <= registry.CIRCLENET_TOP_K for s in meta["scenes"])
+    assert all(registry.SCORE_FLOOR <= r["score"] <= 1.0 for r in results)
+    assert all(len(s["detections"]) <= registry.MAX_DETECTIONS for s in meta["scenes"])
 
 
 def test_transfer_table_pairs_a_preset_with_its_stereo_twin(tiny, tmp_path):

@@ -345,7 +345,7 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     monkeypatch.setattr(I, "verify_organised", fake_verify)
     found = detect(cloud, config_for("improved"), seed=0)
     assert (len(found) == 1) == accepted
-    rescored = abs(first - config_for("improved").verification.min_raw_score) < 0.15
+    rescored = abs(first - config_for("improved").verification.accept_raw_score) < 0.15
     assert len(starts) == (7 if rescored else 1)
     if rescored:
         assert np.allclose(np.linalg.norm(np.array(starts[1:]) - c, axis=1), R * np.array([0.2] * 4 + [0.33] * 2))
@@ -490,7 +490,7 @@ def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray():
         start = c - 1.2 * R * c / np.linalg.norm(c)
 
         def found(v):
-            return (v is not None and v.size_ok and v.score >= cfg.verification.min_raw_score
+            return (v is not None and v.size_ok and v.score >= cfg.verification.accept_raw_score
                     and np.linalg.norm(v.centre_m - c) < 0.02)
 
         plain += found(I.verify_organised(frame, start, cfg, buf))
@@ -1065,7 +1065,8 @@ def test_reported_score_is_the_mapped_raw_score():
     cloud = scene(ball_c=(0.05, -0.02, 1.1), wall_z=1.8, width=424, height=240)
     on = detect(cloud, config_for("improved"), seed=0)
     off = detect(cloud, config_for("improved", {"verification.score_calibration": False,
-                                                "verification.min_score": IMPROVED.verification.min_raw_score}), seed=0)
+                                                "verification.accept_score": IMPROVED.verification.accept_raw_score,
+                                                "verification.min_score": IMPROVED.verification.accept_raw_score}), seed=0)
     assert len(on) == len(off) >= 1
     for a, b in zip(on, off):
         assert a.raw_score == b.raw_score == b.score and np.allclose(a.centre_m, b.centre_m)

@@ -26,6 +26,7 @@ import pandas as pd
 from spherebench.datasets import inout
 from spherebench.datasets.simulate import benchmark_presets
 from spherebench.eval.bench.cache import meta_path, read_predictions
+from spherebench.eval.bench.registry import ROLE_CEILING, methods_with_role
 from spherebench.eval.bench.scoring import ScoredSet, not_run
 from spherebench.eval.bench.tables import Table, fmt
 from spherebench.eval.bench.tasks import dataset_scenes
@@ -95,8 +96,9 @@ def sets_calibration(per_dataset: dict[str, tuple[Path, Sequence[ScoredSet]]], n
     attrs["not_probabilities"] instead. references: the labels whose true centres are reference fits
     (recorded data), named in attrs["references"]."""
     labelled = {}
+    ceilings = {m.name for m in methods_with_role(ROLE_CEILING)}  # an oracle's score is no probability
     for label, (data_dir, sets) in per_dataset.items():
-        mine = [s for s in sets if s.kind == "3d" and s.rule != "paper" and not not_run(s)]
+        mine = [s for s in sets if s.kind == "3d" and s.rule != "paper" and not not_run(s) and s.method not in ceilings]
         truths = scene_truths(data_dir) if mine else {}
         if not truths:  # nothing to label against (an unannotated recording)
             continue
@@ -112,6 +114,7 @@ def read_calibration(data: str | Path, results: str | Path, presets: Sequence[st
     results/predictions/<preset>/ (presets: the benchmark's, those present)."""
     data, pred = Path(data), Path(results) / "predictions"
     labelled = {}
+    ceilings = {m.name for m in methods_with_role(ROLE_CEILING)}
     for preset in presets or benchmark_presets():
         if not (data / preset / "coco_gt.json").is_file() or not (pred / preset).is_dir():
             continue
@@ -120,7 +123,7 @@ def read_calibration(data: str | Path, results: str | Path, presets: Sequence[st
             if path.name.endswith(".meta.json") or not meta_path(path).is_file():
                 continue
             meta = read_predictions(path)[1]
-            if meta["kind"] == "3d" and meta.get("rule") != "paper":
+            if meta["kind"] == "3d" and meta.get("rule") != "paper" and meta["method"] not in ceilings:
                 labelled[(preset, meta["method"])] = labelled_detections(truths, meta["scenes"])
     return _frame(labelled, n_bins)
 

@@ -1,5 +1,13 @@
-"""The ceiling of the improved detector on a scene with known ball centres: verification started
-from the truth, so that the search cannot lose the ball.
+"""Ceilings on a scene with known ball centres.
+
+**The own-pixel fit** (``own_pixel_fit``): a sphere of the known radius fitted from the true centre
+on the ball's own pixels (its mask, where the frame has depth): what the ball's depth itself says
+of its centre, whatever any detector's search and verdict do. The benchmark scores these fits as a
+method (``registry``'s ``own-pixel-fit``): the share within 2 cm per range band, and their circles'
+mAP.
+
+**The detector's ceiling** (``ceiling``): verification started from the truth, so that the search
+cannot lose the ball.
 
 For each true ball, the detector's own verification (``improved.verify_organised``: refinement,
 evidence, free-radius size check; ``improved.rescore`` near the threshold) runs on the same prepared
@@ -10,8 +18,8 @@ refinement's optima lie a cm or two apart and one start's end is a draw. The bal
 ``min_score``) with its refined centre within 2 cm of the truth: a detector whose search always
 started there would find it (the best score of those is the ball's score). The **separable** ceiling
 drops the score threshold: the ball's score from the truth beats every clutter sphere the detector
-verifies in the frame (run with ``min_score`` 0), so that some threshold would take it and no false
-detection of that frame.
+verifies in the frame (its ranked output with ``rank_floor`` and ``min_score`` 0: every verified sphere
+that passes the size check), so that some threshold would take it and no false detection of that frame.
 Both are upper bounds of what the detector can reach on the data, not of what the data allow:
 the verification's evidence is the detector's.
 """
@@ -33,6 +41,59 @@ from spherebench.method.detector import prepare_frame
 CEILING_M = 0.02
 
 
+#: The own-pixel fit: at least this many pixels with depth, Gauss-Newton rounds, and the trim (robust
+#: sigmas) of each round: a stereo ball's mask holds background depth along its outline.
+OWN_PIXELS_MIN, OWN_FIT_ROUNDS, OWN_FIT_TRIM_SIGMAS = 20, 4, 3.0
+
+
+def _ray_fit(p: np.ndarray, c: np.ndarray, radius_m: float, iterations: int = 15) -> np.ndarray | None:
+    """Gauss-Newton with R fixed on the range residuals along each point's ray (the depth noise lies along
+    the rays): p (N, 3) m, start c (3,) m; None where fewer than 10 rays meet the sphere."""
+    t = np.linalg.norm(p, axis=1)
+    u = p / t[:, None]
+    c = np.asarray(c, np.float64).copy()
+    for _ in range(iterations):
+        b = u @ c
+        q = radius_m * radius_m - c @ c + b * b
+        hit = q > 1e-10
+        if np.count_nonzero(hit) < 10:
+            return None
+        s = np.sqrt(q[hit])
+        res = t[hit] - (b[hit] - s)  # the pixel's range less its ray's entry into the sphere
+        jac = u[hit] + (c - b[hit, None] * u[hit]) / s[:, None]
+        step = np.linalg.lstsq(jac, res, rcond=None)[0]
+        c += step
+        if float(np.linalg.norm(step)) < 1e-6:
+            break
+    return c
+
+
+def own_pixel_fit(points_m: np.ndarray, centre_m, radius_m: float) -> np.ndarray | None:
+    """The centre (3,) m of a sphere of radius R fitted on a ball's own pixels (N, 3) m from its true centre:
+    ``OWN_FIT_ROUNDS`` rounds, each keeping the pixels within ``OWN_FIT_TRIM_SIGMAS`` robust sigmas of the
+    median range residual. None with fewer than ``OWN_PIXELS_MIN`` pixels, or where it runs more than R
+    from the truth (the depth does not hold a sphere there)."""
+    p = np.asarray(points_m, np.float64).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1) & (np.linalg.norm(p, axis=1) > 0)]
+    if len(p) < OWN_PIXELS_MIN:
+        return None
+    c0 = np.asarray(centre_m, np.float64)
+    c, keep = c0, np.ones(len(p), bool)
+    for _ in range(OWN_FIT_ROUNDS):
+        c = _ray_fit(p[keep], c, radius_m)
+        if c is None or float(np.linalg.norm(c - c0)) > radius_m:
+            return None
+        t = np.linalg.norm(p, axis=1)
+        b = (p / t[:, None]) @ c
+        res = t - (b - np.sqrt(np.maximum(radius_m * radius_m - c @ c + b * b, 0.0)))
+        med = float(np.median(res[keep]))
+        sigma = 1.4826 * float(np.median(np.abs(res[keep] - med)))
+        keep = np.abs(res - med) <= OWN_FIT_TRIM_SIGMAS * max(sigma, 1e-4)
+        if np.count_nonzero(keep) < OWN_PIXELS_MIN:
+            return None
+    return c
+
+
 def truth_verifications(frame, centre_m, config: DetectorConfig, buf):
     """The verifications of one ball from its true centre ``centre_m`` (3,) m and from the rescoring
     starts around it, each rescored where its score lies near the threshold: Candidates, or None
@@ -40,7 +101,7 @@ def truth_verifications(frame, centre_m, config: DetectorConfig, buf):
     c = np.asarray(centre_m, np.float64)
     for off in ((0.0, 0.0, 0.0),) + improved.rescore_starts(config):
         v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
-        if v is not None and abs(v.score - config.verification.min_raw_score) < config.verification.rescore_band:
+        if v is not None and abs(v.score - config.verification.accept_raw_score) < config.verification.rescore_band:
             v = improved.rescore(frame, v, config, buf)
         yield v
 
@@ -69,11 +130,13 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
             err = float(np.linalg.norm(v.centre_m - np.asarray(c, np.float64)))
             if beats(best, v.score, v.size_ok, err):
                 best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_raw_score),
+                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.accept_raw_score),
                         "separable": None}
         out.append(best)
     if separable and out:
-        clutter = [s for s in detect(cloud, config.override({"verification.min_score": 0.0}), seed=seed)
+        every = detect(cloud, config.override({"verification.rank_floor": 0.0}), seed=seed, min_score=0.0,
+                       max_spheres=1000)
+        clutter = [s for s in every
                    if all(np.linalg.norm(s.centre_m - np.asarray(c)) > CEILING_M for c in centres_m)]
         best_clutter = max((s.raw_score for s in clutter), default=0.0)
         for r in out:

@@ -12,7 +12,8 @@ from typing import Sequence
 
 from spherebench.datasets.simulate import PRESET_HARD, PRESET_PROTOCOL, PRESETS, preset_with_role
 from spherebench.eval.bench.paper_numbers import PAPER_TABLE2, PAPER_TABLE3
-from spherebench.eval.bench.registry import (PAPER_CIRCLE, ROLE_DETECTOR, ROLE_LEARNED_2D, ROLE_PAPER, method_with_role,
+from spherebench.eval.bench.registry import (PAPER_CIRCLE, ROLE_CEILING, ROLE_DETECTOR, ROLE_LEARNED_2D, ROLE_PAPER,
+                                             method_with_role,
                                              methods_with_role)
 from spherebench.eval.bench.scoring import ScoredSet, not_run
 from spherebench.eval.bench.tables import fmt
@@ -217,6 +218,9 @@ def reading(per_dataset: dict[str, Sequence[ScoredSet]], t2: Sequence[dict] | No
 
     about: {dataset label: sentences said first about it} (what a recorded dataset is, ``eval.bench.recorded``)."""
     protocol, hard = preset_with_role(PRESET_PROTOCOL), preset_with_role(PRESET_HARD)
+    # a ceiling is read beside the detector in its tables, never as a method that wins
+    ceilings = {m.name for m in methods_with_role(ROLE_CEILING)}
+    per_dataset = {label: [s for s in sets if s.method not in ceilings] for label, sets in per_dataset.items()}
     out = []
     for label, sets in per_dataset.items():
         out += (about or {}).get(label, [])

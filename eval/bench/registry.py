@@ -54,16 +54,18 @@ from spherebench.baselines import pyransac3d_peer
 from spherebench.baselines.hough import HoughConfig, detect_circles
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
+from spherebench.eval.bench import oracle
 from spherebench.method import DetectorConfig, config_for, detect
+from spherebench.method.detector import sphere_circles
 from spherebench.provenance import REPO_ROOT, dist_version, file_sha256
 
 #: Suffix of the prediction set that uses the paper's projection rule.
 PAPER_CIRCLE = "+paper-circle"
-#: CircleNet: detections below this score are not written (keeps files small; CenterNet keeps
-#: its top 100, most of which score ~0).
-CIRCLENET_MIN_SCORE = 0.01
-#: CircleNet: at most this many circles per image (CenterNet's K).
-CIRCLENET_TOP_K = 100
+#: The one scoring protocol of every method: its ranked output down to this score (CenterNet keeps
+#: its top 100, most of which score ~0) ...
+SCORE_FLOOR = 0.01
+#: ... and at most this many detections per frame (COCO's maxDets, CenterNet's K).
+MAX_DETECTIONS = 100
 #: pyransac3d: the peer's own cost (2-3 s per 1,000 iterations on 100k points) does not fit the
 #: benchmark's budget; it runs on this many points, drawn at random (seeded) from each cloud.
 PYRANSAC3D_POINTS = 2_000
@@ -99,6 +101,7 @@ NEEDS = {"3d": "cloud.ply", "2d": "image.png"}
 ROLE_DETECTOR = "the 3D detector"        # the improved detector: its figures are read first
 ROLE_PAPER = "the paper's method"        # the paper's pipeline, read against the paper's numbers
 ROLE_LEARNED_2D = "a learned 2D baseline"  # read beside the paper's CircleNet-HG
+ROLE_CEILING = "the ceiling"             # an oracle from the truth: beside the detector, never a winner
 
 #: Modules whose source is every method's code version (scene reading, circles, the adapters).
 _CORE_MODULES = ("spherebench.camera", "spherebench.cloud", "spherebench.circles", "spherebench.datasets.inout",
@@ -314,8 +317,8 @@ def circlenet_spec(model_path: str | Path, name: str = "circlenet") -> MethodSpe
         card = inout.read_json(card_path)
         budget = "; " + card_budget(card if isinstance(card, dict) else {})
     return MethodSpec(name=name, kind="2d",
-                      config={"engine": "circlenet", "model": path.name, "min_score": CIRCLENET_MIN_SCORE,
-                              "top_k": CIRCLENET_TOP_K, "scale": "focal_px",
+                      config={"engine": "circlenet", "model": path.name, "min_score": SCORE_FLOOR,
+                              "top_k": MAX_DETECTIONS, "scale": "focal_px",
                               "onnxruntime": dist_version("onnxruntime")},
                       modules=_CORE_MODULES + ("spherebench.baselines.circlenet",),
                       extra_fingerprint=sha, resource=str(path.resolve()),
@@ -362,8 +365,31 @@ def build_methods(names: Sequence[str] | None = None, hough_config: HoughConfig 
 
 # --------------------------------------------------------------------------- adapters (in workers), registered
 
+def ranked(detections: list[dict]) -> list[dict]:
+    """A method's detections as the benchmark scores them: best first, down to SCORE_FLOOR, at most
+    MAX_DETECTIONS (the same protocol for every method, whatever its own operating point)."""
+    kept = sorted((d for d in detections if d["score"] >= SCORE_FLOOR), key=lambda d: -d["score"])
+    return kept[:MAX_DETECTIONS]
+
+
+def operating_score(config: dict) -> float:
+    """The least score of a method's detections at its user's operating point (the 3D figures: found,
+    false detections): the improved detector's ``verification.min_score``; every other method's
+    detections count as they come (0)."""
+    if config.get("engine") == "detector" and config.get("pipeline") == "improved":
+        return float(config.get("min_score", 0.0))
+    return 0.0
+
+
+def at_operating_point(detections: list[dict], config: dict) -> list[dict]:
+    """The detections a method's user gets at its operating point (``operating_score``)."""
+    least = operating_score(config)
+    return [d for d in detections if d["score"] >= least]
+
+
 class DetectorAdapter:
-    """The 3D detector (``spherebench.method``)."""
+    """The 3D detector (``spherebench.method``): its ranked output down to SCORE_FLOOR, at most
+    MAX_DETECTIONS (the configuration's ``min_score`` is its operating point, ``operating_score``)."""
 
     kind = "3d"
 
@@ -378,7 +404,7 @@ class DetectorAdapter:
         return [{"score": float(s.score), "center_m": [float(v) for v in s.centre_m],
                  "radius_m": float(s.free_radius_m) if self.estimates_radius else None,
                  "circle": s.circle_exact, "circle_paper": s.circle_paper}
-                for s in detect(cloud, self.config, seed=seed)]
+                for s in detect(cloud, self.config, seed=seed, min_score=SCORE_FLOOR, max_spheres=MAX_DETECTIONS)]
 
 
 def _detector(name: str, options: BuildOptions) -> MethodSpec:
@@ -412,6 +438,53 @@ class PyRansac3dAdapter:
                                        thresh_m=self.config["thresh_m"], seed=seed)
         return [{"score": d["score"], "center_m": [float(v) for v in d["center_m"]], "radius_m": float(d["radius_m"]),
                  "circle": d["circle_exact"], "circle_paper": d["circle_paper"]} for d in found]
+
+
+def _own_pixel_fit(name: str, options: BuildOptions) -> MethodSpec:
+    return MethodSpec(name=name, kind="3d",
+                      config={"engine": "own-pixel-fit", "radius_m": float(options.radius_m),
+                              "min_pixels": oracle.OWN_PIXELS_MIN, "rounds": oracle.OWN_FIT_ROUNDS,
+                              "trim_sigmas": oracle.OWN_FIT_TRIM_SIGMAS},
+                      modules=_CORE_MODULES + ("spherebench.eval.bench.oracle", "spherebench.method.detector"),
+                      note="the ceiling, not a detector: a sphere of radius R fitted from each ball's true centre on "
+                           "its own pixels (its mask, where the frame has depth)")
+
+
+@register_method("own-pixel-fit", spec=_own_pixel_fit, role=ROLE_CEILING,
+                 description="`own-pixel-fit` (the ceiling: each ball's R-fixed fit from the truth on its own pixels)")
+class OwnPixelFitAdapter:
+    """The ceiling of the data (``oracle.own_pixel_fit``): per true ball with a centre and a mask, the
+    sphere fitted from its true centre on its mask's pixels with depth, score 1, its circles by the
+    detector's rules (``method.detector.sphere_circles``: the visible pixels' circle for a ball seen
+    over less than 0.9 of its silhouette, as the ground truth draws it)."""
+
+    kind = "3d"
+
+    def __init__(self, config: dict, resource: str | None = None):
+        self.radius_m = float(config["radius_m"])
+
+    def load(self, scene_dir: Path):
+        cloud = inout.load_cloud(scene_dir)
+        gt = inout.read_scene_gt(scene_dir)
+        shape = cloud.intrinsics.shape if cloud.intrinsics is not None else None
+        balls = [(b, inout.read_mask_png(scene_dir / b["mask"], shape)) for b in gt.get("balls", [])
+                 if b.get("center_m") is not None and b.get("mask") and (scene_dir / b["mask"]).is_file()]
+        return cloud, balls
+
+    def detect(self, inputs, seed: int) -> list[dict]:
+        cloud, balls = inputs
+        if cloud.rows is None:
+            return []
+        out = []
+        for ball, mask in balls:
+            own = mask[cloud.rows, cloud.cols] > 0
+            c = oracle.own_pixel_fit(cloud.points[own], ball["center_m"], self.radius_m)
+            if c is None:
+                continue
+            paper, exact = sphere_circles(cloud, c, self.radius_m, {"visible_fraction": ball.get("visible_fraction", 1.0)})
+            out.append({"score": 1.0, "center_m": [float(v) for v in c], "radius_m": None, "circle": exact,
+                        "circle_paper": paper})
+        return out
 
 
 def _hough(name: str, options: BuildOptions) -> MethodSpec:

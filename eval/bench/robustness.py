@@ -24,7 +24,7 @@ import numpy as np
 
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
-from spherebench.eval.bench.registry import detector_spec
+from spherebench.eval.bench.registry import at_operating_point, detector_spec
 from spherebench.eval.bench.seeds import detection_seed
 from spherebench.eval.bench.speed import frame_best_times
 from spherebench.eval.bench.studies import oracle_scene
@@ -61,7 +61,7 @@ def _run(ex, dataset: str, seeds: list[int], overrides: dict, oracle: bool, limi
     records = run_tasks(ex, [t for seed in seeds for t in tasks_for(spec, scenes, seed)])
     for (seed, scene), rec in zip(pairs, records):
         gt = gts[scene.scene_id]
-        counts = scene_counts([d["center_m"] for d in rec["detections"]], gt)
+        counts = scene_counts([d["center_m"] for d in at_operating_point(rec["detections"], spec.config)], gt)
         # a false detection is one farther than a radius from every ball (``clutter``): a detection of
         # the ball 2-3 cm off is a miss of the 2 cm rate, not a detection of something else
         counts["false_2cm"], counts["false"] = counts["false"], counts["clutter"]

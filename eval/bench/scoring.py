@@ -17,10 +17,10 @@ from typing import Sequence
 import numpy as np
 
 from spherebench.eval.bench.cache import read_predictions
-from spherebench.eval.bench.registry import PAPER_CIRCLE
+from spherebench.eval.bench.registry import PAPER_CIRCLE, at_operating_point
 from spherebench.eval.bench.tasks import SceneInfo
 from spherebench.eval.metrics.coco_eval import evaluate_circles, load_ground_truth, scalar_metrics
-from spherebench.eval.metrics.metrics3d import MATCH_GATE_M, found_far_rule, match_scene, summarize_3d
+from spherebench.eval.metrics.metrics3d import MATCH_GATE_M, found_by_band, found_far_rule, match_scene, summarize_3d
 from spherebench.eval.metrics.sensor_grid import (GRID_AXES, band_of, detection_rates, grid_key, grid_rows,
                                                   map50_by_group, surface_distance_m)
 from spherebench.provenance import json_safe
@@ -96,7 +96,10 @@ def score_set(pred_path: str | Path, coco_gt: dict, scenes: Sequence[SceneInfo])
     m["ms_by_resolution"] = {k: _stats_ms(np.asarray(v)) for k, v in sorted(res_groups.items(), key=_res_order)}
     unannotated = [r for r in records if not by_id[r["scene_id"]].annotated]
     if unannotated:
-        m["unannotated"] = detection_stats(unannotated, [by_id[r["scene_id"]].reference_centre_m for r in unannotated])
+        # what a user gets: the detections at the method's operating point
+        m["unannotated"] = detection_stats([{**r, "detections": at_operating_point(r["detections"], out.config or {})}
+                                            for r in unannotated],
+                                           [by_id[r["scene_id"]].reference_centre_m for r in unannotated])
     errors = Counter(r["error"] for r in records if r.get("error"))
     if errors:
         m["scenes_refused"] = sum(errors.values())
@@ -129,14 +132,15 @@ def _score_circles(out: ScoredSet, coco_gt: dict, run_images: list[int]):
 
 def _score_3d(out: ScoredSet, scenes: Sequence[SceneInfo]) -> list:
     """The 3D metrics of a 3D method's set over the annotated scenes whose balls all have a known
-    centre, into ``out``; returns [(SceneInfo, its balls' centre errors (m), NaN = missed)]."""
+    centre, into ``out``, at the method's operating point (``registry.operating_score``: the ranked
+    output below it is scored in 2D only); returns [(SceneInfo, its balls' centre errors (m), NaN = missed)]."""
     by_id = {s.scene_id: s for s in scenes}
     matches, ball_errors, gates = [], [], []
     for r in out.scenes:
         s = by_id.get(r["scene_id"])
         if s is None or not s.annotated or len(s.gt_centres_m) != s.n_balls:
             continue
-        dets = r["detections"]
+        dets = at_operating_point(r["detections"], out.config or {})
         pc = np.asarray([d["center_m"] for d in dets], np.float64).reshape(-1, 3)
         ps = np.asarray([d["score"] for d in dets], np.float64)
         pr = np.asarray([np.nan if d.get("radius_m") is None else d["radius_m"] for d in dets], np.float64)
@@ -150,7 +154,10 @@ def _score_3d(out: ScoredSet, scenes: Sequence[SceneInfo]) -> list:
         m["3d"] = json_safe(summarize_3d(matches))
         m["3d"]["gate_m"] = float(max(gates))
         depths = np.concatenate([np.asarray(s.gt_centres_m, np.float64).reshape(-1, 3)[:, 2] for s, _ in ball_errors])
-        m["3d"]["found_far_rule"] = json_safe(found_far_rule(np.concatenate([e for _, e in ball_errors]), depths))
+        errors = np.concatenate([e for _, e in ball_errors])
+        m["3d"]["found_far_rule"] = json_safe(found_far_rule(errors, depths))
+        distances = [surface_distance_m(c, r) for s, _ in ball_errors for c, r in zip(s.gt_centres_m, s.gt_radii_m)]
+        m["3d"]["found_by_band"] = json_safe(found_by_band(errors, depths, distances))
         m["3d"]["scenes_without_centre"] = sum(1 for s in scenes if s.annotated and len(s.gt_centres_m) != s.n_balls)
         out.distance_m = np.concatenate([mm.gt_distance_m for mm in matches])
         out.centre_error_m = np.concatenate([mm.centre_error_m for mm in matches])

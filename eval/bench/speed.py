@@ -36,7 +36,7 @@ import numpy as np
 
 from spherebench import __version__
 from spherebench.datasets import inout
-from spherebench.eval.bench.registry import detector_spec, pyransac3d_spec
+from spherebench.eval.bench.registry import at_operating_point, detector_spec, pyransac3d_spec
 from spherebench.eval.bench.tasks import SceneInfo, dataset_scenes, run_tasks, tasks_for
 from spherebench.eval.metrics.metrics3d import detection_counts, scene_counts
 from spherebench.method import config_for, detect, warm_up
@@ -70,7 +70,7 @@ def _rows(ex, spec, scenes: list[SceneInfo], gts: dict, seed: int, R: float, pas
     tasks = tasks_for(spec, scenes, seed)
     rows = []
     for scene, rec in zip(scenes, run_tasks(ex, tasks)):
-        dets = rec["detections"]
+        dets = at_operating_point(rec["detections"], spec.config)
         if peer:  # the peer's free fit counts only with the right size
             dets = [d for d in dets if d["radius_m"] is not None and abs(d["radius_m"] - R) <= EPS_M]
         gt = gts[scene.scene_id]

@@ -19,7 +19,7 @@ import numpy as np
 
 from spherebench import __version__, options
 from spherebench.datasets import inout
-from spherebench.eval.bench.registry import detector_spec
+from spherebench.eval.bench.registry import at_operating_point, detector_spec
 from spherebench.eval.bench.tasks import dataset_scenes, run_tasks, tasks_for
 from spherebench.eval.metrics.metrics3d import detection_counts, scene_counts
 from spherebench.method import config_for
@@ -50,7 +50,8 @@ def sweep(datasets: list[str], seeds: list[int], method: str = "improved", overr
             rows = []
             for (seed, scene), rec in zip(((seed, s) for seed in seeds for s in scenes), run_tasks(ex, tasks)):
                 gt = gts[scene.scene_id]
-                rows.append({**scene_counts([d["center_m"] for d in rec["detections"]], gt),
+                dets = at_operating_point(rec["detections"], spec.config)
+                rows.append({**scene_counts([d["center_m"] for d in dets], gt),
                              "scene": scene.path.name, "family": gt.get("family", ""), "seed": seed})
             families = sorted({r["family"] for r in rows})
             per_seed = {}

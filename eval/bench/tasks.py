@@ -25,7 +25,7 @@ from spherebench.datasets import inout
 from spherebench.datasets.fingerprint import dataset_fingerprint
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.cache import is_finished, prediction_key, write_prediction_set
-from spherebench.eval.bench.registry import NEEDS, MethodSpec, warm_adapter
+from spherebench.eval.bench.registry import NEEDS, MethodSpec, ranked, warm_adapter
 from spherebench.eval.bench.seeds import detection_seed
 from spherebench.parallel import executor
 from spherebench.progress import bar as progress_bar
@@ -117,7 +117,8 @@ def run_task(task: SceneTask) -> dict:
     except SphereBenchError as exc:
         dets, error = [], str(exc)
     ms, cpu_ms = 1000.0 * (time.perf_counter() - t0), 1000.0 * (time.thread_time() - c0)
-    return {"index": task.index, "seed": task.seed, "ms": ms, "cpu_ms": cpu_ms, "detections": dets, "error": error}
+    return {"index": task.index, "seed": task.seed, "ms": ms, "cpu_ms": cpu_ms, "detections": ranked(dets),
+            "error": error}
 
 
 def tasks_for(spec: MethodSpec, scenes: Sequence[SceneInfo], seed: int) -> list[SceneTask]:

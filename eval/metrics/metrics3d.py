@@ -228,6 +228,30 @@ def found_far_rule(centre_errors_m, depths_m) -> float:
     return float(np.count_nonzero(np.nan_to_num(e, nan=np.inf) <= limit) / e.size)
 
 
+#: Bands of a ball's surface distance |c| - R (m) for the per-band found shares: the stereo loss study's,
+#: where the ball's own depth sets the ceiling (docs/experiments/2026-12-04-stereo-losses.md).
+DISTANCE_BANDS_M = ((0.0, 1.5), (1.5, 2.5), (2.5, 3.5), (3.5, float("inf")))
+
+
+def band_name(band: tuple[float, float]) -> str:
+    """"0-1.5 m", "3.5+ m"."""
+    lo, hi = band
+    return f"{lo:g}+ m" if hi == float("inf") else f"{lo:g}-{hi:g} m"
+
+
+def found_by_band(centre_errors_m, depths_m, distances_m, bands=DISTANCE_BANDS_M) -> dict[str, dict]:
+    """Per band of surface distance (m): {name: {"balls": n, "found": the far rule's share (NaN without
+    balls)}} of balls with these centre errors (NaN: missed), centre depths and surface distances."""
+    e, z, d = (np.asarray(x, np.float64).ravel() for x in (centre_errors_m, depths_m, distances_m))
+    if not e.shape == z.shape == d.shape:
+        raise SphereBenchError(f"found_by_band: {e.size} errors, {z.size} depths, {d.size} distances")
+    out = {}
+    for band in bands:
+        sel = (d >= band[0]) & (d < band[1])
+        out[band_name(band)] = {"balls": int(np.count_nonzero(sel)), "found": found_far_rule(e[sel], z[sel])}
+    return out
+
+
 def scene_counts(det_centres_m, gt: dict) -> dict:
     """One scene's detections against its ground truth (a scene's ``gt.json``), unmatched: the bench's
     and the seed sweep's view, where any detection within FOUND_M finds a ball.

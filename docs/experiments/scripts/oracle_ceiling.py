@@ -82,7 +82,7 @@ def ceiling_rows(dataset: str, scenes, config, seed: int, separable: bool, facto
                        "accepted": o["within"], "separable": o["separable"], "sensor_cell": scene.sensor_cell}
                 # issue 20's far rule: 3 cm for a ball deeper than 3 m (the oracle's own rule is 2 cm)
                 limit_mm = 1e3 * (FOUND_FAR_M if row["z_m"] > FAR_RULE_FROM_M else FOUND_M)
-                row["accepted_far_rule"] = bool(row["size_ok"] and row["score"] >= config.verification.min_raw_score and
+                row["accepted_far_rule"] = bool(row["size_ok"] and row["score"] >= config.verification.accept_raw_score and
                                                 row["error_mm"] is not None and row["error_mm"] <= limit_mm)
                 if factors:
                     row["truth"] = truth_factors(cloud, b["center_m"], config)
@@ -156,10 +156,10 @@ def main(argv: list[str] | None = None) -> int:
                         args.frame_noise)
     result = {"dataset": str(args.dataset), "scenes": len(scenes), "overrides": overrides, "seed": args.seed,
               "separable": not args.no_separable, "balls": rows,
-              "by_family": summary(rows, lambda r: r["family"], config.verification.min_raw_score)}
+              "by_family": summary(rows, lambda r: r["family"], config.verification.accept_raw_score)}
     if args.by_noise:
         result["by_noise"] = summary(rows, lambda r: support.noise_bin(r["noise_r"], args.by_noise),
-                                     config.verification.min_raw_score)
+                                     config.verification.accept_raw_score)
     print(markdown(result))
     support.write_json(args.json, result)
     return 0

@@ -33,7 +33,7 @@ import numpy as np
 import script_support as support
 from spherebench import options
 from spherebench.datasets import inout
-from spherebench.eval.bench.registry import detector_spec
+from spherebench.eval.bench.registry import at_operating_point, detector_spec
 from spherebench.eval.bench.tasks import run_tasks, tasks_for
 from spherebench.eval.metrics.metrics3d import (FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M, MATCH_GATE_M, detection_counts,
                                                 scene_counts)
@@ -53,7 +53,8 @@ def run_config(ex, dataset: str, scenes, seeds: list[int], method: str, override
     balls, scene_rows = [], []
     for (seed, scene), rec in zip(((seed, s) for seed in seeds for s in scenes), records):
         gt = gts[scene.scene_id]
-        dets = rec["detections"]
+        ranked = rec["detections"]  # the ranked output, down to the benchmark's floor
+        dets = at_operating_point(ranked, spec.config)
         counts = scene_counts([d["center_m"] for d in dets], gt)
         scene_rows.append({**counts, "scene": scene.path.name, "family": scene.family, "seed": seed})
         # ``scene_counts``' errors follow the scene's balls with a known centre; k: the ball's index in gt.json
@@ -67,6 +68,9 @@ def run_config(ex, dataset: str, scenes, seeds: list[int], method: str, override
                           "found": bool(err <= FOUND_M),
                           "found_far_rule": bool(err <= (FOUND_FAR_M if centre[2] > FAR_RULE_FROM_M else FOUND_M)),
                           "score": None if nearest is None else float(nearest["score"]),
+                          "ranked_error_mm": min((1e3 * float(np.linalg.norm(np.subtract(d["center_m"], centre)))
+                                                  for d in ranked), default=None),
+                          "distance_m": float(np.linalg.norm(centre)) - config.radius_m,
                           "sensor_cell": scene.sensor_cell})
     return {"method": method, "overrides": overrides, "balls": balls, "scenes": scene_rows}
 
@@ -104,6 +108,24 @@ def by_noise(run: dict, edges: list[float]) -> list[dict]:
                     "median_mm": float(np.median(errs)) if errs.size else None,
                     "mean_mm": float(np.mean(errs)) if errs.size else None,
                     "p90_mm": float(np.percentile(errs, 90)) if errs.size else None})
+    return out
+
+
+#: Bands of a ball's surface distance (m) in ``--by-range``.
+RANGE_EDGES_M = (0.0, 1.5, 2.5, 3.5, 9.0)
+
+
+def by_range(run: dict, seeds: list[int]) -> list[dict]:
+    """Per band of surface distance, balls over all seeds: found at the operating point, and a ranked
+    detection (any score down to the floor) within 2 cm (3 cm beyond 3 m deep) and within 6 cm."""
+    out = []
+    for lo, hi in zip(RANGE_EDGES_M, RANGE_EDGES_M[1:]):
+        rows = [r for r in run["balls"] if lo <= r["distance_m"] < hi]
+        near = lambda r, mm: r["ranked_error_mm"] is not None and r["ranked_error_mm"] <= mm  # noqa: E731
+        out.append({"band": f"{lo:g}-{hi:g}", "balls": len(rows), "found_far_rule": sum(r["found_far_rule"] for r in rows),
+                    "ranked_2cm": sum(near(r, 1e3 * (FOUND_FAR_M if r["z_m"] > FAR_RULE_FROM_M else FOUND_M))
+                                      for r in rows),
+                    "ranked_6cm": sum(near(r, 60.0) for r in rows)})
     return out
 
 
@@ -153,6 +175,16 @@ def markdown(result: dict) -> str:
             lines.append(support.row(r["bin"], r["balls"], r["found"], s.get("found"), _mm(r["median_mm"]),
                                      _mm(s.get("median_mm")), _mm(r["mean_mm"]), _mm(s.get("mean_mm")),
                                      _mm(r["p90_mm"]), _mm(s.get("p90_mm"))))
+    if "by_range" in result:
+        lines += ["", f"By surface distance, balls over seeds {','.join(map(str, seeds))}: found at the operating "
+                      "point (the far rule), and a ranked detection (down to the floor) within 2 cm (3 cm beyond "
+                      "3 m) and within 6 cm:", "",
+                  "| config | band m | balls | found | ranked within 2 cm | ranked within 6 cm |",
+                  "|---|---|---|---|---|---|"]
+        for name, rows in result["by_range"].items():
+            for r in rows:
+                lines.append(support.row(name.upper(), r["band"], r["balls"], r["found_far_rule"], r["ranked_2cm"],
+                                         r["ranked_6cm"]))
     if result.get("list"):
         lines += ["", "| config | scene | ball | seed | family | depth m | sigma_z/R | found | error mm | score |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
@@ -170,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--by-noise", nargs="?", const=NOISE_EDGES, default=None, type=support.parse_edges,
                    metavar="EDGES", help=f"add the table by sigma_z / R (bin edges; default {NOISE_EDGES})")
     p.add_argument("--list", action="store_true", help="print every ball's row")
+    p.add_argument("--by-range", action="store_true",
+                   help="add the table by surface distance: found, and a ranked detection within 2 / 6 cm")
     support.add_noise_argument(p)
     support.add_holes_argument(p)
     p.add_argument("--workers", type=options.workers, default=2, help="worker processes (1: this process)")
@@ -192,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
         result["differ"] = differing(result["a"], result["b"])
     if args.by_noise:
         result["by_noise"] = {name: by_noise(result[name], args.by_noise) for name in configs}
+    if args.by_range:
+        result["by_range"] = {name: by_range(result[name], seeds) for name in configs}
     print(markdown(result))
     support.write_json(args.json, result)
     return 0

@@ -87,7 +87,7 @@ def oracle_verify(frame, centre, config, buf) -> dict:
         err = float(np.linalg.norm(v.centre_m - c))
         if beats(best, v.score, v.size_ok, err):
             best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                    "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.min_raw_score)}
+                    "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.accept_raw_score)}
             keep = v
     if keep is not None:
         best["free_radius"] = float(keep.free_radius_m)
@@ -402,7 +402,7 @@ def report(args) -> int:
     config = ts.study_config()
     nms_m = config.verification.nms_distance_fraction * 2 * config.radius_m
     data = {name: ts.read_jsonl(path) for name, path in ts.named_paths(args.sets)}
-    text, summary = report_tables(data, config.verification.min_raw_score, nms_m)
+    text, summary = report_tables(data, config.verification.accept_raw_score, nms_m)
     print(text)
     support.write_json(args.json, {"summary": summary})
     return 0

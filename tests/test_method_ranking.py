@@ -1,0 +1,76 @@
+"""The detector's ranked output: every distinct verified sphere down to ``rank_floor``, the search the same
+whatever is reported; and the benchmark's one protocol for every method (``registry.ranked``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spherebench.eval.bench import registry
+from spherebench.method import IMPROVED, config_for, detect
+from test_method_detector import _far_frames, cylinder_scene, scene
+
+
+def _frames():
+    yield scene(ball_c=(0.1, -0.05, 1.0))
+    yield scene(ball_c=(0.0, 0.0, 0.9), ball_r=0.11)
+    for top_y in (-0.05, 0.1):
+        yield cylinder_scene(top_y)
+    for _, cloud in _far_frames(2):
+        yield cloud
+
+
+def test_a_lower_min_score_adds_spheres_below_the_others_and_changes_none():
+    """detect at the default min_score is the ranked output (min_score 0.01) cut at 0.67: the same
+    spheres, scores and order; the ranked output is best first, at least rank_floor, and it holds
+    spheres the default does not report (a cylinder of the ball's radius scores about 0.03)."""
+    below = 0
+    for cloud in _frames():
+        default = detect(cloud, seed=0)
+        ranked = detect(cloud, seed=0, min_score=0.01, max_spheres=100)
+        scores = [s.score for s in ranked]
+        assert scores == sorted(scores, reverse=True) and all(p >= IMPROVED.verification.rank_floor for p in scores)
+        top = [s for s in ranked if s.score >= IMPROVED.verification.min_score]
+        assert [s.score for s in default] == [s.score for s in top]
+        assert all(np.array_equal(a.centre_m, b.centre_m) for a, b in zip(default, top))
+        below += len(ranked) - len(top)
+    assert below >= 2
+
+
+def test_the_ranked_cylinder_is_no_detection_at_the_default():
+    cloud = cylinder_scene(0.05)
+    assert detect(cloud, seed=0) == []
+    low = detect(cloud, seed=0, min_score=0.01)
+    assert len(low) == 1 and low[0].score < 0.1
+    # a floor above it ranks nothing more; min_score below the floor reports no more than the floor
+    assert detect(cloud, config_for("improved", {"verification.rank_floor": 0.5}), seed=0, min_score=0.01) == []
+    assert len(detect(cloud, seed=0, min_score=0.0)) == 1
+
+
+@pytest.mark.parametrize("accept", [0.5, 0.9])
+def test_acceptance_and_not_the_report_steers_the_search(accept):
+    """A ball found at any acceptance is reported by score; the same frame at min_score 0.01 ranks it first."""
+    cloud = scene(ball_c=(0.1, -0.05, 1.0))
+    cfg = config_for("improved", {"verification.accept_score": accept})
+    best = detect(cloud, cfg, seed=0, min_score=0.01)
+    assert best and np.linalg.norm(best[0].centre_m - np.array([0.1, -0.05, 1.0])) < 0.01
+
+
+def test_the_benchmark_ranks_every_method_alike():
+    dets = [{"score": s} for s in (0.2, 0.005, 0.9, 0.01)] + [{"score": 0.5}] * 200
+    out = registry.ranked(dets)
+    assert len(out) == registry.MAX_DETECTIONS and out[0]["score"] == 0.9
+    assert [d["score"] for d in out] == sorted((d["score"] for d in out), reverse=True)
+    assert all(d["score"] >= registry.SCORE_FLOOR for d in registry.ranked(dets[:4]))
+    assert len(registry.ranked(dets[:4])) == 3
+
+
+def test_the_3d_figures_are_at_the_operating_point():
+    improved = registry.detector_spec("improved").config
+    paper = registry.detector_spec("paper").config
+    assert registry.operating_score(improved) == IMPROVED.verification.min_score
+    assert registry.operating_score(paper) == 0.0
+    assert registry.operating_score(registry.hough_spec(registry.HoughConfig()).config) == 0.0
+    dets = [{"score": 0.9}, {"score": 0.3}]
+    assert registry.at_operating_point(dets, improved) == [{"score": 0.9}]
+    assert registry.at_operating_point(dets, paper) == dets
