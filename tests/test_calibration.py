@@ -163,3 +163,16 @@ def test_the_ece_floor_is_the_sampling_noise_of_a_calibrated_score():
     scores = np.random.default_rng(1).uniform(0.4, 1.0, 60)
     assert ece_floor(scores) == ece_floor(scores)  # seeded
     assert ece_floor(scores) > 2 * ece_floor(np.tile(scores, 16))  # 16x the detections: a quarter of it
+
+
+def test_the_ece_floor_of_repeated_trials_is_that_of_the_trials():
+    from spherebench.errors import SphereBenchError
+    from spherebench.eval.metrics.calibration import ece_floor
+
+    scores = np.random.default_rng(2).uniform(0.4, 1.0, 60)
+    pooled, trial = np.tile(scores, 4), np.tile(np.arange(60), 4)  # one scene's ball at 4 run seeds
+    assert ece_floor(pooled, groups=trial) == pytest.approx(ece_floor(scores), abs=1e-12)  # one draw per trial
+    assert ece_floor(pooled) < 0.75 * ece_floor(scores)  # counted as 240 trials, it would look sharper
+    assert ece_floor(scores, groups=np.arange(60)) == ece_floor(scores)
+    with pytest.raises(SphereBenchError, match="labels"):
+        ece_floor(scores, groups=np.arange(3))

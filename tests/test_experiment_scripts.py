@@ -232,7 +232,14 @@ def test_score_calibration_collects_fits_a_monotone_map_and_reports(train4, tmp_
     capsys.readouterr()
     assert cal.main(["report", str(knots), f"train4={lines}"]) == 0
     out = capsys.readouterr().out
-    assert "| train4 |" in out and "ECE mapped" in out
+    assert "| train4 |" in out and "ECE mapped" in out and "seeds as one trial" in out
+    # the features are measured on each detection (the inliers' count was once read from a record without it)
+    assert all(set(cal.FEATURES) <= set(r) for r in rows)
+    assert all(r["log_inliers"] > np.log(20) and r["log_lateral_se"] < 0 for r in rows if r["correct"])
+    assert cal.main(["fit", str(lines), "--out", str(knots), "--logistic", "--features", "log_inliers,log_depth"]) == 0
+    assert json.loads(knots.read_text())["features"] == ["log_inliers", "log_depth"]
+    with pytest.raises(SystemExit):
+        cal.main(["fit", str(lines), "--out", str(knots), "--logistic", "--features", "nonsense"])
 
 
 def test_null_checks_records_each_tests_statistic_of_true_balls(train4, stereo2, tmp_path, capsys):

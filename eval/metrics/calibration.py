@@ -15,7 +15,8 @@ fraction correct (accuracy). **ECE** = sum over bins of n_b / N |acc_b - conf_b|
 largest |acc_b - conf_b| over the non-empty bins. Both are NaN without any detection (nothing to
 calibrate: no figure, not a perfect one). **The ECE floor** (``ece_floor``): the median ECE that a
 perfectly calibrated detector with the same scores shows on as many detections, each correct with
-its score's probability; a set's ECE near its floor cannot be told apart from calibrated.
+its score's probability; a set's ECE near its floor cannot be told apart from calibrated. Detections
+that are one trial (a scene's ball at several run seeds) share one draw there (``groups``).
 """
 
 from __future__ import annotations
@@ -110,12 +111,26 @@ def maximum_calibration_error(scores, correct, n_bins: int = N_BINS) -> float:
 FLOOR_DRAWS = 400
 
 
-def ece_floor(scores, n_bins: int = N_BINS, draws: int = FLOOR_DRAWS, seed: int = 0) -> float:
+def ece_floor(scores, n_bins: int = N_BINS, draws: int = FLOOR_DRAWS, seed: int = 0, groups=None) -> float:
     """The median ECE over ``draws`` samples in which detection i (scores (N,) in [0, 1]) is correct
     with probability scores[i]: what sampling alone gives a calibrated score on N detections;
-    NaN without detections. Seeded: the same scores give the same floor."""
+    NaN without detections. Seeded: the same scores give the same floor.
+
+    groups: (N,) labels, or None (every detection on its own). Detections of one label share one
+    uniform draw, so they are right or wrong together as far as their scores allow: the same ball of
+    one scene detected at several run seeds is one trial, not several, and pooled seeds have the
+    floor of their scenes, not of their detections."""
     s = np.asarray(scores, dtype=np.float64).reshape(-1)
     if s.size == 0:
         return float("nan")
+    if groups is None:
+        which, n_draw = np.arange(s.size), s.size
+    else:
+        labels = np.asarray(groups).reshape(-1)
+        if labels.size != s.size:
+            raise SphereBenchError(f"groups has {labels.size} labels for {s.size} scores")
+        which = np.unique(labels, return_inverse=True)[1].reshape(-1)
+        n_draw = int(which.max()) + 1
     rng = np.random.default_rng(seed)
-    return float(np.median([expected_calibration_error(s, rng.random(s.size) < s, n_bins) for _ in range(draws)]))
+    return float(np.median([expected_calibration_error(s, rng.random(n_draw)[which] < s, n_bins)
+                            for _ in range(draws)]))

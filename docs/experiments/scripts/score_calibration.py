@@ -2,9 +2,9 @@
 error (ECE) of the raw score and of an isotonic map fitted on the training splits, per dataset.
 
 ``collect`` runs the detector on every scene of a dataset at the given run seeds, as the benchmark
-does (``eval.bench.tasks``: scene k of run seed s detected with ``detection_seed(s, k)``), and writes
-one JSON line per detection: the dataset, scene, seed, the ball's depth where it is correct (else
-the detection's), its score and whether it is correct (``eval.metrics.calibration.detection_correct``:
+does (scene k of run seed s detected with ``detection_seed(s, k)``), and writes one JSON line per
+detection: the dataset, scene, seed, rank, the detection's depth, its score, the FEATURES measured
+on its frame and its inliers, and whether it is correct (``eval.metrics.calibration.detection_correct``:
 within 2 cm of a true ball, 3 cm beyond 3 m deep, one per ball). ``predictions`` writes the same
 lines from a benchmark run's prediction sets (``results/predictions/<preset>/improved.json``), so
 that the benchmark presets are read as `make eval` scored them, not run again.
@@ -17,7 +17,9 @@ map of the score's logit instead (two parameters, strictly increasing: every ran
 detection (FEATURES: collected beside each line). ``report`` prints, per
 set of lines, the detections, the share correct, the ECE and MCE of the raw score and of the map
 (``--half odd``: the held-apart scenes only), and the ECE a perfectly calibrated detector with the
-map's probabilities would show on that many detections (``eval.metrics.calibration.ece_floor``: the sampling noise).
+map's probabilities would show on that many detections (``eval.metrics.calibration.ece_floor``: the
+sampling noise), with each detection a trial and with a scene's detection of one rank at every run
+seed one trial (``trial_groups``: pooled seeds see the same scenes again).
 
     python docs/experiments/scripts/score_calibration.py collect data/train out/cal_train.jsonl --seeds 0-3
     python docs/experiments/scripts/score_calibration.py collect data/train-stereo out/cal_ts.jsonl --seeds 0-3
@@ -32,7 +34,9 @@ map's probabilities would show on that many detections (``eval.metrics.calibrati
 from __future__ import annotations
 
 import argparse
+import functools
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -45,71 +49,112 @@ from spherebench.datasets import inout
 from spherebench.datasets.outputs import atomic_write_bytes
 from spherebench.eval.bench.cache import read_predictions
 from spherebench.eval.bench.calibration import scene_truths
-from spherebench.eval.bench.registry import detector_spec
-from spherebench.eval.bench.tasks import run_tasks, tasks_for
+from spherebench.eval.bench.seeds import detection_seed
 from spherebench.eval.metrics.calibration import (detection_correct, ece_floor, expected_calibration_error,
                                                   maximum_calibration_error)
-from spherebench.method.detector import prepare_frame
-from spherebench.method.improved import noise_a
+from spherebench.eval.metrics.metrics3d import FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M
+from spherebench.method.detector import detect, prepare_frame
+from spherebench.method.improved import mean_variance_inflation, noise_a
 from spherebench.parallel import executor
 
 
-#: What ``--logistic`` maps besides the score's logit: the frame's measured noise over the nominal
-#: model's (log), its correlation length (px), one pixel's noise at the detection over R, its
-#: inliers (log), its visible share.
-FEATURES = ("log_noise_ratio", "corr_px", "noise_r", "log_inliers", "visible")
+#: What ``--logistic`` maps besides the score's logit (``--features`` picks some): the frame's measured
+#: noise over the nominal model's (log), its correlation length (px), one pixel's noise at the
+#: detection over R, the detection's inliers (log), its visible share, its inliers' residual RMS over
+#: R (log), its centre's lateral standard error over the 2 cm (3 cm) limit (log; ``lateral_se_m``),
+#: its depth (log).
+FEATURES = ("log_noise_ratio", "corr_px", "noise_r", "log_inliers", "visible", "log_residual_r",
+            "log_lateral_se", "log_depth")
 
 
 def frame_features(scene_path: Path, config) -> dict:
     """What the detector measures on a scene's frame (``PreparedFrame``): its noise A over the model's
     and its noise correlation length (px)."""
-    frame = prepare_frame(inout.load_cloud(scene_path), config)
+    return _frame_features(prepare_frame(inout.load_cloud(scene_path), config), config)
+
+
+def _frame_features(frame, config) -> dict:
     model = noise_a(config, float(frame.cloud.intrinsics.fx))
     return {"noise_a": float(frame.noise_a), "log_noise_ratio": float(np.log(frame.noise_a / model)),
             "corr_px": float(frame.noise_corr_px)}
 
 
-def _lines(dataset: str, index_of: dict, truths: dict, scene_id: str, seed: int, dets: list,
-           frame: dict | None = None, radius_m: float = 0.12) -> list[dict]:
-    """One line per detection of a scene: correct or not, its score, the depth it is at, and with
-    ``frame`` (``frame_features``) the features ``--logistic`` takes."""
-    gt = truths.get(scene_id)
-    if gt is None:
-        return []
-    scores = np.asarray([d["score"] for d in dets], np.float64)
-    correct = detection_correct([d["center_m"] for d in dets], scores, gt)
+def lateral_se_m(points_m: np.ndarray, centre_m: np.ndarray, radius_m: float, corr_px: float) -> float:
+    """The standard error (m) of a sphere's centre across the line of sight, from its inliers (N, 3) m:
+    Gauss-Newton's covariance of the depth residual along each pixel's ray at the fitted centre, the
+    residual variance inflated for the frame's noise correlation (``mean_variance_inflation``);
+    the ray's chord is floored at 0.2 R so that limb pixels do not dominate. NaN below 6 inliers."""
+    if len(points_m) < 6:
+        return float("nan")
+    u = points_m / np.linalg.norm(points_m, axis=1, keepdims=True)
+    uc = u @ centre_m
+    chord = np.sqrt(np.maximum(uc * uc - centre_m @ centre_m + radius_m ** 2, (0.2 * radius_m) ** 2))
+    e = uc - chord - np.linalg.norm(points_m, axis=1)  # (N,) the front intersection's range minus the pixel's
+    jac = u - (u * uc[:, None] - centre_m[None, :]) / chord[:, None]  # (N, 3) d(range)/d(centre)
+    var = float(e @ e) / (len(e) - 3) * mean_variance_inflation(corr_px)
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * var
+    except np.linalg.LinAlgError:
+        return float("nan")
+    d = centre_m / np.linalg.norm(centre_m)
+    across = np.eye(3) - np.outer(d, d)
+    return float(np.sqrt(max(np.trace(across @ cov @ across), 0.0)))
+
+
+def _detection_features(cloud, sphere, frame: dict, radius_m: float) -> dict:
+    z = float(sphere.centre_m[2])
+    pts = cloud.points[sphere.inlier_indices].astype(np.float64)
+    limit = FOUND_FAR_M if z > FAR_RULE_FROM_M else FOUND_M
+    lat = lateral_se_m(pts, np.asarray(sphere.centre_m, np.float64), radius_m, frame["corr_px"])
+    return dict(log_noise_ratio=frame["log_noise_ratio"], corr_px=frame["corr_px"],
+                noise_r=frame["noise_a"] * z * z / radius_m, log_inliers=float(np.log1p(len(sphere.inlier_indices))),
+                visible=float(sphere.evidence.get("visible_fraction", 1.0)),
+                log_residual_r=float(np.log(max(sphere.rmse_m, 1e-4) / radius_m)),
+                log_lateral_se=float(np.log(max(lat, 1e-5) / limit)) if math.isfinite(lat) else 0.0,
+                log_depth=float(np.log(max(z, 0.1))))
+
+
+def _line(dataset: str, index: int, scene_id: str, seed: int, rank: int, z_m: float, score: float,
+          correct: bool) -> dict:
+    """One detection's line: rank, its order among its scene's detections at that seed (a scene's
+    ball at several seeds is one trial of the ECE floor, ``trial_groups``)."""
+    return {"dataset": dataset, "scene": scene_id, "index": index, "seed": seed, "rank": rank, "z_m": z_m,
+            "score": score, "correct": bool(correct)}
+
+
+def scene_lines(job: tuple, overrides: dict) -> list[dict]:
+    """One scene's lines at every run seed (in a worker): job (dataset, scene dir, scene id, index,
+    seeds, gt). Scene k of run seed s is detected with ``detection_seed(s, k)``, as the benchmark does."""
+    dataset, scene_dir, scene_id, index, seeds, gt = job
+    config = support.detector_config(dataset, overrides)
+    cloud = inout.load_cloud(Path(scene_dir))
+    frame = _frame_features(prepare_frame(cloud, config), config)
     out = []
-    for d, ok in zip(dets, correct):
-        z = float(d["center_m"][2])
-        line = {"dataset": dataset, "scene": scene_id, "index": index_of[scene_id], "seed": seed,
-                "z_m": z, "score": float(d["score"]), "correct": bool(ok)}
-        if frame is not None:
-            line.update(log_noise_ratio=frame["log_noise_ratio"], corr_px=frame["corr_px"],
-                        noise_r=frame["noise_a"] * z * z / radius_m, log_inliers=float(np.log1p(d.get("inliers") or 0)),
-                        visible=float(d.get("visible_fraction") or 1.0))
-        out.append(line)
+    for seed in seeds:
+        spheres = detect(cloud, config, seed=detection_seed(seed, index))
+        if not spheres:
+            continue
+        correct = detection_correct([s.centre_m for s in spheres], [s.score for s in spheres], gt)
+        for rank, (s, ok) in enumerate(zip(spheres, correct)):
+            line = _line(Path(dataset).name, index, scene_id, seed, rank, float(s.centre_m[2]), float(s.score), ok)
+            line.update(_detection_features(cloud, s, frame, config.radius_m))
+            out.append(line)
     return out
 
 
 def collect(dataset: str, out: Path, seeds: list[int], overrides: dict, workers: int) -> int:
-    scenes = support.frame_scenes(dataset)
     truths = scene_truths(dataset)
-    index_of = {s.scene_id: s.index for s in scenes}
-    config = support.detector_config(dataset, overrides)
-    spec = detector_spec("improved", **{"radius_m": config.radius_m, **overrides})
-    name = Path(dataset).name
+    jobs = [(str(dataset), str(s.path), s.scene_id, s.index, seeds, truths[s.scene_id])
+            for s in support.frame_scenes(dataset) if s.scene_id in truths]
     with executor(workers) as ex:
-        records = list(run_tasks(ex, [t for seed in seeds for t in tasks_for(spec, scenes, seed)]))
-    frames = {s.scene_id: frame_features(s.path, config) for s in scenes}
-    lines = []
-    for (seed, scene), rec in zip(((seed, s) for seed in seeds for s in scenes), records):
-        lines += _lines(name, index_of, truths, scene.scene_id, seed, rec["detections"], frames[scene.scene_id],
-                        config.radius_m)
+        lines = [x for part in ex.map(functools.partial(scene_lines, overrides=overrides), jobs) for x in part]
     _write_lines(out, lines)
     return len(lines)
 
 
 def from_predictions(data: Path, results: Path, out: Path, method: str = "improved") -> int:
+    """The lines of a benchmark run's prediction sets (score and correct only: the records hold no
+    inliers, so ``--logistic`` cannot be reported on them)."""
     lines = []
     for pred in sorted((results / "predictions").glob(f"*/{method}.json")):
         preset = pred.parent.name
@@ -118,11 +163,15 @@ def from_predictions(data: Path, results: Path, out: Path, method: str = "improv
         meta = read_predictions(pred)[1]
         truths = scene_truths(data / preset)
         index_of = {sid: k for k, sid in enumerate(sorted(truths))}
-        config = support.detector_config(data / preset, {})
         for r in meta["scenes"]:
-            frame = frame_features(data / preset / "scenes" / r["scene_id"], config) if r["detections"] else None
-            lines += _lines(preset, index_of, truths, r["scene_id"], int(meta.get("seed", 0)), r["detections"], frame,
-                            config.radius_m)
+            gt = truths.get(r["scene_id"])
+            if gt is None or not r["detections"]:
+                continue
+            dets = r["detections"]
+            correct = detection_correct([d["center_m"] for d in dets], [d["score"] for d in dets], gt)
+            lines += [_line(preset, index_of[r["scene_id"]], r["scene_id"], int(meta.get("seed", 0)), k,
+                            float(d["center_m"][2]), float(d["score"]), ok)
+                      for k, (d, ok) in enumerate(zip(dets, correct))]
     _write_lines(out, lines)
     return len(lines)
 
@@ -164,9 +213,9 @@ def fit_platt(scores: np.ndarray, correct: np.ndarray) -> tuple[float, float]:
     return float(a), float(b)
 
 
-def design(lines: list[dict], scores: np.ndarray) -> np.ndarray:
-    """(N, 2 + len(FEATURES)): the score's logit, 1, then FEATURES."""
-    cols = [_logit(scores), np.ones(len(scores))] + [np.asarray([x[f] for x in lines], np.float64) for f in FEATURES]
+def design(lines: list[dict], scores: np.ndarray, features=FEATURES) -> np.ndarray:
+    """(N, 2 + len(features)): the score's logit, 1, then the lines' features (of FEATURES)."""
+    cols = [_logit(scores), np.ones(len(scores))] + [np.asarray([x[f] for x in lines], np.float64) for f in features]
     return np.stack(cols, axis=1)
 
 
@@ -188,11 +237,17 @@ def apply_map(knots: dict, scores: np.ndarray, lines: list[dict] | None = None) 
     """The map's probabilities of scores: the logistic's (``weights``, with the lines' features),
     Platt's (``platt`` (a, b)), else the knots' (isotonic)."""
     if "weights" in knots:
-        return 1.0 / (1.0 + np.exp(-(design(lines, scores) @ np.asarray(knots["weights"]))))
+        return 1.0 / (1.0 + np.exp(-(design(lines, scores, knots["features"]) @ np.asarray(knots["weights"]))))
     if "platt" in knots:
         a, b = knots["platt"]
         return 1.0 / (1.0 + np.exp(-(a * _logit(scores) + b)))
     return np.interp(scores, np.asarray(knots["score"]), np.asarray(knots["probability"]))
+
+
+def trial_groups(lines: list[dict]) -> list[str]:
+    """One label per line: its dataset, scene and rank, the same at every run seed (one trial of the
+    ECE floor, ``eval.metrics.calibration.ece_floor``'s groups)."""
+    return [f'{x["dataset"]}/{x["scene"]}/{x.get("rank", 0)}' for x in lines]
 
 
 def report_rows(knots: dict, named: dict[str, list[dict]]) -> list[list]:
@@ -206,7 +261,8 @@ def report_rows(knots: dict, named: dict[str, list[dict]]) -> list[list]:
             rows.append([dataset or name, len(sel), f"{c.mean():.3f}" if sel else "-",
                          f"{expected_calibration_error(s, c):.3f}", f"{maximum_calibration_error(s, c):.3f}",
                          f"{expected_calibration_error(p, c):.3f}", f"{maximum_calibration_error(p, c):.3f}",
-                         f"{ece_floor(p):.3f}"])
+                         f"{ece_floor(p):.3f}",
+                         f"{ece_floor(p, groups=trial_groups(sel)):.3f}" if sel else "nan"])
     return rows
 
 
@@ -228,7 +284,9 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("--half", choices=("even", "odd"), default=None)
     f.add_argument("--out", type=Path, required=True)
     f.add_argument("--platt", action="store_true", help="a logistic map of the score's logit (keeps rankings)")
-    f.add_argument("--logistic", action="store_true", help="a logistic map of the logit and the frame's FEATURES")
+    f.add_argument("--logistic", action="store_true", help="a logistic map of the logit and the FEATURES")
+    f.add_argument("--features", default=",".join(FEATURES),
+                   help=f"--logistic's features, comma-separated (of {', '.join(FEATURES)})")
     r = sub.add_parser("report", help="ECE and MCE of the raw score and of the map")
     r.add_argument("map", type=Path)
     r.add_argument("named", nargs="+", metavar="NAME=LINES")
@@ -246,7 +304,11 @@ def main(argv: list[str] | None = None) -> int:
         c = np.asarray([x["correct"] for x in lines], bool)
         fitted = {"fitted_on": [str(x) for x in args.lines], "half": args.half, "detections": len(lines)}
         if args.logistic:
-            fitted.update(weights=fit_logistic(design(lines, s), c).tolist(), features=list(FEATURES))
+            features = [x for x in args.features.split(",") if x]
+            unknown = sorted(set(features) - set(FEATURES))
+            if unknown:
+                p.error(f"--features: unknown {', '.join(unknown)} (known: {', '.join(FEATURES)})")
+            fitted.update(weights=fit_logistic(design(lines, s, features), c).tolist(), features=features)
         elif args.platt:
             fitted["platt"] = list(fit_platt(s, c))
         else:
@@ -261,8 +323,9 @@ def main(argv: list[str] | None = None) -> int:
         for item in args.named:
             name, _, path = item.partition("=")
             named[name] = read_lines([path], args.half)
-        print("| set | detections | correct | ECE raw | MCE raw | ECE mapped | MCE mapped | ECE floor |")
-        print("|---|---|---|---|---|---|---|---|")
+        print("| set | detections | correct | ECE raw | MCE raw | ECE mapped | MCE mapped | ECE floor | "
+              "ECE floor, seeds as one trial |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for row in report_rows(knots, named):
             print(support.row(*row))
     return 0
