@@ -274,3 +274,28 @@ def test_null_checks_records_each_tests_statistic_of_true_balls(train4, stereo2,
                                      str(tmp_path / "fig")], tmp_path, capsys)
     assert "### Per test at 424x240" in text and "| relief |" in text and "### ring_spread" in text
     assert len(res["figures"]) == len(script.QQ_TESTS) and all(Path(f).stat().st_size < 150_000 for f in res["figures"])
+
+
+def test_candidate_losses_stages_each_near_ball(train4, tmp_path, capsys):
+    losses = _script("candidate_losses")
+    res, text = _run("candidate_losses", [str(train4), "--seeds", "0", "--max-range", "9", "--list"], tmp_path, capsys)
+    assert len(res["rows"]) == 4 and res["summary"][-1]["balls"] == 4
+    assert {r["stage"] for r in res["rows"]} <= set(losses.STAGES) and "| all | 4 |" in text
+    for r in res["rows"]:  # a ball with a ranked sphere within 2 cm is "ranked", and only then
+        assert (r["stage"] == "ranked") == (r["ranked_error_mm"] is not None and r["ranked_error_mm"] <= 20.0)
+    # the stage rule on its own
+    oracle = {"error_m": 0.01, "size_ok": True, "score": 0.5}
+    assert losses.stage([0.015], None, 0.04, 0.12) == "ranked"
+    assert losses.stage([0.05], {**oracle, "error_m": 0.03}, 0.04, 0.12) == "geometry"
+    assert losses.stage([0.05], {**oracle, "size_ok": False}, 0.04, 0.12) == "size"
+    assert losses.stage([0.05], {**oracle, "score": 0.01}, 0.04, 0.12) == "score"
+    assert losses.stage([0.05], oracle, 0.04, 0.12) == "off"
+    assert losses.stage([0.5], oracle, 0.04, 0.12) == "search"
+
+
+def test_per_ball_by_range_counts_the_ranked_candidates(train4, tmp_path, capsys):
+    res, text = _run("per_ball", [str(train4), "--seeds", "0", "--workers", "1", "--by-range"], tmp_path, capsys)
+    rows = res["by_range"]["a"]
+    assert sum(r["balls"] for r in rows) == 4 and "ranked within 2 cm" in text
+    for r in rows:
+        assert r["found_far_rule"] <= r["ranked_2cm"] <= r["ranked_6cm"] <= r["balls"]
