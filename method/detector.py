@@ -132,17 +132,25 @@ def prepare_frame(cloud: Cloud, config: DetectorConfig) -> PreparedFrame:
 VISIBLE_CIRCLE_BELOW = 0.9
 
 
-def sphere_circles(cloud: Cloud, c: np.ndarray, R: float,
-             evidence: dict | None = None) -> tuple[Circle | None, Circle | None]:
+def depth_image(cloud: Cloud) -> np.ndarray:
+    """The organised cloud's depth (H, W) m, NaN where it has no point."""
+    h, w = cloud.intrinsics.shape
+    depth = np.full(h * w, np.nan, np.float32)
+    depth[cloud.rows.astype(np.intp) * w + cloud.cols] = cloud.points[:, 2]  # flat: a quarter faster than [rows, cols]
+    return depth.reshape(h, w)
+
+
+def sphere_circles(cloud: Cloud, c: np.ndarray, R: float, evidence: dict | None = None,
+                   depth: np.ndarray | None = None) -> tuple[Circle | None, Circle | None]:
     """(paper's circle, exact circle) px of a sphere; the exact one is of the visible silhouette where an
-    occluder hides part of it (evidence: the improved pipeline's, with visible_fraction and sigma_m)."""
+    occluder hides part of it (evidence: the improved pipeline's, with visible_fraction and sigma_m).
+    depth: the cloud's ``depth_image``, where the caller has it (several spheres of one frame)."""
     if cloud.intrinsics is None or not c[2] > 0:
         return None, None
     intr = cloud.intrinsics
     exact = sphere_circle_exact(intr, c, R)
     if evidence and cloud.rows is not None and evidence.get("visible_fraction", 1.0) < VISIBLE_CIRCLE_BELOW:
-        depth = np.full(intr.shape, np.nan, np.float32)
-        depth[cloud.rows, cloud.cols] = cloud.points[:, 2]
+        depth = depth_image(cloud) if depth is None else depth
         # an occluder is what visible_fraction counts: more than R / 2 in front, and beyond the noise
         seen = sphere_circle_visible(intr, c, R, depth, max(0.5 * R, 3.0 * evidence.get("sigma_m", 0.0)))
         exact = seen if seen is not None else exact
@@ -248,12 +256,15 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         work, index, subsampled = prepare_cloud(cloud, config, rng)
         found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)), least, max_spheres)
     spheres = []
+    # one depth image for every partly hidden sphere of the frame (a ranked output may hold several)
+    hidden = [v for v in found if v.stats.get("visible_fraction", 1.0) < VISIBLE_CIRCLE_BELOW]
+    depth = depth_image(cloud) if len(hidden) > 1 and cloud.rows is not None and cloud.intrinsics is not None else None
     for v in found:
         if subsampled:
             inl = _all_inliers(cloud, v.centre_m, R, v.eps_m)
         else:
             inl = v.inliers if index is None else index[v.inliers]
-        cp, ce = sphere_circles(cloud, v.centre_m, R, v.stats)
+        cp, ce = sphere_circles(cloud, v.centre_m, R, v.stats, depth)
         spheres.append(Sphere(centre_m=v.centre_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
                               score=config.verification.probability(v.score), raw_score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
                               circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))
