@@ -70,3 +70,15 @@ def test_the_ceiling_is_a_method_beside_the_detector(tmp_path):
     # never read as the method that wins
     assert "own-pixel-fit" not in (out / "README.md").read_text().split("## Tables")[0]
     assert "own-pixel-fit" not in (out / "tables" / "calibration.md").read_text()
+
+
+def test_a_ball_of_unknown_visibility_is_fitted_whole(tmp_path):
+    """A recorded set's gt.json gives a reference centre and a mask, and null for what it does not know."""
+    data = simulate.generate_dataset("default", tmp_path / "d", n=1, progress=False)
+    scene_dir = sorted((data / "scenes").iterdir())[0]
+    gt = json.loads((scene_dir / "gt.json").read_text())
+    gt["balls"][0]["visible_fraction"] = None
+    (scene_dir / "gt.json").write_text(json.dumps(gt))
+    adapter = registry.OwnPixelFitAdapter({"radius_m": R})
+    (fit,) = adapter.detect(adapter.load(scene_dir), 0)
+    assert np.linalg.norm(np.subtract(fit["center_m"], gt["balls"][0]["center_m"])) < 0.02 and fit["circle"]

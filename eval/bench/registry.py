@@ -481,7 +481,8 @@ class OwnPixelFitAdapter:
             c = oracle.own_pixel_fit(cloud.points[own], ball["center_m"], self.radius_m)
             if c is None:
                 continue
-            paper, exact = sphere_circles(cloud, c, self.radius_m, {"visible_fraction": ball.get("visible_fraction", 1.0)})
+            seen = ball.get("visible_fraction")  # null on a recording whose silhouette nobody drew
+            paper, exact = sphere_circles(cloud, c, self.radius_m, {"visible_fraction": 1.0 if seen is None else seen})
             out.append({"score": 1.0, "center_m": [float(v) for v in c], "radius_m": None, "circle": exact,
                         "circle_paper": paper})
         return out
