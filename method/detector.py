@@ -227,6 +227,11 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
     """
     if not isinstance(config, DetectorConfig):
         raise SphereBenchError("config must be a DetectorConfig (use spherebench.method.config_for)")
+    if min_score is not None and not 0.0 <= float(min_score) <= 1.0:
+        raise SphereBenchError(f"min_score={min_score!r} must be a probability in [0, 1]")
+    if max_spheres is not None and (isinstance(max_spheres, bool) or not isinstance(max_spheres, (int, np.integer))
+                                    or max_spheres < 1):
+        raise SphereBenchError(f"max_spheres={max_spheres!r} must be a whole number of at least 1")
     R = config.radius_m
     if config.pipeline == "paper":
         rng = np.random.default_rng(seed)

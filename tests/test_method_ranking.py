@@ -74,3 +74,11 @@ def test_the_3d_figures_are_at_the_operating_point():
     dets = [{"score": 0.9}, {"score": 0.3}]
     assert registry.at_operating_point(dets, improved) == [{"score": 0.9}]
     assert registry.at_operating_point(dets, paper) == dets
+
+
+@pytest.mark.parametrize("bad", [{"min_score": 1.5}, {"min_score": -0.1}, {"max_spheres": 0}, {"max_spheres": 2.5},
+                                 {"max_spheres": True}])
+def test_the_report_arguments_are_checked(bad):
+    from spherebench.errors import SphereBenchError
+    with pytest.raises(SphereBenchError, match=next(iter(bad))):
+        detect(cylinder_scene(0.05), seed=0, **bad)
