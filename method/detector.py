@@ -132,25 +132,32 @@ def prepare_frame(cloud: Cloud, config: DetectorConfig) -> PreparedFrame:
 VISIBLE_CIRCLE_BELOW = 0.9
 
 
-def depth_image(cloud: Cloud) -> np.ndarray:
-    """The organised cloud's depth (H, W) m, NaN where it has no point."""
-    h, w = cloud.intrinsics.shape
-    depth = np.full(h * w, np.nan, np.float32)
-    depth[cloud.rows.astype(np.intp) * w + cloud.cols] = cloud.points[:, 2]  # flat: a quarter faster than [rows, cols]
-    return depth.reshape(h, w)
+class FrameDepth:
+    """The depth (m) at pixels (v, u) of a prepared frame, NaN where it has no point, read through its
+    index image: what a visible circle looks up, without drawing the whole depth image (5 ms at
+    1280x720, for each of a ranked output's partly hidden spheres)."""
+
+    def __init__(self, frame: PreparedFrame):
+        self.z_m, self.index = frame.points[:, 2], frame.index_image
+
+    def __getitem__(self, pixels) -> np.ndarray:
+        idx = self.index[pixels]
+        return np.where(idx >= 0, self.z_m[np.maximum(idx, 0)], np.nan)
 
 
 def sphere_circles(cloud: Cloud, c: np.ndarray, R: float, evidence: dict | None = None,
-                   depth: np.ndarray | None = None) -> tuple[Circle | None, Circle | None]:
+                   depth: FrameDepth | None = None) -> tuple[Circle | None, Circle | None]:
     """(paper's circle, exact circle) px of a sphere; the exact one is of the visible silhouette where an
     occluder hides part of it (evidence: the improved pipeline's, with visible_fraction and sigma_m).
-    depth: the cloud's ``depth_image``, where the caller has it (several spheres of one frame)."""
+    depth: the frame's depth lookup, where the caller has the prepared frame."""
     if cloud.intrinsics is None or not c[2] > 0:
         return None, None
     intr = cloud.intrinsics
     exact = sphere_circle_exact(intr, c, R)
     if evidence and cloud.rows is not None and evidence.get("visible_fraction", 1.0) < VISIBLE_CIRCLE_BELOW:
-        depth = depth_image(cloud) if depth is None else depth
+        if depth is None:
+            depth = np.full(intr.shape, np.nan, np.float32)
+            depth[cloud.rows, cloud.cols] = cloud.points[:, 2]
         # an occluder is what visible_fraction counts: more than R / 2 in front, and beyond the noise
         seen = sphere_circle_visible(intr, c, R, depth, max(0.5 * R, 3.0 * evidence.get("sigma_m", 0.0)))
         exact = seen if seen is not None else exact
@@ -256,14 +263,13 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         frame = prepare_frame(cloud, config)
         work, index, subsampled = cloud, None, False
         found = run_improved(cloud.points, frame, config, search_seed(seed), least, max_spheres)
+        depth = FrameDepth(frame)
     else:
+        depth = None
         rng = np.random.default_rng(seed)
         work, index, subsampled = prepare_cloud(cloud, config, rng)
         found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)), least, max_spheres)
     spheres = []
-    # one depth image for every partly hidden sphere of the frame (a ranked output may hold several)
-    hidden = [v for v in found if v.stats.get("visible_fraction", 1.0) < VISIBLE_CIRCLE_BELOW]
-    depth = depth_image(cloud) if len(hidden) > 1 and cloud.rows is not None and cloud.intrinsics is not None else None
     for v in found:
         if subsampled:
             inl = _all_inliers(cloud, v.centre_m, R, v.eps_m)

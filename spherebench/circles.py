@@ -140,7 +140,7 @@ def sphere_circle_visible(intr: Intrinsics, centre_m, radius_m: float, depth_m: 
                           margin_m: float) -> tuple[float, float, float] | None:
     """The smallest enclosing circle of the silhouette's pixels that no nearer surface hides (the
     ground truth's rule for a partly hidden ball: its visible mask): the silhouette clipped to the
-    image and to the pixels whose measured depth ``depth_m`` (H, W) metres lies no more than
+    image and to the pixels whose measured depth ``depth_m`` (H, W) metres (or what reads it at [v, u]) lies no more than
     ``margin_m`` in front of the sphere's near surface on the pixel's ray (a pixel without depth,
     NaN or 0, counts as seen). None when none is seen."""
     c = np.asarray(centre_m, dtype=np.float64).reshape(3)
@@ -153,7 +153,7 @@ def sphere_circle_visible(intr: Intrinsics, centre_m, radius_m: float, depth_m: 
     r2 = rays[:, 0] * rays[:, 0] + rays[:, 1] * rays[:, 1] + 1.0
     c2 = c[0] * c[0] + c[1] * c[1] + c[2] * c[2]
     z_near = (along - np.sqrt(np.maximum(along * along - r2 * (c2 - radius_m * radius_m), 0.0))) / r2
-    z = np.asarray(depth_m, np.float64)[v, u]
+    z = np.asarray(depth_m[v, u], np.float64)  # an array, or a lookup of the pixels' depths (method.detector.FrameDepth)
     hidden = np.isfinite(z) & (z > 0) & (z < z_near - margin_m)
     mask[v[hidden], u[hidden]] = False
     return mask_circle(mask)

@@ -82,3 +82,14 @@ def test_the_report_arguments_are_checked(bad):
     from spherebench.errors import SphereBenchError
     with pytest.raises(SphereBenchError, match=next(iter(bad))):
         detect(cylinder_scene(0.05), seed=0, **bad)
+
+
+def test_the_frames_depth_lookup_reads_what_the_depth_image_holds():
+    from spherebench.method.detector import FrameDepth, prepare_frame
+    cloud = cylinder_scene(0.05)
+    cloud = cloud.subset(np.arange(0, len(cloud.points), 2))  # pixels without depth
+    depth = np.full(cloud.intrinsics.shape, np.nan, np.float32)
+    depth[cloud.rows, cloud.cols] = cloud.points[:, 2]
+    v, u = np.nonzero(np.ones(cloud.intrinsics.shape, bool))
+    got = FrameDepth(prepare_frame(cloud, IMPROVED))[v, u]
+    assert np.array_equal(got, depth[v, u].astype(np.float64), equal_nan=True) and np.isnan(got).any()
