@@ -93,3 +93,22 @@ def test_the_frames_depth_lookup_reads_what_the_depth_image_holds():
     v, u = np.nonzero(np.ones(cloud.intrinsics.shape, bool))
     got = FrameDepth(prepare_frame(cloud, IMPROVED))[v, u]
     assert np.array_equal(got, depth[v, u].astype(np.float64), equal_nan=True) and np.isnan(got).any()
+
+
+def test_the_3d_table_counts_only_what_the_user_gets():
+    """A ranked sphere below the operating point is no false detection in 3D (it is scored in 2D)."""
+    from pathlib import Path
+
+    from spherebench.eval.bench import scoring
+    from spherebench.eval.bench.tasks import SceneInfo
+
+    scene = SceneInfo(index=0, scene_id="s", path=Path("."), image_id=None, family="clean", resolution=None,
+                      annotated=True, has_cloud=True, has_image=False, gt_centres_m=[[0.0, 0.0, 1.0]],
+                      gt_radii_m=[0.12], n_balls=1)
+    dets = [{"score": 0.9, "center_m": [0.0, 0.0, 1.005], "radius_m": 0.12},
+            {"score": 0.2, "center_m": [0.5, 0.0, 2.0], "radius_m": 0.12}]
+    for config, false in ((registry.detector_spec("improved").config, 0), (registry.detector_spec("paper").config, 1)):
+        s = scoring.ScoredSet(output="m", method="m", kind="3d", rule=None, note="", metrics={}, config=config,
+                              scenes=[{"scene_id": "s", "detections": dets}])
+        scoring._score_3d(s, [scene])
+        assert s.metrics["3d"]["false_detections"] == false and s.metrics["3d"]["within_2cm"] == 1.0
