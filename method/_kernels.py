@@ -374,6 +374,9 @@ PARAMETERS = (
     # the descent leaves out side boxes more than R in front of the centre box, an occluder (1: on,
     # ``improved``'s second search of a frame where none was accepted; 0: off)
     ("OCCLUDER_BOUND", None),
+    # the hypotheses' score: the pretest's agreement (0), or the log-likelihood ratio of the cap's relief
+    # against a flat surface (1, ``improved``'s relief search of a frame where none was accepted)
+    ("ORDER_RELIEF", None),
 )
 for _index, (_name, _setting) in enumerate(PARAMETERS):
     globals()["P_" + _name] = _index
@@ -849,7 +852,42 @@ def front_hypothesis(tab, prm, v, u, out):
     if cont > prm[P_MAX_CONTINUED]:
         return -np.inf
     out[0], out[1], out[2], out[3], out[4] = v, u, front, rr, 1.0 if agree < 3 else 0.0
+    if prm[P_ORDER_RELIEF] != 0.0:
+        return _relief_llr(prm, rr, su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD)
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi
+
+
+@part
+def _relief_llr(prm, rr, su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD):
+    """The side boxes' evidence for the cap against a flat surface through the centre box: the sum over
+    the boxes that agree with the cap (``_cap_pretest``'s tolerance) of the log-likelihood ratio of
+    their mean's rise over the centre box's, d, under the cap's relief delta against none,
+    (2 d delta - delta^2) / (2 var), var the two means' noise (one pixel's sigma^2 (1 / n + 1 / n0),
+    correlated pixels counting as fewer). A near ball's cap stands many standard errors out; a bump
+    of correlated noise on a wall a few."""
+    R = prm[P_R]
+    na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]
+    sig = na * m0 * m0
+    ahu = (h + 0.5) / (rr * su)
+    ahv = (h + 0.5) / (rr * sv)
+    spread = (ahu * ahu + ahv * ahv) / 3.0
+    xu = du / (rr * su)
+    xv = dv / (rr * sv)
+    base = cap_relief(spread)
+    rise_u = R * (cap_relief(xu * xu + spread) - base)
+    rise_v = R * (cap_relief(xv * xv + spread) - base)
+    llr = 0.0
+    for j in range(4):
+        m = mL if j == 0 else (mR if j == 1 else (mU if j == 2 else mD))
+        nk = nL if j == 0 else (nR if j == 1 else (nU if j == 2 else nD))
+        if math.isnan(m) or nk == 0 or n0 == 0:
+            continue
+        delta = rise_u if j < 2 else rise_v
+        d = m - m0
+        if abs(d - delta) > 3.0 * sig / math.sqrt(nk) + prm[P_SLACK] * R:
+            continue  # behind or in front of the cap: no evidence for it
+        llr += (2.0 * d * delta - delta * delta) / (2.0 * max(sig * sig * (1.0 / nk + 1.0 / n0), 1e-12))
+    return llr
 
 
 @kernel

@@ -229,7 +229,8 @@ class Stencil(_Group):
 class Retry(_Group):
     """Organised clouds, while no sphere is accepted: the searches again, the disc search, the hole search."""
 
-    retry_occluder: bool = True  # search again leaving out side boxes more than R in front (occluders)
+    retry_relief: bool = True  # search again ranking hypotheses by their cap's relief against the noise
+    retry_occluder: bool = True  # ... leaving out side boxes more than R in front (occluders)
     retry_off_axis: bool = True  # ... then with the stencil stretched off the axis
     retry_disc: bool = True  # ... then for discs standing out of what is behind them
     retry_new_fraction: float = 0.25  # a retry's hypothesis this near (fraction of R) a verified start is skipped
@@ -579,7 +580,7 @@ _FLAT_ORDER = """
     edge_behind_free edge_behind_power edge_behind_sigmas relief_floor_fraction relief_free_sigmas
     ring_spread_free ring_spread_power interior_density_power calibrate_evidence retry_hole hole_min_ring
     hole_min_fraction hole_step_fraction hole_min_range_m score_calibration calibration_slope calibration_offset
-    accept_score rank_floor""".split()
+    accept_score rank_floor retry_relief""".split()
 #: Bare name -> path, in the flat form's order (bare names are unique across the groups).
 FLAT_NAMES = {**{n: _BY_NAME[n] for n in _FLAT_ORDER}, **{n: p for n, p in _BY_NAME.items() if n not in _FLAT_ORDER}}
 #: Every accepted path -> itself, and the model fields' bare names.

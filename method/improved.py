@@ -415,20 +415,24 @@ class PreparedFrame:
 
 
 def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int,
-                 occluder_bound: bool = False, off_axis: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 occluder_bound: bool = False, off_axis: bool = False,
+                 relief: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,), occluded (M,)
     bool: passed the pretest with a side hidden by an occluder, ``_kernels.front_hypothesis``), best first.
     occluder_bound: the descent leaves out side boxes in front of a cap (``_kernels.P_OCCLUDER_BOUND``);
-    off_axis: the stencil follows the silhouette's stretch off the optical axis (``_kernels.stencil_stretch``)."""
+    off_axis: the stencil follows the silhouette's stretch off the optical axis (``_kernels.stencil_stretch``);
+    relief: the hypotheses ranked by how far their cap stands out of the noise (``_kernels._relief_llr``)."""
     hyp = np.zeros((config.search.search_candidates, 6), np.float64)
     counters = np.zeros(2, np.int64)
     prm = frame.prm
-    if occluder_bound or off_axis:
+    if occluder_bound or off_axis or relief:
         prm = prm.copy()
         if occluder_bound:
             prm[K.P_OCCLUDER_BOUND] = 1.0
         if off_axis:
             prm[K.P_OFF_AXIS] = 1.0
+        if relief:
+            prm[K.P_ORDER_RELIEF] = 1.0
     m = K.search_organised(frame.tab, prm, np.uint64(seed), hyp, counters)
     frame.counters = counters  # diagnostics (see _kernels.search_organised)
     frame.hypotheses = hyp[:m]
@@ -1018,7 +1022,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     # stencil stretched off the axis, then for discs standing out of their background, then for holes
     # ringed by a ball's face, and verify the hypotheses not verified before
     retries = [] if frame is None else (
-        ([lambda: search_frame(frame, config, seed, occluder_bound=True)] if config.retry.retry_occluder else [])
+        ([lambda: search_frame(frame, config, seed, relief=True)] if config.retry.retry_relief else [])
+        + ([lambda: search_frame(frame, config, seed, occluder_bound=True)] if config.retry.retry_occluder else [])
         + ([lambda: search_frame(frame, config, seed, off_axis=True)]
            if config.retry.retry_off_axis and not config.stencil.search_off_axis else [])
         + ([lambda: disc_search(frame, config)] if config.retry.retry_disc else [])

@@ -46,17 +46,19 @@ OLD_CHANGED_640 = [
 
 @pytest.mark.parametrize("config", [IMPROVED, PAPER, PAPER_LSTSQ], ids=["improved", "paper", "paper-lstsq"])
 def test_packed_vector_equals_the_hand_packed_one(config):
+    # the slots added since follow the old ones: P_ORDER_RELIEF (0: the pretest's order, set by a retry)
+    added = [0.0]
     for (w, h, b), old in (((424, 240, 1), OLD_DEFAULT_424), ((848, 480, 2), OLD_DEFAULT_848)):
         prm = I.parameters(config, Intrinsics.d435(w, h), (7, 9), b, (h // b, w // b), 3.12, corr_px=1.5)
-        assert prm.tolist() == old, (w, h)
+        assert prm.tolist() == old + added, (w, h)
     changed = config.override(CHANGED)
     prm = I.parameters(changed, Intrinsics.d435(640, 480), (5, 6), 2, (240, 320), 2.5, a=0.004, corr_px=2.0)
-    assert prm.tolist() == OLD_CHANGED_640
+    assert prm.tolist() == OLD_CHANGED_640 + added
     assert set(CHANGED) == {path for _, path in K.PARAMETERS if path} | {"noise.max_eps_fraction"}
 
 
 def test_slot_constants_follow_the_declared_list():
-    assert K.N_PRM == len(K.PARAMETERS) == 38
+    assert K.N_PRM == len(K.PARAMETERS) == 39
     for index, (name, path) in enumerate(K.PARAMETERS):
         assert getattr(K, "P_" + name) == index and type(getattr(K, "P_" + name)) is int
         assert path is None or path in PATHS, path
@@ -70,8 +72,8 @@ def test_flat_form_keeps_the_published_names_and_order():
     assert list(flat)[131:134] == ["ring_spread_power", "interior_density_power", "calibrate_evidence"]
     assert list(flat)[134:] == ["retry_hole", "hole_min_ring", "hole_min_fraction", "hole_step_fraction",
                                 "hole_min_range_m", "score_calibration", "calibration_slope", "calibration_offset",
-                                "accept_score", "rank_floor"]
-    assert len(flat) == len(FLAT_NAMES) == 144 and flat["min_score"] == 0.67
+                                "accept_score", "rank_floor", "retry_relief"]
+    assert len(flat) == len(FLAT_NAMES) == 145 and flat["min_score"] == 0.67
     for preset in (IMPROVED, PAPER, PAPER_LSTSQ):
         assert DetectorConfig.from_flat({"engine": "detector", **preset.flat()}) == preset
     grouped = sum(len(dataclasses.fields(cls)) for cls in GROUPS.values())

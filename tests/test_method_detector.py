@@ -294,7 +294,8 @@ def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypa
     found = detect(cloud, config_for("improved"), seed=0)
     assert len(found) == 1 and np.linalg.norm(found[0].centre_m - c) < 0.003
     # (the retries would search again, and verify the starts left over: this one is about the first)
-    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False, "retry_hole": False}
+    no_retry = {"retry_relief": False, "retry_occluder": False, "retry_off_axis": False, "retry_disc": False,
+                "retry_hole": False}
     assert detect(cloud, config_for("improved", verification={"verify_candidates_if_none": 6}, retry=no_retry),
                   seed=0) == []
 
@@ -509,7 +510,7 @@ def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
 
     cloud = scene(ball_c=None, width=424, height=240)
     searches = iter([np.empty((0, 3))] + [np.array([[x, y, 4.5] for x in (-1.0, -0.5, 0.0, 0.5, 1.0)
-                                                     for y in (-0.3 + 0.1 * k, 0.3 + 0.1 * k)]) for k in range(4)])
+                                                     for y in (-0.3 + 0.1 * k, 0.3 + 0.1 * k)]) for k in range(5)])
 
     def fake_search(frame, config, seed, **retry):
         starts = next(searches)
@@ -524,12 +525,12 @@ def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
     config = config_for("improved")
     ver = config.verification
     assert ver.verify_candidates == 6 and 0.0075 * 4.5 ** 2 > ver.multistart_noise_fraction * R
-    assert detect(cloud, config, seed=0) == [] and len(calls) == 24  # four retries, 6 each
+    assert detect(cloud, config, seed=0) == [] and len(calls) == 30  # five retries, 6 each
 
 
 def test_retries_only_while_none_is_accepted(monkeypatch):
-    """A frame whose first search gives a ball is searched once; an empty wall five times (the first
-    search and the four retries), and without the retries once."""
+    """A frame whose first search gives a ball is searched once; an empty wall six times (the first
+    search and the five retries), and without the retries once."""
     from spherebench.method import improved as I
 
     calls = []
@@ -539,10 +540,11 @@ def test_retries_only_while_none_is_accepted(monkeypatch):
     monkeypatch.setattr(I, "hole_search", lambda *a: calls.append("hole") or real_hole(*a))
     assert len(detect(scene(ball_c=(0.1, -0.05, 1.0)), seed=0)) == 1 and calls == [{}]
     calls.clear()
-    assert detect(scene(ball_c=None), seed=0) == [] and calls == [{}, {"occluder_bound": True}, {"off_axis": True},
-                                                                  "disc", "hole"]
+    assert detect(scene(ball_c=None), seed=0) == [] and calls == [{}, {"relief": True}, {"occluder_bound": True},
+                                                                  {"off_axis": True}, "disc", "hole"]
     calls.clear()
-    no_retry = {"retry_occluder": False, "retry_off_axis": False, "retry_disc": False, "retry_hole": False}
+    no_retry = {"retry_relief": False, "retry_occluder": False, "retry_off_axis": False, "retry_disc": False,
+                "retry_hole": False}
     detect(scene(ball_c=None), config_for("improved", retry=no_retry),
            seed=0)
     assert calls == [{}]
@@ -870,9 +872,9 @@ def test_outcome_constants_are_configuration_fields():
 
     intr = Intrinsics.d435(424, 240)
     # the slots from P_H_FRAC on that hold a setting (P_MEAN_NOISE comes from the frame's noise
-    # correlation, P_OCCLUDER_BOUND is set by a retry's search)
+    # correlation, P_OCCLUDER_BOUND and P_ORDER_RELIEF are set by a retry's search)
     fields = {i: path for i, (_, path) in enumerate(K.PARAMETERS) if path and i >= K.P_H_FRAC}
-    assert len(fields) == K.N_PRM - 19 and fields[K.P_OFF_AXIS] == "stencil.search_off_axis"
+    assert len(fields) == K.N_PRM - 20 and fields[K.P_OFF_AXIS] == "stencil.search_off_axis"
     base = kernel_parameters(intr)
     assert base[K.P_MEAN_NOISE] == 1.0
     for index, name in fields.items():
