@@ -299,3 +299,21 @@ def test_per_ball_by_range_counts_the_ranked_candidates(train4, tmp_path, capsys
     assert sum(r["balls"] for r in rows) == 4 and "ranked within 2 cm" in text
     for r in rows:
         assert r["found_far_rule"] <= r["ranked_2cm"] <= r["ranked_6cm"] <= r["balls"]
+
+
+def test_size_resolution_reads_the_free_radius_of_both_balls(train4, tmp_path, capsys):
+    sizes = _script("size_resolution")
+    small = simulate.generate_dataset("train", tmp_path / "train4-r011", n=4, radius_m=0.11, progress=False)
+    big_lines, small_lines = tmp_path / "big.jsonl", tmp_path / "small.jsonl"
+    assert sizes.main(["collect", str(train4), str(big_lines), "--workers", "1"]) == 0
+    assert sizes.main(["collect", str(small), str(small_lines), "--workers", "1"]) == 0
+    big = [json.loads(t) for t in big_lines.read_text().splitlines()]
+    little = [json.loads(t) for t in small_lines.read_text().splitlines()]
+    assert len(big) == len(little) == 4
+    assert {x["true_radius_m"] for x in big} == {0.12} and {x["true_radius_m"] for x in little} == {0.11}
+    # each ball verified from its truth: a free radius near a ball's size, with a standard error
+    fits = [x for x in big + little if "free_radius_m" in x and x["error_m"] <= 0.02]
+    assert len(fits) >= 6 and all(0.08 < x["free_radius_m"] < 0.16 and x["free_radius_se_m"] > 0 for x in fits)
+    capsys.readouterr()
+    assert sizes.main(["report", f"analytic={big_lines}:{small_lines}"]) == 0
+    assert "| sensor | band (m) |" in capsys.readouterr().out
