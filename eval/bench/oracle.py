@@ -46,15 +46,21 @@ CEILING_M = 0.02
 OWN_PIXELS_MIN, OWN_FIT_ROUNDS, OWN_FIT_TRIM_SIGMAS = 20, 4, 3.0
 
 
-def _ray_fit(p: np.ndarray, c: np.ndarray, radius_m: float, iterations: int = 15) -> np.ndarray | None:
-    """Gauss-Newton with R fixed on the range residuals along each point's ray (the depth noise lies along
-    the rays): p (N, 3) m, start c (3,) m; None where fewer than 10 rays meet the sphere."""
-    t = np.linalg.norm(p, axis=1)
-    u = p / t[:, None]
+def _ray_geometry(u: np.ndarray, c: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(b, q) of unit rays u (N, 3) against the sphere (c, R): b = u.c, and q = R^2 - |c|^2 + b^2, which
+    is positive where the ray meets the sphere; it enters at the range b - sqrt(q)."""
+    b = u @ c
+    return b, radius_m * radius_m - c @ c + b * b
+
+
+def _ray_fit(t: np.ndarray, u: np.ndarray, c: np.ndarray, radius_m: float,
+             iterations: int = 15) -> np.ndarray | None:
+    """Gauss-Newton with R fixed on the range residuals along each pixel's ray (the depth noise lies along
+    the rays): ranges t (N,) m, unit rays u (N, 3), start c (3,) m; None where fewer than 10 rays meet
+    the sphere."""
     c = np.asarray(c, np.float64).copy()
     for _ in range(iterations):
-        b = u @ c
-        q = radius_m * radius_m - c @ c + b * b
+        b, q = _ray_geometry(u, c, radius_m)
         hit = q > 1e-10
         if np.count_nonzero(hit) < 10:
             return None
@@ -77,15 +83,16 @@ def own_pixel_fit(points_m: np.ndarray, centre_m, radius_m: float) -> np.ndarray
     p = p[np.all(np.isfinite(p), axis=1) & (np.linalg.norm(p, axis=1) > 0)]
     if len(p) < OWN_PIXELS_MIN:
         return None
+    t = np.linalg.norm(p, axis=1)
+    u = p / t[:, None]
     c0 = np.asarray(centre_m, np.float64)
     c, keep = c0, np.ones(len(p), bool)
     for _ in range(OWN_FIT_ROUNDS):
-        c = _ray_fit(p[keep], c, radius_m)
+        c = _ray_fit(t[keep], u[keep], c, radius_m)
         if c is None or float(np.linalg.norm(c - c0)) > radius_m:
             return None
-        t = np.linalg.norm(p, axis=1)
-        b = (p / t[:, None]) @ c
-        res = t - (b - np.sqrt(np.maximum(radius_m * radius_m - c @ c + b * b, 0.0)))
+        b, q = _ray_geometry(u, c, radius_m)
+        res = t - (b - np.sqrt(np.maximum(q, 0.0)))  # a ray that misses: its range past the closest approach
         med = float(np.median(res[keep]))
         sigma = 1.4826 * float(np.median(np.abs(res[keep] - med)))
         keep = np.abs(res - med) <= OWN_FIT_TRIM_SIGMAS * max(sigma, 1e-4)

@@ -118,8 +118,8 @@ def metrics3d_table(label: str, sets: Sequence[ScoredSet], reference: str | None
             continue
         ce, re_ = d["centre_error_m"], d["radius_error_m"]
         own = _estimates_radius(s)
-        balls_in = {b: v["balls"] for b, v in (d.get("found_by_band") or {}).items()} or balls_in
         bands = d.get("found_by_band") or {}
+        balls_in = {b: v["balls"] for b, v in bands.items()} or balls_in  # the same balls for every method
         rows.append([s.method, d["n_gt"], fmt(d.get("within_1cm")), fmt(d.get("within_2cm")),
                      fmt(d.get("within_5cm"))]
                     + [fmt(bands[b]["found"]) if bands.get(b, {}).get("balls") else "–" for b in band_names]
