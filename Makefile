@@ -83,6 +83,14 @@ train-analytic: venv data-train  ## retrain circlenet-analytic on train alone (C
 		checkpoints/circlenet-analytic/model_card.json checkpoints/circlenet-analytic/training_curve.png \
 		baselines/circlenet/analytic/
 
+# ---- the 3D detector's fitted verdict (method/verdict.onnx): its candidates on train and train-stereo,
+# the model chosen across sensors, fitted and calibrated on held-apart scenes (CPU, a few minutes)
+VERDICT_RUN := checkpoints/verdict
+train-verifier: venv data-train data-train-stereo  ## refit the 3D detector's verdict on train + train-stereo (CPU, minutes)
+	$(SB) train-verifier --data $(DATA)/train --data $(DATA)/train-stereo --out $(VERDICT_RUN) --seed $(SEED) \
+		--workers $(WORKERS)
+	cp $(VERDICT_RUN)/verdict.onnx $(VERDICT_RUN)/verdict_card.md $(VERDICT_RUN)/verdict_card.json method/
+
 # ---- the full-size CircleNets: NEED A CUDA MACHINE (a GPU and a CUDA build of torch in .venv; they refuse
 # to start without one). Same data (train + train-stereo, seed 0), seed and recipe as `make train`, at full
 # size; epochs over both presets, half of those once chosen over train alone (the same optimizer steps):

@@ -281,6 +281,7 @@ class Verification(_Group):
     accept_score: float = 0.67  # a candidate this probable (below) is taken as a ball: the search narrows, the retries stop
     min_score: float = 0.67  # detect() reports the candidates at least this probable (the search is the same at any)
     rank_floor: float = 0.01  # candidates less probable than this are not ranked (the benchmark's floor, as CircleNet's)
+    fitted_verdict: bool = False  # organised clouds: the score is the fitted verdict's (method/verdict.py)
     score_calibration: bool = True  # score: the probability of a ball within 2 cm (3 beyond 3 m); False: the raw product
     calibration_slope: float = 2.102  # probability = sigmoid(slope logit(raw) + offset), fitted on train + train-stereo
     calibration_offset: float = 2.018  # ... (see docs/detector.md, "What the score means")
@@ -297,7 +298,12 @@ class Verification(_Group):
                                     "calibration_slope": "the map must rise with the evidence"}
 
     def probability(self, raw: float) -> float:
-        """A detection's score from its raw evidence product in [0, 1]: the calibration map (strictly
+        """A detection's score from its raw score: with ``fitted_verdict`` the score is already the
+        probability, else ``factor_probability``."""
+        return float(raw) if self.fitted_verdict else self.factor_probability(raw)
+
+    def factor_probability(self, raw: float) -> float:
+        """The probability of a raw evidence product in [0, 1]: the calibration map (strictly
         increasing, 0 and 1 fixed), or the product itself without ``score_calibration``."""
         if not self.score_calibration or raw <= 0.0 or raw >= 1.0:
             return float(raw)
@@ -306,7 +312,7 @@ class Verification(_Group):
     def raw(self, p: float) -> float:
         """The raw evidence product whose probability is p: the map's inverse, which the decisions inside
         the detector compare the product with."""
-        if not self.score_calibration or p <= 0.0 or p >= 1.0:
+        if self.fitted_verdict or not self.score_calibration or p <= 0.0 or p >= 1.0:
             return float(p)
         return 1.0 / (1.0 + math.exp(-(math.log(p / (1.0 - p)) - self.calibration_offset) / self.calibration_slope))
 

@@ -51,6 +51,7 @@ from spherebench.circles import norm3
 from spherebench.cloud import Cloud
 from spherebench.method import _kernels as K
 from spherebench.method.config import DetectorConfig
+from spherebench.method.verdict import load_verdict
 
 
 @dataclass
@@ -395,6 +396,8 @@ class PreparedFrame:
         if self.noise_a_measured is not None and not (
                 abs(self.noise_a_measured - model_a) <= config.noise.noise_model_tolerance * model_a):
             self.noise_a = self.noise_a_measured
+        #: the frame's measured noise over the sensor model's (1 where not measured)
+        self.noise_ratio = 1.0 if self.noise_a_measured is None or not model_a > 0 else self.noise_a_measured / model_a
         self.z_far_m = far_depth_m(config, intr, hist_percentile(self.hist, 98.0), self.noise_a)
         self.stratum = strata(config, intr, self.z_far_m, self.bin, (hc, wc))
         #: first cells the search draws: one per stratum
@@ -406,6 +409,8 @@ class PreparedFrame:
         # below accept_score too (``rescore``)
         fit, ver = config.refinement, config.verification
         least = min(ver.floor_raw_score, max(0.0, ver.accept_raw_score - ver.rescore_band))
+        if ver.fitted_verdict:  # the fitted verdict reads every candidate the size check passes
+            least = 0.0
         self.gate = np.array([size_tolerance(config) if fit.size_check else math.inf, fit.size_sigmas,
                               least, ver.min_inliers], np.float64)
         #: no early stop (``rescore``: a start's whole score and size verdict count)
@@ -805,7 +810,11 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
     if size is not None:
         rho = float(np.linalg.norm(out[K.V_CX:K.V_CZ + 1]))
         free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
+    stats.update(depth_m=cz, n_inliers=float(n), rmse_m=float(out[K.V_RMSE]), free_radius_m=free_r,
+                 free_radius_se_m=free_se, noise_ratio=frame.noise_ratio)
     score, size_ok = confidence(stats, n, free_r, free_se, config, True)
+    if config.verification.fitted_verdict:  # the size check stays; the score is the fitted model's
+        score = load_verdict().probability(stats, config.radius_m)
     # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
     return Candidate(centre_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),
                      free_centre_m=out[K.V_FCX:K.V_FCZ + 1].copy(), free_radius_m=free_r,
@@ -904,6 +913,8 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     stats = {"inside": inside, "shell": float(n),
              "interior_density_ratio": (inside / max(r_in, 1e-12) ** 3) / (n / v_shell) if r_in > 0 else 0.0}
     score, size_ok = confidence(stats, n, float(free_r), float(free_se), config, False)
+    if config.verification.fitted_verdict:  # the fitted verdict is the organised clouds': decisions compare probabilities
+        score = config.verification.factor_probability(score)
     return Candidate(centre_m=c, inliers=idx, eps_m=e, free_centre_m=np.asarray(free_c), free_radius_m=float(free_r),
                      free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
 

@@ -31,6 +31,7 @@ COMMANDS = [
     ("detect", "detect", "find spheres of known radius in point clouds or scene folders"),
     ("detect-2d", "detect_2d", "run the CircleNet-style 2D detector on reprojected images"),
     ("train", "train", "train the CircleNet-style 2D baseline on the train preset"),
+    ("train-verifier", "train_verifier", "fit the 3D detector's verdict on the candidates of the training presets"),
     ("evaluate", "evaluate", "run methods on a dataset and score them (COCO circle mAP, 3D errors)"),
     ("eval", "benchmark", "the benchmark (make eval): every method on every benchmark preset; Table 2 on paper"),
     ("bench", "bench", "the 3D detector's accuracy and speed per configuration, beside pyransac3d"),

@@ -72,8 +72,8 @@ def test_flat_form_keeps_the_published_names_and_order():
     assert list(flat)[131:134] == ["ring_spread_power", "interior_density_power", "calibrate_evidence"]
     assert list(flat)[134:] == ["retry_hole", "hole_min_ring", "hole_min_fraction", "hole_step_fraction",
                                 "hole_min_range_m", "score_calibration", "calibration_slope", "calibration_offset",
-                                "accept_score", "rank_floor", "retry_relief"]
-    assert len(flat) == len(FLAT_NAMES) == 145 and flat["min_score"] == 0.67
+                                "accept_score", "rank_floor", "retry_relief", "fitted_verdict"]
+    assert len(flat) == len(FLAT_NAMES) == 146 and flat["min_score"] == 0.67
     for preset in (IMPROVED, PAPER, PAPER_LSTSQ):
         assert DetectorConfig.from_flat({"engine": "detector", **preset.flat()}) == preset
     grouped = sum(len(dataclasses.fields(cls)) for cls in GROUPS.values())

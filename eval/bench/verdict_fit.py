@@ -1,0 +1,272 @@
+"""Fitting the detector's verdict (``method/verdict.py``) on the candidates of both sensor models.
+
+1. ``collect``: the improved detector runs on every scene of `train` and `train-stereo` with its
+   hand-set verdict down to a floor of 1e-4 (``COLLECT_OVERRIDES``: every distinct verified sphere
+   that passes the size check), and each candidate becomes a row: its ``verdict_features``, its
+   label (a ball's centre within 2 cm, 3 cm beyond 3 m: ``eval.metrics.calibration`` 's rule, any
+   ball), its scene, family and the sensor's parameters.
+2. ``choose``: each candidate model is fitted across sensors and judged on a sensor it has not seen:
+   `train` plus the stereo scenes of low ambient light, judged on those of high ambient light; the
+   reverse; and `train-stereo` alone, judged on `train`. The model of the best mean average
+   precision over the three folds is kept.
+3. ``fit``: the kept model refitted on every scene but the held-apart ones (scene index = 4 mod 5,
+   both sensor models), its output calibrated on those by isotonic regression, exported to ONNX
+   with the feature names and the calibration knots in its metadata, and a model card.
+
+Same seed, same model: the detector's runs are seeded per scene (``detection_seed``) and the
+fits' randomness is the seed's.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from spherebench.datasets import inout
+from spherebench.eval.bench.seeds import detection_seed
+from spherebench.eval.metrics.metrics3d import FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M
+from spherebench.method.config import DetectorConfig, config_for
+from spherebench.method.detector import detect
+from spherebench.method.verdict import FEATURE_NAMES, verdict_features
+from spherebench.parallel import executor
+
+#: the collection's detector: the hand-set verdict, every candidate down to 1e-4 kept and reported
+COLLECT_OVERRIDES = {"verification.rank_floor": 1e-4, "verification.max_spheres": 100}
+#: scenes whose index is this modulo CALIBRATION_EVERY are held apart from the fit, for the calibration
+CALIBRATION_EVERY, CALIBRATION_REST = 5, 4
+#: the stereo scenes' split for the cross-sensor folds: their ambient light (electrons per ms)
+AMBIENT_SPLIT_E_PER_MS = 150.0
+SENSOR_COLUMNS = ("ambient_e_per_ms", "dot_sigma_mrad", "read_noise_e", "subpixel")
+
+
+def collect_config(radius_m: float) -> DetectorConfig:
+    """The improved detector's configuration for the collection (``COLLECT_OVERRIDES``) at radius_m."""
+    return config_for("improved", COLLECT_OVERRIDES, radius_m=radius_m)
+
+
+def _scene_rows(job: tuple) -> list[dict]:
+    """One scene's candidate rows (in a worker): job (dataset name, scene dir, index, seed, radius_m)."""
+    dataset, scene_dir, index, seed, radius_m = job
+    gt = inout.read_scene_gt(Path(scene_dir))
+    cloud = inout.load_cloud(Path(scene_dir))
+    config = collect_config(radius_m)
+    spheres = detect(cloud, config, seed=detection_seed(seed, index), min_score=0.0, max_spheres=100)
+    balls = np.asarray([b["center_m"] for b in gt.get("balls", []) if b.get("center_m") is not None],
+                       np.float64).reshape(-1, 3)
+    limit_m = np.where(balls[:, 2] > FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M)
+    sensor = gt.get("meta", {}).get("sensor", {})
+    rows = []
+    for rank, s in enumerate(spheres):
+        d = np.linalg.norm(balls - s.centre_m, axis=1)
+        row = {"dataset": dataset, "scene": gt["scene_id"], "index": index, "family": gt.get("family", ""),
+               "seed": seed, "rank": rank, "z_m": float(s.centre_m[2]), "factor_score": float(s.score),
+               "label": bool(np.any(d <= limit_m)),
+               "ball_z_m": float(balls[np.argmin(d), 2]) if len(d) else math.nan}
+        row.update({k: float(sensor.get(k, math.nan)) for k in SENSOR_COLUMNS})
+        row.update(zip(FEATURE_NAMES, verdict_features(s.evidence, radius_m).tolist()))
+        rows.append(row)
+    return rows
+
+
+def collect(datasets: list[Path], seeds: list[int], workers: int, limit: int | None = None) -> pd.DataFrame:
+    """Every candidate of every scene with a ground truth in datasets, at each run seed (rows: ``_scene_rows``)."""
+    jobs = []
+    for data in datasets:
+        radius_m = float(inout.read_dataset_meta(data).get("ball_radius_m", 0.12))
+        scenes = inout.list_scenes(data)[:limit]
+        jobs += [(data.name, str(p), k, seed, radius_m) for seed in seeds for k, p in enumerate(scenes)]
+    with executor(workers) as ex:
+        rows = [r for part in ex.map(_scene_rows, jobs) for r in part]
+    return pd.DataFrame(rows)
+
+
+#: the models compared across sensors (``choose``): name -> a function of the seed giving an unfitted
+#: scikit-learn classifier
+def _logistic(seed: int):
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    return make_pipeline(StandardScaler(), LogisticRegression(C=1.0, max_iter=5000, random_state=seed))
+
+
+def _trees(seed: int, depth: int = 4, rounds: int = 200):
+    from sklearn.ensemble import GradientBoostingClassifier
+
+    # scikit-learn's exact gradient boosting: skl2onnx 1.20 cannot export the histogram one's trees
+    # beside onnx 1.23; every row in every round (no subsampling), so the seed only breaks ties
+    return GradientBoostingClassifier(n_estimators=rounds, learning_rate=0.1, max_depth=depth, min_samples_leaf=40,
+                                      random_state=seed)
+
+
+MODELS = {
+    "logistic": _logistic,
+    "trees-200x4": _trees,
+    "trees-100x3": functools.partial(_trees, depth=3, rounds=100),
+}
+
+
+def _is_calibration(df: pd.DataFrame) -> np.ndarray:
+    return (df["index"].to_numpy() % CALIBRATION_EVERY) == CALIBRATION_REST
+
+
+def folds(df: pd.DataFrame) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """The cross-sensor folds (name, fit rows, judged rows) over the fit scenes (calibration's left out)."""
+    fit = ~_is_calibration(df)
+    analytic = df["dataset"].to_numpy() == "train"
+    stereo = df["dataset"].to_numpy() == "train-stereo"
+    low = stereo & (df["ambient_e_per_ms"].to_numpy() < AMBIENT_SPLIT_E_PER_MS)
+    high = stereo & ~low
+    return [("train + stereo low ambient -> stereo high ambient", fit & (analytic | low), fit & high),
+            ("train + stereo high ambient -> stereo low ambient", fit & (analytic | high), fit & low),
+            ("train-stereo -> train", fit & stereo, fit & analytic)]
+
+
+def _judge(y: np.ndarray, p: np.ndarray) -> dict:
+    from sklearn.metrics import average_precision_score, log_loss, roc_auc_score
+
+    return {"ap": float(average_precision_score(y, p)), "auc": float(roc_auc_score(y, p)),
+            "log_loss": float(log_loss(y, np.clip(p, 1e-6, 1 - 1e-6))), "n": int(len(y)), "positives": int(y.sum())}
+
+
+def choose(df: pd.DataFrame, seed: int) -> dict:
+    """Each model of MODELS (and the hand-set verdict's score, "factors") judged on each cross-sensor
+    fold: {model: {fold: _judge's figures}, "chosen": the model of the best mean AP}."""
+    x = df[list(FEATURE_NAMES)].to_numpy(np.float32)
+    y = df["label"].to_numpy(bool)
+    out: dict = {}
+    for name, make in MODELS.items():
+        out[name] = {}
+        for fold, fit_rows, judged in folds(df):
+            model = make(seed).fit(x[fit_rows], y[fit_rows])
+            out[name][fold] = _judge(y[judged], model.predict_proba(x[judged])[:, 1])
+    out["factors"] = {fold: _judge(y[judged], df["factor_score"].to_numpy()[judged]) for fold, _, judged in folds(df)}
+    mean_ap = {name: float(np.mean([f["ap"] for f in out[name].values()])) for name in MODELS}
+    out["chosen"] = max(mean_ap, key=mean_ap.get)
+    return out
+
+
+@dataclass
+class FittedModel:
+    """A verdict model fitted and calibrated: the ONNX bytes and what its card reports."""
+
+    onnx_bytes: bytes
+    knots: tuple[list[float], list[float]]
+    calibration: dict
+
+
+def fit(df: pd.DataFrame, name: str, seed: int) -> FittedModel:
+    """The model ``name`` fitted on the fit scenes of both sensor models, calibrated on the held-apart
+    ones (isotonic regression of the label on the model's output), exported to ONNX."""
+    from sklearn.isotonic import IsotonicRegression
+    from skl2onnx import to_onnx
+
+    x = df[list(FEATURE_NAMES)].to_numpy(np.float32)
+    y = df["label"].to_numpy(bool)
+    cal = _is_calibration(df)
+    model = MODELS[name](seed).fit(x[~cal], y[~cal])
+    s_cal = model.predict_proba(x[cal])[:, 1]
+    iso = IsotonicRegression(y_min=0.0, y_max=1.0, out_of_bounds="clip").fit(s_cal, y[cal])
+    knots = ([0.0] + iso.X_thresholds_.tolist() + [1.0],
+             [float(iso.y_thresholds_[0])] + iso.y_thresholds_.tolist() + [float(iso.y_thresholds_[-1])])
+    onx = to_onnx(model, x[:1], options={id(model): {"zipmap": False}} if not hasattr(model, "steps")
+                  else {id(model.steps[-1][1]): {"zipmap": False}}, target_opset={"": 17, "ai.onnx.ml": 3})
+    # the exporter lists the opsets from a set, in an order that varies between runs: sorted, the same
+    # seed writes the same bytes
+    opsets = sorted(((o.domain, o.version) for o in onx.opset_import))
+    del onx.opset_import[:]
+    for domain, version in opsets:
+        onx.opset_import.add(domain=domain, version=version)
+    for key, value in (("feature_names", json.dumps(list(FEATURE_NAMES))), ("calibration_knots", json.dumps(knots)),
+                       ("model", name), ("seed", str(seed))):
+        entry = onx.metadata_props.add()
+        entry.key, entry.value = key, value
+    p_cal = np.interp(s_cal, knots[0], knots[1])
+    per_set = {}
+    for dataset in sorted(set(df["dataset"][cal])):
+        rows = df["dataset"].to_numpy()[cal] == dataset
+        per_set[dataset] = {**_judge(y[cal][rows], p_cal[rows]), "ece": _ece(y[cal][rows], p_cal[rows])}
+    return FittedModel(onnx_bytes=onx.SerializeToString(), knots=knots, calibration=per_set)
+
+
+def _ece(y: np.ndarray, p: np.ndarray, bins: int = 10) -> float:
+    from spherebench.eval.metrics.calibration import expected_calibration_error
+
+    return float(expected_calibration_error(p, y, n_bins=bins))
+
+
+def _versions() -> dict:
+    import onnx
+    import onnxruntime
+    import skl2onnx
+    import sklearn
+
+    return {"scikit-learn": sklearn.__version__, "skl2onnx": skl2onnx.__version__, "onnx": onnx.__version__,
+            "onnxruntime": onnxruntime.__version__, "numpy": np.__version__}
+
+
+def model_card(df: pd.DataFrame, comparison: dict, model: FittedModel, seed: int, seeds: list[int],
+               datasets: list[Path], command: str) -> tuple[dict, str]:
+    """The model card as JSON and Markdown: the data, the seed, the recipe, the cross-sensor comparison
+    and the calibration on the held-apart scenes."""
+    cal = _is_calibration(df)
+    data = {name: {"scenes": int(df[df.dataset == name]["index"].nunique()), "candidates": int((df.dataset == name).sum()),
+                   "positives": int(df[df.dataset == name]["label"].sum()),
+                   "held_apart_candidates": int(((df.dataset == name) & cal).sum())} for name in sorted(set(df.dataset))}
+    card = {"model": comparison["chosen"], "seed": seed, "collection_seeds": seeds,
+            "datasets": [str(d) for d in datasets], "data": data, "features": list(FEATURE_NAMES),
+            "collection_overrides": COLLECT_OVERRIDES,
+            "held_apart": f"scenes whose index is {CALIBRATION_REST} mod {CALIBRATION_EVERY}",
+            "cross_sensor": {k: v for k, v in comparison.items() if k != "chosen"},
+            "calibration": model.calibration, "knots": len(model.knots[0]), "command": command,
+            "versions": _versions()}
+    lines = [f"# Model card: the fitted verdict ({comparison['chosen']})", "",
+             "The probability that a verified sphere's centre lies within 2 cm (3 cm beyond 3 m) of a ball's, "
+             "from the quantities verification measures on it (`method/verdict.py`, FEATURE_NAMES).", "",
+             "- Data: the improved detector's candidates (hand-set verdict, floor 1e-4) on "
+             + ", ".join(f"`{d}` ({v['scenes']} scenes, {v['candidates']} candidates, {v['positives']} positive)"
+                         for d, v in data.items())
+             + f", run seeds {', '.join(map(str, seeds))}.",
+             f"- Fit: every scene but the held-apart ones ({card['held_apart']}); calibration: isotonic regression "
+             f"on the held-apart ones ({len(model.knots[0])} knots, in the ONNX metadata).",
+             f"- Recipe: scikit-learn `{comparison['chosen']}` (`eval/bench/verdict_fit.py`, MODELS), seed {seed}.",
+             f"- Command: `{command}`",
+             "- Versions: " + ", ".join(f"{k} {v}" for k, v in card["versions"].items()) + ".", "",
+             "## Chosen across sensors", "",
+             "Each model fitted on one part and judged on a sensor it has not seen (average precision, ROC AUC, "
+             "log loss of the uncalibrated output; `factors`: the hand-set verdict's score).", "",
+             "| model | " + " | ".join(f for f in next(iter(card["cross_sensor"].values()))) + " |",
+             "|---|" + "---|" * len(next(iter(card["cross_sensor"].values())))]
+    for name, per_fold in card["cross_sensor"].items():
+        lines.append(f"| {name} | " + " | ".join(f"AP {v['ap']:.3f}, AUC {v['auc']:.3f}, log loss {v['log_loss']:.3f}"
+                                                  for v in per_fold.values()) + " |")
+    lines += ["", "## Calibrated, on the held-apart scenes", "",
+              "| set | candidates | positive | AP | ECE |", "|---|---|---|---|---|"]
+    lines += [f"| {d} | {v['n']} | {v['positives']} | {v['ap']:.3f} | {v['ece']:.3f} |" for d, v in model.calibration.items()]
+    return card, "\n".join(lines) + "\n"
+
+
+def train_verifier(datasets: list[Path], out: Path, seed: int, seeds: list[int], workers: int, command: str,
+                   progress=print) -> dict:
+    """Collect, choose, fit and write out/verdict.onnx, out/verdict_card.json and out/verdict_card.md
+    (all or none); returns the card."""
+    from spherebench.datasets.outputs import replace_files
+    from spherebench.datasets.inout import json_bytes
+
+    progress(f"collecting candidates on {', '.join(map(str, datasets))} (seeds {seeds})")
+    df = collect(datasets, seeds, workers)
+    progress(f"{len(df)} candidates, {int(df['label'].sum())} positive; comparing {', '.join(MODELS)} across sensors")
+    comparison = choose(df, seed)
+    progress(f"chosen: {comparison['chosen']}; fitting and calibrating")
+    model = fit(df, comparison["chosen"], seed)
+    card, md = model_card(df, comparison, model, seed, seeds, datasets, command)
+    out.mkdir(parents=True, exist_ok=True)
+    replace_files({out / "verdict.onnx": model.onnx_bytes, out / "verdict_card.json": json_bytes(card),
+                   out / "verdict_card.md": md.encode()})
+    return card
