@@ -281,7 +281,7 @@ class Verification(_Group):
     accept_score: float = 0.67  # a candidate this probable (below) is taken as a ball: the search narrows, the retries stop
     min_score: float = 0.67  # detect() reports the candidates at least this probable (the search is the same at any)
     rank_floor: float = 0.01  # candidates less probable than this are not ranked (the benchmark's floor, as CircleNet's)
-    fitted_verdict: bool = False  # organised clouds: the score is the fitted verdict's (method/verdict.py)
+    fitted_verdict: bool = True  # organised clouds: the score is the fitted verdict's (method/verdict.py); False: the factors'
     score_calibration: bool = True  # score: the probability of a ball within 2 cm (3 beyond 3 m); False: the raw product
     calibration_slope: float = 2.102  # probability = sigmoid(slope logit(raw) + offset), fitted on train + train-stereo
     calibration_offset: float = 2.018  # ... (see docs/detector.md, "What the score means")
@@ -609,7 +609,8 @@ PAPER = DEFAULT.override({"pipeline": "paper", "search": {"sampling": "global", 
                                                           "iterations": 1000, "adaptive": False},
                           "paper.refine": "barycentre", "verification": {"max_spheres": 1, "min_inliers": 3,
                                                                          "min_score": 0.0,
-                                                                         "score_calibration": False}})
+                                                                         "score_calibration": False,
+                                                                         "fitted_verdict": False}})
 #: The ablation: the printed Eq. (12) solved by least squares (minimum-norm solution).
 PAPER_LSTSQ = PAPER.override({"search.solver": "lstsq_eq12"})
 #: The default: the paper's future work and the fixes of docs/detector.md.

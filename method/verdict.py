@@ -130,6 +130,7 @@ class FittedVerdict:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1  # one candidate at a time: threads cost more than they give
         opts.inter_op_num_threads = 1
+        opts.log_severity_level = 3  # the tree ensemble's unused "label" output warns of its shape on batches
         self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         meta = self.session.get_modelmeta().custom_metadata_map
         names = tuple(json.loads(meta.get("feature_names", "[]")))

@@ -31,6 +31,8 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     require("sklearn", "train", "fitting the verdict")
     require("skl2onnx", "train", "fitting the verdict")
+    require("lightgbm", "train", "fitting the verdict")
+    require("onnxmltools", "train", "fitting the verdict")
     from spherebench.eval.bench.evaluate import check_dataset
     from spherebench.eval.bench.verdict_fit import train_verifier
 

@@ -17,6 +17,8 @@ from spherebench.method import _kernels as K
 from spherebench.method import sphere_model as sm
 
 R = 0.12
+#: the hand-set verdict (the product of factors), whose settings these tests exercise
+FACTORS = config_for("improved", {"verification.fitted_verdict": False})
 
 
 def cap_points(c, r, n, rng, visible=True):
@@ -344,9 +346,9 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
                                                   rmse_m=0.002, stats={}, score=s, size_ok=True)
 
     monkeypatch.setattr(I, "verify_organised", fake_verify)
-    found = detect(cloud, config_for("improved"), seed=0)
+    found = detect(cloud, FACTORS, seed=0)
     assert (len(found) == 1) == accepted
-    rescored = abs(first - config_for("improved").verification.accept_raw_score) < 0.15
+    rescored = abs(first - FACTORS.verification.accept_raw_score) < 0.15
     assert len(starts) == (7 if rescored else 1)
     if rescored:
         assert np.allclose(np.linalg.norm(np.array(starts[1:]) - c, axis=1), R * np.array([0.2] * 4 + [0.33] * 2))
@@ -465,10 +467,10 @@ def test_retries_find_more_of_the_hidden_balls():
     """While none is accepted the detector searches again (the descent past occluders, then the stencil
     off the axis): it finds more of these half-hidden balls (7 of 16 against 4 when written), and
     every ball found without the retries is found with them."""
-    without = config_for("improved", retry={"retry_occluder": False, "retry_off_axis": False, "retry_disc": False})
+    without = FACTORS.override({"retry.retry_occluder": False, "retry.retry_off_axis": False, "retry.retry_disc": False})
     found = {False: set(), True: set()}
     for k, (c, cloud) in enumerate(_occluded_frames(16, (0.5, 0.65), 2.5)):
-        for retry, cfg in ((False, without), (True, IMPROVED)):
+        for retry, cfg in ((False, without), (True, FACTORS)):
             if any(np.linalg.norm(s.centre_m - c) < 0.02 for s in detect(cloud, cfg, seed=0)):
                 found[retry].add(k)
     assert found[False] <= found[True]
@@ -890,7 +892,7 @@ def test_outcome_constants_are_configuration_fields():
     assert detect(ball, config_for("improved", refinement={"size_limit_fraction": 1e-4}), seed=0) == []
     on_floor = scene(ball_c=(0.1, 0.13, 1.0), box=True, noise=0.002, width=424, height=240)
     assert len(detect(on_floor, seed=0)) == 1
-    priced_out = config_for("improved", evidence={"ring_front_free": 0.0, "ring_front_power": 1e4})
+    priced_out = FACTORS.override({"evidence.ring_front_free": 0.0, "evidence.ring_front_power": 1e4})
     assert detect(on_floor, priced_out, seed=0) == []
 
 
@@ -1007,7 +1009,7 @@ def test_noisy_far_ball_is_measured_on_its_outline():
     truth = np.array([0.3, -0.1, 2.6])
     u = truth / np.linalg.norm(truth)
     across = lambda c: float(np.linalg.norm((c - truth) - ((c - truth) @ u) * u))
-    config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
+    config = FACTORS.override({"noise.noise_z2_per_m": 0.07 / 2.6 ** 2})
     plain = config.override({"outline.outline_evidence": False})
     gains = []
     for seed in range(3):
@@ -1065,11 +1067,11 @@ def test_reported_score_is_the_mapped_raw_score():
     """A detection's score is its raw evidence product through the calibration map; with the map off,
     the same detection reports the product itself."""
     cloud = scene(ball_c=(0.05, -0.02, 1.1), wall_z=1.8, width=424, height=240)
-    on = detect(cloud, config_for("improved"), seed=0)
-    off = detect(cloud, config_for("improved", {"verification.score_calibration": False,
-                                                "verification.accept_score": IMPROVED.verification.accept_raw_score,
-                                                "verification.min_score": IMPROVED.verification.accept_raw_score}), seed=0)
+    on = detect(cloud, FACTORS, seed=0)
+    off = detect(cloud, FACTORS.override({"verification.score_calibration": False,
+                                                "verification.accept_score": FACTORS.verification.accept_raw_score,
+                                                "verification.min_score": FACTORS.verification.accept_raw_score}), seed=0)
     assert len(on) == len(off) >= 1
     for a, b in zip(on, off):
         assert a.raw_score == b.raw_score == b.score and np.allclose(a.centre_m, b.centre_m)
-        assert a.score == pytest.approx(IMPROVED.verification.probability(a.raw_score)) and a.score > a.raw_score
+        assert a.score == pytest.approx(FACTORS.verification.probability(a.raw_score)) and a.score > a.raw_score

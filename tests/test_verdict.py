@@ -61,6 +61,17 @@ def test_the_shipped_model_loads_and_ranks_a_ball_above_a_wall():
     assert np.all(np.diff(v.knots_p) >= 0) and np.all(np.diff(v.knots_score) >= 0)
 
 
+def test_the_shipped_model_never_rises_with_what_a_ball_would_not_show():
+    """Monotone in the physical facts (``verdict_fit.MONOTONE``): more of the silhouette seen behind
+    the sphere, through it or on its edge band never makes a candidate more probable."""
+    v = load_verdict()
+    base = ball_stats()
+    for key, total in (("behind", "valid_disc"), ("behind_inner", "valid_inner"), ("edge_behind", "edge_n"),
+                       ("ring_continued", "ring")):
+        probs = [v.probability({**base, key: share * base[total]}, R) for share in np.linspace(0.0, 0.9, 10)]
+        assert all(b <= a + 1e-9 for a, b in zip(probs, probs[1:])), key
+
+
 def test_the_card_beside_the_model_names_its_features():
     card = json.loads(MODEL_PATH.with_name("verdict_card.json").read_text())
     assert card["features"] == list(FEATURE_NAMES) and card["model"] in verdict_fit.MODELS
@@ -115,6 +126,18 @@ def test_fit_exports_a_calibrated_onnx_model_the_detector_loads(tmp_path):
     # the calibrated probability follows the label's rate on the held-apart scenes
     assert abs(float(np.mean(p)) - float(df["label"][:50].mean())) < 0.2
     assert set(a.calibration) == {"train", "train-stereo"} and all(c["ece"] < 0.1 for c in a.calibration.values())
+
+
+def test_the_lightgbm_export_gives_the_fitted_probabilities(tmp_path):
+    df = synthetic_candidates(80)
+    a = verdict_fit.fit(df, "lgbm-300-monotone", seed=1)
+    assert a.onnx_bytes == verdict_fit.fit(df, "lgbm-300-monotone", seed=1).onnx_bytes
+    path = tmp_path / "verdict.onnx"
+    path.write_bytes(a.onnx_bytes)
+    x = df[list(FEATURE_NAMES)].to_numpy(np.float32)
+    model = verdict_fit.MODELS["lgbm-300-monotone"](1).fit(x[~verdict_fit._is_calibration(df)],
+                                                         df["label"][~verdict_fit._is_calibration(df)].astype(int))
+    np.testing.assert_allclose(FittedVerdict(path).model_scores(x[:40]), model.predict_proba(x[:40])[:, 1], atol=1e-5)
 
 
 def test_a_model_of_other_features_is_refused(tmp_path):

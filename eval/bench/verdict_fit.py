@@ -7,8 +7,8 @@
    ball), its scene, family and the sensor's parameters.
 2. ``choose``: each candidate model is fitted across sensors and judged on a sensor it has not seen:
    `train` plus the stereo scenes of low ambient light, judged on those of high ambient light; the
-   reverse; and `train-stereo` alone, judged on `train`. The model of the best mean average
-   precision over the three folds is kept.
+   reverse; and `train-stereo` alone, judged on `train`. The model of the least mean log loss over the
+   three folds is kept (the verdict is a probability: a proper score of probabilities).
 3. ``fit``: the kept model refitted on every scene but the held-apart ones (scene index = 4 mod 5,
    both sensor models), its output calibrated on those by isotonic regression, exported to ONNX
    with the feature names and the calibration knots in its metadata, and a model card.
@@ -37,7 +37,8 @@ from spherebench.method.verdict import FEATURE_NAMES, verdict_features
 from spherebench.parallel import executor
 
 #: the collection's detector: the hand-set verdict, every candidate down to 1e-4 kept and reported
-COLLECT_OVERRIDES = {"verification.rank_floor": 1e-4, "verification.max_spheres": 100}
+COLLECT_OVERRIDES = {"verification.fitted_verdict": False, "verification.rank_floor": 1e-4,
+                     "verification.max_spheres": 100}
 #: scenes whose index is this modulo CALIBRATION_EVERY are held apart from the fit, for the calibration
 CALIBRATION_EVERY, CALIBRATION_REST = 5, 4
 #: the stereo scenes' split for the cross-sensor folds: their ambient light (electrons per ms)
@@ -45,17 +46,17 @@ AMBIENT_SPLIT_E_PER_MS = 150.0
 SENSOR_COLUMNS = ("ambient_e_per_ms", "dot_sigma_mrad", "read_noise_e", "subpixel")
 
 
-def collect_config(radius_m: float) -> DetectorConfig:
-    """The improved detector's configuration for the collection (``COLLECT_OVERRIDES``) at radius_m."""
-    return config_for("improved", COLLECT_OVERRIDES, radius_m=radius_m)
+def collect_config(radius_m: float, overrides: dict | None = None) -> DetectorConfig:
+    """The improved detector's configuration for the collection (``COLLECT_OVERRIDES``, then overrides) at radius_m."""
+    return config_for("improved", {**COLLECT_OVERRIDES, **(overrides or {})}, radius_m=radius_m)
 
 
 def _scene_rows(job: tuple) -> list[dict]:
-    """One scene's candidate rows (in a worker): job (dataset name, scene dir, index, seed, radius_m)."""
-    dataset, scene_dir, index, seed, radius_m = job
+    """One scene's candidate rows (in a worker): job (dataset name, scene dir, index, seed, radius_m, overrides)."""
+    dataset, scene_dir, index, seed, radius_m, overrides = job
     gt = inout.read_scene_gt(Path(scene_dir))
     cloud = inout.load_cloud(Path(scene_dir))
-    config = collect_config(radius_m)
+    config = collect_config(radius_m, overrides)
     spheres = detect(cloud, config, seed=detection_seed(seed, index), min_score=0.0, max_spheres=100)
     balls = np.asarray([b["center_m"] for b in gt.get("balls", []) if b.get("center_m") is not None],
                        np.float64).reshape(-1, 3)
@@ -74,13 +75,14 @@ def _scene_rows(job: tuple) -> list[dict]:
     return rows
 
 
-def collect(datasets: list[Path], seeds: list[int], workers: int, limit: int | None = None) -> pd.DataFrame:
+def collect(datasets: list[Path], seeds: list[int], workers: int, limit: int | None = None,
+            overrides: dict | None = None) -> pd.DataFrame:
     """Every candidate of every scene with a ground truth in datasets, at each run seed (rows: ``_scene_rows``)."""
     jobs = []
     for data in datasets:
         radius_m = float(inout.read_dataset_meta(data).get("ball_radius_m", 0.12))
         scenes = inout.list_scenes(data)[:limit]
-        jobs += [(data.name, str(p), k, seed, radius_m) for seed in seeds for k, p in enumerate(scenes)]
+        jobs += [(data.name, str(p), k, seed, radius_m, overrides) for seed in seeds for k, p in enumerate(scenes)]
     with executor(workers) as ex:
         rows = [r for part in ex.map(_scene_rows, jobs) for r in part]
     return pd.DataFrame(rows)
@@ -105,10 +107,29 @@ def _trees(seed: int, depth: int = 4, rounds: int = 200):
                                       random_state=seed)
 
 
+#: the direction each feature may move the probability in (LightGBM's monotone constraints): +1 up, -1
+#: down, 0 either. Physical facts of a ball: its silhouette's pixels are its own (no more seen behind it,
+#: through it or hugging it than the noise leaves), its outline stands free, its residuals are the noise's
+MONOTONE = {"coverage": 1, "behind_share": -1, "hug_share": -1, "ring_continued": -1, "ring_front": -1,
+            "ring_spread": -1, "see_through": -1, "edge_behind": -1, "log_rmse_noise": -1}
+
+
+def _boosted(seed: int, monotone: bool = True):
+    from lightgbm import LGBMClassifier
+
+    cst = [MONOTONE.get(name, 0) if monotone else 0 for name in FEATURE_NAMES]
+    # one thread and LightGBM's deterministic mode: the same seed gives the same trees on any machine
+    return LGBMClassifier(n_estimators=300, learning_rate=0.05, num_leaves=15, min_child_samples=40, reg_lambda=1.0,
+                          monotone_constraints=cst, monotone_constraints_method="advanced", deterministic=True,
+                          force_row_wise=True, n_jobs=1, random_state=seed, verbose=-1)
+
+
 MODELS = {
     "logistic": _logistic,
     "trees-200x4": _trees,
     "trees-100x3": functools.partial(_trees, depth=3, rounds=100),
+    "lgbm-300": functools.partial(_boosted, monotone=False),
+    "lgbm-300-monotone": _boosted,
 }
 
 
@@ -137,9 +158,9 @@ def _judge(y: np.ndarray, p: np.ndarray) -> dict:
 
 def choose(df: pd.DataFrame, seed: int) -> dict:
     """Each model of MODELS (and the hand-set verdict's score, "factors") judged on each cross-sensor
-    fold: {model: {fold: _judge's figures}, "chosen": the model of the best mean AP}."""
+    fold: {model: {fold: _judge's figures}, "chosen": the model of the least mean log loss}."""
     x = df[list(FEATURE_NAMES)].to_numpy(np.float32)
-    y = df["label"].to_numpy(bool)
+    y = df["label"].to_numpy(np.int64)
     out: dict = {}
     for name, make in MODELS.items():
         out[name] = {}
@@ -147,8 +168,9 @@ def choose(df: pd.DataFrame, seed: int) -> dict:
             model = make(seed).fit(x[fit_rows], y[fit_rows])
             out[name][fold] = _judge(y[judged], model.predict_proba(x[judged])[:, 1])
     out["factors"] = {fold: _judge(y[judged], df["factor_score"].to_numpy()[judged]) for fold, _, judged in folds(df)}
-    mean_ap = {name: float(np.mean([f["ap"] for f in out[name].values()])) for name in MODELS}
-    out["chosen"] = max(mean_ap, key=mean_ap.get)
+    # the verdict is a probability: chosen by a proper score of probabilities, over sensors it has not seen
+    mean_loss = {name: float(np.mean([f["log_loss"] for f in out[name].values()])) for name in MODELS}
+    out["chosen"] = min(mean_loss, key=mean_loss.get)
     return out
 
 
@@ -165,18 +187,16 @@ def fit(df: pd.DataFrame, name: str, seed: int) -> FittedModel:
     """The model ``name`` fitted on the fit scenes of both sensor models, calibrated on the held-apart
     ones (isotonic regression of the label on the model's output), exported to ONNX."""
     from sklearn.isotonic import IsotonicRegression
-    from skl2onnx import to_onnx
 
     x = df[list(FEATURE_NAMES)].to_numpy(np.float32)
-    y = df["label"].to_numpy(bool)
+    y = df["label"].to_numpy(np.int64)
     cal = _is_calibration(df)
     model = MODELS[name](seed).fit(x[~cal], y[~cal])
     s_cal = model.predict_proba(x[cal])[:, 1]
     iso = IsotonicRegression(y_min=0.0, y_max=1.0, out_of_bounds="clip").fit(s_cal, y[cal])
-    knots = ([0.0] + iso.X_thresholds_.tolist() + [1.0],
-             [float(iso.y_thresholds_[0])] + iso.y_thresholds_.tolist() + [float(iso.y_thresholds_[-1])])
-    onx = to_onnx(model, x[:1], options={id(model): {"zipmap": False}} if not hasattr(model, "steps")
-                  else {id(model.steps[-1][1]): {"zipmap": False}}, target_opset={"": 17, "ai.onnx.ml": 3})
+    knots = ([0.0] + iso.X_thresholds_.tolist() + [1.0], _bounded(iso, s_cal, y[cal]))
+    onx = _to_onnx(model)
+    onx.graph.name = "verdict"  # onnxmltools names the graph by a random uuid
     # the exporter lists the opsets from a set, in an order that varies between runs: sorted, the same
     # seed writes the same bytes
     opsets = sorted(((o.domain, o.version) for o in onx.opset_import))
@@ -195,6 +215,37 @@ def fit(df: pd.DataFrame, name: str, seed: int) -> FittedModel:
     return FittedModel(onnx_bytes=onx.SerializeToString(), knots=knots, calibration=per_set)
 
 
+def _bounded(iso, scores: np.ndarray, labels: np.ndarray) -> list[float]:
+    """The isotonic map's probabilities at its knots (with one more at each end), its lowest and
+    highest blocks at Laplace's rule, (k + 1) / (n + 2), so that no candidate is ever certain (a block
+    of n held-apart candidates, k correct, all or none, says p is within about 1 / n of 0 or 1, not
+    that it is 0 or 1); the map stays non-decreasing."""
+    fitted = iso.predict(scores)
+    p = np.concatenate([[iso.y_thresholds_[0]], iso.y_thresholds_, [iso.y_thresholds_[-1]]]).astype(np.float64)
+    for level, end in ((p.min(), "low"), (p.max(), "high")):
+        block = fitted == level
+        n, k = int(block.sum()), float(labels[block].sum())
+        value = (k + 1.0) / (n + 2.0)
+        p = np.where(p == level, value, p)
+    return np.maximum.accumulate(np.minimum.accumulate(p[::-1])[::-1]).tolist()
+
+
+def _to_onnx(model):
+    """The fitted classifier as an ONNX model whose "probabilities" output is (B, 2) (no ZipMap)."""
+    if type(model).__name__ == "LGBMClassifier":
+        from onnxmltools import convert_lightgbm
+        from onnxmltools.convert.common.data_types import FloatTensorType
+
+        # opset 15: the highest onnxmltools 1.16 converts to
+        return convert_lightgbm(model, initial_types=[("X", FloatTensorType([None, len(FEATURE_NAMES)]))],
+                                zipmap=False, target_opset=15)
+    from skl2onnx import to_onnx
+
+    final = model.steps[-1][1] if hasattr(model, "steps") else model
+    return to_onnx(model, np.zeros((1, len(FEATURE_NAMES)), np.float32), options={id(final): {"zipmap": False}},
+                   target_opset={"": 17, "ai.onnx.ml": 3})
+
+
 def _ece(y: np.ndarray, p: np.ndarray, bins: int = 10) -> float:
     from spherebench.eval.metrics.calibration import expected_calibration_error
 
@@ -202,13 +253,10 @@ def _ece(y: np.ndarray, p: np.ndarray, bins: int = 10) -> float:
 
 
 def _versions() -> dict:
-    import onnx
-    import onnxruntime
-    import skl2onnx
-    import sklearn
+    from spherebench.provenance import dist_version
 
-    return {"scikit-learn": sklearn.__version__, "skl2onnx": skl2onnx.__version__, "onnx": onnx.__version__,
-            "onnxruntime": onnxruntime.__version__, "numpy": np.__version__}
+    return {name: dist_version(name) for name in ("scikit-learn", "lightgbm", "skl2onnx", "onnxmltools", "onnx",
+                                                  "onnxruntime", "numpy")}
 
 
 def model_card(df: pd.DataFrame, comparison: dict, model: FittedModel, seed: int, seeds: list[int],
@@ -235,7 +283,8 @@ def model_card(df: pd.DataFrame, comparison: dict, model: FittedModel, seed: int
              + f", run seeds {', '.join(map(str, seeds))}.",
              f"- Fit: every scene but the held-apart ones ({card['held_apart']}); calibration: isotonic regression "
              f"on the held-apart ones ({len(model.knots[0])} knots, in the ONNX metadata).",
-             f"- Recipe: scikit-learn `{comparison['chosen']}` (`eval/bench/verdict_fit.py`, MODELS), seed {seed}.",
+             f"- Recipe: `{comparison['chosen']}` (`eval/bench/verdict_fit.py`, MODELS: its library, settings and "
+             f"monotone constraints), seed {seed}; chosen by the least mean log loss over the folds below.",
              f"- Command: `{command}`",
              "- Versions: " + ", ".join(f"{k} {v}" for k, v in card["versions"].items()) + ".", "",
              "## Chosen across sensors", "",
