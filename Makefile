@@ -88,7 +88,7 @@ train-analytic: venv data-train  ## retrain circlenet-analytic on train alone (C
 VERDICT_RUN := checkpoints/verdict
 train-verifier: venv data-train data-train-stereo  ## refit the 3D detector's verdict on train + train-stereo (CPU, minutes)
 	$(SB) train-verifier --data $(DATA)/train --data $(DATA)/train-stereo --out $(VERDICT_RUN) --seed $(SEED) \
-		--workers $(WORKERS)
+		--seeds 0-3 --workers $(WORKERS)
 	cp $(VERDICT_RUN)/verdict.onnx $(VERDICT_RUN)/verdict_card.md $(VERDICT_RUN)/verdict_card.json method/
 
 # ---- the full-size CircleNets: NEED A CUDA MACHINE (a GPU and a CUDA build of torch in .venv; they refuse

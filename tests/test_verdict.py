@@ -110,8 +110,8 @@ def test_folds_judge_each_fit_on_scenes_of_a_sensor_it_has_not_seen():
 
 def test_fit_exports_a_calibrated_onnx_model_the_detector_loads(tmp_path):
     df = synthetic_candidates()
-    a = verdict_fit.fit(df, "trees-100x3", seed=3)
-    assert a.onnx_bytes == verdict_fit.fit(df, "trees-100x3", seed=3).onnx_bytes  # same seed, same model
+    a = verdict_fit.fit(df, "logistic", seed=3)
+    assert a.onnx_bytes == verdict_fit.fit(df, "logistic", seed=3).onnx_bytes  # same seed, same model
     import onnx
 
     domains = [o.domain for o in onnx.load_model_from_string(a.onnx_bytes).opset_import]
@@ -176,3 +176,13 @@ def test_the_fitted_verdict_scores_detections_with_its_probability(small_default
     spheres = detect(cloud, fitted, seed=0)
     assert spheres and all(0.67 <= s.score <= 1.0 and s.score == s.raw_score for s in spheres)
     assert not IMPROVED.verification.fitted_verdict or detect(cloud, IMPROVED, seed=0)[0].score == spheres[0].score
+
+
+def test_a_refitted_verdict_invalidates_the_benchmarks_cached_predictions():
+    from spherebench.eval.bench.registry import detector_spec
+    from spherebench.provenance import file_sha256
+
+    assert detector_spec("improved").extra_fingerprint == file_sha256(MODEL_PATH)
+    assert detector_spec("paper").extra_fingerprint == ""
+    factors = detector_spec("improved", verification={"fitted_verdict": False})
+    assert factors.extra_fingerprint == "" and not factors.config["fitted_verdict"]

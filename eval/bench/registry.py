@@ -57,6 +57,7 @@ from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import oracle
 from spherebench.method import DetectorConfig, config_for, detect
 from spherebench.method.detector import sphere_circles
+from spherebench.method.verdict import MODEL_PATH as VERDICT_MODEL
 from spherebench.provenance import REPO_ROOT, dist_version, file_sha256
 
 #: Suffix of the prediction set that uses the paper's projection rule.
@@ -238,8 +239,10 @@ def detector_spec(name: str, **overrides) -> MethodSpec:
     """``improved`` / ``paper`` / ``paper-lstsq``: the 3D detector with that preset (fields overridden,
     e.g. radius_m for a dataset of another ball)."""
     cfg = config_for(name, **overrides)
+    # the fitted verdict's model is data the code loads: a refitted one invalidates the cached predictions
+    verdict = file_sha256(VERDICT_MODEL) if cfg.pipeline == "improved" and cfg.verification.fitted_verdict else ""
     return MethodSpec(name=name, kind="3d", config={"engine": "detector", "preset": name, **cfg.flat()},
-                      modules=_CORE_MODULES + ("spherebench.method",))
+                      modules=_CORE_MODULES + ("spherebench.method",), extra_fingerprint=verdict)
 
 
 def pyransac3d_spec(points: int = PYRANSAC3D_POINTS, iterations: int = PYRANSAC3D_ITERATIONS,

@@ -23,7 +23,8 @@ from spherebench.eval.metrics.sensor_grid import band_of, surface_distance_m
 from spherebench.eval.metrics.table2 import table2_row
 from spherebench.method import IMPROVED, DetectorConfig, config_for, detect, warm_up
 from spherebench.parallel import executor
-from spherebench.provenance import code_version, json_safe
+from spherebench.method.verdict import MODEL_PATH as VERDICT_MODEL
+from spherebench.provenance import code_version, file_sha256, json_safe
 
 #: The modules whose source defines the oracle's rows (with the detector's configuration and the data).
 ORACLE_MODULES = ("spherebench.eval.bench.oracle", "spherebench.method", "spherebench.eval.metrics.sensor_grid",
@@ -48,7 +49,8 @@ def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, wo
     radius = float((inout.read_dataset_meta(data_dir) or {}).get("ball_radius_m", 0.12))
     config = config_for("improved", radius_m=radius).flat()
     key = hashlib.sha256(json.dumps({"dataset": dataset_fingerprint(data_dir), "config": config, "seed": int(seed),
-                                     "code": code_version(ORACLE_MODULES)}, sort_keys=True).encode()).hexdigest()
+                                     "code": code_version(ORACLE_MODULES), "verdict": file_sha256(VERDICT_MODEL)},
+                                    sort_keys=True).encode()).hexdigest()
     if cache_path.is_file():
         try:
             cached = json.loads(cache_path.read_text())
