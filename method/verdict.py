@@ -145,9 +145,8 @@ class FittedVerdict:
 
     def model_scores(self, x: np.ndarray) -> np.ndarray:
         """(B,) the classifier's uncalibrated probability for features x (B, N_FEATURES)."""
-        out = self.session.run([self.output_name], {self.input_name: np.asarray(x, np.float32).reshape(-1, N_FEATURES)})
-        p = out[0]
-        return np.asarray(p[:, 1] if p.ndim == 2 else [d[1] for d in p], np.float64)
+        p = self.session.run([self.output_name], {self.input_name: np.asarray(x, np.float32).reshape(-1, N_FEATURES)})[0]
+        return p[:, 1].astype(np.float64)  # (B, 2): exported without ZipMap
 
     def probability(self, stats: dict, radius_m: float) -> float:
         """One candidate's calibrated probability of being a ball (stats: ``verdict_features``')."""

@@ -30,11 +30,13 @@ import pandas as pd
 
 from spherebench.datasets import inout
 from spherebench.eval.bench.seeds import detection_seed
-from spherebench.eval.metrics.metrics3d import FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M
+from spherebench.eval.metrics.calibration import expected_calibration_error
+from spherebench.eval.metrics.metrics3d import found_limit_m
 from spherebench.method.config import DetectorConfig, config_for
 from spherebench.method.detector import detect
 from spherebench.method.verdict import FEATURE_NAMES, verdict_features
 from spherebench.parallel import executor
+from spherebench.provenance import dist_version
 
 #: the collection's detector: the hand-set verdict, every candidate down to 1e-4 kept and reported
 COLLECT_OVERRIDES = {"verification.fitted_verdict": False, "verification.rank_floor": 1e-4,
@@ -60,7 +62,7 @@ def _scene_rows(job: tuple) -> list[dict]:
     spheres = detect(cloud, config, seed=detection_seed(seed, index), min_score=0.0, max_spheres=100)
     balls = np.asarray([b["center_m"] for b in gt.get("balls", []) if b.get("center_m") is not None],
                        np.float64).reshape(-1, 3)
-    limit_m = np.where(balls[:, 2] > FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M)
+    limit_m = found_limit_m(balls[:, 2])
     sensor = gt.get("meta", {}).get("sensor", {})
     rows = []
     for rank, s in enumerate(spheres):
@@ -202,7 +204,8 @@ def fit(df: pd.DataFrame, name: str, seed: int) -> FittedModel:
     per_set = {}
     for dataset in sorted(set(df["dataset"][cal])):
         rows = df["dataset"].to_numpy()[cal] == dataset
-        per_set[dataset] = {**_judge(y[cal][rows], p_cal[rows]), "ece": _ece(y[cal][rows], p_cal[rows])}
+        per_set[dataset] = {**_judge(y[cal][rows], p_cal[rows]),
+                            "ece": float(expected_calibration_error(p_cal[rows], y[cal][rows], n_bins=10))}
     return FittedModel(onnx_bytes=onx.SerializeToString(), knots=knots, calibration=per_set)
 
 
@@ -213,11 +216,9 @@ def _bounded(iso, scores: np.ndarray, labels: np.ndarray) -> list[float]:
     that it is 0 or 1); the map stays non-decreasing."""
     fitted = iso.predict(scores)
     p = np.concatenate([[iso.y_thresholds_[0]], iso.y_thresholds_, [iso.y_thresholds_[-1]]]).astype(np.float64)
-    for level, end in ((p.min(), "low"), (p.max(), "high")):
+    for level in (p.min(), p.max()):
         block = fitted == level
-        n, k = int(block.sum()), float(labels[block].sum())
-        value = (k + 1.0) / (n + 2.0)
-        p = np.where(p == level, value, p)
+        p = np.where(p == level, (labels[block].sum() + 1.0) / (block.sum() + 2.0), p)
     return np.maximum.accumulate(np.minimum.accumulate(p[::-1])[::-1]).tolist()
 
 
@@ -237,15 +238,7 @@ def _to_onnx(model):
                    target_opset={"": 17, "ai.onnx.ml": 3})
 
 
-def _ece(y: np.ndarray, p: np.ndarray, bins: int = 10) -> float:
-    from spherebench.eval.metrics.calibration import expected_calibration_error
-
-    return float(expected_calibration_error(p, y, n_bins=bins))
-
-
 def _versions() -> dict:
-    from spherebench.provenance import dist_version
-
     return {name: dist_version(name) for name in ("scikit-learn", "lightgbm", "skl2onnx", "onnxmltools", "onnx",
                                                   "onnxruntime", "numpy")}
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spherebench.errors import SphereBenchError
-from spherebench.eval.metrics.metrics3d import FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M, _points, _vector
+from spherebench.eval.metrics.metrics3d import _points, _vector, found_limit_m
 
 #: Bins of the reliability diagram over [0, 1].
 N_BINS = 10
@@ -43,7 +43,7 @@ def detection_correct(det_centres_m, det_scores, gt: dict) -> np.ndarray:
     scores = _vector(det_scores, len(dets), "det_scores")
     balls = _points([b["center_m"] for b in gt.get("balls", []) if b.get("center_m") is not None],
                     "ball centres")
-    limit_m = np.where(balls[:, 2] > FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M)  # (G,)
+    limit_m = found_limit_m(balls[:, 2])  # (G,)
     dist_m = np.linalg.norm(dets[:, None, :] - balls[None, :, :], axis=2)  # (M, G)
     correct = np.zeros(len(dets), dtype=bool)
     taken = np.zeros(len(balls), dtype=bool)

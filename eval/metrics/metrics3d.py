@@ -215,6 +215,12 @@ FAR_RULE_FROM_M = 3.0
 DISTRACTOR_HIT_M = 0.05
 
 
+def found_limit_m(depths_m) -> np.ndarray:
+    """The far rule's distance (m) within which a ball counts as found, for centres at depths_m (camera
+    z, m): FOUND_M, or FOUND_FAR_M deeper than FAR_RULE_FROM_M."""
+    return np.where(np.asarray(depths_m, np.float64) > FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M)
+
+
 def found_far_rule(centre_errors_m, depths_m) -> float:
     """The share of balls found by the far rule: centre error within FOUND_M, or within FOUND_FAR_M
     for a ball whose centre lies deeper (camera z, m) than FAR_RULE_FROM_M; NaN or inf (missed)
@@ -224,8 +230,7 @@ def found_far_rule(centre_errors_m, depths_m) -> float:
         raise SphereBenchError(f"found_far_rule: {e.size} errors for {z.size} depths")
     if not e.size:
         return float("nan")
-    limit = np.where(z > FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M)
-    return float(np.count_nonzero(np.nan_to_num(e, nan=np.inf) <= limit) / e.size)
+    return float(np.count_nonzero(np.nan_to_num(e, nan=np.inf) <= found_limit_m(z)) / e.size)
 
 
 #: Bands of a ball's surface distance |c| - R (m) for the per-band found shares: the stereo loss study's,

@@ -25,7 +25,7 @@ from spherebench import options
 from spherebench.datasets import inout
 from spherebench.eval.bench.seeds import detection_seed
 from spherebench.eval.metrics.calibration import detection_correct
-from spherebench.eval.metrics.metrics3d import DISTANCE_BANDS_M, FAR_RULE_FROM_M, FOUND_FAR_M, FOUND_M, band_name
+from spherebench.eval.metrics.metrics3d import DISTANCE_BANDS_M, band_name, found_limit_m
 from spherebench.method.detector import detect
 from spherebench.parallel import executor
 
@@ -45,8 +45,7 @@ def scene_outcome(job: tuple, overrides: dict) -> dict:
     at = [s for s in spheres if s.score >= config.verification.min_score]
     found = []
     for c in centres:
-        limit = FOUND_FAR_M if c[2] > FAR_RULE_FROM_M else FOUND_M
-        found.append(any(np.linalg.norm(s.centre_m - c) <= limit for s in at))
+        found.append(any(np.linalg.norm(s.centre_m - c) <= found_limit_m(c[2]) for s in at))
     surface = np.linalg.norm(centres, axis=1) - config.radius_m
     false_at = sum(1 for s, ok in zip(spheres, correct) if s.score >= config.verification.min_score and not ok)
     return {"dataset": Path(dataset).name, "bands": [_band(float(d)) for d in surface], "found": found,
