@@ -43,14 +43,20 @@ ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM, ST_RING_SPRE
     ST_SECTOR_ATTACHED + N_SECTORS, ST_SECTOR_ATTACHED + N_SECTORS + 7)
 N_STATS = ST_RING_SPREAD + 1
 
-# The zones of a candidate's window (``window_stats``), all from ``DetectorConfig`` through the
-# parameter vector: the relief profile's inner zone (rays passing the centre within
-# sqrt(prm[P_PROFILE_INNER]) R) and outer zone (up to sqrt(prm[P_PROFILE_OUTER]) R, short of the
-# outline, where flying pixels mix in the background); the outline ring (rays passing the centre at
-# R to prm[P_RING_FACTOR] R), whose pixels prm[P_RING_FRONT_MIN] R to prm[P_RING_FRONT_MAX] R in front
+# The zones of a candidate's window (``window_stats``): the relief profile's inner zone (rays passing
+# the centre within sqrt(PROFILE_INNER_SQ) R) and outer zone (up to sqrt(PROFILE_OUTER_SQ) R, short of
+# the outline, where flying pixels mix in the background); the outline ring (rays passing the centre
+# at R to RING_FACTOR R), whose pixels RING_FRONT_MIN_FRACTION R to RING_FRONT_MAX_FRACTION R in front
 # of where their ray passes the centre are an attached surface in front (a cylinder's body, a
 # corner's faces, a bigger object the sphere was fitted into; a free ball's ring sees what is behind
-# it, a floor or a holder fills a small part of it, an occluder is usually farther in front).
+# it, a floor or a holder fills a small part of it, an occluder is usually farther in front). They
+# define what the verdict's inputs measure (``verdict.FEATURE_NAMES``): the shipped model was fitted
+# on these zones, and a change to them needs `make train-verifier`.
+PROFILE_INNER_SQ = 0.3  # the inner zone: rays within sqrt(0.3) R = 0.55 R of the centre
+PROFILE_OUTER_SQ = 0.8  # the outer zone: to sqrt(0.8) R = 0.89 R, a pixel short of the outline at 3 m
+RING_FACTOR = 1.3  # the outline ring's outer radius / R: a few pixels beyond the outline at any range
+RING_FRONT_MIN_FRACTION = 0.3  # nearer than this * R in front of its ray's pass: the noise, not a surface
+RING_FRONT_MAX_FRACTION = 1.2  # farther in front than this * R: an occluder, not attached to the sphere
 
 
 @kernel
@@ -193,7 +199,7 @@ def _window_bounds(h, w, cx, cy, cz, dist, prm):
     ring of the sphere about c (m, dist = |c|, in front of the camera), and the pixel (u0, v0) of its
     centre."""
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * prm[P_RING_FACTOR] * 1.05 + 2.0
+    rpx = disc_radius_px(cz, dist, radius, max(fx, fy)) * RING_FACTOR * 1.05 + 2.0
     u0 = fx * cx / cz + ppx
     v0 = fy * cy / cz + ppy
     c0 = max(0, int(math.floor(u0 - rpx)))
@@ -206,7 +212,7 @@ def _window_bounds(h, w, cx, cy, cz, dist, prm):
 @part
 def _ring_pixel(out, pn, tc, du, dv, ring_band, prm):
     """Count in out (N_STATS,) a pixel of the outline RING (its ray misses the sphere and passes the
-    centre at R to ring_factor R): RING_CONT if its point (range pn m) is within ring_band m of the
+    centre at R to RING_FACTOR R): RING_CONT if its point (range pn m) is within ring_band m of the
     depth tc m where the ray passes the centre (a surface continuing beyond the outline: a wall, a
     plane, a bigger object; a band of one sigma of the depth noise rather than eps: at 3 m eps is
     +/- R, and a background 20 cm behind a ball would count as continuing it), RING_FRONT if it is
@@ -220,7 +226,7 @@ def _ring_pixel(out, pn, tc, du, dv, ring_band, prm):
     if abs(pn - tc) <= ring_band:
         out[ST_RING_CONT] += 1.0
         out[ST_SECTOR_ATTACHED + sector] += 1.0
-    elif -prm[P_RING_FRONT_MAX] * radius <= pn - tc <= -prm[P_RING_FRONT_MIN] * radius:
+    elif -RING_FRONT_MAX_FRACTION * radius <= pn - tc <= -RING_FRONT_MIN_FRACTION * radius:
         out[ST_RING_FRONT] += 1.0
         out[ST_SECTOR_ATTACHED + sector] += 1.0
 
@@ -240,7 +246,7 @@ def _disc_pixel(out, dt, m2, du, dv, eps, prm):
     The relief profile: IN_N, IN_SUM count and sum the ray residuals of the inliers whose rays pass
     the centre within sqrt(profile_inner) R; OUTH_* and OUTV_* those between that and
     sqrt(profile_outer) R, left or right of the centre (OUTH) or above or below it (OUTV)."""
-    radius, p_in, p_out = prm[P_R], prm[P_PROFILE_INNER], prm[P_PROFILE_OUTER]
+    radius, p_in, p_out = prm[P_R], PROFILE_INNER_SQ, PROFILE_OUTER_SQ
     out[ST_VALID_DISC] += 1.0
     if m2 <= p_out * radius * radius:  # short of the outline's mixed pixels
         out[ST_VALID_INNER] += 1.0
@@ -285,7 +291,7 @@ def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, o
     A pixel whose ray meets the sphere (the silhouette, undistorted pinhole) with point p has the ray
     residual dt = |p| - t_near and is classified by it and by where its ray passes the centre
     (``_disc_pixel``); silhouette pixels without a point count as INVALID_DISC. Rays passing the
-    centre at R to ring_factor R form the outline RING (``_ring_pixel``; RING_CONT within ring_band of
+    centre at R to RING_FACTOR R form the outline RING (``_ring_pixel``; RING_CONT within ring_band of
     the depth where they pass the centre), and RING_SPREAD (``ring_spread``) how its attached pixels
     spread over its sectors. ``stride`` visits every stride-th pixel (counts scaled by stride^2,
     except the relief profile's, which stay the visited ones). The camera, R and the zones' sizes
@@ -299,7 +305,7 @@ def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, o
     if cz <= radius or dist <= radius:
         return
     r0, r1, c0, c1, u0, v0 = _window_bounds(h, w, cx, cy, cz, dist, prm)
-    ring2 = (prm[P_RING_FACTOR] * radius) ** 2
+    ring2 = (RING_FACTOR * radius) ** 2
     cos_lim = math.sqrt(1.0 - (radius / dist) ** 2)
     for r in range(r0, r1 + 1, stride):
         for c in range(c0, c1 + 1, stride):
@@ -338,47 +344,37 @@ def window_stats(points, index_image, cx, cy, cz, eps, ring_band, prm, stride, o
 # 2^24, so one load per corner and one add per cell serve both (the 2.4 MB of a float64 table with
 # a squared-depth channel did not stay in cache; two uint32 channels took twice the adds).
 
-#: The parameter vector's slots, in order: (name, the ``DetectorConfig`` setting it holds, or None where
-#: ``improved.parameters`` computes it from the stream and the frame). Each slot's index is the
-#: module constant P_<name>, set from this list below (numba reads module-level ints as constants).
+#: The parameter vector's slots, in order: the one list of what ``improved.parameters`` fills in per
+#: frame (the stream's intrinsics, the model's R and eps, the frame's noise and grid). Each slot's
+#: index is the module constant P_<name>, set from this list below (numba reads module-level ints as
+#: constants).
 PARAMETERS = (
-    ("FX", None), ("FY", None), ("PPX", None), ("PPY", None),  # the stream's intrinsics (px)
-    ("R", "radius_m"), ("EPS", "eps_m"),  # the ball radius and the shell half-width (m)
-    ("NOISE_A", None),  # sigma_z / z^2 (1/m): the frame's, or the model's
-    ("NOISE_K", "noise.noise_sigmas"),  # the band's noise multiple
-    ("EPS_CAP", None),  # the band's cap (m): noise.max_eps_fraction * R
-    ("STRATUM_V", None), ("BIN", None),  # a stratum's rows (cells), a cell's side (px)
-    ("RR_MIN", None), ("RR_MAX", None),  # the disc radii (cells) a hypothesis may have
-    ("SLACK", "search.pretest_slack"),  # the pretest's tolerance (fraction of R)
-    ("Z_FAR", None),  # the farthest depth searched (m)
-    ("STRATUM_U", None),  # a stratum's columns (cells)
-    ("CELL_PX", None),  # the pixels a cell's table entry sums
-    # the constants that decide outcomes (``improved.parameters``): the search's box geometry (fractions
-    # of the ball's disc radius r in cells at the box's depth), the descent's steps, a box's least valid
-    # share, the pretest's most continued ring boxes; the window's zones (above); the refinement's bands
-    # and steps, the size check's limit, the radius SE's floor of s
-    ("H_FRAC", "stencil.box_half_fraction"), ("D_FRAC", "stencil.box_offset_fraction"),
-    ("RING_FRAC", "stencil.ring_offset_fraction"), ("RING_H_FRAC", "stencil.ring_half_fraction"),
-    ("PREFILTER_FRAC", "stencil.prefilter_offset_fraction"), ("DESCENT_STEPS", "stencil.descent_steps"),
-    ("MIN_VALID", "stencil.box_min_valid"), ("MAX_CONTINUED", "stencil.pretest_max_continued"),
-    ("RING_FACTOR", "evidence.ring_factor"), ("PROFILE_INNER", "evidence.profile_inner_sq"),
-    ("PROFILE_OUTER", "evidence.profile_outer_sq"), ("RING_FRONT_MIN", "evidence.ring_front_min_fraction"),
-    ("RING_FRONT_MAX", "evidence.ring_front_max_fraction"), ("FIRST_BAND", "refinement.first_band_fraction"),
-    ("FIRST_STEPS", "refinement.first_steps"), ("COARSE_BAND", "refinement.coarse_band_fraction"),
-    ("SIZE_LIMIT", "refinement.size_limit_fraction"), ("SE_S_MIN", "refinement.radius_se_s_min_fraction"),
+    "FX", "FY", "PPX", "PPY",  # the stream's intrinsics (px)
+    "R", "EPS",  # the ball radius and the shell half-width (m)
+    "NOISE_A",  # sigma_z / z^2 (1/m): the frame's, or the model's
+    "NOISE_K",  # the band's noise multiple (``noise.noise_sigmas``)
+    "EPS_CAP",  # the band's cap (m): MAX_EPS_FRACTION * R
+    "STRATUM_V", "BIN",  # a stratum's rows (cells), a cell's side (px)
+    "RR_MIN", "RR_MAX",  # the disc radii (cells) a hypothesis may have
+    "Z_FAR",  # the farthest depth searched (m)
+    "STRATUM_U",  # a stratum's columns (cells)
+    "CELL_PX",  # the pixels a cell's table entry sums
     # box means' noise over the independent-pixel figure sigma / sqrt(n): the noise's correlation
     # (``improved.mean_variance_inflation``), square-rooted
-    ("MEAN_NOISE", None),
-    # the search's stencil follows the silhouette's off-axis stretch (1: on; 0: square, as on the axis)
-    ("OFF_AXIS", "stencil.search_off_axis"),
+    "MEAN_NOISE",
+    # the search's stencil follows the silhouette's off-axis stretch (1: on, ``improved``'s retry; 0:
+    # square, as on the axis)
+    "OFF_AXIS",
     # the descent leaves out side boxes more than R in front of the centre box, an occluder (1: on,
     # ``improved``'s second search of a frame where none was accepted; 0: off)
-    ("OCCLUDER_BOUND", None),
+    "OCCLUDER_BOUND",
     # the hypotheses' score: the pretest's agreement (0), or the log-likelihood ratio of the cap's relief
     # against a flat surface (1, ``improved``'s relief search of a frame where none was accepted)
-    ("ORDER_RELIEF", None),
+    "ORDER_RELIEF",
 )
-for _index, (_name, _setting) in enumerate(PARAMETERS):
+#: The band's cap over R: a band wider than 1.5 R takes in the background behind a far ball.
+MAX_EPS_FRACTION = 1.5
+for _index, _name in enumerate(PARAMETERS):
     globals()["P_" + _name] = _index
 N_PRM = len(PARAMETERS)
 #: The packed table's count field starts at this bit; the depth sum (mm) takes the bits below.
@@ -548,6 +544,20 @@ def noise_samples(points, img, lag, row_step, col_step, z_min, out):
     return m
 
 
+# The organised search's stencil (``front_hypothesis``), in fractions of the ball's disc radius r (in
+# cells, at the box's depth): a centre box and four side boxes on the cap, eight boxes on the outline
+# ring, and the plane prefilter's boxes beyond the disc.
+BOX_HALF_FRACTION = 0.25  # the boxes' half-side: small enough that the side boxes lie on the cap
+BOX_OFFSET_FRACTION = 0.5  # the side boxes' offset: the cap's relief there is 13 % of R
+RING_OFFSET_FRACTION = 1.5  # the outline ring's boxes: half a disc radius beyond the outline
+RING_HALF_FRACTION = 0.25  # their half-side
+PREFILTER_OFFSET_FRACTION = 2.0  # the plane prefilter's boxes: clear of the ball's own disc
+DESCENT_STEPS = 3  # steps from the first cell toward the front point (a cell on the disc reaches it in 3)
+BOX_MIN_VALID = 0.3  # a box with a smaller valid share of its pixels is invalid (a hole, the shadow band)
+PRETEST_MAX_CONTINUED = 3  # of the 8 ring boxes, at most this many continue the surface at the ball's depth
+PRETEST_SLACK = 0.1  # the pretest's added tolerance (* R): the cap's box means are not its points
+
+
 @kernel
 def box_sums(tab, v, u, h):
     """(depth sum in mm, valid count, area in cells) of the box of half-side h cells about cell (v, u),
@@ -564,7 +574,7 @@ def box_sums(tab, v, u, h):
 @kernel
 def box_range(tab, prm, v, u, h):
     """(mean range m, valid count) of the box of half-side h cells about cell (v, u); the mean is nan
-    when under prm[P_MIN_VALID] of the box's pixels are valid (a hole, the shadow band, off the image)."""
+    when under BOX_MIN_VALID of the box's pixels are valid (a hole, the shadow band, off the image)."""
     s, n, a = box_sums(tab, v, u, h)
     return sums_range(prm, v, u, s, n, a), n
 
@@ -572,7 +582,7 @@ def box_range(tab, prm, v, u, h):
 @kernel
 def sums_range(prm, v, u, s, n, a):
     """``box_range``'s mean range from the box's sums (``box_sums``)."""
-    if n == 0 or n < prm[P_MIN_VALID] * a * prm[P_CELL_PX]:
+    if n == 0 or n < BOX_MIN_VALID * a * prm[P_CELL_PX]:
         return math.nan
     b = prm[P_BIN]
     rx = (u * b + 0.5 * (b - 1.0) - prm[P_PPX]) / prm[P_FX]
@@ -636,12 +646,12 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
     (``box_sums``; the caller has them)."""
     R = prm[P_R]
     rr = prm[P_FX] / prm[P_BIN] * R / m0
-    hp = max(1, int(prm[P_H_FRAC] * rr + 0.5))
+    hp = max(1, int(BOX_HALF_FRACTION * rr + 0.5))
     su, sv = stencil_stretch(prm, v, u)
-    dpu = int(prm[P_PREFILTER_FRAC] * rr * su + 0.5)
-    dpv = int(prm[P_PREFILTER_FRAC] * rr * sv + 0.5)
-    dgu = int(prm[P_PREFILTER_FRAC] * rr * su * 0.7071067811865476 + 0.5)
-    dgv = int(prm[P_PREFILTER_FRAC] * rr * sv * 0.7071067811865476 + 0.5)
+    dpu = int(PREFILTER_OFFSET_FRACTION * rr * su + 0.5)
+    dpv = int(PREFILTER_OFFSET_FRACTION * rr * sv + 0.5)
+    dgu = int(PREFILTER_OFFSET_FRACTION * rr * su * 0.7071067811865476 + 0.5)
+    dgv = int(PREFILTER_OFFSET_FRACTION * rr * sv * 0.7071067811865476 + 0.5)
     bb = prm[P_CELL_PX]
     if n0 == 0:
         return True
@@ -652,11 +662,11 @@ def plane_free(tab, prm, v, u, m0, s0, n0):
         dv = 0 if axis == 0 else (dpv if axis == 1 else (dgv if axis == 2 else -dgv))
         sa, na_, aa = box_sums(tab, v + dv, u + du, hp)
         sb, nb_, ab = box_sums(tab, v - dv, u - du, hp)
-        if na_ == 0 or nb_ == 0 or na_ < prm[P_MIN_VALID] * aa * bb or nb_ < prm[P_MIN_VALID] * ab * bb:
+        if na_ == 0 or nb_ == 0 or na_ < BOX_MIN_VALID * aa * bb or nb_ < BOX_MIN_VALID * ab * bb:
             continue
         q = 1000.0 * na_ / sa + 1000.0 * nb_ / sb - 2.0 * i0
         tol = (3.0 * prm[P_NOISE_A] * prm[P_MEAN_NOISE] * math.sqrt(1.0 / na_ + 1.0 / nb_ + 4.0 / n0)
-               + prm[P_SLACK] * R / (m0 * m0))
+               + PRETEST_SLACK * R / (m0 * m0))
         if abs(q) > tol:
             return True
         planar += 1
@@ -673,17 +683,17 @@ def ring_boxes(tab, prm, v, u, front, sig):
     invalid: the shadow band, nothing), an occluder (nearer than the front by 3 sigma / sqrt(n) +
     slack, sig: one pixel's noise) or continues the surface at the ball's depth (a wall, a floor, a
     bigger object). Returns (r, background count, continued count); stops counting past
-    prm[P_MAX_CONTINUED] continued."""
+    PRETEST_MAX_CONTINUED continued."""
     R = prm[P_R]
     dist = front + R
     rr = prm[P_FX] / prm[P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
-    hr = max(1, int(prm[P_RING_H_FRAC] * rr + 0.5))
+    hr = max(1, int(RING_HALF_FRACTION * rr + 0.5))
     su, sv = stencil_stretch(prm, v, u)
-    dru = prm[P_RING_FRAC] * rr * su
-    drv = prm[P_RING_FRAC] * rr * sv
+    dru = RING_OFFSET_FRACTION * rr * su
+    drv = RING_OFFSET_FRACTION * rr * sv
     ddu = dru * 0.7071067811865476
     ddv = drv * 0.7071067811865476
-    slack = prm[P_SLACK] * R
+    slack = PRETEST_SLACK * R
     cont = 0
     bg = 0
     for j in range(8):
@@ -698,7 +708,7 @@ def ring_boxes(tab, prm, v, u, front, sig):
             bg += 1
         elif m >= front - (3.0 * sig / math.sqrt(n) + slack):
             cont += 1
-            if cont > prm[P_MAX_CONTINUED]:
+            if cont > PRETEST_MAX_CONTINUED:
                 break
     return rr, bg, cont
 
@@ -711,9 +721,9 @@ def _stencil(tab, prm, v, u, rr):
     count) (``box_range``) of the centre box (m0, n0), and of the left (mL, nL), right (mR, nR),
     upper (mU, nU) and lower (mD, nD) boxes; the side boxes are nan and 0 when m0 is nan."""
     su, sv = stencil_stretch(prm, v, u)
-    h = max(1, int(prm[P_H_FRAC] * rr + 0.5))
-    du = max(h + 1, int(prm[P_D_FRAC] * rr * su + 0.5))
-    dv = max(h + 1, int(prm[P_D_FRAC] * rr * sv + 0.5))
+    h = max(1, int(BOX_HALF_FRACTION * rr + 0.5))
+    du = max(h + 1, int(BOX_OFFSET_FRACTION * rr * su + 0.5))
+    dv = max(h + 1, int(BOX_OFFSET_FRACTION * rr * sv + 0.5))
     m0, n0 = box_range(tab, prm, v, u, h)
     if math.isnan(m0):
         return su, sv, h, du, dv, m0, n0, math.nan, 0, math.nan, 0, math.nan, 0, math.nan, 0
@@ -731,7 +741,7 @@ def _descent_move(prm, rr, su, sv, du, dv, m0, n0, mL, mR, mU, mD):
     with the cap's curvature there, at most r / 2 cells (r = rr cells, stretched by su, sv)."""
     R = prm[P_R]
     na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]  # box means: correlated pixels count as fewer
-    slack = prm[P_SLACK] * R
+    slack = PRETEST_SLACK * R
     off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
     ku, kv = 0.5 * R / (rr * su) ** 2, 0.5 * R / (rr * sv) ** 2
     # a side box more than R (and the noise) in front of the centre box lies on no cap through it:
@@ -754,7 +764,7 @@ def _cap_pretest(prm, rr, su, sv, h, du, dv, m0, mL, nL, mR, nR, mU, nU, mD, nD)
     that side of the ball), and the agreeing ones' chi^2)."""
     R = prm[P_R]
     na = prm[P_NOISE_A] * prm[P_MEAN_NOISE]  # box means: correlated pixels count as fewer
-    slack = prm[P_SLACK] * R
+    slack = PRETEST_SLACK * R
     # offsets and the boxes' half-sides in units of the ball's angular radius along each axis (the
     # same on the axis)
     ahu = (h + 0.5) / (rr * su)
@@ -795,14 +805,14 @@ def front_hypothesis(tab, prm, v, u, out):
     the centre). A stencil of five box means (``_stencil``: centre, left, right, up, down; half-side
     box_half r, offset box_offset r, r the ball's disc radius in cells at the centre box's range) and
     the sphere's known curvature give the step to the front point (``_descent_move``), at most r / 2,
-    up to descent_steps times. The means average sigma / sqrt(n) of the per-pixel noise, which is
+    up to DESCENT_STEPS times. The means average sigma / sqrt(n) of the per-pixel noise, which is
     what makes a hypothesis possible at 3 m, where one pixel's depth is +/- 7 cm and the relief
     between two pixels 1-2 cm.
     Before it, ``plane_free`` drops first cells on a plane (most of them). Pretest at the resting
     cell, all from the table: at least three of the four side boxes must lie on the sphere's cap
     (``_cap_pretest``), or two and a third well in front (out[4] flags such a hypothesis, which
     ``improved`` verifies only while no sphere has been accepted), at most one *behind* it (one box
-    may straddle the outline); of the eight ``ring_boxes`` at most pretest_max_continued may continue
+    may straddle the outline); of the eight ``ring_boxes`` at most PRETEST_MAX_CONTINUED may continue
     the surface at the ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded
     flag); the score is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of
     the agreeing ones (at most 16).
@@ -825,7 +835,7 @@ def front_hypothesis(tab, prm, v, u, out):
     su = sv = 1.0
     mL = mR = mU = mD = 0.0
     nL = nR = nU = nD = 0
-    steps = int(prm[P_DESCENT_STEPS])
+    steps = DESCENT_STEPS
     for step in range(steps + 1):
         rr = fc * R / m0
         if rr < prm[P_RR_MIN] or rr > prm[P_RR_MAX]:
@@ -849,7 +859,7 @@ def front_hypothesis(tab, prm, v, u, out):
         return -np.inf
     # pretest: the ring around the outline
     rr, bg, cont = ring_boxes(tab, prm, v, u, front, sig)
-    if cont > prm[P_MAX_CONTINUED]:
+    if cont > PRETEST_MAX_CONTINUED:
         return -np.inf
     out[0], out[1], out[2], out[3], out[4] = v, u, front, rr, 1.0 if agree < 3 else 0.0
     if prm[P_ORDER_RELIEF] != 0.0:
@@ -884,7 +894,7 @@ def _relief_llr(prm, rr, su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, 
             continue
         delta = rise_u if j < 2 else rise_v
         d = m - m0
-        if abs(d - delta) > 3.0 * sig / math.sqrt(nk) + prm[P_SLACK] * R:
+        if abs(d - delta) > 3.0 * sig / math.sqrt(nk) + PRETEST_SLACK * R:
             continue  # behind or in front of the cap: no evidence for it
         llr += (2.0 * d * delta - delta * delta) / (2.0 * max(sig * sig * (1.0 / nk + 1.0 / n0), 1e-12))
     return llr
@@ -1001,7 +1011,7 @@ def hole_hypotheses(tab, prm, z_min_m, step, min_ring, min_hole_fraction, cands)
     ``min_hole_fraction`` r (smaller holes leave the descent its boxes). The hypothesis is the
     ray through the mean of the edge points (the hole's centre; a hole lies about the ball's
     specular point, on the ray through its centre), its front the edges' ranges less the cap's
-    relief at their offsets; at most pretest_max_continued of its ``ring_boxes`` may continue the
+    relief at their offsets; at most PRETEST_MAX_CONTINUED of its ``ring_boxes`` may continue the
     surface at its depth. Score: the edges found and the background ring boxes, less 2 per
     continued one and a thousandth of the front range; kept as ``search_organised`` keeps its (cands (K, 6): v, u, front m, r cells, score, 0). Returns the
     number kept.
@@ -1011,7 +1021,7 @@ def hole_hypotheses(tab, prm, z_min_m, step, min_ring, min_hole_fraction, cands)
     hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
     reach = int(fc * R / z_min_m) + 1
     min_cell = max(1.0, 0.5 * prm[P_CELL_PX])
-    slack = prm[P_SLACK] * R
+    slack = PRETEST_SLACK * R
     rng = np.empty(8)
     ev = np.empty(8)
     eu = np.empty(8)
@@ -1066,7 +1076,7 @@ def hole_hypotheses(tab, prm, z_min_m, step, min_ring, min_hole_fraction, cands)
             # hole in a wall, a dropout on a low-texture floor, has the wall or floor all round)
             sig = prm[P_NOISE_A] * prm[P_MEAN_NOISE] * med * med
             rr, bg, cont = ring_boxes(tab, prm, vc, uc, front, sig)
-            if cont > prm[P_MAX_CONTINUED]:
+            if cont > PRETEST_MAX_CONTINUED:
                 continue
             q = ring + bg - 2.0 * cont - 1e-3 * front
             # one hole's first cells give fronts that differ by the ring's few noisy pixels: the same ball
@@ -1176,6 +1186,15 @@ def iterations_for_support(support, n_points, window_px, confidence):
 
 V_CX, V_CY, V_CZ, V_EPS, V_N, V_FCX, V_FCY, V_FCZ, V_FR, V_FSE, V_RMSE, V_SIGMA = range(12)
 
+# The refinement (``_refine_centre``, ``_final_fits``) and the size check's limit, in fractions of R or r.
+FIRST_BAND_FRACTION = 0.5  # the first round's inlier band: a box-mean hypothesis is up to R / 2 off
+FIRST_STEPS = 3  # the first round's 3D Gauss-Newton steps
+COARSE_BAND_FRACTION = 0.25  # later rounds' band at most this * R (twice the last move while travelling)
+SIZE_LIMIT_FRACTION = 0.25  # the free radius never differs from R by more than this * R, whatever its error
+RADIUS_SE_S_MIN_FRACTION = 0.3  # the free radius's standard error floors s = sqrt(r^2 - m^2) at this * r
+RAY_S_MIN_FRACTION = 0.03  # the ray fits floor s at this * r (a ray grazing the sphere)
+FIT_MAX_POINTS = 400  # every fit uses at most about this many inliers, evenly strided
+
 N_VOUT = 12
 #: MAD of a normal sample times this is its standard deviation.
 MAD_TO_SIGMA = 1.482602218505602
@@ -1231,13 +1250,13 @@ def _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_point
 
     Each round: inliers = silhouette pixels with ray residual within the noise-aware eps at the
     current depth (``gather_window`` into idx, every window visited with the stride that keeps it to
-    about ``budget`` pixels; in the first round at least prm[P_FIRST_BAND] R, later at least twice
-    the last move, up to prm[P_COARSE_BAND] R), then Gauss-Newton with R fixed on at most
-    ``max_fit_points`` of them, evenly strided: in the first round prm[P_FIRST_STEPS] steps on the 3D
+    about ``budget`` pixels; in the first round at least FIRST_BAND_FRACTION R, later at least twice
+    the last move, up to COARSE_BAND_FRACTION R), then Gauss-Newton with R fixed on at most
+    ``max_fit_points`` of them, evenly strided: in the first round FIRST_STEPS steps on the 3D
     residuals (``refine_fixed_radius``), later one step on the ray residuals (``ray_step``; rays in
     rbuf (max_fit_points, 4)), until the centre moves less than its standard error (or 0.1 mm)."""
     fx, fy, ppx, ppy, radius = prm[P_FX], prm[P_FY], prm[P_PPX], prm[P_PPY], prm[P_R]
-    first_band, coarse_band = prm[P_FIRST_BAND] * radius, prm[P_COARSE_BAND] * radius
+    first_band, coarse_band = FIRST_BAND_FRACTION * radius, COARSE_BAND_FRACTION * radius
     moved = coarse_band
     for it in range(refine_iterations):
         if not _centre_in_front(c, radius):
@@ -1258,7 +1277,7 @@ def _refine_centre(points, index_image, c, prm, refine_iterations, max_fit_point
             # offset per round); ||p - c|| - R pulls from anywhere, and its bias (depth noise along
             # the rays, a few mm at 2 m) is left to the ray steps that follow
             c_new = refine_fixed_radius(points, _strided(idx, n, max_fit_points), c[0], c[1], c[2], radius,
-                                        int(prm[P_FIRST_STEPS]))
+                                        FIRST_STEPS)
             moved = math.sqrt((c_new[0] - c[0]) ** 2 + (c_new[1] - c[1]) ** 2 + (c_new[2] - c[2]) ** 2)
             c[0], c[1], c[2] = c_new[0], c_new[1], c_new[2]
             continue
@@ -1324,22 +1343,15 @@ def _final_fits(rays, c, radius, hold_direction, s_min, se_s_min):
 
 
 @part
-def _fails_size_gate(size_gate, prm, fr, fse, n_est):
-    """Whether a candidate fails ``verify_organised``'s size gate (4,) (tolerance m, standard errors,
-    least score, min_inliers; inf tolerance: no gate): its free radius fr m (standard error fse m)
-    off R by more than the tolerance (or prm[P_SIZE_LIMIT] R), or the support (n_est inliers) and
-    size factors of the confidence (``improved.confidence``) already below the least score."""
+def _fails_size_gate(size_gate, fr, fse, radius):
+    """Whether a candidate fails ``verify_organised``'s size gate (2,) (tolerance m, standard errors;
+    inf tolerance: no gate): its free radius fr m (standard error fse m) off R by more than the
+    tolerance plus the standard errors, or than SIZE_LIMIT_FRACTION R whatever its error."""
     if not math.isfinite(size_gate[0]):
         return False
-    radius = prm[P_R]
     se = fse if math.isfinite(fse) else radius
     d = abs(fr - radius)
-    if not (d <= size_gate[0] + size_gate[1] * se and d <= prm[P_SIZE_LIMIT] * radius):  # nan fails
-        return True
-    # the confidence's support and size factors bound it (the others are at most 1); 1 - 1e-9 for
-    # the rounding: never stricter than the confidence
-    z = d / (size_gate[0] + se)
-    return n_est / (n_est + size_gate[3]) * math.exp(-0.5 * z * z) < size_gate[2] * (1.0 - 1e-9)
+    return not (d <= size_gate[0] + size_gate[1] * se and d <= SIZE_LIMIT_FRACTION * radius)  # nan fails
 
 
 @kernel
@@ -1378,14 +1390,14 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
                                               idx)
     if n < 3:
         return
-    c, rms, fc, fr, fse = _final_fits(rays, c, radius, hold_direction, s_min, prm[P_SE_S_MIN])
+    c, rms, fc, fr, fse = _final_fits(rays, c, radius, hold_direction, s_min, RADIUS_SE_S_MIN_FRACTION)
     out[V_FCX], out[V_FCY], out[V_FCZ], out[V_FR], out[V_FSE] = fc[0], fc[1], fc[2], fr, fse
-    if _fails_size_gate(size_gate, prm, fr, fse, float(n * stride * stride)):
+    if _fails_size_gate(size_gate, fr, fse, radius):
         out[V_N] = -1.0
         return
     ring_band = min(e, max(prm[P_EPS], sigma))
     window_stats(points, index_image, c[0], c[1], c[2], e, ring_band, prm,
-                 window_stride(c[0], c[1], c[2], radius * prm[P_RING_FACTOR], max(prm[P_FX], prm[P_FY]), budget),
+                 window_stride(c[0], c[1], c[2], radius * RING_FACTOR, max(prm[P_FX], prm[P_FY]), budget),
                  stats)
     out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
     out[V_RMSE] = rms

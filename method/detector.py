@@ -3,7 +3,7 @@
 Input handling (one rule each, documented here):
 - Points with a NaN or infinite coordinate are dropped; the returned indices still refer to
   ``cloud.points``. A cloud with fewer than 3 finite points is refused.
-- A cloud whose median |z| exceeds ``config.input.mm_check_median_m`` (50 m) is refused as millimetres.
+- A cloud whose median |z| exceeds ``improved.MM_LIMIT_M`` (50 m) is refused as millimetres.
 - A cloud larger than ``config.input.max_points`` is searched on a random subsample of that size
   (deterministic from the seed) as an unorganised cloud; the final inliers come from all points.
 """
@@ -20,7 +20,7 @@ from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import _kernels as K
 from spherebench.method.config import IMPROVED, DetectorConfig
-from spherebench.method.improved import PreparedFrame, outline_centre, run_improved
+from spherebench.method.improved import MM_LIMIT_M, PreparedFrame, outline_centre, run_improved
 from spherebench.method.paper import PaperTrace, run_paper
 
 Circle = tuple[float, float, float]
@@ -35,8 +35,10 @@ class Sphere:
         error free_radius_se_m (the size check). inlier_indices (K,): indices into cloud.points.
     score: in [0, 1], comparable across frames (ranks detections for mAP): for the improved pipeline
         the estimated probability that a ball of radius R lies within 2 cm (3 cm beyond 3 m deep) of
-        centre_m (``Verification.probability`` of raw_score); for the paper's, its support ratio.
-    raw_score: the product of the evidence factors the score is mapped from (``improved.confidence_factors``).
+        centre_m (the fitted verdict's, ``verdict``; an unorganised cloud's, ``improved.unorganised_score``);
+        for the paper's, its support ratio.
+    raw_score: the score before its calibration map (the verdict model's output; for an unorganised cloud
+        the evidence product).
     rmse_m: RMS of ||p - c|| - R over the inliers (the RMSE of Table 2, as this project defines it).
     circle_paper, circle_exact: (cx, cy, r) pixels by the paper's rule and by the exact silhouette,
         clipped to the image and, for a partly hidden sphere, to its visible pixels
@@ -89,9 +91,9 @@ def _check_counts(points: np.ndarray, n_ok: int, n_big: int, config: DetectorCon
         z = np.abs(points[:: max(1, n // 4096), 2].astype(np.float64))
         med = float(np.median(z[np.isfinite(z)]))
         units = [(name, f) for name, f in (("centimetres", 100.0), ("millimetres", 1000.0))
-                 if 0.1 <= med / f <= 2 * config.input.mm_check_median_m]  # what a depth camera could see
+                 if 0.1 <= med / f <= 2 * MM_LIMIT_M]  # what a depth camera could see
         told = " or ".join(f"{name} ({med / f:.3g} m: divide by {f:g})" for name, f in units) or "not metres"
-        raise SphereBenchError(f"median |z| is {med:.4g}, beyond {config.input.mm_check_median_m:g} m: the cloud "
+        raise SphereBenchError(f"median |z| is {med:.4g}, beyond {MM_LIMIT_M:g} m: the cloud "
                                f"looks like {told}; metres are expected")
 
 
@@ -108,7 +110,7 @@ def prepare_cloud(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator
     n_big = 0
     if n_ok >= 3 and config.input.mm_check:
         probe = cloud.points[(index if index is not None else np.arange(n))[:: max(1, n_ok // 4096)], 2]
-        n_big = int(np.count_nonzero(np.abs(probe) > config.input.mm_check_median_m)) * n_ok // max(len(probe), 1)
+        n_big = int(np.count_nonzero(np.abs(probe) > MM_LIMIT_M)) * n_ok // max(len(probe), 1)
     _check_counts(cloud.points, n_ok, n_big, config)
     if n_ok > config.input.max_points:
         index = np.sort(rng.choice(index if index is not None else n, size=config.input.max_points, replace=False))
@@ -257,7 +259,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         cp, ce = sphere_circles(cloud, centre, R)
         return [Sphere(centre_m=centre, radius_m=R, free_radius_m=float("nan"), inlier_indices=inl_orig, score=score,
                        raw_score=score, rmse_m=rmse, circle_paper=cp, circle_exact=ce, trace=trace)]
-    least = None if min_score is None else config.verification.raw(float(min_score))
+    least = None if min_score is None else float(min_score)
     if cloud.organised and len(cloud.points) <= config.input.max_points:
         # organised: NaN points get no pixel, so the searched points are the cloud's own
         frame = prepare_frame(cloud, config)
@@ -277,6 +279,6 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
             inl = v.inliers if index is None else index[v.inliers]
         cp, ce = sphere_circles(cloud, v.centre_m, R, v.stats, depth)
         spheres.append(Sphere(centre_m=v.centre_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
-                              score=config.verification.probability(v.score), raw_score=v.score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
+                              score=v.score, raw_score=v.raw_score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
                               circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))
     return spheres

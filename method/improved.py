@@ -38,9 +38,9 @@ the threshold (``rescore``).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
-import operator
 from statistics import NormalDist
 import threading
 from dataclasses import dataclass
@@ -52,6 +52,76 @@ from spherebench.cloud import Cloud
 from spherebench.method import _kernels as K
 from spherebench.method.config import DetectorConfig
 from spherebench.method.verdict import load_verdict
+
+# The stages' constants: how each stage works, not what the user sets (``DetectorConfig`` holds the
+# physical facts and the error rates). Each was chosen on the training splits; the record is
+# docs/experiments/2026-12-04-config-history.md and the records it points to.
+
+# frame noise (``frame_noise_a``, ``frame_noise_correlation_px``)
+NOISE_ESTIMATE_LAG_PX = 3  # second differences at this lag (px at 424 wide): beyond the matcher's correlation
+NOISE_ESTIMATE_SAMPLES = 1024  # on at most this many evenly spread pixels
+NOISE_ESTIMATE_MIN_SAMPLES = 128  # fewer qualifying: the sensor model's noise
+NOISE_ESTIMATE_MIN_DEPTH_M = 0.6  # nearer pixels left out: their noise is below the depth quantisation
+NOISE_ESTIMATE_KEEP = 0.9  # the trimmed mean square keeps the smallest 90 %: edges and flying pixels out
+NOISE_MODEL_TOLERANCE = 0.10  # the measured noise replaces the model's when they differ by more than 10 %
+NOISE_CORRELATION_MIN_PX = 0.8  # a shorter correlation length reads 0 (px at 424 wide): the estimate's scatter
+NOISE_CORRELATION_MAX_PX = 3.0  # the longest taken (px at 424 wide)
+NOISE_FROM_DATA = True  # the band narrows to a candidate's own residual spread where that is below the model's
+MM_LIMIT_M = 50.0  # a cloud whose median |z| is beyond this is in millimetres (``input.mm_check``)
+
+# search (``strata``, ``range_limit_m``; the stencil's geometry is ``_kernels``')
+SAMPLE_SUCCESS = 0.8  # the chance that a first cell on the ball gives a hypothesis that passes the pretest
+BOUND_NOISE_FRACTION = 0.75  # the bound provides for balls to where one pixel's noise is this * R ...
+HYPOTHESIS_MIN_RANGE_M = 3.5  # ... and hypotheses are kept to at least this depth (m) on a noisy unit
+SEARCH_CANDIDATES = 16  # hypotheses kept per search, by score
+SAMPLE_RETRIES = 4  # unorganised: draws for the 2nd and 3rd point before giving up
+PRETEST_POINTS = 12  # unorganised: points checked before a candidate is scored fully ...
+PRETEST_MIN_FRACTION = 0.5  # ... of which this share must be inliers
+SCORE_MAX_POINTS = 400  # unorganised: at most about this many points scored per candidate
+
+# retries (organised frames where none is accepted: ``disc_search``, ``hole_search``)
+RETRY_NEW_FRACTION = 0.25  # a retry's hypothesis this near (* R) a verified start is not verified again
+DISC_NOISE_FRACTION = 0.25  # the disc search starts where one pixel's noise reaches this * R
+DISC_INNER_FRACTION = 0.5  # its inner box's half-side (* r, the disc radius)
+DISC_SIDE_OFFSET_FRACTION = 1.7  # its four side boxes' offset (* r): clear of the outline's mixed pixels
+DISC_SIDE_HALF_FRACTION = 0.35  # their half-side (* r)
+DISC_GAP_FRACTION = 1.0  # a side box is behind when farther than the inner box by R ...
+DISC_GAP_SIGMAS = 3.0  # ... and 3 standard errors
+DISC_MIN_BEHIND = 3  # at least 3 of the four side boxes behind (a ball on a floor has one not)
+DISC_STEP_FRACTION = 0.5  # visit every k-th cell, k half the disc radius at max_range_m
+HOLE_MIN_RING = 6  # of the eight directions from a hole cell, at least this many reach its ring
+HOLE_MIN_FRACTION = 0.45  # the hole's mean radius at least this * r (smaller: blobs of dropout)
+HOLE_STEP_FRACTION = 0.25  # visit every k-th cell, k this * the disc radius at max_range_m
+HOLE_MIN_RANGE_M = 0.3  # the ring is looked for within the disc radius of a ball this near (m)
+
+# verification (``_verify_candidates`` and the starts it verifies from)
+VERIFY_SCORE_MARGIN = 6.0  # once one is accepted, skip hypotheses whose search score is this far below it
+VERIFY_QUALITY_FRACTION = 0.15  # unorganised: skip candidates below this share of the best's quality
+RESCORE_BAND = 0.15  # a candidate within this of accept_score is verified again from six starts
+RESCORE_OFFSET_XY = 0.2  # the six starts' offsets across the line of sight (* R) ...
+RESCORE_OFFSET_Z = 0.33  # ... and along it (* R)
+MULTISTART_NOISE_FRACTION = 0.5  # while none is accepted, seven starts where one pixel's noise exceeds this * R
+OCCLUDED_PUSH_FRACTION = 0.5  # an occluded hypothesis is verified again pushed back by this * R ...
+OCCLUDED_PUSH_STARTS = 4  # ... from up to this many starts ...
+OCCLUDED_PUSH_NOISE_FRACTION = 0.25  # ... where one pixel's noise is below this * R
+INTERIOR_BANDS = 3.0  # unorganised: the interior lies at least this many bands under the surface
+#: unorganised clouds' score map, probability = sigmoid(slope logit(product) + offset): the map last fitted
+#: (train + train-stereo) for the organised clouds' hand-set product, which the fitted verdict replaced;
+#: unorganised clouds have no silhouette for it (docs/detector.md, "Unorganised clouds")
+UNORGANISED_CALIBRATION = (2.102, 2.018)
+
+# outline (``outline_centre``, ``outline_size``, the outline's evidence)
+OUTLINE_EVIDENCE_NOISE_FRACTION = 0.5  # verify again on the outline where one pixel's noise is this * R ...
+OUTLINE_EVIDENCE_MIN_MOVE_PX = 0.25  # ... not where the outline moves the centre less (px) ...
+OUTLINE_EVIDENCE_MIN_SCORE = 0.05  # ... nor where the first verification scores below this
+OUTLINE_SIZE_FLOOR_PX = 0.25  # the outline radius's least standard error (px): mixed pixels, the grid
+OUTLINE_GAP_SIGMAS = 3.0  # an outline is a step farther than max(this * sigma_z, R)
+OUTLINE_BAND_PX = 2.0  # outline pixels within this (px) ...
+OUTLINE_BAND_FRACTION = 0.15  # ... plus this share of the disc radius of the silhouette's outline
+OUTLINE_MIN_SIDE = 4  # re-centre an axis with at least this many outline pixels on each side
+OUTLINE_MAX_SHIFT_FRACTION = 0.5  # a re-centring moving the centre more than this * R is not taken
+OUTLINE_MAX_BIAS_PX = 1.0  # nor on an axis whose sides lie on average this far off the silhouette (px)
+OUTLINE_ITERATIONS = 3  # rounds of re-centring
 
 
 @dataclass
@@ -66,8 +136,9 @@ class Candidate:
     free_radius_se_m: float
     rmse_m: float
     stats: dict
-    score: float
+    score: float  # the probability of a ball (``verdict``)
     size_ok: bool
+    raw_score: float  # the verdict's score before its calibration
 
 
 def noise_a(config: DetectorConfig, fx: float | None) -> float:
@@ -94,16 +165,16 @@ def _noise_mean_square(points: np.ndarray, index_image: np.ndarray, config: Dete
     """The trimmed mean square of ``_kernels.noise_samples`` at a lag (pixels): sigma_z^2 / z^4 (1/m^2)
     for a lag beyond the noise's correlation; None with too few samples (see ``frame_noise_a``)."""
     h, w = index_image.shape
-    step = max(1, int(math.sqrt(h * w / config.noise.noise_estimate_samples)))
-    out = workspace("noise", (config.noise.noise_estimate_samples,), np.float64)
-    m = K.noise_samples(points, index_image, lag, step, step, config.noise.noise_estimate_min_depth_m, out)
-    if m < config.noise.noise_estimate_min_samples:
+    step = max(1, int(math.sqrt(h * w / NOISE_ESTIMATE_SAMPLES)))
+    out = workspace("noise", (NOISE_ESTIMATE_SAMPLES,), np.float64)
+    m = K.noise_samples(points, index_image, lag, step, step, NOISE_ESTIMATE_MIN_DEPTH_M, out)
+    if m < NOISE_ESTIMATE_MIN_SAMPLES:
         return None
     # a trimmed mean square, not the median: depth quantised in steps near sigma (a structured-light
     # sensor at range) makes the median of the few values it takes a biased estimate
-    k = max(1, int(config.noise.noise_estimate_keep * m))
+    k = max(1, int(NOISE_ESTIMATE_KEEP * m))
     kept = np.partition(out[:m], k - 1)[:k]
-    return float(np.dot(kept, kept)) / k / _trimmed_second_moment(config.noise.noise_estimate_keep)
+    return float(np.dot(kept, kept)) / k / _trimmed_second_moment(NOISE_ESTIMATE_KEEP)
 
 
 def _second_difference_ratio(length_px: float, lag_px: int) -> float:
@@ -143,13 +214,13 @@ def frame_noise_correlation_px(points: np.ndarray, index_image: np.ndarray, conf
     from 1 (independent pixels) as neighbours' errors correlate. 0 where it cannot be measured, or
     below ``noise_correlation_min_px``.
     lag_ms: the mean square at the long lag, when already measured."""
-    lag = max(1, config.noise.noise_estimate_lag_px * bin_px)
+    lag = max(1, NOISE_ESTIMATE_LAG_PX * bin_px)
     long_ms = _noise_mean_square(points, index_image, config, lag) if lag_ms is None else lag_ms
     short_ms = _noise_mean_square(points, index_image, config, 1)
     if long_ms is None or short_ms is None or not long_ms > 0:
         return 0.0
-    length = correlation_from_ratio(short_ms / long_ms, lag, config.noise.noise_correlation_max_px * bin_px)
-    return length if length >= config.noise.noise_correlation_min_px * bin_px else 0.0
+    length = correlation_from_ratio(short_ms / long_ms, lag, NOISE_CORRELATION_MAX_PX * bin_px)
+    return length if length >= NOISE_CORRELATION_MIN_PX * bin_px else 0.0
 
 
 @functools.lru_cache(maxsize=64)  # every verified candidate of a frame asks with the same arguments
@@ -175,19 +246,14 @@ def frame_noise_a(points: np.ndarray, index_image: np.ndarray, config: DetectorC
 
     The lag, ``noise_estimate_lag_px`` at 424 px wide, scales with the stream's width as the stereo
     matcher's noise correlation does, so that the second difference sees independent errors."""
-    ms = _noise_mean_square(points, index_image, config, max(1, config.noise.noise_estimate_lag_px * bin_px))
+    ms = _noise_mean_square(points, index_image, config, max(1, NOISE_ESTIMATE_LAG_PX * bin_px))
     return None if ms is None else math.sqrt(ms)
 
 
 def eps_at(config: DetectorConfig, depth_m: float, fx: float | None) -> float:
     """The shell half-width at a centre depth (metres): eps widened by the depth noise model."""
     return float(K.noise_eps(depth_m, config.eps_m, noise_a(config, fx), config.noise.noise_sigmas,
-                             config.noise.max_eps_fraction * config.radius_m))
-
-
-#: The parameter vector's slots that hold a setting (``_kernels.PARAMETERS``), and the settings' getters.
-_SETTING_SLOTS = np.array([i for i, (_, path) in enumerate(K.PARAMETERS) if path], np.intp)
-_SETTING_GETTERS = tuple(operator.attrgetter(path) for _, path in K.PARAMETERS if path)
+                             K.MAX_EPS_FRACTION * config.radius_m))
 
 
 def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: int, grid_shape: tuple,
@@ -197,17 +263,17 @@ def parameters(config: DetectorConfig, intr, stratum: tuple[int, int], bin_px: i
     length (stream pixels), which widens the search's box-mean tolerances."""
     a = noise_a(config, float(intr.fx)) if a is None else a
     prm = np.zeros(K.N_PRM, np.float64)
-    prm[_SETTING_SLOTS] = [get(config) for get in _SETTING_GETTERS]  # the slots that hold a setting
     R = config.radius_m
+    prm[K.P_R], prm[K.P_EPS], prm[K.P_NOISE_K] = R, config.eps_m, config.noise.noise_sigmas
     prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY] = intr.fx, intr.fy, intr.ppx, intr.ppy
     prm[K.P_NOISE_A] = a
-    prm[K.P_EPS_CAP] = config.noise.max_eps_fraction * R
+    prm[K.P_EPS_CAP] = K.MAX_EPS_FRACTION * R
     prm[K.P_STRATUM_V], prm[K.P_STRATUM_U], prm[K.P_BIN] = stratum[0], stratum[1], bin_px
     prm[K.P_CELL_PX] = bin_px * cell_rows(bin_px)  # the pixels a cell's table entry sums
     # hypotheses whose ball would be beyond the range limit (with a margin; on a noisy unit never nearer than
     # hypothesis_min_range_m), or larger than the grid
     far_m = max(range_limit_m(config, float(intr.fx), a),
-                min(config.search.hypothesis_min_range_m, config.search.max_range_m))
+                min(HYPOTHESIS_MIN_RANGE_M, config.search.max_range_m))
     prm[K.P_RR_MIN] = 0.8 * intr.fx / bin_px * R / far_m
     prm[K.P_RR_MAX] = float(max(grid_shape))
     prm[K.P_Z_FAR] = z_far_m
@@ -221,7 +287,7 @@ def range_limit_m(config: DetectorConfig, fx: float | None, a: float | None = No
     depth noise reaches ``bound_noise_fraction`` R (3.5 m at 424x240, 4.9 m at 848x480, 6 m at
     1280x720 for the D435 model), or ``max_range_m`` when that is nearer."""
     a = noise_a(config, fx) if a is None else a
-    lim = math.sqrt(config.search.bound_noise_fraction * config.radius_m / a) if a > 0 else math.inf
+    lim = math.sqrt(BOUND_NOISE_FRACTION * config.radius_m / a) if a > 0 else math.inf
     return min(lim, config.search.max_range_m)
 
 
@@ -235,7 +301,8 @@ def far_depth_m(config: DetectorConfig, intr, z_scene_m: float, a: float | None 
     return max(z_far, 2.0 * config.radius_m)
 
 
-def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape: tuple[int, int]) -> tuple[int, int]:
+def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape: tuple[int, int],
+           visible_fraction: float = 1.0) -> tuple[int, int]:
     """The search's strata: (rows, columns) of cells; one first cell is drawn in each (``_kernels.search_organised``).
 
     The standard RANSAC bound for the smallest ball the frame can hold: a ball of radius R at depth
@@ -245,7 +312,7 @@ def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape
     the worst case over where the disc falls depends on s / r alone (``stratified_miss``), so
     s = k r with k the largest ratio whose worst case is within 1 - confidence
     (``stratum_side_ratio``: 0.89 for p = 0.8 and 99 %, where as many independent uniform draws as
-    strata would need 0.74, nearly half as many draws again). With ``bound_visible_fraction`` below 1 the
+    strata would need 0.74, nearly half as many draws again). With ``visible_fraction`` (of the ball, provided for) below 1 the
     visible part is no disc, and the area bound is used instead: prod_j (1 - p f_j) <=
     exp(-p A / s^2), A the visible area, which holds for any shape. The number of strata is kept
     within [min_iterations, iterations] (about: strata are whole cells). Without ``adaptive``,
@@ -255,11 +322,11 @@ def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape
     cells = float(hc * wc)
     if config.search.adaptive:
         r = intr.fx / bin_px * config.radius_m / z_far_m
-        if config.search.bound_visible_fraction >= 1.0:
-            side = stratum_side_ratio(config.search.sample_success, config.search.confidence) * r
+        if visible_fraction >= 1.0:
+            side = stratum_side_ratio(SAMPLE_SUCCESS, config.search.confidence) * r
         else:
-            area = math.pi * r * r * config.search.bound_visible_fraction
-            side = math.sqrt(config.search.sample_success * area / -math.log1p(-config.search.confidence))
+            area = math.pi * r * r * visible_fraction
+            side = math.sqrt(SAMPLE_SUCCESS * area / -math.log1p(-config.search.confidence))
     else:
         side = math.sqrt(cells / config.search.iterations)
     search = config.search
@@ -376,7 +443,7 @@ class PreparedFrame:
         self.hist = workspace("hist", (HIST_BINS,), np.int64)
         row_cell, col_cell = cell_lookup(h, w, self.bin)
         n_ok, n_big = K.prepare_organised(cloud.points, cloud.rows, cloud.cols, self.index_image, self.tab, row_cell,
-                                          col_cell, np.float32(config.input.mm_check_median_m), self.hist,
+                                          col_cell, np.float32(MM_LIMIT_M), self.hist,
                                           np.float32(1.0 / HIST_STEP_M))
         self.n_ok, self.n_big = int(n_ok), int(n_big)
         self.n_valid = int(self.tab[-1, -1] >> np.uint64(K.COUNT_SHIFT))  # the table's total count
@@ -386,7 +453,7 @@ class PreparedFrame:
         lag_ms = None
         if config.noise.noise_z2_per_m is None and config.noise.noise_estimate:
             lag_ms = _noise_mean_square(cloud.points, self.index_image, config,
-                                        max(1, config.noise.noise_estimate_lag_px * self.bin))
+                                        max(1, NOISE_ESTIMATE_LAG_PX * self.bin))
             self.noise_a_measured = None if lag_ms is None else math.sqrt(lag_ms)
         #: the depth noise's correlation length (stream pixels; 0: independent pixels or not measured)
         self.noise_corr_px = (frame_noise_correlation_px(cloud.points, self.index_image, config, self.bin, lag_ms)
@@ -394,7 +461,7 @@ class PreparedFrame:
         model_a = noise_a(config, float(intr.fx))
         self.noise_a = model_a
         if self.noise_a_measured is not None and not (
-                abs(self.noise_a_measured - model_a) <= config.noise.noise_model_tolerance * model_a):
+                abs(self.noise_a_measured - model_a) <= NOISE_MODEL_TOLERANCE * model_a):
             self.noise_a = self.noise_a_measured
         #: the frame's measured noise over the sensor model's (1 where not measured)
         self.noise_ratio = 1.0 if self.noise_a_measured is None or not model_a > 0 else self.noise_a_measured / model_a
@@ -407,14 +474,11 @@ class PreparedFrame:
         # verification's size/score gate (``_kernels.verify_organised``) and its output buffers: every
         # candidate that may rank (``rank_floor``) gets its whole evidence, and those within rescore_band
         # below accept_score too (``rescore``)
-        fit, ver = config.refinement, config.verification
-        least = min(ver.floor_raw_score, max(0.0, ver.accept_raw_score - ver.rescore_band))
-        if ver.fitted_verdict:  # the fitted verdict reads every candidate the size check passes
-            least = 0.0
-        self.gate = np.array([size_tolerance(config) if fit.size_check else math.inf, fit.size_sigmas,
-                              least, ver.min_inliers], np.float64)
+        # (the verdict reads every candidate the size check passes)
+        fit = config.refinement
+        self.gate = np.array([size_tolerance(config) if fit.size_check else math.inf, fit.size_sigmas], np.float64)
         #: no early stop (``rescore``: a start's whole score and size verdict count)
-        self.no_gate = np.array([math.inf, fit.size_sigmas, 0.0, ver.min_inliers], np.float64)
+        self.no_gate = np.array([math.inf, fit.size_sigmas], np.float64)
         self.vout = np.empty(K.N_VOUT, np.float64)
         self.vstats = np.empty(K.N_STATS, np.float64)
 
@@ -427,7 +491,7 @@ def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int,
     occluder_bound: the descent leaves out side boxes in front of a cap (``_kernels.P_OCCLUDER_BOUND``);
     off_axis: the stencil follows the silhouette's stretch off the optical axis (``_kernels.stencil_stretch``);
     relief: the hypotheses ranked by how far their cap stands out of the noise (``_kernels._relief_llr``)."""
-    hyp = np.zeros((config.search.search_candidates, 6), np.float64)
+    hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
     counters = np.zeros(2, np.int64)
     prm = frame.prm
     if occluder_bound or off_axis or relief:
@@ -449,14 +513,13 @@ def disc_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarra
     """Run ``_kernels.disc_hypotheses`` on the frame beyond the depth where one pixel's noise reaches
     ``disc_noise_fraction`` R; returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
     R = config.radius_m
-    z_min = math.sqrt(config.retry.disc_noise_fraction * R / frame.noise_a) if frame.noise_a > 0 else math.inf
+    z_min = math.sqrt(DISC_NOISE_FRACTION * R / frame.noise_a) if frame.noise_a > 0 else math.inf
     fc = frame.prm[K.P_FX] / frame.bin
-    step = max(1, int(config.retry.disc_step_fraction * fc * R / config.search.max_range_m))
-    hyp = np.zeros((config.search.search_candidates, 6), np.float64)
+    step = max(1, int(DISC_STEP_FRACTION * fc * R / config.search.max_range_m))
+    hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
     retry = config.retry
-    m = K.disc_hypotheses(frame.tab, frame.prm, z_min, retry.disc_inner_fraction, retry.disc_side_offset_fraction,
-                          retry.disc_side_half_fraction, retry.disc_gap_fraction * R, retry.disc_gap_sigmas,
-                          retry.disc_min_behind, step, hyp)
+    m = K.disc_hypotheses(frame.tab, frame.prm, z_min, DISC_INNER_FRACTION, DISC_SIDE_OFFSET_FRACTION,
+                          DISC_SIDE_HALF_FRACTION, DISC_GAP_FRACTION * R, DISC_GAP_SIGMAS, DISC_MIN_BEHIND, step, hyp)
     frame.hypotheses = hyp[:m]
     return K.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)
 
@@ -467,9 +530,9 @@ def hole_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarra
     R = config.radius_m
     fc = frame.prm[K.P_FX] / frame.bin
     retry = config.retry
-    step = max(1, int(retry.hole_step_fraction * fc * R / config.search.max_range_m))
-    hyp = np.zeros((config.search.search_candidates, 6), np.float64)
-    m = K.hole_hypotheses(frame.tab, frame.prm, retry.hole_min_range_m, step, retry.hole_min_ring, retry.hole_min_fraction, hyp)
+    step = max(1, int(HOLE_STEP_FRACTION * fc * R / config.search.max_range_m))
+    hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
+    m = K.hole_hypotheses(frame.tab, frame.prm, HOLE_MIN_RANGE_M, step, HOLE_MIN_RING, HOLE_MIN_FRACTION, hyp)
     frame.hypotheses = hyp[:m]
     return K.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)
 
@@ -484,7 +547,7 @@ def search_unorganised(points: np.ndarray, config: DetectorConfig, seed: int) ->
     s = config.search
     _, m = K.search_unorganised(points, grid["order"], grid["keys"], grid["origin"], grid["cell"], grid["dims"],
                                 config.radius_m, config.eps_m, win, s.iterations, s.min_iterations, s.confidence,
-                                s.sample_retries, s.pretest_points, s.pretest_min_fraction, s.score_max_points,
+                                SAMPLE_RETRIES, PRETEST_POINTS, PRETEST_MIN_FRACTION, SCORE_MAX_POINTS,
                                 np.uint64(seed), cands, quals)
     return cands[:m], quals[:m]
 
@@ -513,206 +576,45 @@ _STAT_NAMES = {"valid_disc": K.ST_VALID_DISC, "inlier": K.ST_INLIER, "front": K.
                "outer_v_sum": K.ST_OUTV_SUM}
 
 
-def relief_agreement(stats: dict, config: DetectorConfig) -> float:
-    """exp(-max(0, t - relief_free_sigmas)^2 / 2), t the worse of the horizontal and vertical outer zones' test:
-    t = (inner mean - outer mean - floor) / its standard error, floor = relief_floor_fraction R (flying
-    pixels and quantisation, which no noise model covers), with the inliers' mean ray
-    residuals (range minus the sphere's, along the ray) of the disc's inner zone and of its outer
-    zone left and right of the centre, or above and below it (``_kernels.window_stats``). 1 for a
-    sphere; small for a flatter surface the sphere was fitted to, or one curved along one axis only
-    (a box's edge, a cylinder), at any depth: at 3 m one pixel's noise is 7 cm, but zone means of
-    ~50-100 pixels tell a 3 cm relief apart.
-    One-sided: a flatter surface lies behind the fitted sphere in the inner zone and in front of it
-    in the outer one (inner - outer > 0). A more curved one (a smaller ball) is left to the size
-    check and the edge band (``edge_behind_excess``): on the train preset the other side rejected
-    no clutter but 2 balls (the test is calibrated: t of the balls found has mean 0, sd 0.9-1.1)."""
-    n_in = stats.get("inner_n", 0.0)
-    sigma = stats.get("sigma_m", 0.0)
-    per = stats.get("pixels_per_sample", 1.0)  # correlated noise: zone means vary as over fewer pixels
-    if n_in < 3 or not sigma > 0:
-        return 1.0
-    m_in = stats["inner_sum"] / n_in
-    t = 0.0
-    for side in ("outer_h", "outer_v"):
-        n = stats[side + "_n"]
-        if n >= 3:
-            flatter = m_in - stats[side + "_sum"] / n
-            t = max(t, (flatter - config.evidence.relief_floor_fraction * config.radius_m)
-                    / (sigma * math.sqrt(per * (1.0 / n_in + 1.0 / n))))
-    return math.exp(-0.5 * max(0.0, t - config.evidence.relief_free_sigmas) ** 2)
-
-
-def see_through_excess(stats: dict, free: float, sigmas: float = 3.0) -> float:
-    """The share of the inner disc's valid pixels seen *behind* the sphere (``_kernels.window_stats``:
-    rays passing the centre within sqrt(profile_outer_sq) R) beyond what the depth noise explains: a
-    real ball hides what is behind it, and short of its outline no mixed pixels see past it. The
-    noise explains a share q = P(residual > band) of a normal error (``sigma_m``, band ``eps_m``)
-    plus ``sigmas`` binomial standard errors (``see_through_sigmas``) plus ``free``
-    (``see_through_free``: flying pixels, a band narrowed to the data)."""
-    n = stats.get("valid_inner", 0.0)
-    if n < 1:
-        return 0.0
-    return max(0.0, stats["behind_inner"] / n - see_through_allowance(stats, free, sigmas))
-
-
-def see_through_allowance(stats: dict, free: float, sigmas: float = 3.0) -> float:
-    """The inner disc's share behind the sphere that ``see_through_excess`` allows: the normal tail
-    beyond the band, ``sigmas`` binomial errors over effective samples, and ``free``."""
-    n, sigma = max(stats.get("valid_inner", 0.0), 1.0), stats.get("sigma_m", 0.0)
-    q = 0.5 * math.erfc(stats["eps_m"] / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
-    return q + sigmas * math.sqrt(q * (1.0 - q) * stats.get("pixels_per_sample", 1.0) / n) + free
-
-
-def edge_behind_excess(stats: dict, free: float, sigmas: float = 2.0) -> float:
-    """The share of the silhouette's edge band (rays passing the centre beyond sqrt(profile_outer_sq)
-    R, 0.89 R, up to R; ``_kernels.window_stats``) seen behind the sphere, beyond ``free``
-    (``edge_behind_free``) plus ``sigmas`` (``edge_behind_sigmas``) binomial standard errors;
-    occluded (front) pixels are left out. A ball of the right size fills the band but for its
-    outline's mixed pixels and the noise's tail (simulated D435 balls: a share of 0.07 at 1 m, 0.32
-    at 2.5-3 m, at most 0.50); a smaller one leaves it to the background: a 0.11 m soccer ball
-    fitted with R = 0.12 m shows 0.8-0.95 at 0.6-2 m, where its free radius's error is small, but
-    also where its outline is a pixel or more inside the basketball's (its free radius alone lets it
-    through near 2 m at 424x240: 11.3 +/- 0.4 cm)."""
-    n = stats.get("edge_n", 0.0)
-    if n < 1:
-        return 0.0
-    return max(0.0, stats["edge_behind"] / n - edge_behind_allowance(stats, free, sigmas))
-
-
-def edge_behind_allowance(stats: dict, free: float, sigmas: float = 2.0) -> float:
-    """The edge band's share behind the sphere that ``edge_behind_excess`` allows: ``free`` plus
-    ``sigmas`` binomial errors over effective samples."""
-    n = max(stats.get("edge_n", 0.0), 1.0)
-    return free + sigmas * math.sqrt(free * (1.0 - free) * stats.get("pixels_per_sample", 1.0) / n)
-
-
 def size_tolerance(config: DetectorConfig) -> float:
     """The size check's tolerance before standard errors (metres): the larger of the absolute and the
     relative one (``DetectorConfig.refinement.size_tolerance_fraction``)."""
     return max(config.refinement.size_tolerance_m, config.refinement.size_tolerance_fraction * config.radius_m)
 
 
-def noise_shares(stats: dict, config: DetectorConfig) -> tuple[float, float]:
-    """(p_in, q_behind): the share of a true ball's silhouette pixels that the band's cap
-    (``max_eps_fraction`` R) costs the inliers, and the share it adds behind the sphere. The band is
-    max(eps, noise_sigmas sigma_z), the frame's noise at the ball's depth (``sigma_m``); where the
-    noise nears R the cap binds, and a normal error then falls within it with a probability
-    erf(cap / (sigma sqrt 2)) instead of erf(band / (sigma sqrt 2)). The coverage and behind factors
-    are taken against these, so that a far ball on a noisy unit is not read as occluded or seen
-    through, while every frame whose band the cap does not bind (all of the nominal sensor's
-    within 3.5 m at 424x240) scores exactly as without. (1, 0) without ``calibrate_evidence``."""
-    sigma = stats.get("sigma_m", 0.0)
-    if not config.evidence.calibrate_evidence or not sigma > 0:
-        return 1.0, 0.0
-    band = max(config.eps_m, config.noise.noise_sigmas * sigma)
-    capped = min(band, config.noise.max_eps_fraction * config.radius_m)
-    if capped >= band:
-        return 1.0, 0.0
-    z, z_full = capped / (sigma * math.sqrt(2.0)), band / (sigma * math.sqrt(2.0))
-    return max(math.erf(z) / math.erf(z_full), 1e-6), 0.5 * (math.erfc(z) - math.erfc(z_full))
+def size_ok(free_r: float, free_se: float, config: DetectorConfig) -> bool:
+    """The size check: the free radius free_r (m) within the tolerance plus ``size_sigmas`` of its
+    standard error free_se (m; R standing in for an unknown one) of R, and never beyond
+    ``_kernels.SIZE_LIMIT_FRACTION`` R whatever the error says; True without ``size_check``."""
+    if not config.refinement.size_check:
+        return True
+    R = config.radius_m
+    se = free_se if math.isfinite(free_se) else R
+    d = abs(free_r - R)
+    return bool(math.isfinite(free_r) and d <= size_tolerance(config) + config.refinement.size_sigmas * se
+                and d <= K.SIZE_LIMIT_FRACTION * R)
 
 
-def size_deviation(free_r: float, free_se: float, config: DetectorConfig) -> float:
-    """The free radius's deviation from R in units of the size tolerance and its standard error (R
-    standing in for an unknown error; inf without a free radius)."""
-    se = free_se if math.isfinite(free_se) else config.radius_m
-    return (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
-
-
-def coverage_visible_share(stats: dict, size_d: float, config: DetectorConfig) -> float:
-    """The visible share coverage is taken over: ``visible_fraction`` for a ball standing free (its
-    outline ring not continued at its depth beyond occlusion_ring_max), seen enough and of the right
-    size (``size_deviation`` size_d within occlusion_size_sigmas), so that the pixels a nearer surface
-    hides count neither for nor against it; 1 elsewhere."""
-    ev = config.evidence
-    ring = stats["ring_continued"] / max(stats["ring"], 1.0)
-    visible = stats.get("visible_fraction", 1.0)
-    if (ring > ev.occlusion_ring_max or visible < ev.occlusion_min_visible
-            or not (config.refinement.size_check and abs(size_d) <= ev.occlusion_size_sigmas)):
-        return 1.0
-    return visible
-
-
-def confidence_factors(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
-                       organised: bool) -> dict[str, float]:
-    """The confidence's factors, each in [0, 1], by name (``confidence`` multiplies them).
-
-    support: n / (n + min_inliers). Organised clouds: coverage, the share of the silhouette's valid
-    pixels that are inliers over the share the noise leaves a ball (``noise_shares``), and over the
-    visible share (``visible_fraction``) to the power occlusion_discount where at most
-    occlusion_ring_max of the outline ring continues at the ball's depth, at least
-    occlusion_min_visible is seen and the free radius lies within occlusion_size_sigmas of R (units
-    of the size tolerance and its standard error; elsewhere occlusion lowers it); behind, (1 - share
-    seen behind the sphere beyond the noise's)^behind_power (the ball would hide it); hug, (1 - share
-    hugging the sphere just in front of it)^hug_power (a cylinder or another non-spherical surface);
-    ring_continued, (1 - share of the outline ring where the surface continues at the ball's
-    depth)^ring_continued_power (a wall or a plane); ring_front, (1 - a)^
-    ring_front_power, a the share where a surface attached in front of it continues (a cylinder's
-    body, a corner) beyond ring_front_free; see_through, (1 - ``see_through_excess``)^see_through_power
-    (seen through the inner disc: a cylinder's flat top, a smaller ball); edge_behind, (1 -
-    ``edge_behind_excess``)^edge_behind_power (seen through the silhouette's edge band: a smaller
-    ball); relief, ``relief_agreement`` of the inner and outer zones (a surface flatter than the
-    ball); ring_spread, (1 - (ring spread - ring_spread_free))^ring_spread_power beyond the free share
-    (``_kernels.ring_spread``: the share of the outline ring attached outside the half ring that holds
-    most of it; a ball touches its support on one side, embedded clutter on several). Unorganised
-    clouds: interior, (1 - min(1, q))^interior_density_power, q the density of points in the ball's
-    inner half over that in its shell (a wall it cuts, volumetric noise: a real ball hides its
-    interior). size (with ``size_check``): exp(-d^2 / 2), d the free radius's deviation from R in
-    units of (``size_tolerance`` + its standard error). Every exponent and allowance is a setting
-    of ``DetectorConfig.evidence``."""
-    f = {"support": n_inliers / (n_inliers + config.verification.min_inliers)}
-    size_d = size_deviation(free_r, free_se, config)
-    if organised:
-        vd = max(stats["valid_disc"], 1.0)
-        p_in, q_behind = noise_shares(stats, config)
-        behind = max(0.0, min(1.0, stats["behind"] / vd) - q_behind)
-        hug = min(1.0, stats["front_near"] / vd)
-        ring = stats["ring_continued"] / max(stats["ring"], 1.0)
-        attached = max(0.0, stats["ring_front"] / max(stats["ring"], 1.0) - config.evidence.ring_front_free)
-        seen = see_through_excess(stats, config.evidence.see_through_free, config.evidence.see_through_sigmas)
-        edge = edge_behind_excess(stats, config.evidence.edge_behind_free, config.evidence.edge_behind_sigmas)
-        spread = max(0.0, stats.get("ring_spread", 0.0) - config.evidence.ring_spread_free)
-        visible = coverage_visible_share(stats, size_d, config)
-        discount = config.evidence.occlusion_discount
-        f.update(coverage=min(1.0, stats["inlier"] / vd / p_in / max(visible, 1e-6) ** discount),
-                 behind=(1.0 - behind) ** config.evidence.behind_power,
-                 hug=(1.0 - hug) ** config.evidence.hug_power,
-                 ring_continued=(1.0 - ring) ** config.evidence.ring_continued_power,
-                 ring_front=(1.0 - attached) ** config.evidence.ring_front_power,
-                 see_through=(1.0 - seen) ** config.evidence.see_through_power,
-                 edge_behind=(1.0 - edge) ** config.evidence.edge_behind_power,
-                 relief=relief_agreement(stats, config),
-                 ring_spread=(1.0 - spread) ** config.evidence.ring_spread_power)
-    elif "interior_density_ratio" in stats:  # unorganised: a ball's interior holds no points
-        f["interior"] = (1.0 - min(1.0, stats["interior_density_ratio"])) ** config.evidence.interior_density_power
+def unorganised_score(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig) -> float:
+    """An unorganised cloud's score in [0, 1]: no image, so no silhouette for the fitted verdict to
+    read. The product of the support n / (n + min_inliers), the interior's emptiness
+    (1 - min(1, q))^2, q the density of points in the ball's inner half over that in its shell (a
+    wall it cuts, volumetric noise: a real ball hides its interior), and the size's agreement
+    exp(-d^2 / 2), d the free radius's deviation from R in units of the tolerance plus its standard
+    error; mapped by the logistic map fitted to the hand-set product on organised candidates
+    (``UNORGANISED_CALIBRATION``). Hand-set: docs/detector.md, "Unorganised clouds"."""
+    score = n_inliers / (n_inliers + config.verification.min_inliers)
+    if "interior_density_ratio" in stats:
+        score *= (1.0 - min(1.0, stats["interior_density_ratio"])) ** 2
     if config.refinement.size_check:
-        f["size"] = math.exp(-0.5 * size_d * size_d) if math.isfinite(size_d) else 0.0
-    return f
-
-
-def confidence(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig,
-               organised: bool) -> tuple[float, bool]:
-    """A confidence in [0, 1], the product of ``confidence_factors``, and the size check's verdict:
-    the free radius consistent with R given its standard error, and never beyond
-    ``size_limit_fraction`` R whatever the error says."""
-    f = confidence_factors(stats, n_inliers, free_r, free_se, config, organised)
-    score = f["support"]
-    if organised:  # grouped as the product always was: the scores stay bit-identical
-        score *= f["coverage"] * f["behind"] * f["hug"] * f["ring_continued"] * f["ring_front"]
-        score *= f["see_through"] * f["edge_behind"]
-        score *= f["relief"]
-        score *= f["ring_spread"]
-    elif "interior" in f:
-        score *= f["interior"]
-    size_ok = True
-    if config.refinement.size_check:
-        R = config.radius_m
-        se = free_se if math.isfinite(free_se) else R
-        tol = size_tolerance(config)
-        score *= f["size"]
-        size_ok = (math.isfinite(free_r) and abs(free_r - R) <= tol + config.refinement.size_sigmas * se
-                   and abs(free_r - R) <= config.refinement.size_limit_fraction * R)
-    return float(min(max(score, 0.0), 1.0)), size_ok
+        se = free_se if math.isfinite(free_se) else config.radius_m
+        d = (free_r - config.radius_m) / (size_tolerance(config) + se) if math.isfinite(free_r) else math.inf
+        score *= math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
+    score = min(max(score, 0.0), 1.0)
+    if score <= 0.0 or score >= 1.0:
+        return float(score)
+    slope, offset = UNORGANISED_CALIBRATION
+    return 1.0 / (1.0 + math.exp(-(slope * math.log(score / (1.0 - score)) + offset)))
 
 
 def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
@@ -725,15 +627,14 @@ def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfi
     gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
     fits move the centre along its ray only (``_kernels.fit_range``)."""
     v = _verify_once(frame, c0, config, buf, gate, hold_direction)
-    o = config.outline
-    if (v is None or hold_direction or not o.outline_evidence or v.score < o.outline_evidence_min_score
-            or frame.noise_a * float(v.centre_m[2]) ** 2 < o.outline_evidence_noise_fraction * config.radius_m):
+    if (v is None or hold_direction or not config.outline.outline_evidence or v.score < OUTLINE_EVIDENCE_MIN_SCORE
+            or frame.noise_a * float(v.centre_m[2]) ** 2 < OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m):
         return v
     oc = outline_centre(frame, v.centre_m, config)
     size = outline_size(frame, oc, config) if config.outline.outline_size else None
     # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
     if size is None and (float(np.linalg.norm(oc - v.centre_m)) * frame.prm[K.P_FX] / float(oc[2])
-                         < config.outline.outline_evidence_min_move_px):
+                         < OUTLINE_EVIDENCE_MIN_MOVE_PX):
         return v
     # the kernel's early stop judges the depth fit's radius, which the outline's replaces
     return _verify_once(frame, oc, config, buf, gate if size is None else frame.no_gate, True, size)
@@ -744,7 +645,7 @@ def _outline_buffers(frame: PreparedFrame, rho: float, config: DetectorConfig) -
     holds at most two pairs per pixel of the kernel's window; the capacity is rounded up to a power of
     two, so that balls of every size share a few reused buffers."""
     r_px = float(frame.prm[K.P_FX]) * math.tan(math.asin(config.radius_m / rho))
-    side = 2 * int(r_px + config.outline.outline_band_px + config.outline.outline_band_fraction * r_px + 3) + 1
+    side = 2 * int(r_px + OUTLINE_BAND_PX + OUTLINE_BAND_FRACTION * r_px + 3) + 1
     return (workspace("outline_res", (4, 1 << (2 * side * side - 1).bit_length()), np.float64),
             workspace("outline_count", (4,), np.int64))
 
@@ -763,16 +664,40 @@ def outline_size(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorCon
     if not (c[2] > 0 and rho > config.radius_m):
         return None
     res, count = _outline_buffers(frame, rho, config)
-    o = config.outline
     K.outline_residuals(frame.points, frame.index_image, frame.prm, c[0], c[1], c[2], frame.noise_a * float(c[2]) ** 2,
-                        o.outline_gap_sigmas, o.outline_band_px, o.outline_band_fraction, res, count)
-    if int(count.min()) < config.outline.outline_min_side:
+                        OUTLINE_GAP_SIGMAS, OUTLINE_BAND_PX, OUTLINE_BAND_FRACTION, res, count)
+    if int(count.min()) < OUTLINE_MIN_SIDE:
         return None
     pooled = np.concatenate([res[q, :count[q]] for q in range(4)])
     spread = 1.4826 * float(np.median(np.abs(pooled - np.median(pooled))))
     angle = math.asin(config.radius_m / rho) + float(np.mean([np.median(res[q, :count[q]]) for q in range(4)]))
-    se = math.hypot(1.2533 * spread / math.sqrt(pooled.size), o.outline_size_floor_px / float(frame.prm[K.P_FX]))
+    se = math.hypot(1.2533 * spread / math.sqrt(pooled.size), OUTLINE_SIZE_FLOOR_PX / float(frame.prm[K.P_FX]))
     return angle, se
+
+
+#: a constant standing in for the fitted verdict's probability (``unscored``); None: the verdict's
+_UNSCORED: list[float] = []
+
+
+@contextlib.contextmanager
+def unscored(score: float = 0.5):
+    """Within it, every organised candidate of this thread's process scores ``score`` (raw and
+    probability) in place of the fitted verdict's, so that no model steers which candidates are
+    verified and kept: with accept_score 1 nothing is accepted and every search and retry runs
+    (``make train-verifier`` collects its candidates so)."""
+    _UNSCORED.append(float(score))
+    try:
+        yield
+    finally:
+        _UNSCORED.pop()
+
+
+def verdict(stats: dict, radius_m: float) -> tuple[float, float]:
+    """(raw score, probability) of one verified candidate: the fitted verdict's
+    (``verdict.FittedVerdict.scores``), or ``unscored``'s constant."""
+    if _UNSCORED:
+        return _UNSCORED[-1], _UNSCORED[-1]
+    return load_verdict().scores(stats, radius_m)
 
 
 def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
@@ -783,8 +708,8 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
     check's radius in place of the depth fit's (at the verified centre's distance)."""
     out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
     K.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refinement.refine_iterations, config.refinement.fit_max_points,
-                       config.refinement.ray_s_min_fraction, config.noise.noise_from_data,
+                       config.refinement.refine_iterations, K.FIT_MAX_POINTS,
+                       K.RAY_S_MIN_FRACTION, NOISE_FROM_DATA,
                        frame.gate if gate is None else gate, hold_direction, buf, out, st)
     n = int(out[K.V_N])
     if n < config.verification.min_inliers:  # too few, or failed the size check (-1)
@@ -793,8 +718,8 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
     # pixels per effective sample of the evidence's counts and zone means: the window's stride
     # (``_kernels.window_stride``, as the kernel took it) against the noise's correlation length
     cz = float(out[K.V_CZ])
-    stride = K.window_stride(float(out[K.V_CX]), float(out[K.V_CY]), cz, config.radius_m * config.evidence.ring_factor,
-                             max(frame.prm[K.P_FX], frame.prm[K.P_FY]), 4.0 * config.refinement.fit_max_points)
+    stride = K.window_stride(float(out[K.V_CX]), float(out[K.V_CY]), cz, config.radius_m * K.RING_FACTOR,
+                             max(frame.prm[K.P_FX], frame.prm[K.P_FY]), 4.0 * K.FIT_MAX_POINTS)
     stats["pixels_per_sample"] = mean_variance_inflation(frame.noise_corr_px, int(stride))
     # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
     # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
@@ -812,31 +737,28 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
         free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
     stats.update(depth_m=cz, n_inliers=float(n), rmse_m=float(out[K.V_RMSE]), free_radius_m=free_r,
                  free_radius_se_m=free_se, noise_ratio=frame.noise_ratio)
-    score, size_ok = confidence(stats, n, free_r, free_se, config, True)
-    if config.verification.fitted_verdict:  # the size check stays; the score is the fitted model's
-        score = load_verdict().probability(stats, config.radius_m)
+    raw, score = verdict(stats, config.radius_m)
     # inliers: filled in for the reported spheres only (``_kernels.final_inliers``)
     return Candidate(centre_m=out[K.V_CX:K.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[K.V_EPS]),
                      free_centre_m=out[K.V_FCX:K.V_FCZ + 1].copy(), free_radius_m=free_r,
                      free_radius_se_m=free_se, rmse_m=float(out[K.V_RMSE]), stats=stats, score=score,
-                     size_ok=size_ok)
+                     size_ok=size_ok(free_r, free_se, config), raw_score=raw)
 
 
-def rescore_starts(config: DetectorConfig) -> tuple[tuple[float, float, float], ...]:
-    """``rescore``'s six starts about a refined centre (units of R): across the line of sight (camera x
-    and y) and along it (z), where the refinement's optima lie a cm or two apart at 2-3 m."""
-    a, b = config.verification.rescore_offset_xy, config.verification.rescore_offset_z
-    return ((a, 0.0, 0.0), (-a, 0.0, 0.0), (0.0, a, 0.0), (0.0, -a, 0.0), (0.0, 0.0, b), (0.0, 0.0, -b))
+#: ``rescore``'s six starts about a refined centre (units of R): across the line of sight (camera x and y)
+#: and along it (z), where the refinement's optima lie a cm or two apart at 2-3 m
+RESCORE_STARTS = ((RESCORE_OFFSET_XY, 0.0, 0.0), (-RESCORE_OFFSET_XY, 0.0, 0.0), (0.0, RESCORE_OFFSET_XY, 0.0),
+                  (0.0, -RESCORE_OFFSET_XY, 0.0), (0.0, 0.0, RESCORE_OFFSET_Z), (0.0, 0.0, -RESCORE_OFFSET_Z))
 
 
 def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
                       buf: np.ndarray) -> Candidate | None:
     """A hypothesis whose depth noise is a good part of R (``multistart_noise_fraction``), verified from
-    its centre and from each of ``rescore_starts`` about it: where one pixel's noise nears R, the
+    its centre and from each of ``RESCORE_STARTS`` about it: where one pixel's noise nears R, the
     refinement's end depends on its start by a few cm, and a hypothesis a few cm off converges
     off the ball's optimum. The best-scoring verification that passes the size check is kept."""
     best = None
-    for off in ((0.0, 0.0, 0.0),) + rescore_starts(config):
+    for off in ((0.0, 0.0, 0.0),) + RESCORE_STARTS:
         v = verify_organised(frame, c0 + config.radius_m * np.asarray(off), config, buf)
         if v is not None and v.size_ok and (best is None or v.score > best.score):
             best = v
@@ -846,36 +768,40 @@ def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConf
 def verify_pushed(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
                   buf: np.ndarray) -> Candidate | None:
     """A hypothesis that passed the search's pretest by an occluded side, verified from its centre and,
-    while that fails, from starts pushed back along its ray (``occluded_push_fraction`` R each, at most
-    ``occluded_push_starts``, only where one pixel's noise is below ``occluded_push_noise_fraction`` R):
+    while that fails, from starts pushed back along its ray (``OCCLUDED_PUSH_FRACTION`` R each, at most
+    ``OCCLUDED_PUSH_STARTS``, only where one pixel's noise is below ``OCCLUDED_PUSH_NOISE_FRACTION`` R):
     the occluder's pixels in its centre box pull the front range, and the start, towards the camera,
     by up to the occluder's gap. The first verification that passes the size check within
-    ``rescore_band`` of min_score is returned, else the last."""
+    ``RESCORE_BAND`` of accept_score is returned, else the best that passes it (the first of equals),
+    else the last."""
     R = config.radius_m
     ray = c0 / max(norm3(c0), 1e-9)
-    quiet = frame.prm[K.P_NOISE_A] * c0[2] ** 2 < config.verification.occluded_push_noise_fraction * R
-    v = None
-    for j in range(1 + (config.verification.occluded_push_starts if quiet else 0)):
-        v = verify_organised(frame, c0 + j * config.verification.occluded_push_fraction * R * ray, config, buf)
-        if v is not None and v.size_ok and v.score >= config.verification.accept_raw_score - config.verification.rescore_band:
-            break
-    return v
+    quiet = frame.prm[K.P_NOISE_A] * c0[2] ** 2 < OCCLUDED_PUSH_NOISE_FRACTION * R
+    v = best = None
+    for j in range(1 + (OCCLUDED_PUSH_STARTS if quiet else 0)):
+        v = verify_organised(frame, c0 + j * OCCLUDED_PUSH_FRACTION * R * ray, config, buf)
+        if v is not None and v.size_ok:
+            if v.score >= config.verification.accept_score - RESCORE_BAND:
+                return v
+            best = v if best is None or v.score > best.score else best
+    return best if best is not None else v
 
 
 def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
-    """A candidate near the score threshold, verified again from each of ``rescore_starts`` about its centre
+    """A candidate near the score threshold, verified again from each of ``RESCORE_STARTS`` about its centre
     (without the kernel's early stop, so that each start's whole score and size verdict count): its
     score becomes the mean of all (a start left with too few inliers counts 0) and its size check
     the majority's. The centre, evidence and fits stay the first verification's; stats gets
-    "score_single", the first score (see ``DetectorConfig.verification.rescore_band``)."""
-    scores = [cand.score]
+    "score_single", the first score (see ``RESCORE_BAND``); the raw score is averaged alike."""
+    scores, raws = [cand.score], [cand.raw_score]
     size_ok = [cand.size_ok]
-    for off in rescore_starts(config):
+    for off in RESCORE_STARTS:
         v = verify_organised(frame, cand.centre_m + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
         scores.append(0.0 if v is None else v.score)
+        raws.append(0.0 if v is None else v.raw_score)
         size_ok.append(v is not None and v.size_ok)
     cand.stats["score_single"] = cand.score
-    cand.score = float(np.mean(scores))
+    cand.score, cand.raw_score = float(np.mean(scores)), float(np.mean(raws))
     cand.size_ok = 2 * sum(size_ok) > len(size_ok)
     return cand
 
@@ -907,16 +833,15 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     # a ball hides its interior: points in its inner half (and ``interior_bands`` shell half-widths under
     # its surface) are another surface the sphere cuts (a wall, clutter) or volumetric noise; a noisy
     # sensor's returns off the ball itself do not reach that deep (a 16-beam LiDAR's do 3 cm deep)
-    r_in = min(R - config.verification.interior_bands * e, 0.5 * R)
+    r_in = min(R - INTERIOR_BANDS * e, 0.5 * R)
     inside = float(K.inside_count(points, c[0], c[1], c[2], r_in)) if r_in > 0 else 0.0
     v_shell = (R + e) ** 3 - max(R - e, 0.0) ** 3  # volumes / (4 pi / 3)
     stats = {"inside": inside, "shell": float(n),
              "interior_density_ratio": (inside / max(r_in, 1e-12) ** 3) / (n / v_shell) if r_in > 0 else 0.0}
-    score, size_ok = confidence(stats, n, float(free_r), float(free_se), config, False)
-    if config.verification.fitted_verdict:  # the fitted verdict is the organised clouds': decisions compare probabilities
-        score = config.verification.factor_probability(score)
+    score = unorganised_score(stats, n, float(free_r), float(free_se), config)
     return Candidate(centre_m=c, inliers=idx, eps_m=e, free_centre_m=np.asarray(free_c), free_radius_m=float(free_r),
-                     free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score, size_ok=size_ok)
+                     free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score,
+                     size_ok=size_ok(float(free_r), float(free_se), config), raw_score=score)
 
 
 def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorConfig) -> np.ndarray:
@@ -940,11 +865,10 @@ def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorC
         return c_in
     res, count = _outline_buffers(frame, rho, config)
     out = np.empty(3, np.float64)
-    o = config.outline
     K.outline_centre(frame.points, frame.index_image, frame.prm, c_in, frame.noise_a * float(c_in[2]) ** 2,
-                     o.outline_gap_sigmas, o.outline_band_px, o.outline_band_fraction, o.outline_min_side,
-                     o.outline_max_bias_px, o.outline_iterations, res, count, out)
-    if float(np.linalg.norm(out - c_in)) > config.outline.outline_max_shift_fraction * R:
+                     OUTLINE_GAP_SIGMAS, OUTLINE_BAND_PX, OUTLINE_BAND_FRACTION, OUTLINE_MIN_SIDE,
+                     OUTLINE_MAX_BIAS_PX, OUTLINE_ITERATIONS, res, count, out)
+    if float(np.linalg.norm(out - c_in)) > OUTLINE_MAX_SHIFT_FRACTION * R:
         return c_in
     return out
 
@@ -971,10 +895,10 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         if found and occluded[k]:
             continue
         # organised: hypotheses are sorted by score; those far below every accepted sphere's are clutter
-        if frame is not None and q < q_accepted - config.verification.verify_score_margin:
+        if frame is not None and q < q_accepted - VERIFY_SCORE_MARGIN:
             break
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
-        if frame is None and q < config.verification.verify_quality_fraction * quals[0]:
+        if frame is None and q < VERIFY_QUALITY_FRACTION * quals[0]:
             break
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
         if any(math.dist(c0, v.centre_m) < config.radius_m for v in found):
@@ -983,7 +907,7 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         if frame is None:
             v = verify_unorganised(points, c0, config)
         elif (multistart and not found and frame.prm[K.P_NOISE_A] * c0[2] ** 2
-              > config.verification.multistart_noise_fraction * config.radius_m):
+              > MULTISTART_NOISE_FRACTION * config.radius_m):
             # while none is accepted (a frame with a ball pays nothing, and gets no second sphere this
             # way); the best of several starts is a biased draw: its score is always re-taken as the mean
             v = verify_multistart(frame, np.asarray(c0, np.float64), config, buf)
@@ -992,11 +916,11 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
             # a hypothesis with an occluded side (verified only while none is accepted): pushed back too
             v = (verify_pushed(frame, np.asarray(c0, np.float64), config, buf) if occluded[k]
                  else verify_organised(frame, c0, config, buf))
-            if v is not None and abs(v.score - config.verification.accept_raw_score) < config.verification.rescore_band:
+            if v is not None and abs(v.score - config.verification.accept_score) < RESCORE_BAND:
                 v = rescore(frame, v, config, buf)
-        if v is None or not v.size_ok or v.score < config.verification.floor_raw_score:
+        if v is None or not v.size_ok or v.score < config.verification.rank_floor:
             continue
-        if v.score < config.verification.accept_raw_score:
+        if v.score < config.verification.accept_score:
             ranked.append(v)  # ranked, but the search goes on as if it were not there
             continue
         found.append(v)
@@ -1005,16 +929,16 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
 
 
 def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
-                 seed: int, min_raw_score: float | None = None, max_spheres: int | None = None) -> list[Candidate]:
+                 seed: int, min_score: float | None = None, max_spheres: int | None = None) -> list[Candidate]:
     """Search, verify the best candidates, drop the failed ones, suppress duplicates. Best first.
 
     frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
     The search and its verdicts are the same whatever is reported: the distinct verified spheres
-    whose raw score is at least min_raw_score (default: ``min_score``'s, never below ``rank_floor``'s),
+    whose score is at least min_score (default ``verification.min_score``, never below ``rank_floor``),
     at most max_spheres (default ``verification.max_spheres``), are returned.
     """
     ver = config.verification
-    least = max(ver.raw(ver.min_score) if min_raw_score is None else min_raw_score, ver.floor_raw_score)
+    least = max(ver.min_score if min_score is None else min_score, ver.rank_floor)
     most = ver.max_spheres if max_spheres is None else max_spheres
     if frame is not None:
         cands, quals, occluded = search_frame(frame, config, seed)
@@ -1036,7 +960,7 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         ([lambda: search_frame(frame, config, seed, relief=True)] if config.retry.retry_relief else [])
         + ([lambda: search_frame(frame, config, seed, occluder_bound=True)] if config.retry.retry_occluder else [])
         + ([lambda: search_frame(frame, config, seed, off_axis=True)]
-           if config.retry.retry_off_axis and not config.stencil.search_off_axis else [])
+           if config.retry.retry_off_axis and not False else [])
         + ([lambda: disc_search(frame, config)] if config.retry.retry_disc else [])
         + ([lambda: hole_search(frame, config)] if config.retry.retry_hole else []))
     for retry in retries:
@@ -1044,7 +968,7 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
             break
         cands, quals, occluded = retry()
         new = [k for k, c in enumerate(cands)
-               if all(math.dist(c, c1) > config.retry.retry_new_fraction * config.radius_m for c1 in verified)]
+               if all(math.dist(c, c1) > RETRY_NEW_FRACTION * config.radius_m for c1 in verified)]
         # the best verify_candidates of a retry's new hypotheses, each verified from one start: on `train`
         # 16, or the multistart of noisy ones, found about as many balls, at twice the time on an empty frame
         verified += _verify_candidates(points, frame, cands[new], quals[new], occluded[new], config, buf, found,

@@ -148,10 +148,14 @@ class FittedVerdict:
         p = self.session.run([self.output_name], {self.input_name: np.asarray(x, np.float32).reshape(-1, N_FEATURES)})[0]
         return p[:, 1].astype(np.float64)  # (B, 2): exported without ZipMap
 
+    def scores(self, stats: dict, radius_m: float) -> tuple[float, float]:
+        """One candidate's (model score, calibrated probability of being a ball); stats: ``verdict_features``'."""
+        s = float(self.model_scores(verdict_features(stats, radius_m))[0])
+        return s, float(np.interp(s, self.knots_score, self.knots_p))
+
     def probability(self, stats: dict, radius_m: float) -> float:
         """One candidate's calibrated probability of being a ball (stats: ``verdict_features``')."""
-        s = self.model_scores(verdict_features(stats, radius_m))[0]
-        return float(np.interp(s, self.knots_score, self.knots_p))
+        return self.scores(stats, radius_m)[1]
 
 
 @functools.lru_cache(maxsize=4)

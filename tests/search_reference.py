@@ -72,7 +72,7 @@ class Grid:
         """(mean range m or nan, valid count): mean depth times the ray length at the box's centre."""
         prm = self.prm
         s, n, a = self.box_sums(v, u, h)
-        if n == 0 or n < prm[K.P_MIN_VALID] * a * prm[K.P_CELL_PX]:
+        if n == 0 or n < K.BOX_MIN_VALID * a * prm[K.P_CELL_PX]:
             return math.nan, n
         b = prm[K.P_BIN]
         rx = (u * b + 0.5 * (b - 1.0) - prm[K.P_PPX]) / prm[K.P_FX]
@@ -100,9 +100,9 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     prm = g.prm
     R = prm[K.P_R]
     rr = prm[K.P_FX] / prm[K.P_BIN] * R / m0
-    hp = max(1, int(prm[K.P_H_FRAC] * rr + 0.5))
+    hp = max(1, int(K.BOX_HALF_FRACTION * rr + 0.5))
     su, sv = stencil_stretch(prm, v, u)
-    f = prm[K.P_PREFILTER_FRAC] * rr
+    f = K.PREFILTER_OFFSET_FRACTION * rr
     dpu, dpv = int(f * su + 0.5), int(f * sv + 0.5)
     dgu, dgv = int(f * su * 0.7071067811865476 + 0.5), int(f * sv * 0.7071067811865476 + 0.5)
     bb = prm[K.P_CELL_PX]
@@ -114,11 +114,11 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     for du, dv in ((dpu, 0), (0, dpv), (dgu, dgv), (dgu, -dgv)):
         sa, na, aa = g.box_sums(v + dv, u + du, hp)
         sb, nb, ab = g.box_sums(v - dv, u - du, hp)
-        if na == 0 or nb == 0 or na < prm[K.P_MIN_VALID] * aa * bb or nb < prm[K.P_MIN_VALID] * ab * bb:
+        if na == 0 or nb == 0 or na < K.BOX_MIN_VALID * aa * bb or nb < K.BOX_MIN_VALID * ab * bb:
             continue
         q = 1000.0 * na / sa + 1000.0 * nb / sb - 2.0 * i0
         tol = (3.0 * prm[K.P_NOISE_A] * prm[K.P_MEAN_NOISE] * math.sqrt(1.0 / na + 1.0 / nb + 4.0 / n0)
-               + prm[K.P_SLACK] * R / (m0 * m0))
+               + K.PRETEST_SLACK * R / (m0 * m0))
         if abs(q) > tol:
             return True
         planar += 1
@@ -149,18 +149,18 @@ def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float
     R = prm[K.P_R]
     dist = front + R
     rr = prm[K.P_FX] / prm[K.P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
-    hr = max(1, int(prm[K.P_RING_H_FRAC] * rr + 0.5))
+    hr = max(1, int(K.RING_HALF_FRACTION * rr + 0.5))
     su, sv = stencil_stretch(prm, v, u)
-    dru, drv = prm[K.P_RING_FRAC] * rr * su, prm[K.P_RING_FRAC] * rr * sv
+    dru, drv = K.RING_OFFSET_FRACTION * rr * su, K.RING_OFFSET_FRACTION * rr * sv
     ddu, ddv = dru * 0.7071067811865476, drv * 0.7071067811865476
     bg = cont = 0
     for ou, ov in ((dru, 0.0), (-dru, 0.0), (0.0, drv), (0.0, -drv), (ddu, ddv), (-ddu, ddv), (ddu, -ddv), (-ddu, -ddv)):
         m, n = g.box_range(v + int(math.floor(ov + 0.5)), u + int(math.floor(ou + 0.5)), hr)
         if math.isnan(m) or m > dist:
             bg += 1
-        elif m >= front - (3.0 * sig / math.sqrt(n) + prm[K.P_SLACK] * R):
+        elif m >= front - (3.0 * sig / math.sqrt(n) + K.PRETEST_SLACK * R):
             cont += 1
-            if cont > prm[K.P_MAX_CONTINUED]:
+            if cont > K.PRETEST_MAX_CONTINUED:
                 break
     return rr, bg, cont
 
@@ -171,24 +171,24 @@ def front_hypothesis(g: Grid, v: int, u: int):
     R = prm[K.P_R]
     fc = prm[K.P_FX] / prm[K.P_BIN]
     na = prm[K.P_NOISE_A] * prm[K.P_MEAN_NOISE]
-    slack = prm[K.P_SLACK] * R
+    slack = K.PRETEST_SLACK * R
     m0, _ = g.box_range(v, u, 1)
     if math.isnan(m0) or not plane_free(g, v, u, m0):
         return -math.inf, None
-    for step in range(int(prm[K.P_DESCENT_STEPS]) + 1):
+    for step in range(K.DESCENT_STEPS + 1):
         rr = fc * R / m0
         if rr < prm[K.P_RR_MIN] or rr > prm[K.P_RR_MAX]:
             return -math.inf, None
         su, sv = stencil_stretch(prm, v, u)
-        h = max(1, int(prm[K.P_H_FRAC] * rr + 0.5))
-        du = max(h + 1, int(prm[K.P_D_FRAC] * rr * su + 0.5))
-        dv = max(h + 1, int(prm[K.P_D_FRAC] * rr * sv + 0.5))
+        h = max(1, int(K.BOX_HALF_FRACTION * rr + 0.5))
+        du = max(h + 1, int(K.BOX_OFFSET_FRACTION * rr * su + 0.5))
+        dv = max(h + 1, int(K.BOX_OFFSET_FRACTION * rr * sv + 0.5))
         m0, n0 = g.box_range(v, u, h)
         if math.isnan(m0):
             return -math.inf, None
         sides = [g.box_range(v, u - du, h), g.box_range(v, u + du, h), g.box_range(v - dv, u, h),
                  g.box_range(v + dv, u, h)]
-        if step == int(prm[K.P_DESCENT_STEPS]):
+        if step == K.DESCENT_STEPS:
             break
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
         # the occluder bound (``improved``'s retry): a side box more than R in front is left out
@@ -225,7 +225,7 @@ def front_hypothesis(g: Grid, v: int, u: int):
     if behind > 1 or agree + min(occluded, 1) < 3:
         return -math.inf, None
     rr, bg, cont = ring_boxes(g, v, u, front, sig)
-    if cont > prm[K.P_MAX_CONTINUED]:
+    if cont > K.PRETEST_MAX_CONTINUED:
         return -math.inf, None
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi, (v, u, front, rr, float(agree < 3))
 
@@ -281,7 +281,7 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     cx, cy, cz = centre
     dist = math.sqrt(float(centre @ centre))
     rpx = fx * radius / math.sqrt(max(dist * dist - radius * radius, 1e-12)) * dist / cz
-    rpx = rpx * prm[K.P_RING_FACTOR] * 1.05 + 2.0
+    rpx = rpx * K.RING_FACTOR * 1.05 + 2.0
     u0, v0 = fx * cx / cz + ppx, fy * cy / cz + ppy
     r = np.arange(max(0, int(math.floor(v0 - rpx))), min(h - 1, int(math.ceil(v0 + rpx))) + 1, stride)
     c = np.arange(max(0, int(math.floor(u0 - rpx))), min(w - 1, int(math.ceil(u0 + rpx))) + 1, stride)
@@ -308,15 +308,15 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     out[K.ST_FRONT] = front.sum()
     out[K.ST_FRONT_NEAR] = np.count_nonzero(front & (dt >= -0.5 * radius))
     out[K.ST_BEHIND] = np.count_nonzero(~inl & (dt >= 0))
-    inner_disc = m2[hit] <= prm[K.P_PROFILE_OUTER] * radius * radius
+    inner_disc = m2[hit] <= K.PROFILE_OUTER_SQ * radius * radius
     out[K.ST_VALID_INNER] = inner_disc.sum()
     out[K.ST_BEHIND_INNER] = np.count_nonzero(inner_disc & (dt > e))
     out[K.ST_EDGE_N] = np.count_nonzero(~inner_disc & (dt >= -e))
     out[K.ST_EDGE_BEHIND] = np.count_nonzero(~inner_disc & (dt > e))
-    ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (prm[K.P_RING_FACTOR] * radius) ** 2)
+    ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (K.RING_FACTOR * radius) ** 2)
     out[K.ST_RING] = ring.sum()
     out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
-    attached = (pn - tc >= -prm[K.P_RING_FRONT_MAX] * radius) & (pn - tc <= -prm[K.P_RING_FRONT_MIN] * radius)
+    attached = (pn - tc >= -K.RING_FRONT_MAX_FRACTION * radius) & (pn - tc <= -K.RING_FRONT_MIN_FRACTION * radius)
     out[K.ST_RING_FRONT] = np.count_nonzero(ring & (np.abs(pn - tc) > ring_band) & attached)
     sector = ring_sectors(cc[ok] - u0, rr[ok] - v0)
     joined = ring & ((np.abs(pn - tc) <= ring_band) | attached)
@@ -327,8 +327,8 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     mz = m2[hit][inl]
     d_in = dt[inl]
     horiz = (np.abs(du[hit]) >= np.abs(dv[hit]))[inl]
-    inner = mz <= prm[K.P_PROFILE_INNER] * radius * radius
-    outer = ~inner & (mz <= prm[K.P_PROFILE_OUTER] * radius * radius)
+    inner = mz <= K.PROFILE_INNER_SQ * radius * radius
+    outer = ~inner & (mz <= K.PROFILE_OUTER_SQ * radius * radius)
     out[K.ST_IN_N], out[K.ST_IN_SUM] = inner.sum(), d_in[inner].sum()
     out[K.ST_OUTH_N], out[K.ST_OUTH_SUM] = (outer & horiz).sum(), d_in[outer & horiz].sum()
     out[K.ST_OUTV_N], out[K.ST_OUTV_SUM] = (outer & ~horiz).sum(), d_in[outer & ~horiz].sum()

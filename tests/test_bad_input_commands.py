@@ -319,9 +319,9 @@ def test_benchmark_subcommands_refuse_bad_input_in_one_line(tmp_path, capsys, ar
 @pytest.mark.parametrize("setting, says", [
     ("retry.retry_disc=maybe", "retry.retry_disc='maybe' must be true or false"),  # a string would pass as on
     ("refinement.size_check=1", "refinement.size_check=1 must be true or false"),
-    ("retry.disc_min_behind=0", "retry.disc_min_behind=0 must be 1-4"),
-    ("evidence.occlusion_discount=2", "evidence.occlusion_discount=2 must be within [0, 1]"),
-    ("verification.occluded_push_starts=11", "verification.occluded_push_starts=11 must be 0-10"),
+    ("verification.max_spheres=0", "verification.max_spheres=0 must be >= 1"),
+    ("verification.nms_distance_fraction=2", "verification.nms_distance_fraction=2 must be within [0, 1]"),
+    ("evidence.occlusion_discount=0.5", "evidence.occlusion_discount (no longer a setting"),
     ("outline.outline_noise_fraction=-inf", "outline.outline_noise_fraction=-inf must be >= 0"),
     ("verification.min_scor=0.4", "unknown detector parameter verification.min_scor"),
 ])
@@ -336,21 +336,20 @@ def test_sweep_refuses_a_bad_setting_in_one_line(small_default, tmp_path, capsys
 def test_sweep_reads_a_bare_name_of_before_the_groups_with_one_deprecation_line(capsys):
     from spherebench.eval.bench.sweep import read_settings
 
-    got = read_settings(["min_score=0.4", "verification.rescore_band=0.1", "radius_m=0.2"], "sweep")
-    assert got == {"verification.min_score": 0.4, "verification.rescore_band": 0.1, "radius_m": 0.2}
+    got = read_settings(["min_score=0.4", "verification.rank_floor=0.1", "radius_m=0.2"], "sweep")
+    assert got == {"verification.min_score": 0.4, "verification.rank_floor": 0.1, "radius_m": 0.2}
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["spherebench sweep: deprecated: name settings by their path: min_score -> verification.min_score"]
     assert config_for("improved", got).verification.min_score == 0.4
 
 
 def test_set_reads_infinity_where_a_field_means_never():
-    """"inf for never" (multistart_noise_fraction, outline_noise_fraction) is what --set takes: inf and
+    """"inf for never" (outline_noise_fraction) is what --set takes: inf and
     -inf are numbers, as JSON's Infinity is; other words stay strings for the configuration to refuse."""
     from spherebench.options import parse_overrides
 
-    got = parse_overrides(["outline_noise_fraction=inf", "multistart_noise_fraction=+Inf", "a=-inf",
-                           "b=Infinity", "c=nan", "d=infinite"])
-    assert got["outline_noise_fraction"] == got["multistart_noise_fraction"] == got["b"] == math.inf
+    got = parse_overrides(["outline_noise_fraction=inf", "e=+Inf", "a=-inf", "b=Infinity", "c=nan", "d=infinite"])
+    assert got["outline_noise_fraction"] == got["e"] == got["b"] == math.inf
     assert got["a"] == -math.inf and got["c"] == "nan" and got["d"] == "infinite"
     config_for("improved", outline={"outline_noise_fraction": got["outline_noise_fraction"]})  # accepted
 

@@ -12,7 +12,7 @@ from spherebench.errors import SphereBenchError
 from spherebench.method import IMPROVED, PAPER, PAPER_LSTSQ, config_for
 from spherebench.method import _kernels as K
 from spherebench.method import improved as I
-from spherebench.method.config import FLAT_NAMES, GROUPS, PATHS, DetectorConfig
+from spherebench.method.config import FLAT_NAMES, GROUPS, REMOVED, DetectorConfig
 
 # The kernels' parameter vector as the hand-packed ``improved.parameters`` of 2cf5b07 (before the
 # declared slot list) made it: the default configuration (the paper presets give the same vector:
@@ -26,56 +26,59 @@ OLD_DEFAULT_848 = [
     426.11999999999995, 426.11999999999995, 423.5, 239.5, 0.12, 0.01, 0.003754810851403361, 2.5, 0.18, 7.0, 2.0,
     4.177783527182805, 424.0, 0.1, 3.12, 9.0, 4.0, 0.25, 0.5, 1.5, 0.25, 2.0, 3.0, 0.3, 3.0, 1.3, 0.3, 0.8, 0.3,
     1.2, 0.5, 3.0, 0.25, 0.25, 0.3, 1.3396588315535125, 0.0, 0.0]
-# ... and with every setting the vector holds changed, at 640x480, bin 2, strata (5, 6), far depth
-# 2.5 m, A = 0.004 / m, a correlation length of 2 px
-CHANGED = {"radius_m": 0.11, "eps_m": 0.012, "noise.noise_sigmas": 2.0, "noise.max_eps_fraction": 1.2,
-           "search.pretest_slack": 0.15, "stencil.box_half_fraction": 0.3, "stencil.box_offset_fraction": 0.55,
-           "stencil.ring_offset_fraction": 1.4, "stencil.ring_half_fraction": 0.2,
-           "stencil.prefilter_offset_fraction": 2.2, "stencil.descent_steps": 4, "stencil.box_min_valid": 0.35,
-           "stencil.pretest_max_continued": 2, "evidence.ring_factor": 1.35, "evidence.profile_inner_sq": 0.25,
-           "evidence.profile_outer_sq": 0.75, "evidence.ring_front_min_fraction": 0.2,
-           "evidence.ring_front_max_fraction": 1.1, "refinement.first_band_fraction": 0.6,
-           "refinement.first_steps": 2, "refinement.coarse_band_fraction": 0.3,
-           "refinement.size_limit_fraction": 0.2, "refinement.radius_se_s_min_fraction": 0.35,
-           "stencil.search_off_axis": True}
+# ... and with every setting the vector then held changed, at 640x480, bin 2, strata (5, 6), far depth
+# 2.5 m, A = 0.004 / m, a correlation length of 2 px (radius_m 0.11, eps_m 0.012, noise_sigmas 2.0; the
+# other settings it held are the kernels' constants since)
+CHANGED = {"radius_m": 0.11, "eps_m": 0.012, "noise.noise_sigmas": 2.0}
 OLD_CHANGED_640 = [
-    321.59999999999997, 321.59999999999997, 319.5, 239.5, 0.11, 0.012, 0.004, 2.0, 0.132, 5.0, 2.0,
-    3.1158155324088104, 320.0, 0.15, 2.5, 6.0, 4.0, 0.3, 0.55, 1.4, 0.2, 2.2, 4.0, 0.35, 2.0, 1.35, 0.25, 0.75,
-    0.2, 1.1, 0.6, 2.0, 0.3, 0.2, 0.35, 1.7726372048266517, 1.0, 0.0]
+    321.59999999999997, 321.59999999999997, 319.5, 239.5, 0.11, 0.012, 0.004, 2.0, 0.165, 5.0, 2.0,
+    3.1158155324088104, 320.0, 0.1, 2.5, 6.0, 4.0, 0.25, 0.5, 1.5, 0.25, 2.0, 3.0, 0.3, 3.0, 1.3, 0.3, 0.8, 0.3,
+    1.2, 0.5, 3.0, 0.25, 0.25, 0.3, 1.7726372048266517, 0.0, 0.0]
+#: the old vector's slots that held a setting, now the kernels' constants (index -> constant)
+BECAME_CONSTANTS = {13: "PRETEST_SLACK", 17: "BOX_HALF_FRACTION", 18: "BOX_OFFSET_FRACTION",
+                    19: "RING_OFFSET_FRACTION", 20: "RING_HALF_FRACTION", 21: "PREFILTER_OFFSET_FRACTION",
+                    22: "DESCENT_STEPS", 23: "BOX_MIN_VALID", 24: "PRETEST_MAX_CONTINUED", 25: "RING_FACTOR",
+                    26: "PROFILE_INNER_SQ", 27: "PROFILE_OUTER_SQ", 28: "RING_FRONT_MIN_FRACTION",
+                    29: "RING_FRONT_MAX_FRACTION", 30: "FIRST_BAND_FRACTION", 31: "FIRST_STEPS",
+                    32: "COARSE_BAND_FRACTION", 33: "SIZE_LIMIT_FRACTION", 34: "RADIUS_SE_S_MIN_FRACTION"}
+
+
+def _less_constants(old: list) -> list:
+    return [v for i, v in enumerate(old) if i not in BECAME_CONSTANTS]
 
 
 @pytest.mark.parametrize("config", [IMPROVED, PAPER, PAPER_LSTSQ], ids=["improved", "paper", "paper-lstsq"])
-def test_packed_vector_equals_the_hand_packed_one(config):
-    # the slots added since follow the old ones: P_ORDER_RELIEF (0: the pretest's order, set by a retry)
-    added = [0.0]
+def test_packed_vector_equals_the_hand_packed_one_less_the_constants(config):
+    """The vector is the hand-packed one of 2cf5b07 without the slots that became the kernels'
+    constants, each constant the value its slot held by default."""
+    added = [0.0]  # the slots added since follow the old ones: P_ORDER_RELIEF (0: the pretest's order)
     for (w, h, b), old in (((424, 240, 1), OLD_DEFAULT_424), ((848, 480, 2), OLD_DEFAULT_848)):
         prm = I.parameters(config, Intrinsics.d435(w, h), (7, 9), b, (h // b, w // b), 3.12, corr_px=1.5)
-        assert prm.tolist() == old + added, (w, h)
+        assert prm.tolist() == _less_constants(old) + added, (w, h)
+        assert all(getattr(K, name) == old[i] for i, name in BECAME_CONSTANTS.items())
     changed = config.override(CHANGED)
     prm = I.parameters(changed, Intrinsics.d435(640, 480), (5, 6), 2, (240, 320), 2.5, a=0.004, corr_px=2.0)
-    assert prm.tolist() == OLD_CHANGED_640 + added
-    assert set(CHANGED) == {path for _, path in K.PARAMETERS if path} | {"noise.max_eps_fraction"}
+    assert prm.tolist() == _less_constants(OLD_CHANGED_640) + added
 
 
 def test_slot_constants_follow_the_declared_list():
-    assert K.N_PRM == len(K.PARAMETERS) == 39
-    for index, (name, path) in enumerate(K.PARAMETERS):
+    assert K.N_PRM == len(K.PARAMETERS) == 20
+    for index, name in enumerate(K.PARAMETERS):
         assert getattr(K, "P_" + name) == index and type(getattr(K, "P_" + name)) is int
-        assert path is None or path in PATHS, path
-    assert (K.P_FX, K.P_CELL_PX, K.P_H_FRAC, K.P_SE_S_MIN, K.P_MEAN_NOISE, K.P_OCCLUDER_BOUND) == (0, 16, 17, 34, 35, 37)
+    assert (K.P_FX, K.P_CELL_PX, K.P_MEAN_NOISE, K.P_OCCLUDER_BOUND) == (0, 15, 16, 18)
 
 
 def test_flat_form_keeps_the_published_names_and_order():
     flat = IMPROVED.flat()
     assert list(flat)[:5] == ["radius_m", "eps_m", "pipeline", "sampling", "sample_radius_m"]
-    # the 134 settings of before the groups keep their order; those added since follow them
-    assert list(flat)[131:134] == ["ring_spread_power", "interior_density_power", "calibrate_evidence"]
-    assert list(flat)[134:] == ["retry_hole", "hole_min_ring", "hole_min_fraction", "hole_step_fraction",
-                                "hole_min_range_m", "score_calibration", "calibration_slope", "calibration_offset",
-                                "accept_score", "rank_floor", "retry_relief", "fitted_verdict"]
-    assert len(flat) == len(FLAT_NAMES) == 146 and flat["min_score"] == 0.67
+    # the settings of before the groups keep their order (less those removed); those added since follow
+    assert list(flat)[-5:] == ["retry_disc", "retry_hole", "accept_score", "rank_floor", "retry_relief"]
+    assert len(flat) == len(FLAT_NAMES) == 45 and flat["min_score"] == 0.67
+    assert not REMOVED & set(FLAT_NAMES) and len(REMOVED) == 101
     for preset in (IMPROVED, PAPER, PAPER_LSTSQ):
         assert DetectorConfig.from_flat({"engine": "detector", **preset.flat()}) == preset
+    # a flat form of before (a cached result's) still reads: the removed names are left out
+    assert DetectorConfig.from_flat({**IMPROVED.flat(), "ring_front_power": 4.0, "fitted_verdict": True}) == IMPROVED
     grouped = sum(len(dataclasses.fields(cls)) for cls in GROUPS.values())
     assert grouped + 3 == len(FLAT_NAMES)  # every setting once: the model's three and the groups'
 
@@ -104,13 +107,11 @@ def test_presets_and_overrides():
     ({"search.confidence": 1.0}, "search.confidence=1.0 must be within (0, 1)"),
     ({"refinement.size_check": "yes"}, "refinement.size_check='yes' must be true or false"),
     ({"noise.noise_z2_per_m": math.nan}, "noise.noise_z2_per_m=nan must be a finite number"),
-    ({"noise.noise_estimate_min_samples": 2000}, "noise.noise_estimate_min_samples=2000 must not exceed"),
-    ({"outline.outline_max_bias_px": 0.0}, "outline.outline_max_bias_px=0.0 must be > 0 (pixels; inf for never)"),
-    ({"evidence.ring_front_min_fraction": 2.0}, "evidence.ring_front_min_fraction=2.0 must be below"),
+    ({"outline.outline_noise_fraction": -1.0}, "outline.outline_noise_fraction=-1.0 must be >= 0 (a fraction of R; inf"),
+    ({"verification.rank_floor": 1.5}, "verification.rank_floor=1.5 must be within"),
     ({"paper.zscore_threshold": 0.0}, "paper.zscore_threshold=0.0 must be > 0"),
     ({"eps_m": 0.2}, "eps_m=0.2 must be smaller than the radius 0.12"),
     ({"pipeline": "paper"}, "the paper pipeline samples globally"),
-    ({"verification.calibration_slope": 0.0}, "verification.calibration_slope=0.0 must be > 0 (the map must rise"),
 ])
 def test_each_group_checks_its_settings(bad, says):
     with pytest.raises(SphereBenchError, match="invalid detector configuration: .*" + says.replace("(", r"\(")
@@ -119,30 +120,7 @@ def test_each_group_checks_its_settings(bad, says):
 
 
 def test_infinity_means_never_only_where_a_setting_says_so():
-    never = {"verification.multistart_noise_fraction": math.inf, "outline.outline_noise_fraction": math.inf,
-             "outline.outline_evidence_noise_fraction": math.inf, "outline.outline_max_bias_px": math.inf}
-    assert config_for("improved", never).outline.outline_max_bias_px == math.inf
-    with pytest.raises(SphereBenchError, match="evidence.ring_factor=inf must be a finite number"):
-        config_for("improved", {"evidence.ring_factor": math.inf})
-
-
-def test_the_score_map_is_increasing_and_raw_its_inverse():
-    """score = sigmoid(a logit(raw) + b): strictly increasing, 0 and 1 fixed; accept_score and rank_floor
-    (probabilities) are compared inside the detector as their inverse images on the raw product; off,
-    the two are one (the hand-set verdict's map: the fitted verdict's score is its probability)."""
-    v = IMPROVED.override({"verification.fitted_verdict": False}).verification
-    raws = [0.0, 1e-9, 0.1, 0.3, 0.35, 0.5, 0.9, 1.0 - 1e-6, 1.0]
-    probs = [v.probability(r) for r in raws]
-    assert probs[0] == 0.0 and probs[-1] == 1.0 and all(a < b for a, b in zip(probs, probs[1:]))
-    assert v.probability(v.accept_raw_score) == pytest.approx(v.accept_score, abs=1e-12)
-    assert v.accept_raw_score == pytest.approx(0.349, abs=1e-3)  # the raw threshold of before the map
-    assert v.probability(v.floor_raw_score) == pytest.approx(v.rank_floor, abs=1e-12)
-    for p in (0.0, 0.2, 0.9, 1.0):
-        w = config_for("improved", {"verification.accept_score": p}).verification
-        assert w.probability(w.accept_raw_score) == pytest.approx(p, abs=1e-12)
-    # the floor never lies above acceptance: every accepted candidate ranks
-    high = config_for("improved", {"verification.rank_floor": 0.9}).verification
-    assert high.floor_raw_score == high.accept_raw_score
-    off = config_for("improved", {"verification.score_calibration": False}).verification
-    assert off.probability(0.42) == 0.42 and off.accept_raw_score == off.accept_score
-    assert not PAPER.verification.score_calibration and PAPER.verification.probability(0.42) == 0.42
+    never = {"outline.outline_noise_fraction": math.inf}
+    assert config_for("improved", never).outline.outline_noise_fraction == math.inf
+    with pytest.raises(SphereBenchError, match="refinement.size_sigmas=inf must be a finite number"):
+        config_for("improved", {"refinement.size_sigmas": math.inf})

@@ -12,7 +12,7 @@ from spherebench.camera import Intrinsics
 from spherebench.cloud import cloud_from_depth, depth_to_metres
 from spherebench.datasets.sensor import D435Sensor, apply_sensor
 from spherebench.method import config_for
-from spherebench.method.improved import PreparedFrame, noise_a
+from spherebench.method.improved import NOISE_MODEL_TOLERANCE, PreparedFrame, noise_a
 
 # depth noise only: no holes, flying pixels or shadow band
 BARE = D435Sensor(hole_probability=0.0, hole_blobs_per_mpx=0.0, flying_probability=0.0, shadow=False)
@@ -40,7 +40,7 @@ def test_measured_noise_matches_the_sensor_within_10_percent(width, height, subp
     true_a = sensor.sigma_z_m(1.0, cloud.intrinsics.fx)  # sigma_z / z^2
     assert frame.noise_a_measured == pytest.approx(true_a, rel=0.10)
     model_a = noise_a(cfg, cloud.intrinsics.fx)
-    if abs(frame.noise_a_measured / model_a - 1.0) > cfg.noise.noise_model_tolerance:  # the kernels use it
+    if abs(frame.noise_a_measured / model_a - 1.0) > NOISE_MODEL_TOLERANCE:  # the kernels use it
         assert frame.noise_a == frame.noise_a_measured and abs(subpixel - 0.08) > 0.01
     else:  # measured as the nominal unit: the model kept exactly
         assert frame.noise_a == model_a and subpixel == 0.08
@@ -51,7 +51,7 @@ def test_the_override_and_a_frame_without_samples_use_the_configured_noise():
     told = config_for("improved", noise={"noise_z2_per_m": 0.01})
     frame = PreparedFrame(cloud, told)
     assert frame.noise_a_measured is None and frame.noise_a == 0.01
-    near, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=0.4, tilt_deg=0.0)  # nearer than noise_estimate_min_depth_m
+    near, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=0.4, tilt_deg=0.0)  # nearer than NOISE_ESTIMATE_MIN_DEPTH_M
     cfg = config_for("improved")
     frame = PreparedFrame(near, cfg)
     assert frame.noise_a_measured is None and frame.noise_a == noise_a(cfg, near.intrinsics.fx)
@@ -94,23 +94,6 @@ def test_effective_samples_of_correlated_noise():
     assert means.var() * 256 == pytest.approx(finite, rel=0.12) and finite < mean_variance_inflation(1.5)
 
 
-def test_evidence_counts_effective_samples_and_the_noise_share():
-    from spherebench.method import improved as imp
-    cfg = config_for("improved")
-    # relief: the same zone means are a smaller t when pixels are correlated
-    stats = {"inner_n": 100.0, "inner_sum": 100.0 * 0.01, "outer_h_n": 80.0, "outer_h_sum": -80.0 * 0.01,
-             "outer_v_n": 80.0, "outer_v_sum": 0.0, "sigma_m": 0.02}
-    assert imp.relief_agreement(stats, cfg) < imp.relief_agreement({**stats, "pixels_per_sample": 4.0}, cfg)
-    # a band the cap does not bind (2.5 sigma, or eps near the camera): nothing changes
-    assert imp.noise_shares({"sigma_m": 0.01}, cfg) == (1.0, 0.0)
-    assert imp.noise_shares({"sigma_m": 0.001}, cfg) == (1.0, 0.0)
-    # sigma 0.12 m: the band 2.5 sigma is capped at 1.5 R = 1.5 sigma: 87 % of 98.8 % of the pixels, 6 % more behind
-    p_in, q = imp.noise_shares({"sigma_m": 0.12}, cfg)
-    assert p_in == pytest.approx(0.8664 / 0.9876, abs=1e-4) and q == pytest.approx(0.0668 - 0.0062, abs=1e-4)
-    uncalibrated = config_for("improved", evidence={"calibrate_evidence": False})
-    assert imp.noise_shares({"sigma_m": 0.12}, uncalibrated) == (1.0, 0.0)
-
-
 def test_multistart_verification_only_where_noise_nears_the_radius():
     """A far ball on a noisy unit is verified from several starts and kept only through the mean of
     the starts about the best; a near ball, or the same frame with multistart off, goes the plain way."""
@@ -125,14 +108,13 @@ def test_multistart_verification_only_where_noise_nears_the_radius():
     cloud, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=2.0, tilt_deg=0.0)
     cfg = config_for("improved")
     imp.verify_multistart = counting
+    fraction = imp.MULTISTART_NOISE_FRACTION
     try:
         detect(cloud, cfg, seed=0)  # sigma at 2 m: 3 cm, a quarter of R
         assert not calls
-        detect(cloud, config_for("improved", verification={"multistart_noise_fraction": 0.1}), seed=0)
+        imp.MULTISTART_NOISE_FRACTION = 0.1
+        detect(cloud, cfg, seed=0)
         assert calls
     finally:
         imp.verify_multistart = real
-    with pytest.raises(Exception, match="multistart_noise_fraction"):
-        config_for("improved", verification={"multistart_noise_fraction": 0.0})
-    never = config_for("improved", verification={"multistart_noise_fraction": float("inf")})
-    assert never.verification.multistart_noise_fraction == float("inf")
+        imp.MULTISTART_NOISE_FRACTION = fraction

@@ -133,5 +133,5 @@ def test_the_relief_search_ranks_a_near_cap_above_bumps_of_noise():
     frame = prepare_frame(cloud_from_depth(z, cloud.intrinsics), IMPROVED)
     for relief in (False, True):
         centres, scores, _ = I.search_frame(frame, IMPROVED, 0, relief=relief)
-        assert len(centres) == IMPROVED.search.search_candidates and np.linalg.norm(centres[0] - c) < 0.5 * R
+        assert len(centres) == I.SEARCH_CANDIDATES and np.linalg.norm(centres[0] - c) < 0.5 * R
         assert (scores[1] < 0.01 * scores[0]) if relief else (scores[1] > 0.97 * scores[0]), (relief, scores[:3])

@@ -41,14 +41,14 @@ def test_compiled_search_equals_reference(ball, noise, seed, width, off_axis, oc
     # 30 degrees off the optical axis, searched with the stencil stretched as its silhouette is; the
     # last two searched as the detector's retries do (the descent's occluder bound)
     cloud = scene(ball_c=ball, noise=noise, width=width, height=width * 3 // 4, seed=seed)
-    cfg = config_for("improved", search={"iterations": 2000, "adaptive": False, "search_width_px": 130},
-                     stencil={"search_off_axis": off_axis})
+    cfg = config_for("improved", search={"iterations": 2000, "adaptive": False, "search_width_px": 130})
     frame = det.prepare_frame(cloud, cfg)
     assert frame.bin == max(1, width // 130)
-    cands, quals, _ = imp.search_frame(frame, cfg, seed, occluder_bound=occluder)
+    cands, quals, _ = imp.search_frame(frame, cfg, seed, occluder_bound=occluder, off_axis=off_axis)
     prm = frame.prm.copy()
     prm[K.P_OCCLUDER_BOUND] = 1.0 if occluder else 0.0
-    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed, cfg.search.search_candidates)
+    prm[K.P_OFF_AXIS] = 1.0 if off_axis else 0.0
+    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed, imp.SEARCH_CANDIDATES)
     assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
     assert np.array_equal(frame.hypotheses, hyp)
     # and the best hypothesis is the ball (unrefined: from box means)
@@ -95,17 +95,16 @@ def test_strata_follow_the_ransac_bound():
     z_far = imp.far_depth_m(cfg, intr, 3.0)
     assert z_far == pytest.approx(3.12)
     r = intr.fx * R / 3.12
-    k = imp.stratum_side_ratio(cfg.search.sample_success, cfg.search.confidence)
+    k = imp.stratum_side_ratio(imp.SAMPLE_SUCCESS, cfg.search.confidence)
     assert imp.strata(cfg, intr, z_far, 1, grid) == (int(k * r), int(k * r))
     # k: the worst case over where the disc falls is within the confidence, a slightly larger one is not
     search = cfg.search
-    assert imp.stratified_miss(k, search.sample_success) <= 1 - search.confidence < imp.stratified_miss(1.05 * k, 0.8)
+    assert imp.stratified_miss(k, imp.SAMPLE_SUCCESS) <= 1 - search.confidence < imp.stratified_miss(1.05 * k, 0.8)
     # independent draws (the area bound) would need strata of 0.74 r: half as many again
-    k_area = math.sqrt(cfg.search.sample_success * math.pi / -math.log(1 - cfg.search.confidence))
+    k_area = math.sqrt(imp.SAMPLE_SUCCESS * math.pi / -math.log(1 - cfg.search.confidence))
     assert k_area == pytest.approx(0.739, abs=1e-3) and k > 1.18 * k_area
     # a partly visible ball: the area bound, which holds for any shape
-    part = config_for("improved", search={"bound_visible_fraction": 0.5})
-    s_part = imp.strata(part, intr, z_far, 1, grid)[0]
+    s_part = imp.strata(cfg, intr, z_far, 1, grid, visible_fraction=0.5)[0]
     assert s_part == int(math.sqrt(0.8 * 0.5 * math.pi * r * r / -math.log(0.01)))
     # a shallow scene needs fewer, larger strata; a deep one is capped by the noise range limit (3.5 m at 424x240)
     assert imp.strata(cfg, intr, imp.far_depth_m(cfg, intr, 1.0), 1, grid)[0] > 2 * int(k * r)
@@ -210,7 +209,7 @@ def test_bad_organised_input():
     inf[::3] = np.inf
     out = detect(Cloud(inf, cloud.rows, cloud.cols, cloud.intrinsics), seed=0)
     assert all(np.all(np.isfinite(inf[s.inlier_indices])) for s in out)
-    for kw in ({"radius_m": 0.0}, {"eps_m": 0.12}, {"eps_m": 0.5}, {"search.confidence": 1.0}, {"search.pretest_slack": -1.0},
+    for kw in ({"radius_m": 0.0}, {"eps_m": 0.12}, {"eps_m": 0.5}, {"search.confidence": 1.0}, {"search.max_range_m": -1.0},
                {"search.search_width_px": 4}):
         with pytest.raises(SphereBenchError):
             config_for("improved", kw)

@@ -89,8 +89,7 @@ def synthetic_candidates(n_scenes: int = 200, seed: int = 0):
                 x = rng.normal(size=N_FEATURES).astype(np.float32)
                 logit = 2.5 * x[7] - 2.0 * x[19] + (0.5 if dataset == "train" else -0.5)
                 row = {"dataset": dataset, "index": k, "label": bool(rng.random() < 1 / (1 + math.exp(-logit))),
-                       "ambient_e_per_ms": float(rng.uniform(10, 300)) if dataset == "train-stereo" else math.nan,
-                       "factor_score": float(1 / (1 + math.exp(-x[7])))}
+                       "ambient_e_per_ms": float(rng.uniform(10, 300)) if dataset == "train-stereo" else math.nan}
                 row.update(zip(FEATURE_NAMES, x.tolist()))
                 rows.append(row)
     return pd.DataFrame(rows)
@@ -153,10 +152,10 @@ def test_a_model_of_other_features_is_refused(tmp_path):
         FittedVerdict(path)
 
 
-def test_choose_compares_every_model_and_the_hand_set_verdict_on_each_fold():
+def test_choose_compares_every_model_on_each_fold():
     out = verdict_fit.choose(synthetic_candidates(60), seed=0)
     assert out["chosen"] in verdict_fit.MODELS
-    assert set(out) == set(verdict_fit.MODELS) | {"factors", "chosen"}
+    assert set(out) == set(verdict_fit.MODELS) | {"chosen"}
     assert all(len(out[m]) == 3 for m in verdict_fit.MODELS)
 
 
@@ -172,10 +171,11 @@ def test_the_fitted_verdict_scores_detections_with_its_probability(small_default
     from spherebench.method.detector import detect
 
     cloud = inout.load_cloud(inout.list_scenes(small_default)[0])
-    fitted = config_for("improved", {"verification.fitted_verdict": True})
-    spheres = detect(cloud, fitted, seed=0)
-    assert spheres and all(0.67 <= s.score <= 1.0 and s.score == s.raw_score for s in spheres)
-    assert not IMPROVED.verification.fitted_verdict or detect(cloud, IMPROVED, seed=0)[0].score == spheres[0].score
+    spheres = detect(cloud, IMPROVED, seed=0)
+    verdict = load_verdict()
+    assert spheres and all(0.67 <= s.score <= 1.0 for s in spheres)
+    assert all(s.score == pytest.approx(float(np.interp(s.raw_score, verdict.knots_score, verdict.knots_p)))
+               for s in spheres)
 
 
 def test_a_refitted_verdict_invalidates_the_benchmarks_cached_predictions():
@@ -184,5 +184,3 @@ def test_a_refitted_verdict_invalidates_the_benchmarks_cached_predictions():
 
     assert detector_spec("improved").extra_fingerprint == file_sha256(MODEL_PATH)
     assert detector_spec("paper").extra_fingerprint == ""
-    factors = detector_spec("improved", verification={"fitted_verdict": False})
-    assert factors.extra_fingerprint == "" and not factors.config["fitted_verdict"]

@@ -12,7 +12,7 @@ cannot lose the ball.
 For each true ball, the detector's own verification (``improved.verify_organised``: refinement,
 evidence, free-radius size check; ``improved.rescore`` near the threshold) runs on the same prepared
 frame (the frame's measured noise included) from the true centre and from the six starts about it
-that ``rescore`` uses (``improved.rescore_starts``): where the noise is a good part of R, the
+that ``rescore`` uses (``improved.RESCORE_STARTS``): where the noise is a good part of R, the
 refinement's optima lie a cm or two apart and one start's end is a draw. The ball is within the
 **ceiling** when one of them accepts it as the detector would (size check passed, score at least
 ``min_score``) with its refined centre within 2 cm of the truth: a detector whose search always
@@ -106,9 +106,9 @@ def truth_verifications(frame, centre_m, config: DetectorConfig, buf):
     starts around it, each rescored where its score lies near the threshold: Candidates, or None
     where a start verifies nothing, in the order of the starts."""
     c = np.asarray(centre_m, np.float64)
-    for off in ((0.0, 0.0, 0.0),) + improved.rescore_starts(config):
+    for off in ((0.0, 0.0, 0.0),) + improved.RESCORE_STARTS:
         v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
-        if v is not None and abs(v.score - config.verification.accept_raw_score) < config.verification.rescore_band:
+        if v is not None and abs(v.score - config.verification.accept_score) < improved.RESCORE_BAND:
             v = improved.rescore(frame, v, config, buf)
         yield v
 
@@ -137,7 +137,7 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
             err = float(np.linalg.norm(v.centre_m - np.asarray(c, np.float64)))
             if beats(best, v.score, v.size_ok, err):
                 best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.accept_raw_score),
+                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.accept_score),
                         "separable": None}
         out.append(best)
     if separable and out:
@@ -145,7 +145,7 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
                        max_spheres=1000)
         clutter = [s for s in every
                    if all(np.linalg.norm(s.centre_m - np.asarray(c)) > CEILING_M for c in centres_m)]
-        best_clutter = max((s.raw_score for s in clutter), default=0.0)
+        best_clutter = max((s.score for s in clutter), default=0.0)
         for r in out:
             r["separable"] = bool(r["size_ok"] and r["error_m"] <= CEILING_M and r["score"] > best_clutter)
     return out

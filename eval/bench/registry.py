@@ -240,7 +240,7 @@ def detector_spec(name: str, **overrides) -> MethodSpec:
     e.g. radius_m for a dataset of another ball)."""
     cfg = config_for(name, **overrides)
     # the fitted verdict's model is data the code loads: a refitted one invalidates the cached predictions
-    verdict = file_sha256(VERDICT_MODEL) if cfg.pipeline == "improved" and cfg.verification.fitted_verdict else ""
+    verdict = file_sha256(VERDICT_MODEL) if cfg.pipeline == "improved" else ""
     return MethodSpec(name=name, kind="3d", config={"engine": "detector", "preset": name, **cfg.flat()},
                       modules=_CORE_MODULES + ("spherebench.method",), extra_fingerprint=verdict)
 

@@ -1,8 +1,10 @@
 """Fitting the detector's verdict (``method/verdict.py``) on the candidates of both sensor models.
 
-1. ``collect``: the improved detector runs on every scene of `train` and `train-stereo` with its
-   hand-set verdict down to a floor of 1e-4 (``COLLECT_OVERRIDES``: every distinct verified sphere
-   that passes the size check), and each candidate becomes a row: its ``verdict_features``, its
+1. ``collect``: the improved detector runs on every scene of `train` and `train-stereo` with no
+   verdict (``improved.unscored``: every candidate scores the same, nothing is accepted, every search
+   and retry runs; ``COLLECT_OVERRIDES``: every distinct verified sphere that passes the size check is
+   reported), so that no earlier model steers what the next one sees. Each candidate becomes a row: its
+   ``verdict_features``, its
    label (a ball's centre within 2 cm, 3 cm beyond 3 m: ``eval.metrics.calibration`` 's rule, any
    ball), its scene, family and the sensor's parameters.
 2. ``choose``: each candidate model is fitted across sensors and judged on a sensor it has not seen:
@@ -34,13 +36,17 @@ from spherebench.eval.metrics.calibration import expected_calibration_error
 from spherebench.eval.metrics.metrics3d import found_limit_m
 from spherebench.method.config import DetectorConfig, config_for
 from spherebench.method.detector import detect
+from spherebench.method.improved import unscored
 from spherebench.method.verdict import FEATURE_NAMES, verdict_features
 from spherebench.parallel import executor
 from spherebench.provenance import dist_version
 
-#: the collection's detector: the hand-set verdict, every candidate down to 1e-4 kept and reported
-COLLECT_OVERRIDES = {"verification.fitted_verdict": False, "verification.rank_floor": 1e-4,
-                     "verification.max_spheres": 100}
+#: the collection's detector (with ``improved.unscored``): nothing accepted, every verified candidate that passes
+#: the size check kept and reported, duplicates (centres within 1.2 cm) suppressed
+COLLECT_OVERRIDES = {"verification.accept_score": 1.0, "verification.rank_floor": 0.0, "verification.min_score": 0.0,
+                     "verification.max_spheres": 100, "verification.nms_distance_fraction": 0.05}
+#: the score every candidate gets in the collection (``improved.unscored``)
+COLLECT_SCORE = 0.5
 #: scenes whose index is this modulo CALIBRATION_EVERY are held apart from the fit, for the calibration
 CALIBRATION_EVERY, CALIBRATION_REST = 5, 4
 #: the stereo scenes' split for the cross-sensor folds: their ambient light (electrons per ms)
@@ -59,7 +65,8 @@ def _scene_rows(job: tuple) -> list[dict]:
     gt = inout.read_scene_gt(Path(scene_dir))
     cloud = inout.load_cloud(Path(scene_dir))
     config = collect_config(radius_m, overrides)
-    spheres = detect(cloud, config, seed=detection_seed(seed, index), min_score=0.0, max_spheres=100)
+    with unscored(COLLECT_SCORE):
+        spheres = detect(cloud, config, seed=detection_seed(seed, index), min_score=0.0, max_spheres=100)
     balls = np.asarray([b["center_m"] for b in gt.get("balls", []) if b.get("center_m") is not None],
                        np.float64).reshape(-1, 3)
     limit_m = found_limit_m(balls[:, 2])
@@ -68,7 +75,7 @@ def _scene_rows(job: tuple) -> list[dict]:
     for rank, s in enumerate(spheres):
         d = np.linalg.norm(balls - s.centre_m, axis=1)
         row = {"dataset": dataset, "scene": gt["scene_id"], "index": index, "family": gt.get("family", ""),
-               "seed": seed, "rank": rank, "z_m": float(s.centre_m[2]), "factor_score": float(s.score),
+               "seed": seed, "rank": rank, "z_m": float(s.centre_m[2]),
                "label": bool(np.any(d <= limit_m)),
                "ball_z_m": float(balls[np.argmin(d), 2]) if len(d) else math.nan}
         row.update({k: float(sensor.get(k, math.nan)) for k in SENSOR_COLUMNS})
@@ -150,8 +157,7 @@ def _judge(y: np.ndarray, p: np.ndarray) -> dict:
 
 
 def choose(df: pd.DataFrame, seed: int) -> dict:
-    """Each model of MODELS (and the hand-set verdict's score, "factors") judged on each cross-sensor
-    fold: {model: {fold: _judge's figures}, "chosen": the model of the least mean log loss}."""
+    """Each model of MODELS judged on each cross-sensor fold: {model: {fold: _judge's figures}, "chosen": the model of the least mean log loss}."""
     x = df[list(FEATURE_NAMES)].to_numpy(np.float32)
     y = df["label"].to_numpy(np.int64)
     out: dict = {}
@@ -160,7 +166,6 @@ def choose(df: pd.DataFrame, seed: int) -> dict:
         for fold, fit_rows, judged in folds(df):
             model = make(seed).fit(x[fit_rows], y[fit_rows])
             out[name][fold] = _judge(y[judged], model.predict_proba(x[judged])[:, 1])
-    out["factors"] = {fold: _judge(y[judged], df["factor_score"].to_numpy()[judged]) for fold, _, judged in folds(df)}
     # the verdict is a probability: chosen by a proper score of probabilities, over sensors it has not seen
     mean_loss = {name: float(np.mean([f["log_loss"] for f in out[name].values()])) for name in MODELS}
     out["chosen"] = min(mean_loss, key=mean_loss.get)
@@ -273,7 +278,7 @@ def model_card(df: pd.DataFrame, comparison: dict, model: FittedModel, seed: int
              "- Versions: " + ", ".join(f"{k} {v}" for k, v in card["versions"].items()) + ".", "",
              "## Chosen across sensors", "",
              "Each model fitted on one part and judged on a sensor it has not seen (average precision, ROC AUC, "
-             "log loss of the uncalibrated output; `factors`: the hand-set verdict's score).", "",
+             "log loss of the uncalibrated output).", "",
              "| model | " + " | ".join(f for f in next(iter(card["cross_sensor"].values()))) + " |",
              "|---|" + "---|" * len(next(iter(card["cross_sensor"].values())))]
     for name, per_fold in card["cross_sensor"].items():

@@ -14,7 +14,7 @@ the median and largest difference B - A, and on how many frames A and B gave the
     python docs/experiments/scripts/ab_timing.py data/default --resolution 424x240 \\
         --set-b refinement.refine_iterations=3 --passes 5
     python docs/experiments/scripts/ab_timing.py data/hard --family negative \\
-        --set-b verification.occluded_push_starts=0 --passes 5
+        --set-b retry.retry_hole=false --passes 5
     python docs/experiments/scripts/ab_timing.py data/default --resolution 424x240 \\
         --set-b outline.outline_evidence=false --control paper-lstsq --passes 5
 """

@@ -1,4 +1,7 @@
-"""Where a near ball loses its ranked candidate: the stage, for each ball that the detector's ranked
+"""Retired: it reads the hand-set verdict (its factors and raw score), which the fitted verdict replaced
+(issue 45); it runs at commit 7347584 (`git worktree add ../sb-7347584 7347584`).
+
+Where a near ball loses its ranked candidate: the stage, for each ball that the detector's ranked
 output (down to ``rank_floor``) holds no sphere within 2 cm of.
 
 For every ball within ``--max-range`` (surface distance, m) of every scene with a depth frame, at

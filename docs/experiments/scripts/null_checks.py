@@ -1,4 +1,7 @@
-"""The evidence tests' null distributions: each test's statistic on true balls, verified from their
+"""Retired: it reads the hand-set verdict (its factors and raw score), which the fitted verdict replaced
+(issue 45); it runs at commit 7347584 (`git worktree add ../sb-7347584 7347584`).
+
+The evidence tests' null distributions: each test's statistic on true balls, verified from their
 true centre, against the threshold or allowance the detector compares it with.
 
 ``collect`` verifies every true ball (``truth_support.balls_with_circle``) of every scene with a depth

@@ -1,4 +1,7 @@
-"""The oracle's ceiling per ball: the detector's own verification started from the true centre.
+"""Retired: it reads the hand-set verdict (its factors and raw score), which the fitted verdict replaced
+(issue 45); it runs at commit 7347584 (`git worktree add ../sb-7347584 7347584`).
+
+The oracle's ceiling per ball: the detector's own verification started from the true centre.
 
 For every ball of every scene with a depth frame, ``eval.bench.oracle.ceiling`` verifies it from
 its true centre and the six rescore starts about it (the search cannot lose it then) and gives:

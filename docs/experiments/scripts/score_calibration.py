@@ -1,4 +1,7 @@
-"""How far a monotone map of the detector's score goes toward a probability: the expected calibration
+"""Retired: it reads the hand-set verdict (its factors and raw score), which the fitted verdict replaced
+(issue 45); it runs at commit 7347584 (`git worktree add ../sb-7347584 7347584`).
+
+How far a monotone map of the detector's score goes toward a probability: the expected calibration
 error (ECE) of the raw score and of an isotonic map fitted on the training splits, per dataset.
 
 ``collect`` runs the detector on every scene of a dataset at the given run seeds, as the benchmark

@@ -1,4 +1,7 @@
-"""Where the improved detector loses each ball (the stage), what the oracle's verification from the
+"""Retired: it reads the hand-set verdict (its factors and raw score), which the fitted verdict replaced
+(issue 45); it runs at commit 7347584 (`git worktree add ../sb-7347584 7347584`).
+
+Where the improved detector loses each ball (the stage), what the oracle's verification from the
 truth reaches, the scores of true and false candidates, and the false detections, per range band.
 
 ``collect`` runs the detector on every scene of a dataset as the benchmark does

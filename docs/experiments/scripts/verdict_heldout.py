@@ -1,4 +1,7 @@
-"""The fitted verdict against the hand-set one on the training splits' held-apart scenes.
+"""Retired: it reads the hand-set verdict (its factors and raw score), which the fitted verdict replaced
+(issue 45); it runs at commit 7347584 (`git worktree add ../sb-7347584 7347584`).
+
+The fitted verdict against the hand-set one on the training splits' held-apart scenes.
 
 ``make train-verifier`` fits the verdict on the scenes of `train` and `train-stereo` whose index is
 not 4 modulo 5 and calibrates it on those that are (``eval.bench.verdict_fit``). This script runs
