@@ -292,6 +292,12 @@ class DetectorConfig:
         return 2.0 * self.radius_m if r is None else float(r)
 
     @property
+    def radius_tolerance_m(self) -> float:
+        """The size check's tolerance before standard errors (m): the larger of
+        ``refinement.size_tolerance_m`` and ``refinement.size_tolerance_fraction`` R."""
+        return max(self.refinement.size_tolerance_m, self.refinement.size_tolerance_fraction * self.radius_m)
+
+    @property
     def merge_m(self) -> float:
         """Distance under which two candidate centres are one (paper pipeline): eps by default."""
         m = self.paper.candidate_merge_m

@@ -3,7 +3,7 @@
 Input handling (one rule each, documented here):
 - Points with a NaN or infinite coordinate are dropped; the returned indices still refer to
   ``cloud.points``. A cloud with fewer than 3 finite points is refused.
-- A cloud whose median |z| exceeds ``improved.MM_LIMIT_M`` (50 m) is refused as millimetres.
+- A cloud whose median |z| exceeds ``frame.MM_LIMIT_M`` (50 m) is refused as millimetres.
 - A cloud larger than ``config.input.max_points`` is searched on a random subsample of that size
   (deterministic from the seed) as an unorganised cloud; the final inliers come from all points.
 """
@@ -18,9 +18,12 @@ import numpy as np
 from spherebench.circles import sphere_circle_exact, sphere_circle_paper, sphere_circle_visible
 from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench.errors import SphereBenchError
-from spherebench.method import _kernels as K
 from spherebench.method.config import IMPROVED, DetectorConfig
-from spherebench.method.improved import MM_LIMIT_M, PreparedFrame, outline_centre, run_improved
+from spherebench.method.frame import MM_LIMIT_M, PreparedFrame
+from spherebench.method.frame_kernels import finite_rows
+from spherebench.method.improved import run_improved
+from spherebench.method.outline import outline_centre
+from spherebench.method.unorganised import shell_counts, shell_indices
 from spherebench.method.paper import PaperTrace, run_paper
 
 Circle = tuple[float, float, float]
@@ -35,7 +38,7 @@ class Sphere:
         error free_radius_se_m (the size check). inlier_indices (K,): indices into cloud.points.
     score: in [0, 1], comparable across frames (ranks detections for mAP): for the improved pipeline
         the estimated probability that a ball of radius R lies within 2 cm (3 cm beyond 3 m deep) of
-        centre_m (the fitted verdict's, ``verdict``; an unorganised cloud's, ``improved.unorganised_score``);
+        centre_m (the fitted verdict's, ``verdict``; an unorganised cloud's, ``unorganised.unorganised_score``);
         for the paper's, its support ratio.
     raw_score: the score before its calibration map (the verdict model's output; for an unorganised cloud
         the evidence product).
@@ -104,7 +107,7 @@ def prepare_cloud(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator
     """
     _check_cloud(cloud)
     n = len(cloud.points)
-    ok, n_ok = K.finite_rows(cloud.points)
+    ok, n_ok = finite_rows(cloud.points)
     n_ok = int(n_ok)
     index = np.flatnonzero(ok) if n_ok < n else None
     n_big = 0
@@ -173,7 +176,7 @@ def _all_inliers(cloud: Cloud, c: np.ndarray, R: float, band: float) -> np.ndarr
     for start in range(0, len(pts), 1_000_000):  # chunks bound the temporary memory
         chunk = pts[start:start + 1_000_000]
         buf = np.empty(len(chunk), np.int64)
-        m = K.shell_indices(np.ascontiguousarray(chunk), c[0], c[1], c[2], R, band, buf)
+        m = shell_indices(np.ascontiguousarray(chunk), c[0], c[1], c[2], R, band, buf)
         out.append(buf[:m] + start)
     return np.concatenate(out) if out else np.empty(0, np.int64)
 
@@ -218,7 +221,7 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
     outline_centre(prepare_frame(organised, config), centre, config)
     # the paper pipeline's candidate counting runs only where its global draws found a candidate, which
     # on this small frame they may not
-    K.shell_counts(organised.points, centre.reshape(1, 3), config.radius_m, config.eps_m)
+    shell_counts(organised.points, centre.reshape(1, 3), config.radius_m, config.eps_m)
 
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0, *,

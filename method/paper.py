@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from spherebench.method import _kernels as K
+from spherebench.method.unorganised import shell_counts
 from spherebench.method import sphere_model as sm
 from spherebench.method.config import DetectorConfig
 from spherebench.method.ransac import draw_distinct, sample_loop
@@ -119,7 +119,7 @@ def run_paper(points: np.ndarray, config: DetectorConfig, rng: np.random.Generat
     centres, radii, votes, its = candidate_centres(points, config, rng)
     if len(centres) == 0:
         return None
-    counts = K.shell_counts(points, centres, R, eps)
+    counts = shell_counts(points, centres, R, eps)
     # most points, then least radius error
     order = np.lexsort((np.abs(radii - R), -counts))
     best = int(order[0])

@@ -1,6 +1,6 @@
 """The sphere model: minimal solvers, residuals, and least-squares fits (readable numpy).
 
-This module is the reference: the compiled kernels in ``_kernels`` do the same arithmetic point
+This module is the reference: the compiled kernels (``fit_kernels``, ``unorganised``) do the same arithmetic point
 by point and the tests compare them with these functions.
 
 Minimal solvers (three points -> centre):

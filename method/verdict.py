@@ -1,9 +1,9 @@
 """The verdict stage: a verified sphere's probability of being a ball, from a model fitted on both
 sensor models.
 
-Verification (``improved._verify_once``) measures each candidate: its inliers, its free radius and
+Verification (``verification._verify_once``) measures each candidate: its inliers, its free radius and
 that radius's standard error, and how the pixels of its silhouette and outline lie against the
-sphere (``_kernels.window_stats``). ``verdict_features`` turns one candidate's measurements into a
+sphere (``verification_kernels.window_stats``). ``verdict_features`` turns one candidate's measurements into a
 fixed vector of scale-free quantities (shares, ratios to the frame's noise, logarithms of counts and
 ranges); a model fitted on the candidates of `train` and `train-stereo` (``make train-verifier``)
 maps that vector to the probability that a ball's centre lies within 2 cm (3 cm beyond 3 m) of the
@@ -17,6 +17,7 @@ that one file holds the verdict.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
@@ -66,8 +67,8 @@ def _log(x: float, floor: float) -> float:
 def verdict_features(stats: dict, radius_m: float) -> np.ndarray:
     """(N_FEATURES,) float32: one verified candidate's inputs to the verdict (``FEATURE_NAMES``).
 
-    stats: the candidate's measurements as ``improved._verify_once`` records them (the silhouette's
-    counts of ``_kernels.window_stats`` and depth_m, sigma_m, sigma_measured_m, noise_ratio,
+    stats: the candidate's measurements as ``verification._verify_once`` records them (the silhouette's
+    counts of ``verification_kernels.window_stats`` and depth_m, sigma_m, sigma_measured_m, noise_ratio,
     pixels_per_sample, n_inliers, rmse_m, free_radius_m, free_radius_se_m). radius_m: R.
     """
     R = radius_m
@@ -162,3 +163,28 @@ class FittedVerdict:
 def load_verdict(path: str = str(MODEL_PATH)) -> FittedVerdict:
     """The fitted verdict at path (one per process)."""
     return FittedVerdict(Path(path))
+
+
+#: a constant standing in for the fitted verdict's probability (``unscored``); None: the verdict's
+_UNSCORED: list[float] = []
+
+
+@contextlib.contextmanager
+def unscored(score: float = 0.5):
+    """Within it, every organised candidate of this thread's process scores ``score`` (raw and
+    probability) in place of the fitted verdict's, so that no model steers which candidates are
+    verified and kept: with accept_score 1 nothing is accepted and every search and retry runs
+    (``make train-verifier`` collects its candidates so)."""
+    _UNSCORED.append(float(score))
+    try:
+        yield
+    finally:
+        _UNSCORED.pop()
+
+
+def verdict(stats: dict, radius_m: float) -> tuple[float, float]:
+    """(raw score, probability) of one verified candidate: the fitted verdict's
+    (``verdict.FittedVerdict.scores``), or ``unscored``'s constant."""
+    if _UNSCORED:
+        return _UNSCORED[-1], _UNSCORED[-1]
+    return load_verdict().scores(stats, radius_m)

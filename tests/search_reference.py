@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from spherebench.method import _kernels as K
+from spherebench.method import frame_kernels, search_kernels, verification_kernels
 
 _MASK = (1 << 64) - 1
 
@@ -72,11 +72,11 @@ class Grid:
         """(mean range m or nan, valid count): mean depth times the ray length at the box's centre."""
         prm = self.prm
         s, n, a = self.box_sums(v, u, h)
-        if n == 0 or n < K.BOX_MIN_VALID * a * prm[K.P_CELL_PX]:
+        if n == 0 or n < search_kernels.BOX_MIN_VALID * a * prm[frame_kernels.P_CELL_PX]:
             return math.nan, n
-        b = prm[K.P_BIN]
-        rx = (u * b + 0.5 * (b - 1.0) - prm[K.P_PPX]) / prm[K.P_FX]
-        ry = (v * b + 0.5 * (b - 1.0) - prm[K.P_PPY]) / prm[K.P_FY]
+        b = prm[frame_kernels.P_BIN]
+        rx = (u * b + 0.5 * (b - 1.0) - prm[frame_kernels.P_PPX]) / prm[frame_kernels.P_FX]
+        ry = (v * b + 0.5 * (b - 1.0) - prm[frame_kernels.P_PPY]) / prm[frame_kernels.P_FY]
         return s / n * 1e-3 * math.sqrt(1.0 + rx * rx + ry * ry), n
 
 
@@ -86,11 +86,11 @@ def cap_relief(s: float) -> float:
 
 def stencil_stretch(prm, v: int, u: int) -> tuple[float, float]:
     """``_kernels.stencil_stretch``: the silhouette's stretch along u and v at cell (v, u)."""
-    if prm[K.P_OFF_AXIS] == 0.0:
+    if prm[frame_kernels.P_OFF_AXIS] == 0.0:
         return 1.0, 1.0
-    b = prm[K.P_BIN]
-    x = (u * b + 0.5 * (b - 1.0) - prm[K.P_PPX]) / prm[K.P_FX]
-    y = (v * b + 0.5 * (b - 1.0) - prm[K.P_PPY]) / prm[K.P_FY]
+    b = prm[frame_kernels.P_BIN]
+    x = (u * b + 0.5 * (b - 1.0) - prm[frame_kernels.P_PPX]) / prm[frame_kernels.P_FX]
+    y = (v * b + 0.5 * (b - 1.0) - prm[frame_kernels.P_PPY]) / prm[frame_kernels.P_FY]
     n2 = 1.0 + x * x + y * y
     return n2 / math.sqrt(1.0 + y * y), n2 / math.sqrt(1.0 + x * x)
 
@@ -98,14 +98,14 @@ def stencil_stretch(prm, v: int, u: int) -> tuple[float, float]:
 def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     """``_kernels.plane_free``: is the inverse depth about (v, u) curved along some available axis?"""
     prm = g.prm
-    R = prm[K.P_R]
-    rr = prm[K.P_FX] / prm[K.P_BIN] * R / m0
-    hp = max(1, int(K.BOX_HALF_FRACTION * rr + 0.5))
+    R = prm[frame_kernels.P_R]
+    rr = prm[frame_kernels.P_FX] / prm[frame_kernels.P_BIN] * R / m0
+    hp = max(1, int(search_kernels.BOX_HALF_FRACTION * rr + 0.5))
     su, sv = stencil_stretch(prm, v, u)
-    f = K.PREFILTER_OFFSET_FRACTION * rr
+    f = search_kernels.PREFILTER_OFFSET_FRACTION * rr
     dpu, dpv = int(f * su + 0.5), int(f * sv + 0.5)
     dgu, dgv = int(f * su * 0.7071067811865476 + 0.5), int(f * sv * 0.7071067811865476 + 0.5)
-    bb = prm[K.P_CELL_PX]
+    bb = prm[frame_kernels.P_CELL_PX]
     s0, n0, _ = g.box_sums(v, u, 1)
     if n0 == 0:
         return True
@@ -114,11 +114,11 @@ def plane_free(g: Grid, v: int, u: int, m0: float) -> bool:
     for du, dv in ((dpu, 0), (0, dpv), (dgu, dgv), (dgu, -dgv)):
         sa, na, aa = g.box_sums(v + dv, u + du, hp)
         sb, nb, ab = g.box_sums(v - dv, u - du, hp)
-        if na == 0 or nb == 0 or na < K.BOX_MIN_VALID * aa * bb or nb < K.BOX_MIN_VALID * ab * bb:
+        if na == 0 or nb == 0 or na < search_kernels.BOX_MIN_VALID * aa * bb or nb < search_kernels.BOX_MIN_VALID * ab * bb:
             continue
         q = 1000.0 * na / sa + 1000.0 * nb / sb - 2.0 * i0
-        tol = (3.0 * prm[K.P_NOISE_A] * prm[K.P_MEAN_NOISE] * math.sqrt(1.0 / na + 1.0 / nb + 4.0 / n0)
-               + K.PRETEST_SLACK * R / (m0 * m0))
+        tol = (3.0 * prm[frame_kernels.P_NOISE_A] * prm[frame_kernels.P_MEAN_NOISE] * math.sqrt(1.0 / na + 1.0 / nb + 4.0 / n0)
+               + search_kernels.PRETEST_SLACK * R / (m0 * m0))
         if abs(q) > tol:
             return True
         planar += 1
@@ -146,21 +146,21 @@ def descent_step(m0, mA, mB, d, k, off, lim, near) -> float:
 def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float, int, int]:
     """``_kernels.ring_boxes``: (disc radius, background boxes, continued boxes) of the outline ring."""
     prm = g.prm
-    R = prm[K.P_R]
+    R = prm[frame_kernels.P_R]
     dist = front + R
-    rr = prm[K.P_FX] / prm[K.P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
-    hr = max(1, int(K.RING_HALF_FRACTION * rr + 0.5))
+    rr = prm[frame_kernels.P_FX] / prm[frame_kernels.P_BIN] * R / math.sqrt(max(dist * dist - R * R, 1e-12))
+    hr = max(1, int(search_kernels.RING_HALF_FRACTION * rr + 0.5))
     su, sv = stencil_stretch(prm, v, u)
-    dru, drv = K.RING_OFFSET_FRACTION * rr * su, K.RING_OFFSET_FRACTION * rr * sv
+    dru, drv = search_kernels.RING_OFFSET_FRACTION * rr * su, search_kernels.RING_OFFSET_FRACTION * rr * sv
     ddu, ddv = dru * 0.7071067811865476, drv * 0.7071067811865476
     bg = cont = 0
     for ou, ov in ((dru, 0.0), (-dru, 0.0), (0.0, drv), (0.0, -drv), (ddu, ddv), (-ddu, ddv), (ddu, -ddv), (-ddu, -ddv)):
         m, n = g.box_range(v + int(math.floor(ov + 0.5)), u + int(math.floor(ou + 0.5)), hr)
         if math.isnan(m) or m > dist:
             bg += 1
-        elif m >= front - (3.0 * sig / math.sqrt(n) + K.PRETEST_SLACK * R):
+        elif m >= front - (3.0 * sig / math.sqrt(n) + search_kernels.PRETEST_SLACK * R):
             cont += 1
-            if cont > K.PRETEST_MAX_CONTINUED:
+            if cont > search_kernels.PRETEST_MAX_CONTINUED:
                 break
     return rr, bg, cont
 
@@ -168,31 +168,31 @@ def ring_boxes(g: Grid, v: int, u: int, front: float, sig: float) -> tuple[float
 def front_hypothesis(g: Grid, v: int, u: int):
     """``_kernels.front_hypothesis``: (score, (v, u, front m, disc radius, occluded flag)) or (-inf, None)."""
     prm = g.prm
-    R = prm[K.P_R]
-    fc = prm[K.P_FX] / prm[K.P_BIN]
-    na = prm[K.P_NOISE_A] * prm[K.P_MEAN_NOISE]
-    slack = K.PRETEST_SLACK * R
+    R = prm[frame_kernels.P_R]
+    fc = prm[frame_kernels.P_FX] / prm[frame_kernels.P_BIN]
+    na = prm[frame_kernels.P_NOISE_A] * prm[frame_kernels.P_MEAN_NOISE]
+    slack = search_kernels.PRETEST_SLACK * R
     m0, _ = g.box_range(v, u, 1)
     if math.isnan(m0) or not plane_free(g, v, u, m0):
         return -math.inf, None
-    for step in range(K.DESCENT_STEPS + 1):
+    for step in range(search_kernels.DESCENT_STEPS + 1):
         rr = fc * R / m0
-        if rr < prm[K.P_RR_MIN] or rr > prm[K.P_RR_MAX]:
+        if rr < prm[frame_kernels.P_RR_MIN] or rr > prm[frame_kernels.P_RR_MAX]:
             return -math.inf, None
         su, sv = stencil_stretch(prm, v, u)
-        h = max(1, int(K.BOX_HALF_FRACTION * rr + 0.5))
-        du = max(h + 1, int(K.BOX_OFFSET_FRACTION * rr * su + 0.5))
-        dv = max(h + 1, int(K.BOX_OFFSET_FRACTION * rr * sv + 0.5))
+        h = max(1, int(search_kernels.BOX_HALF_FRACTION * rr + 0.5))
+        du = max(h + 1, int(search_kernels.BOX_OFFSET_FRACTION * rr * su + 0.5))
+        dv = max(h + 1, int(search_kernels.BOX_OFFSET_FRACTION * rr * sv + 0.5))
         m0, n0 = g.box_range(v, u, h)
         if math.isnan(m0):
             return -math.inf, None
         sides = [g.box_range(v, u - du, h), g.box_range(v, u + du, h), g.box_range(v - dv, u, h),
                  g.box_range(v + dv, u, h)]
-        if step == K.DESCENT_STEPS:
+        if step == search_kernels.DESCENT_STEPS:
             break
         off = 0.6 * R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack
         # the occluder bound (``improved``'s retry): a side box more than R in front is left out
-        near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[K.P_OCCLUDER_BOUND] else math.inf
+        near = R + 3.0 * na * m0 * m0 / math.sqrt(n0) + slack if prm[frame_kernels.P_OCCLUDER_BOUND] else math.inf
         iu = int(math.floor(descent_step(m0, sides[0][0], sides[1][0], du, 0.5 * R / (rr * su) ** 2, off,
                                          0.5 * rr * su, near) + 0.5))
         iv = int(math.floor(descent_step(m0, sides[2][0], sides[3][0], dv, 0.5 * R / (rr * sv) ** 2, off,
@@ -225,7 +225,7 @@ def front_hypothesis(g: Grid, v: int, u: int):
     if behind > 1 or agree + min(occluded, 1) < 3:
         return -math.inf, None
     rr, bg, cont = ring_boxes(g, v, u, front, sig)
-    if cont > K.PRETEST_MAX_CONTINUED:
+    if cont > search_kernels.PRETEST_MAX_CONTINUED:
         return -math.inf, None
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi, (v, u, front, rr, float(agree < 3))
 
@@ -251,10 +251,10 @@ def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int)
 def search_organised(points, index_image, prm, seed: int, k_max: int):
     """Replay of ``_kernels.search_organised``: (hypotheses (M, 6) rows (v, u, front, r, score, occluded),
     counters (2,))."""
-    b = int(prm[K.P_BIN])
+    b = int(prm[frame_kernels.P_BIN])
     g = Grid(*cell_images(points, index_image, b), prm)
     hc, wc = g.zs.shape
-    sv, su = int(prm[K.P_STRATUM_V]), int(prm[K.P_STRATUM_U])
+    sv, su = int(prm[frame_kernels.P_STRATUM_V]), int(prm[frame_kernels.P_STRATUM_U])
     rng = SplitMix64(seed)
     kept: list = []
     counters = np.zeros(2, np.int64)
@@ -268,20 +268,20 @@ def search_organised(points, index_image, prm, seed: int, k_max: int):
             if hyp is None:
                 continue
             counters[1] += 1
-            keep_hypothesis(kept, hyp, q, prm[K.P_R], k_max)
+            keep_hypothesis(kept, hyp, q, prm[frame_kernels.P_R], k_max)
     out = np.array([[*h[:4], q, h[4]] for q, h in kept], np.float64).reshape(-1, 6)
     return out, counters
 
 
 def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.ndarray:
     """``_kernels.window_stats`` vectorised over the strided window: (N_STATS,) counts and sums."""
-    fx, fy, ppx, ppy, radius = prm[K.P_FX], prm[K.P_FY], prm[K.P_PPX], prm[K.P_PPY], prm[K.P_R]
-    out = np.zeros(K.N_STATS)
+    fx, fy, ppx, ppy, radius = prm[frame_kernels.P_FX], prm[frame_kernels.P_FY], prm[frame_kernels.P_PPX], prm[frame_kernels.P_PPY], prm[frame_kernels.P_R]
+    out = np.zeros(verification_kernels.N_STATS)
     h, w = index_image.shape
     cx, cy, cz = centre
     dist = math.sqrt(float(centre @ centre))
     rpx = fx * radius / math.sqrt(max(dist * dist - radius * radius, 1e-12)) * dist / cz
-    rpx = rpx * K.RING_FACTOR * 1.05 + 2.0
+    rpx = rpx * verification_kernels.RING_FACTOR * 1.05 + 2.0
     u0, v0 = fx * cx / cz + ppx, fy * cy / cz + ppy
     r = np.arange(max(0, int(math.floor(v0 - rpx))), min(h - 1, int(math.ceil(v0 + rpx))) + 1, stride)
     c = np.arange(max(0, int(math.floor(u0 - rpx))), min(w - 1, int(math.ceil(u0 + rpx))) + 1, stride)
@@ -291,7 +291,7 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     # pixels without depth inside the silhouette
     rays = np.stack([(cc - ppx) / fx, (rr - ppy) / fy, np.ones(len(cc))], axis=1)
     in_disc = rays @ centre / (np.linalg.norm(rays, axis=1) * dist) >= math.sqrt(1.0 - (radius / dist) ** 2)
-    out[K.ST_INVALID_DISC] = np.count_nonzero((idx < 0) & in_disc)
+    out[verification_kernels.ST_INVALID_DISC] = np.count_nonzero((idx < 0) & in_disc)
     ok = idx >= 0
     p = points[idx[ok]].astype(np.float64)
     du, dv = (cc[ok] - u0), (rr[ok] - v0)
@@ -301,39 +301,39 @@ def window_stats(points, index_image, centre, e, ring_band, prm, stride) -> np.n
     hit = m2 <= radius * radius
     dt = pn[hit] - (tc[hit] - np.sqrt(radius * radius - m2[hit]))
     inl = np.abs(dt) <= e
-    out[K.ST_VALID_DISC] = hit.sum()
-    out[K.ST_INLIER] = inl.sum()
-    out[K.ST_SSE] = float(np.sum(dt[inl] ** 2))
+    out[verification_kernels.ST_VALID_DISC] = hit.sum()
+    out[verification_kernels.ST_INLIER] = inl.sum()
+    out[verification_kernels.ST_SSE] = float(np.sum(dt[inl] ** 2))
     front = ~inl & (dt < 0)
-    out[K.ST_FRONT] = front.sum()
-    out[K.ST_FRONT_NEAR] = np.count_nonzero(front & (dt >= -0.5 * radius))
-    out[K.ST_BEHIND] = np.count_nonzero(~inl & (dt >= 0))
-    inner_disc = m2[hit] <= K.PROFILE_OUTER_SQ * radius * radius
-    out[K.ST_VALID_INNER] = inner_disc.sum()
-    out[K.ST_BEHIND_INNER] = np.count_nonzero(inner_disc & (dt > e))
-    out[K.ST_EDGE_N] = np.count_nonzero(~inner_disc & (dt >= -e))
-    out[K.ST_EDGE_BEHIND] = np.count_nonzero(~inner_disc & (dt > e))
-    ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (K.RING_FACTOR * radius) ** 2)
-    out[K.ST_RING] = ring.sum()
-    out[K.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
-    attached = (pn - tc >= -K.RING_FRONT_MAX_FRACTION * radius) & (pn - tc <= -K.RING_FRONT_MIN_FRACTION * radius)
-    out[K.ST_RING_FRONT] = np.count_nonzero(ring & (np.abs(pn - tc) > ring_band) & attached)
+    out[verification_kernels.ST_FRONT] = front.sum()
+    out[verification_kernels.ST_FRONT_NEAR] = np.count_nonzero(front & (dt >= -0.5 * radius))
+    out[verification_kernels.ST_BEHIND] = np.count_nonzero(~inl & (dt >= 0))
+    inner_disc = m2[hit] <= verification_kernels.PROFILE_OUTER_SQ * radius * radius
+    out[verification_kernels.ST_VALID_INNER] = inner_disc.sum()
+    out[verification_kernels.ST_BEHIND_INNER] = np.count_nonzero(inner_disc & (dt > e))
+    out[verification_kernels.ST_EDGE_N] = np.count_nonzero(~inner_disc & (dt >= -e))
+    out[verification_kernels.ST_EDGE_BEHIND] = np.count_nonzero(~inner_disc & (dt > e))
+    ring = ~hit & (tc > 0) & (dist * dist - tc * tc <= (verification_kernels.RING_FACTOR * radius) ** 2)
+    out[verification_kernels.ST_RING] = ring.sum()
+    out[verification_kernels.ST_RING_CONT] = np.count_nonzero(ring & (np.abs(pn - tc) <= ring_band))
+    attached = (pn - tc >= -verification_kernels.RING_FRONT_MAX_FRACTION * radius) & (pn - tc <= -verification_kernels.RING_FRONT_MIN_FRACTION * radius)
+    out[verification_kernels.ST_RING_FRONT] = np.count_nonzero(ring & (np.abs(pn - tc) > ring_band) & attached)
     sector = ring_sectors(cc[ok] - u0, rr[ok] - v0)
     joined = ring & ((np.abs(pn - tc) <= ring_band) | attached)
-    out[K.ST_SECTOR_RING:K.ST_SECTOR_RING + K.N_SECTORS] = np.bincount(sector[ring], minlength=K.N_SECTORS)
-    out[K.ST_SECTOR_ATTACHED:K.ST_SECTOR_ATTACHED + K.N_SECTORS] = np.bincount(sector[joined], minlength=K.N_SECTORS)
-    out[:K.ST_IN_N] *= float(stride * stride)
+    out[verification_kernels.ST_SECTOR_RING:verification_kernels.ST_SECTOR_RING + verification_kernels.N_SECTORS] = np.bincount(sector[ring], minlength=verification_kernels.N_SECTORS)
+    out[verification_kernels.ST_SECTOR_ATTACHED:verification_kernels.ST_SECTOR_ATTACHED + verification_kernels.N_SECTORS] = np.bincount(sector[joined], minlength=verification_kernels.N_SECTORS)
+    out[:verification_kernels.ST_IN_N] *= float(stride * stride)
     # the relief profile over the inliers: inner zone, outer zone left/right and above/below
     mz = m2[hit][inl]
     d_in = dt[inl]
     horiz = (np.abs(du[hit]) >= np.abs(dv[hit]))[inl]
-    inner = mz <= K.PROFILE_INNER_SQ * radius * radius
-    outer = ~inner & (mz <= K.PROFILE_OUTER_SQ * radius * radius)
-    out[K.ST_IN_N], out[K.ST_IN_SUM] = inner.sum(), d_in[inner].sum()
-    out[K.ST_OUTH_N], out[K.ST_OUTH_SUM] = (outer & horiz).sum(), d_in[outer & horiz].sum()
-    out[K.ST_OUTV_N], out[K.ST_OUTV_SUM] = (outer & ~horiz).sum(), d_in[outer & ~horiz].sum()
-    out[K.ST_RING_SPREAD] = ring_spread(out[K.ST_SECTOR_RING:K.ST_SECTOR_RING + K.N_SECTORS],
-                                        out[K.ST_SECTOR_ATTACHED:K.ST_SECTOR_ATTACHED + K.N_SECTORS])
+    inner = mz <= verification_kernels.PROFILE_INNER_SQ * radius * radius
+    outer = ~inner & (mz <= verification_kernels.PROFILE_OUTER_SQ * radius * radius)
+    out[verification_kernels.ST_IN_N], out[verification_kernels.ST_IN_SUM] = inner.sum(), d_in[inner].sum()
+    out[verification_kernels.ST_OUTH_N], out[verification_kernels.ST_OUTH_SUM] = (outer & horiz).sum(), d_in[outer & horiz].sum()
+    out[verification_kernels.ST_OUTV_N], out[verification_kernels.ST_OUTV_SUM] = (outer & ~horiz).sum(), d_in[outer & ~horiz].sum()
+    out[verification_kernels.ST_RING_SPREAD] = ring_spread(out[verification_kernels.ST_SECTOR_RING:verification_kernels.ST_SECTOR_RING + verification_kernels.N_SECTORS],
+                                        out[verification_kernels.ST_SECTOR_ATTACHED:verification_kernels.ST_SECTOR_ATTACHED + verification_kernels.N_SECTORS])
     return out
 
 

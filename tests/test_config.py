@@ -10,8 +10,8 @@ import pytest
 from spherebench.camera import Intrinsics
 from spherebench.errors import SphereBenchError
 from spherebench.method import IMPROVED, PAPER, PAPER_LSTSQ, config_for
-from spherebench.method import _kernels as K
-from spherebench.method import improved as I
+from spherebench.method import frame_kernels, search_kernels, verification_kernels
+from spherebench.method import frame as frame_stage
 from spherebench.method.config import FLAT_NAMES, GROUPS, REMOVED, DetectorConfig
 
 # The kernels' parameter vector as the hand-packed ``improved.parameters`` of 2cf5b07 (before the
@@ -43,6 +43,11 @@ BECAME_CONSTANTS = {13: "PRETEST_SLACK", 17: "BOX_HALF_FRACTION", 18: "BOX_OFFSE
                     32: "COARSE_BAND_FRACTION", 33: "SIZE_LIMIT_FRACTION", 34: "RADIUS_SE_S_MIN_FRACTION"}
 
 
+def _constant(name: str):
+    """A stage constant of the kernels, from the module that holds it."""
+    return next(getattr(m, name) for m in (search_kernels, verification_kernels) if hasattr(m, name))
+
+
 def _less_constants(old: list) -> list:
     return [v for i, v in enumerate(old) if i not in BECAME_CONSTANTS]
 
@@ -53,19 +58,19 @@ def test_packed_vector_equals_the_hand_packed_one_less_the_constants(config):
     constants, each constant the value its slot held by default."""
     added = [0.0]  # the slots added since follow the old ones: P_ORDER_RELIEF (0: the pretest's order)
     for (w, h, b), old in (((424, 240, 1), OLD_DEFAULT_424), ((848, 480, 2), OLD_DEFAULT_848)):
-        prm = I.parameters(config, Intrinsics.d435(w, h), (7, 9), b, (h // b, w // b), 3.12, corr_px=1.5)
+        prm = frame_stage.parameters(config, Intrinsics.d435(w, h), (7, 9), b, (h // b, w // b), 3.12, corr_px=1.5)
         assert prm.tolist() == _less_constants(old) + added, (w, h)
-        assert all(getattr(K, name) == old[i] for i, name in BECAME_CONSTANTS.items())
+        assert all(_constant(name) == old[i] for i, name in BECAME_CONSTANTS.items())
     changed = config.override(CHANGED)
-    prm = I.parameters(changed, Intrinsics.d435(640, 480), (5, 6), 2, (240, 320), 2.5, a=0.004, corr_px=2.0)
+    prm = frame_stage.parameters(changed, Intrinsics.d435(640, 480), (5, 6), 2, (240, 320), 2.5, a=0.004, corr_px=2.0)
     assert prm.tolist() == _less_constants(OLD_CHANGED_640) + added
 
 
 def test_slot_constants_follow_the_declared_list():
-    assert K.N_PRM == len(K.PARAMETERS) == 20
-    for index, name in enumerate(K.PARAMETERS):
-        assert getattr(K, "P_" + name) == index and type(getattr(K, "P_" + name)) is int
-    assert (K.P_FX, K.P_CELL_PX, K.P_MEAN_NOISE, K.P_OCCLUDER_BOUND) == (0, 15, 16, 18)
+    assert frame_kernels.N_PRM == len(frame_kernels.PARAMETERS) == 20
+    for index, name in enumerate(frame_kernels.PARAMETERS):
+        assert getattr(frame_kernels, "P_" + name) == index and type(getattr(frame_kernels, "P_" + name)) is int
+    assert (frame_kernels.P_FX, frame_kernels.P_CELL_PX, frame_kernels.P_MEAN_NOISE, frame_kernels.P_OCCLUDER_BOUND) == (0, 15, 16, 18)
 
 
 def test_flat_form_keeps_the_published_names_and_order():

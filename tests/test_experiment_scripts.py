@@ -3,6 +3,7 @@ its fields, and agrees with the library where the two measure the same thing."""
 
 from __future__ import annotations
 
+import ast
 import importlib
 import json
 import math
@@ -39,7 +40,7 @@ def _run(name: str, args: list[str], tmp_path: Path, capsys) -> tuple[dict, str]
 
 def test_every_script_says_what_it_measures_and_how_to_run_it():
     for path in SCRIPTS.glob("*.py"):
-        doc = _script(path.stem).__doc__
+        doc = ast.get_docstring(ast.parse(path.read_text()))  # a retired script may not import at this commit
         assert doc and len(doc.split()) > 20, path.name
         if not path.stem.endswith("_support"):
             assert f"python docs/experiments/scripts/{path.name}" in doc, path.name

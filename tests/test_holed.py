@@ -113,7 +113,7 @@ def test_the_hole_search_finds_a_ringed_hole_and_not_one_in_a_wall():
     """``_kernels.hole_hypotheses``: a ball with its middle missing gives a hypothesis within a third
     of its disc radius of its image's centre and R of its front range; the same hole in the wall none."""
     from spherebench.method import config_for
-    from spherebench.method import improved as I
+    from spherebench.method import search as search_stage
     from spherebench.method.detector import prepare_frame
 
     cfg = config_for("improved")
@@ -121,14 +121,14 @@ def test_the_hole_search_finds_a_ringed_hole_and_not_one_in_a_wall():
         for fraction in (0.3, 0.7):
             cloud, (u0, v0, r_px) = _holed_frame(centre, fraction, wall_z=centre[2] + 1.0)
             frame = prepare_frame(cloud, cfg)
-            centres, _scores, _occluded = I.hole_search(frame, cfg)
+            centres, _scores, _occluded = search_stage.hole_search(frame, cfg)
             intr = cloud.intrinsics
             hu = intr.fx * centres[:, 0] / centres[:, 2] + intr.ppx
             hv = intr.fy * centres[:, 1] / centres[:, 2] + intr.ppy
             assert math.hypot(hu[0] - u0, hv[0] - v0) < r_px / 3, (centre, fraction)
             assert abs(np.linalg.norm(centres[0]) - np.linalg.norm(centre)) < 0.12, (centre, fraction)
             wall, _ = _holed_frame(centre, fraction, wall_z=centre[2] + 1.0, ball=False)
-            assert len(I.hole_search(prepare_frame(wall, cfg), cfg)[0]) == 0, (centre, fraction)
+            assert len(search_stage.hole_search(prepare_frame(wall, cfg), cfg)[0]) == 0, (centre, fraction)
 
 
 def test_the_hole_retry_finds_balls_whose_middle_is_missing():

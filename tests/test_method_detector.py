@@ -13,7 +13,13 @@ from spherebench.circles import sphere_circle_paper
 from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench.errors import SphereBenchError
 from spherebench.method import IMPROVED, PAPER, config_for, detect
-from spherebench.method import _kernels as K
+from spherebench.method import compiled, fit_kernels, frame_kernels, search_kernels, verification_kernels
+from spherebench.method import frame as frame_stage
+from spherebench.method import improved as improved_stage
+from spherebench.method import outline as outline_stage
+from spherebench.method import search as search_stage
+from spherebench.method import unorganised as unorganised_stage
+from spherebench.method import verification as verification_stage
 from spherebench.method import sphere_model as sm
 
 R = 0.12
@@ -31,8 +37,7 @@ def cap_points(c, r, n, rng, visible=True):
 
 def kernel_parameters(intr: Intrinsics, config=IMPROVED) -> np.ndarray:
     """The organised kernels' parameter vector for a full-resolution search of ``intr``'s image."""
-    from spherebench.method import improved as I
-    return I.parameters(config, intr, (1, 1), 1, (intr.height, intr.width), 10.0)
+    return frame_stage.parameters(config, intr, (1, 1), 1, (intr.height, intr.width), 10.0)
 
 
 def with_sphere(z: np.ndarray, rays: np.ndarray, centre, radius: float) -> np.ndarray:
@@ -77,7 +82,7 @@ def test_known_radius_solver_both_centres_exact():
         assert np.linalg.norm(far[0]) >= np.linalg.norm(near[0]) - 1e-12
         # the compiled solver gives the same pair
         out = np.empty((2, 3))
-        assert K.known_radius_centres(p, 0, 1, 2, R, out) == 2
+        assert fit_kernels.known_radius_centres(p, 0, 1, 2, R, out) == 2
         assert np.allclose(out[0], far[0], atol=1e-12) and np.allclose(out[1], near[0], atol=1e-12)
 
 
@@ -91,7 +96,7 @@ def test_known_radius_solver_degenerate_cases():
     assert not ok[0]
     out = np.empty((2, 3))
     pts = np.array([p1, p2, [0.1, 0, 1]])
-    assert K.known_radius_centres(pts, 0, 1, 2, R, out) == 0
+    assert fit_kernels.known_radius_centres(pts, 0, 1, 2, R, out) == 0
 
 
 def test_eq12_is_rank_deficient_and_lstsq_is_min_norm():
@@ -113,15 +118,15 @@ def test_refinement_exact_on_noiseless_cap():
     got = sm.refine_fixed_radius(p, c + [0.01, -0.01, 0.02], R)
     assert np.linalg.norm(got - c) < 1e-8
     idx = np.arange(len(p))
-    assert np.linalg.norm(K.refine_fixed_radius(p, idx, *(c + 0.01), R, 20) - c) < 1e-8
+    assert np.linalg.norm(fit_kernels.refine_fixed_radius(p, idx, *(c + 0.01), R, 20) - c) < 1e-8
     # the barycentre of a cap is pulled toward the camera
     assert np.linalg.norm(p.mean(axis=0) - c) > 0.03
     # the ray fit (noise along rays) is exact on noiseless data too, fixed and free radius
-    rays = K.unit_rays(p, idx, np.empty((len(idx), 4)))
+    rays = fit_kernels.unit_rays(p, idx, np.empty((len(idx), 4)))
     assert np.allclose(rays[:, :3] * rays[:, 3:], p, atol=1e-6)
-    cc, r, _, rms = K.fit_ray(rays, *(c + 0.005), R, False, 60, 0.03, 0.3)
+    cc, r, _, rms = fit_kernels.fit_ray(rays, *(c + 0.005), R, False, 60, 0.03, 0.3)
     assert np.linalg.norm(cc - c) < 1e-7 and rms < 1e-7
-    cc, r, se, _ = K.fit_ray(rays, *(c + 0.005), R + 0.005, True, 60, 0.03, 0.3)
+    cc, r, se, _ = fit_kernels.fit_ray(rays, *(c + 0.005), R + 0.005, True, 60, 0.03, 0.3)
     assert np.linalg.norm(cc - c) < 1e-6 and abs(r - R) < 1e-6
 
 
@@ -133,15 +138,15 @@ def test_range_fit_holds_the_centre_on_its_ray():
     rng = np.random.default_rng(5)
     c = np.array([-0.2, 0.1, 1.2])
     p = cap_points(c, R, 400, rng)
-    rays = K.unit_rays(p, np.arange(len(p)), np.empty((len(p), 4)))
+    rays = fit_kernels.unit_rays(p, np.arange(len(p)), np.empty((len(p), 4)))
     start = c * 1.005
-    cc, r, se, rms = K.fit_range(rays, *start, R, False, 60, 0.03, 0.3)
+    cc, r, se, rms = fit_kernels.fit_range(rays, *start, R, False, 60, 0.03, 0.3)
     assert np.linalg.norm(cc - c) < 1e-5 and r == R and math.isnan(se) and rms < 1e-4
-    cc, r, se, _ = K.fit_range(rays, *start, R + 0.005, True, 60, 0.03, 0.3)
+    cc, r, se, _ = fit_kernels.fit_range(rays, *start, R + 0.005, True, 60, 0.03, 0.3)
     assert np.linalg.norm(cc - c) < 5e-5 and abs(r - R) < 5e-5 and se < 5e-5
     off = c + np.array([0.01, 0.0, 0.0])
-    held, _, _, _ = K.fit_range(rays, *off, R, False, 60, 0.03, 0.3)
-    free, _, _, _ = K.fit_ray(rays, *off, R, False, 60, 0.03, 0.3)
+    held, _, _, _ = fit_kernels.fit_range(rays, *off, R, False, 60, 0.03, 0.3)
+    free, _, _, _ = fit_kernels.fit_ray(rays, *off, R, False, 60, 0.03, 0.3)
     assert np.linalg.norm(np.cross(held, off)) / np.linalg.norm(held) / np.linalg.norm(off) < 1e-12
     assert np.linalg.norm(free - c) < 5e-5 and np.linalg.norm(held - c) > 0.005
 
@@ -151,7 +156,7 @@ def test_free_radius_fit_compiled_matches_reference():
     c = np.array([0.1, 0.0, 0.9])
     p = cap_points(c, 0.11, 500, rng) + rng.normal(size=(500, 3)) * 0.001
     ref_c, ref_r, ref_se, ref_rms = sm.fit_free_radius(p, c + 0.003, R)
-    got_c, got_r, got_se, got_rms = K.fit_free_radius(p, np.arange(len(p)), *(c + 0.003), R, 10)
+    got_c, got_r, got_se, got_rms = fit_kernels.fit_free_radius(p, np.arange(len(p)), *(c + 0.003), R, 10)
     assert np.allclose(got_c, ref_c, atol=1e-9) and abs(got_r - ref_r) < 1e-9
     assert abs(got_se - ref_se) < 1e-9 and abs(got_rms - ref_rms) < 1e-9
     assert abs(ref_r - 0.11) < 0.002  # the size check can tell 0.11 from 0.12 here
@@ -160,14 +165,14 @@ def test_free_radius_fit_compiled_matches_reference():
 def test_window_stats_classifies_pixels():
     cloud = scene(noise=0.0)
     intr = cloud.intrinsics
-    img = K.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
-    out = np.zeros(K.N_STATS)
+    img = frame_kernels.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
+    out = np.zeros(verification_kernels.N_STATS)
     c = np.array([0.1, -0.05, 1.0])
-    K.window_stats(cloud.points, img, *c, 0.005, 0.005, kernel_parameters(intr), 1, out)
-    assert out[K.ST_INLIER] > 100 and out[K.ST_BEHIND] <= 0.02 * out[K.ST_VALID_DISC]
+    verification_kernels.window_stats(cloud.points, img, *c, 0.005, 0.005, kernel_parameters(intr), 1, out)
+    assert out[verification_kernels.ST_INLIER] > 100 and out[verification_kernels.ST_BEHIND] <= 0.02 * out[verification_kernels.ST_VALID_DISC]
     # a sphere 3 cm smaller at the same place: its disc sees the ball in front of it (occluded)
-    K.window_stats(cloud.points, img, *(c + [0, 0, 0.05]), 0.005, 0.005, kernel_parameters(intr), 1, out)
-    assert out[K.ST_FRONT] > out[K.ST_INLIER]
+    verification_kernels.window_stats(cloud.points, img, *(c + [0, 0, 0.05]), 0.005, 0.005, kernel_parameters(intr), 1, out)
+    assert out[verification_kernels.ST_FRONT] > out[verification_kernels.ST_INLIER]
 
 
 def test_edge_band_tells_a_smaller_ball():
@@ -177,18 +182,17 @@ def test_edge_band_tells_a_smaller_ball():
     for r in (R, 0.11):
         cloud = scene(ball_c=tuple(c), ball_r=r, noise=0.0, width=424, height=240)
         intr = cloud.intrinsics
-        img = K.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
+        img = frame_kernels.build_index_image(cloud.rows, cloud.cols, intr.height, intr.width)
         centre = c * (1.0 + (R - r) / np.linalg.norm(c))
-        out = np.zeros(K.N_STATS)
-        K.window_stats(cloud.points, img, *centre, 0.005, 0.005, kernel_parameters(intr), 1, out)
-        share = out[K.ST_EDGE_BEHIND] / out[K.ST_EDGE_N]
-        assert out[K.ST_EDGE_N] > 50 and (share < 0.05 if r == R else share > 0.5), (r, share)
+        out = np.zeros(verification_kernels.N_STATS)
+        verification_kernels.window_stats(cloud.points, img, *centre, 0.005, 0.005, kernel_parameters(intr), 1, out)
+        share = out[verification_kernels.ST_EDGE_BEHIND] / out[verification_kernels.ST_EDGE_N]
+        assert out[verification_kernels.ST_EDGE_N] > 50 and (share < 0.05 if r == R else share > 0.5), (r, share)
 
 
 def test_ring_spread_tells_support_from_embedding():
     """A ball on a floor is attached below only (within half its outline: no spread); a cap sticking
     out of a wall is attached all round."""
-    from spherebench.method import improved as I
     import search_reference as ref
     from spherebench.method.detector import prepare_frame
 
@@ -219,7 +223,7 @@ def test_ring_spread_tells_support_from_embedding():
     spread = {}
     for name, cloud, centre in (("floor", floor, c), ("rolled", rolled, np.array([c[1], -c[0], c[2]])),
                                 ("embedded", embedded, c)):
-        v = I.verify_organised(prepare_frame(cloud, cfg), centre, cfg, buf)
+        v = verification_stage.verify_organised(prepare_frame(cloud, cfg), centre, cfg, buf)
         spread[name] = v.stats["ring_spread"]
     assert max(spread["floor"], spread["rolled"]) < 0.04 and spread["embedded"] > 0.2, spread
 
@@ -276,14 +280,13 @@ def test_unorganised_volumetric_noise_is_no_ball_but_a_ball_in_it_is():
 def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypatch):
     """verify_candidates_if_none: with 7 failing starts ranked first (points on the wall), the ball's
     start at rank 7 is verified and found; capped at verify_candidates (6) it is not."""
-    from spherebench.method import improved as I
 
     c = np.array([0.1, -0.05, 1.0])
     cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
     decoys = [np.array([x, y, 1.9]) for x, y in ((-0.6, -0.3), (-0.6, 0.3), (0.6, 0.3), (0.6, -0.3), (0.0, 0.35),
                                                  (-0.3, 0.35), (0.4, 0.35))]
     starts = np.array(decoys + [c])
-    monkeypatch.setattr(I, "search_frame", lambda frame, config, seed, **retry: (starts, np.arange(len(starts), 0, -1.0),
+    monkeypatch.setattr(search_stage, "search_frame", lambda frame, config, seed, **retry: (starts, np.arange(len(starts), 0, -1.0),
                                                                      np.zeros(len(starts), bool)))
     found = detect(cloud, config_for("improved"), seed=0)
     assert len(found) == 1 and np.linalg.norm(found[0].centre_m - c) < 0.003
@@ -297,19 +300,18 @@ def test_a_ball_ranked_below_clutter_is_verified_while_none_is_accepted(monkeypa
 def test_hypotheses_far_below_an_accepted_sphere_are_not_verified(monkeypatch):
     """VERIFY_SCORE_MARGIN: after the ball (search score 16) is accepted, a hypothesis at 12 is still
     verified and ones at 9 and 8 (more than 6 below) are not; without the margin all four are."""
-    from spherebench.method import improved as I
 
     c = np.array([0.1, -0.05, 1.0])
     cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
     starts = np.array([c, [-0.6, -0.3, 1.9], [0.6, 0.3, 1.9], [0.0, 0.35, 1.9]])
-    monkeypatch.setattr(I, "search_frame", lambda frame, config, seed, **retry: (starts, np.array([16.0, 12.0, 9.0, 8.0]),
+    monkeypatch.setattr(search_stage, "search_frame", lambda frame, config, seed, **retry: (starts, np.array([16.0, 12.0, 9.0, 8.0]),
                                                                      np.zeros(len(starts), bool)))
     calls = []
-    verify = I.verify_organised
-    monkeypatch.setattr(I, "verify_organised", lambda *a: calls.append(a[1]) or verify(*a))
+    verify = verification_stage.verify_organised
+    monkeypatch.setattr(verification_stage, "verify_organised", lambda *a: calls.append(a[1]) or verify(*a))
     for margin, n_verified in ((6.0, 2), (100.0, 4)):
         calls.clear()
-        monkeypatch.setattr(I, "VERIFY_SCORE_MARGIN", margin)
+        monkeypatch.setattr(improved_stage, "VERIFY_SCORE_MARGIN", margin)
         found = detect(cloud, config_for("improved"), seed=0)
         assert len(found) == 1 and np.linalg.norm(found[0].centre_m - c) < 0.003
         assert len(calls) == n_verified
@@ -322,11 +324,10 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     """RESCORE_BAND: a candidate whose score lies within 0.15 of accept_score (0.67) is verified again from 6
     starts about its centre and takes the mean score (a failed start counts 0); one far above it is
     not (0.90 stands though every other start would fail)."""
-    from spherebench.method import improved as I
 
     c = np.array([0.1, -0.05, 1.0])
     cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
-    monkeypatch.setattr(I, "search_frame",
+    monkeypatch.setattr(search_stage, "search_frame",
                         lambda frame, config, seed, **retry: (c[None], np.array([16.0]), np.zeros(1, bool)))
     scores = iter([first] + again)
     starts = []
@@ -334,11 +335,11 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     def fake_verify(frame, c0, config, buf, gate=None):
         starts.append(np.asarray(c0))
         s = next(scores)
-        return None if s is None else I.Candidate(centre_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
+        return None if s is None else verification_stage.Candidate(centre_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
                                                   free_centre_m=c.copy(), free_radius_m=R, free_radius_se_m=0.001,
                                                   rmse_m=0.002, stats={}, score=s, size_ok=True, raw_score=s)
 
-    monkeypatch.setattr(I, "verify_organised", fake_verify)
+    monkeypatch.setattr(verification_stage, "verify_organised", fake_verify)
     found = detect(cloud, IMPROVED, seed=0)
     assert (len(found) == 1) == accepted
     rescored = abs(first - IMPROVED.verification.accept_score) < 0.15
@@ -379,9 +380,9 @@ def test_descent_leaves_out_an_occluder_only_when_bounded():
     it lies beyond ``near`` (the retry's occluder bound), where the other side alone gives the step."""
     k, d, off, lim = 0.01, 4.0, 0.5, 10.0
     m0, m_cap = 2.0, 2.0 + k * (d + 1.0) ** 2 - k * 1.0  # the front point one cell to the -side
-    pulled = K.descent_step(m0, 1.5, m_cap, d, k, off, lim, np.inf)  # an occluder 0.5 m in front on -side
-    bounded = K.descent_step(m0, 1.5, m_cap, d, k, off, lim, 0.2)
-    alone = K.descent_step(m0, np.nan, m_cap, d, k, off, lim, np.inf)
+    pulled = search_kernels.descent_step(m0, 1.5, m_cap, d, k, off, lim, np.inf)  # an occluder 0.5 m in front on -side
+    bounded = search_kernels.descent_step(m0, 1.5, m_cap, d, k, off, lim, 0.2)
+    alone = search_kernels.descent_step(m0, np.nan, m_cap, d, k, off, lim, np.inf)
     assert bounded == alone and abs(bounded - (-1.0)) < 1e-9
     assert pulled < -4.0  # toward the occluder, far past the front point
 
@@ -451,26 +452,25 @@ def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray(monk
     """A start 1-1.5 R too near along the ray (the occluder's pixels in the search's centre box pull it
     there) fails verification; ``verify_pushed`` tries starts pushed back by OCCLUDED_PUSH_FRACTION R
     and finds the ball, unless the pushes are off or the noise there reaches the bound."""
-    from spherebench.method import improved as I
 
     cfg = config_for("improved")
     plain = pushed = 0
     for c, cloud in _occluded_frames(8, (0.5, 0.65), 2.0):
-        frame = I.PreparedFrame(cloud, cfg)
-        buf = I.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+        frame = frame_stage.PreparedFrame(cloud, cfg)
+        buf = compiled.workspace("inliers", (frame.index_image.size + 1,), np.int64)
         start = c - 1.2 * R * c / np.linalg.norm(c)
 
         def found(v):
             return (v is not None and v.size_ok and v.score >= cfg.verification.accept_score
                     and np.linalg.norm(v.centre_m - c) < 0.02)
 
-        plain += found(I.verify_organised(frame, start, cfg, buf))
-        pushed += found(I.verify_pushed(frame, start, cfg, buf))
+        plain += found(verification_stage.verify_organised(frame, start, cfg, buf))
+        pushed += found(verification_stage.verify_pushed(frame, start, cfg, buf))
         for constant, value in (("OCCLUDED_PUSH_STARTS", 0), ("OCCLUDED_PUSH_NOISE_FRACTION", 0.01)):  # off, loud
             with monkeypatch.context() as m:
-                m.setattr(I, constant, value)
-                again = I.verify_pushed(frame, start, cfg, buf)
-                first = I.verify_organised(frame, start, cfg, buf)
+                m.setattr(verification_stage, constant, value)
+                again = verification_stage.verify_pushed(frame, start, cfg, buf)
+                first = verification_stage.verify_organised(frame, start, cfg, buf)
             assert (again is None) == (first is None) and (again is None or again.score == first.score)
     assert plain <= 2 and pushed >= 7
 
@@ -478,7 +478,6 @@ def test_an_occluded_hypothesis_is_verified_again_pushed_back_along_its_ray(monk
 def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
     """Each retry verifies at most verify_candidates (6) of its hypotheses not verified before, each from
     one start, even far ones whose noise would call for the multistart in the first search."""
-    from spherebench.method import improved as I
 
     cloud = scene(ball_c=None, width=424, height=240)
     searches = iter([np.empty((0, 3))] + [np.array([[x, y, 4.5] for x in (-1.0, -0.5, 0.0, 0.5, 1.0)
@@ -489,27 +488,26 @@ def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
         return starts, np.arange(len(starts), 0, -1.0), np.zeros(len(starts), bool)
 
     calls = []
-    verify = I.verify_organised
-    monkeypatch.setattr(I, "search_frame", fake_search)
-    monkeypatch.setattr(I, "disc_search", lambda frame, config: fake_search(frame, config, 0))
-    monkeypatch.setattr(I, "hole_search", lambda frame, config: fake_search(frame, config, 0))
-    monkeypatch.setattr(I, "verify_organised", lambda *a, **kw: calls.append(a[1]) or verify(*a, **kw))
+    verify = verification_stage.verify_organised
+    monkeypatch.setattr(search_stage, "search_frame", fake_search)
+    monkeypatch.setattr(search_stage, "disc_search", lambda frame, config: fake_search(frame, config, 0))
+    monkeypatch.setattr(search_stage, "hole_search", lambda frame, config: fake_search(frame, config, 0))
+    monkeypatch.setattr(verification_stage, "verify_organised", lambda *a, **kw: calls.append(a[1]) or verify(*a, **kw))
     config = config_for("improved")
     ver = config.verification
-    assert ver.verify_candidates == 6 and 0.0075 * 4.5 ** 2 > I.MULTISTART_NOISE_FRACTION * R
+    assert ver.verify_candidates == 6 and 0.0075 * 4.5 ** 2 > verification_stage.MULTISTART_NOISE_FRACTION * R
     assert detect(cloud, config, seed=0) == [] and len(calls) == 30  # five retries, 6 each
 
 
 def test_retries_only_while_none_is_accepted(monkeypatch):
     """A frame whose first search gives a ball is searched once; an empty wall six times (the first
     search and the five retries), and without the retries once."""
-    from spherebench.method import improved as I
 
     calls = []
-    real, real_disc, real_hole = I.search_frame, I.disc_search, I.hole_search
-    monkeypatch.setattr(I, "search_frame", lambda *a, **kw: calls.append(kw) or real(*a, **kw))
-    monkeypatch.setattr(I, "disc_search", lambda *a: calls.append("disc") or real_disc(*a))
-    monkeypatch.setattr(I, "hole_search", lambda *a: calls.append("hole") or real_hole(*a))
+    real, real_disc, real_hole = search_stage.search_frame, search_stage.disc_search, search_stage.hole_search
+    monkeypatch.setattr(search_stage, "search_frame", lambda *a, **kw: calls.append(kw) or real(*a, **kw))
+    monkeypatch.setattr(search_stage, "disc_search", lambda *a: calls.append("disc") or real_disc(*a))
+    monkeypatch.setattr(search_stage, "hole_search", lambda *a: calls.append("hole") or real_hole(*a))
     assert len(detect(scene(ball_c=(0.1, -0.05, 1.0)), seed=0)) == 1 and calls == [{}]
     calls.clear()
     assert detect(scene(ball_c=None), seed=0) == [] and calls == [{}, {"relief": True}, {"occluder_bound": True},
@@ -539,13 +537,12 @@ def _far_frames(n: int):
 def test_disc_hypotheses_stand_out_of_their_background():
     """``_kernels.disc_hypotheses``: on a far ball's frame its best hypothesis lies on the ball (within half
     its disc radius of its image); a wall alone at the same depth gives none."""
-    from spherebench.method import improved as I
     from spherebench.method.detector import prepare_frame
 
     cfg = config_for("improved")
     for c, cloud in _far_frames(4):
         frame = prepare_frame(cloud, cfg)
-        centres, scores, _ = I.disc_search(frame, cfg)
+        centres, scores, _ = search_stage.disc_search(frame, cfg)
         intr = cloud.intrinsics
         u, v = intr.fx * c[0] / c[2] + intr.ppx, intr.fy * c[1] / c[2] + intr.ppy
         hu = intr.fx * centres[0, 0] / centres[0, 2] + intr.ppx
@@ -555,7 +552,7 @@ def test_disc_hypotheses_stand_out_of_their_background():
     z = np.full(wall.intrinsics.shape, 4.0, np.float32)
     z += (np.random.default_rng(0).normal(size=z.shape) * 0.0075 * 16.0).astype(np.float32)
     frame = prepare_frame(cloud_from_depth(z, wall.intrinsics), cfg)
-    assert len(I.disc_search(frame, cfg)[0]) == 0
+    assert len(search_stage.disc_search(frame, cfg)[0]) == 0
 
 
 def test_the_disc_retry_finds_far_balls_the_searches_lose():
@@ -580,7 +577,6 @@ def test_rejects_soccer_ball_and_empty_wall():
 def test_size_gate_in_the_kernel_agrees_with_the_size_check():
     """verify_organised stops early on candidates that the size check would drop:
     a 0.11 m ball is dropped by the gate, and without the gate it is verified but fails size_ok."""
-    from spherebench.method import improved as I
     from spherebench.method.detector import prepare_frame
 
     c = np.array([0.0, 0.0, 0.9])
@@ -588,14 +584,14 @@ def test_size_gate_in_the_kernel_agrees_with_the_size_check():
     start = c * (1.0 + 0.01 / np.linalg.norm(c))  # the 0.12 m sphere tangent to the 0.11 m one's front
     buf = np.empty(cloud.intrinsics.width * cloud.intrinsics.height + 1, np.int64)
     gated = config_for("improved")
-    assert I.verify_organised(prepare_frame(cloud, gated), start, gated, buf) is None
+    assert verification_stage.verify_organised(prepare_frame(cloud, gated), start, gated, buf) is None
     ungated = config_for("improved", refinement={"size_check": False})
-    v = I.verify_organised(prepare_frame(cloud, ungated), start, ungated, buf)
+    v = verification_stage.verify_organised(prepare_frame(cloud, ungated), start, ungated, buf)
     assert v is not None and abs(v.free_radius_m - 0.11) < 0.003
-    assert I.size_ok(v.free_radius_m, v.free_radius_se_m, gated) is False
+    assert verification_stage.size_ok(v.free_radius_m, v.free_radius_se_m, gated) is False
     # a real basketball passes the gate with the same start rule
     cloud = scene(ball_c=tuple(c), ball_r=R)
-    v = I.verify_organised(prepare_frame(cloud, gated), c, gated, buf)
+    v = verification_stage.verify_organised(prepare_frame(cloud, gated), c, gated, buf)
     assert v is not None and v.size_ok and np.linalg.norm(v.centre_m - c) < 0.003
 
 
@@ -750,7 +746,7 @@ def test_kinect_like_ball_a_few_percent_off_nominal_is_found(seed, monkeypatch):
     # the D435 noise model at fx 524 is twice this sensor's noise: a band that wide takes in the
     # outline's mixed pixels, the free radius comes out 5 % high and the size check refused the
     # ball (real Kinect frames: 0 of 24 found); the measured noise and the relative size tolerance fix it
-    from spherebench.method.improved import eps_at
+    from spherebench.method.noise import eps_at
     c = np.array([0.45, -0.5, 2.3])
     cloud = kinect_like_frame(c, seed=seed)
     config = config_for("improved", radius_m=0.203)
@@ -759,21 +755,20 @@ def test_kinect_like_ball_a_few_percent_off_nominal_is_found(seed, monkeypatch):
     assert abs(spheres[0].free_radius_m - 0.211) < 0.004
     assert spheres[0].evidence["eps_m"] < eps_at(config, 2.3, cloud.intrinsics.fx)  # narrowed by the data
     # without them the band is the noise model's, wider, and the ball is refused (or kept on that wider band)
-    from spherebench.method import improved as I
 
-    monkeypatch.setattr(I, "NOISE_FROM_DATA", False)
+    monkeypatch.setattr(verification_stage, "NOISE_FROM_DATA", False)
     old = config_for("improved", radius_m=0.203, noise={"noise_estimate": False}, refinement={"size_tolerance_fraction": 0.0})
     found_old = detect(cloud, old, seed=0)
     assert found_old == [] or found_old[0].evidence["eps_m"] > 1.2 * spheres[0].evidence["eps_m"]
 
 
 def test_sensor_noise_and_size_tolerance_settings():
-    from spherebench.method.improved import noise_a, size_tolerance
+    from spherebench.method.noise import noise_a
     assert noise_a(config_for("improved"), 600.0) == pytest.approx(0.08 / (600.0 * 0.05))
     assert noise_a(config_for("improved", noise={"noise_z2_per_m": 0.0015}), 600.0) == 0.0015
     assert noise_a(config_for("improved", noise={"noise_z2_per_m": 0.0015}), None) == 0.0
-    assert size_tolerance(config_for("improved")) == pytest.approx(0.0048)  # 4 % of 0.12 m
-    assert size_tolerance(config_for("improved", radius_m=0.05)) == 0.004
+    assert config_for("improved").radius_tolerance_m == pytest.approx(0.0048)  # 4 % of 0.12 m
+    assert config_for("improved", radius_m=0.05).radius_tolerance_m == 0.004
     for bad in ({"noise.noise_z2_per_m": -1.0}, {"noise.noise_z2_per_m": float("nan")},
                 {"refinement.size_tolerance_fraction": 2.0}):
         with pytest.raises(SphereBenchError):
@@ -786,12 +781,12 @@ def test_the_parameter_vector_holds_the_frame_and_the_model_only():
     are the kernels' own, and a retry's switches start off."""
     intr = Intrinsics.d435(424, 240)
     base = kernel_parameters(intr)
-    assert len(K.PARAMETERS) == K.N_PRM == len(base) and K.PARAMETERS.index("R") == K.P_R
-    assert (base[K.P_R], base[K.P_EPS], base[K.P_NOISE_K]) == (0.12, 0.01, 2.5)
-    assert base[K.P_EPS_CAP] == pytest.approx(K.MAX_EPS_FRACTION * 0.12) and base[K.P_MEAN_NOISE] == 1.0
-    assert base[K.P_OFF_AXIS] == base[K.P_OCCLUDER_BOUND] == base[K.P_ORDER_RELIEF] == 0.0
+    assert len(frame_kernels.PARAMETERS) == frame_kernels.N_PRM == len(base) and frame_kernels.PARAMETERS.index("R") == frame_kernels.P_R
+    assert (base[frame_kernels.P_R], base[frame_kernels.P_EPS], base[frame_kernels.P_NOISE_K]) == (0.12, 0.01, 2.5)
+    assert base[frame_kernels.P_EPS_CAP] == pytest.approx(frame_kernels.MAX_EPS_FRACTION * 0.12) and base[frame_kernels.P_MEAN_NOISE] == 1.0
+    assert base[frame_kernels.P_OFF_AXIS] == base[frame_kernels.P_OCCLUDER_BOUND] == base[frame_kernels.P_ORDER_RELIEF] == 0.0
     other = kernel_parameters(intr, IMPROVED.override({"radius_m": 0.2, "noise.noise_sigmas": 3.0}))
-    assert (other[K.P_R], other[K.P_NOISE_K]) == (0.2, 3.0)
+    assert (other[frame_kernels.P_R], other[frame_kernels.P_NOISE_K]) == (0.2, 3.0)
     ball = scene()
     assert len(detect(ball, seed=0)) == 1
 
@@ -801,16 +796,16 @@ def test_search_stencil_follows_the_off_axis_silhouette():
     tangentially: the search's stencil is stretched so along each image axis, and square on the axis."""
     intr = Intrinsics.d435(424, 240)
     prm = kernel_parameters(intr)
-    prm[K.P_OFF_AXIS] = 1.0  # as the off-axis retry sets it
+    prm[frame_kernels.P_OFF_AXIS] = 1.0  # as the off-axis retry sets it
     cu, cv = intr.ppx, intr.ppy  # bin 1: a cell is a pixel, its centre at the pixel's coordinate
-    assert K.stencil_stretch(prm, int(round(cv)), int(round(cu))) == pytest.approx((1.0, 1.0), abs=2e-4)
+    assert search_kernels.stencil_stretch(prm, int(round(cv)), int(round(cu))) == pytest.approx((1.0, 1.0), abs=2e-4)
     u = int(round(cu + intr.fx * math.tan(math.radians(35))))  # 35 degrees to the right, on the row of the axis
     y = (int(round(cv)) - intr.ppy) / intr.fy
-    su, sv = K.stencil_stretch(prm, int(round(cv)), u)
+    su, sv = search_kernels.stencil_stretch(prm, int(round(cv)), u)
     x = (u - intr.ppx) / intr.fx
     cos_theta = 1.0 / math.sqrt(1.0 + x * x + y * y)
     assert su == pytest.approx(1.0 / cos_theta ** 2, rel=1e-3) and sv == pytest.approx(1.0 / cos_theta, rel=1e-3)
-    assert K.stencil_stretch(kernel_parameters(intr), int(round(cv)), u) == (1.0, 1.0)  # the default: square
+    assert search_kernels.stencil_stretch(kernel_parameters(intr), int(round(cv)), u) == (1.0, 1.0)  # the default: square
 
 
 def test_settings_refuse_absurd_values_and_name_the_removed_ones():
@@ -854,14 +849,13 @@ def test_outline_centres_a_noisy_far_ball_across_the_line_of_sight(holder):
     """At 2.6 m with 7 cm of depth noise per pixel (0.6 R) the outline's depth step places the centre
     across the line of sight: a start 15 mm and 10 mm off comes back within 4 mm, its range kept; a
     holder under the ball (its sides step sideways, not outward) does not pull it down."""
-    from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
     config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
-    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, holder=holder), config)
+    frame = frame_stage.PreparedFrame(_far_ball_frame(truth, 0.07, holder=holder), config)
     start = truth + np.array([0.015, -0.010, 0.0])
     start *= np.linalg.norm(truth) / np.linalg.norm(start)  # the same range: only the direction is off
-    moved = I.outline_centre(frame, start, config)
+    moved = outline_stage.outline_centre(frame, start, config)
     assert np.linalg.norm(moved) == pytest.approx(np.linalg.norm(start), abs=1e-9)
     assert np.linalg.norm(moved - truth) < 0.004
     assert np.linalg.norm(start - truth) > 0.017
@@ -871,13 +865,12 @@ def test_outline_centring_leaves_an_axis_without_two_sides():
     """A surface at the ball's depth along its left side leaves the horizontal axis with an outline on
     one side only: it keeps its start there (a one-sided arc cannot tell a shift from a silhouette a
     pixel smaller), and the vertical axis, seen on both sides, is still centred."""
-    from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
     config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
-    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, left_wall=True), config)
+    frame = frame_stage.PreparedFrame(_far_ball_frame(truth, 0.07, left_wall=True), config)
     start = truth + np.array([0.0, -0.012, 0.0]) + np.array([0.010, 0.0, 0.0])
-    moved = I.outline_centre(frame, start, config)
+    moved = outline_stage.outline_centre(frame, start, config)
     assert abs(moved[0] - start[0]) < 0.002  # horizontal: kept (up to the range's rescaling)
     assert abs(moved[1] - truth[1]) < 0.004  # vertical: centred
 
@@ -887,15 +880,14 @@ def test_outline_centring_holds_back_an_axis_whose_outline_lies_beyond_the_spher
     out: on average the vertical axis's two sides lie 1.5 px outside the sphere's silhouette, more
     than mixed pixels make (OUTLINE_MAX_BIAS_PX, 1 px). That axis keeps its start; without the bound
     the ledge pulls the centre down by several mm. The horizontal axis is centred either way."""
-    from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
     config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
-    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, ledge_px=3.0), config)
+    frame = frame_stage.PreparedFrame(_far_ball_frame(truth, 0.07, ledge_px=3.0), config)
     start = truth + np.array([0.010, 0.0, 0.0])
-    held = I.outline_centre(frame, start, config)
-    monkeypatch.setattr(I, "OUTLINE_MAX_BIAS_PX", math.inf)
-    pulled = I.outline_centre(frame, start, config)
+    held = outline_stage.outline_centre(frame, start, config)
+    monkeypatch.setattr(outline_stage, "OUTLINE_MAX_BIAS_PX", math.inf)
+    pulled = outline_stage.outline_centre(frame, start, config)
     assert abs(held[1] - truth[1]) < 0.002 and pulled[1] - truth[1] > 0.004
     assert abs(held[0] - truth[0]) < 0.004 and abs(pulled[0] - truth[0]) < 0.004
 
@@ -905,7 +897,6 @@ def test_noisy_far_ball_is_measured_on_its_outline():
     4-8 mm off across the line of sight; with outline_evidence the hypothesis is measured again from
     its outline's centre, held on that ray (within 2 mm of the truth across it), and its evidence,
     taken where the ball is, scores no lower."""
-    from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
     u = truth / np.linalg.norm(truth)
@@ -914,10 +905,10 @@ def test_noisy_far_ball_is_measured_on_its_outline():
     plain = config.override({"outline.outline_evidence": False})
     gains = []
     for seed in range(3):
-        frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed), config)
-        buf = I.workspace("inliers", (frame.index_image.size + 1,), np.int64)
-        on = I.verify_organised(frame, truth, config, buf, frame.no_gate)
-        off = I.verify_organised(frame, truth, plain, buf, frame.no_gate)
+        frame = frame_stage.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed), config)
+        buf = compiled.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+        on = verification_stage.verify_organised(frame, truth, config, buf, frame.no_gate)
+        off = verification_stage.verify_organised(frame, truth, plain, buf, frame.no_gate)
         assert across(off.centre_m) > 0.003 and across(on.centre_m) < 0.002
         gains.append(on.score - off.score)
     assert min(gains) >= 0.0
@@ -928,19 +919,18 @@ def test_outline_size_tells_a_ball_of_another_radius_where_depth_cannot():
     distance, places the ball's radius to a few mm (its standard error, a quarter pixel at least,
     about 3 mm): the basketball reads R, a 0.15 m ball 3 cm more. Without a side's outline (a wall
     at the ball's depth) there is no outline size."""
-    from spherebench.method import improved as I
 
     truth = np.array([0.3, -0.1, 2.6])
     config = config_for("improved", noise={"noise_z2_per_m": 0.07 / 2.6 ** 2})
     rho = float(np.linalg.norm(truth))
     for radius in (R, 0.15):
         for seed in range(2):
-            frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed, radius=radius), config)
-            angle, se = I.outline_size(frame, truth, config)
+            frame = frame_stage.PreparedFrame(_far_ball_frame(truth, 0.07, seed=seed, radius=radius), config)
+            angle, se = outline_stage.outline_size(frame, truth, config)
             assert abs(rho * math.sin(angle) - radius) < 0.006
             assert 0.002 < rho * se < 0.006
-    frame = I.PreparedFrame(_far_ball_frame(truth, 0.07, left_wall=True), config)
-    assert I.outline_size(frame, truth, config) is None
+    frame = frame_stage.PreparedFrame(_far_ball_frame(truth, 0.07, left_wall=True), config)
+    assert outline_stage.outline_size(frame, truth, config) is None
 
 
 def test_detect_recentres_only_where_the_noise_nears_r():
@@ -967,7 +957,6 @@ def test_the_american_spelling_of_a_spheres_centre_still_answers_with_a_warning(
 def test_reported_score_is_the_verdicts_calibrated_probability():
     """A detection's score is the fitted verdict's raw output through the calibration knots of its
     model; an unorganised cloud's is the calibrated product of its hand-set factors."""
-    from spherebench.method import improved as I
     from spherebench.method.verdict import load_verdict
 
     cloud = scene(ball_c=(0.05, -0.02, 1.1), wall_z=1.8, width=424, height=240)
@@ -975,8 +964,8 @@ def test_reported_score_is_the_verdicts_calibrated_probability():
     verdict = load_verdict()
     assert len(found) == 1 and found[0].score >= IMPROVED.verification.accept_score
     assert found[0].score == pytest.approx(float(np.interp(found[0].raw_score, verdict.knots_score, verdict.knots_p)))
-    slope, offset = I.UNORGANISED_CALIBRATION
+    slope, offset = unorganised_stage.UNORGANISED_CALIBRATION
     product = 100 / (100 + 30) * (1.0 - 0.5) ** 2  # support, interior; the size agrees exactly
     want = 1.0 / (1.0 + math.exp(-(slope * math.log(product / (1.0 - product)) + offset)))
-    assert I.unorganised_score({"interior_density_ratio": 0.5}, 100, R, 0.001, IMPROVED) == pytest.approx(want)
-    assert I.unorganised_score({"interior_density_ratio": 1.5}, 100, R, 0.001, IMPROVED) == 0.0
+    assert unorganised_stage.unorganised_score({"interior_density_ratio": 0.5}, 100, R, 0.001, IMPROVED) == pytest.approx(want)
+    assert unorganised_stage.unorganised_score({"interior_density_ratio": 1.5}, 100, R, 0.001, IMPROVED) == 0.0

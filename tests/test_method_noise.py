@@ -12,7 +12,9 @@ from spherebench.camera import Intrinsics
 from spherebench.cloud import cloud_from_depth, depth_to_metres
 from spherebench.datasets.sensor import D435Sensor, apply_sensor
 from spherebench.method import config_for
-from spherebench.method.improved import NOISE_MODEL_TOLERANCE, PreparedFrame, noise_a
+from spherebench.method import verification as verification_stage
+from spherebench.method.frame import PreparedFrame
+from spherebench.method.noise import NOISE_MODEL_TOLERANCE, noise_a
 
 # depth noise only: no holes, flying pixels or shadow band
 BARE = D435Sensor(hole_probability=0.0, hole_blobs_per_mpx=0.0, flying_probability=0.0, shadow=False)
@@ -77,7 +79,7 @@ def test_measured_noise_correlation_matches_the_sensor_within_10_percent(width, 
 
 def test_effective_samples_of_correlated_noise():
     from spherebench.datasets.sensor import correlated_noise
-    from spherebench.method.improved import correlation_from_ratio, _second_difference_ratio, mean_variance_inflation
+    from spherebench.method.noise import _second_difference_ratio, correlation_from_ratio, mean_variance_inflation
     assert mean_variance_inflation(0.0) == 1.0 and mean_variance_inflation(0.3) == pytest.approx(1.0, abs=1e-4)
     assert mean_variance_inflation(4.0) == pytest.approx(np.pi * 16.0, rel=1e-3)  # pi length^2 when long
     assert (mean_variance_inflation(2.0, stride=4) < mean_variance_inflation(2.0, stride=2)
@@ -97,9 +99,9 @@ def test_effective_samples_of_correlated_noise():
 def test_multistart_verification_only_where_noise_nears_the_radius():
     """A far ball on a noisy unit is verified from several starts and kept only through the mean of
     the starts about the best; a near ball, or the same frame with multistart off, goes the plain way."""
-    from spherebench.method import detect, improved as imp
+    from spherebench.method import detect
     calls = []
-    real = imp.verify_multistart
+    real = verification_stage.verify_multistart
 
     def counting(*args, **kw):
         calls.append(1)
@@ -107,14 +109,14 @@ def test_multistart_verification_only_where_noise_nears_the_radius():
 
     cloud, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=2.0, tilt_deg=0.0)
     cfg = config_for("improved")
-    imp.verify_multistart = counting
-    fraction = imp.MULTISTART_NOISE_FRACTION
+    verification_stage.verify_multistart = counting
+    fraction = verification_stage.MULTISTART_NOISE_FRACTION
     try:
         detect(cloud, cfg, seed=0)  # sigma at 2 m: 3 cm, a quarter of R
         assert not calls
-        imp.MULTISTART_NOISE_FRACTION = 0.1
+        verification_stage.MULTISTART_NOISE_FRACTION = 0.1
         detect(cloud, cfg, seed=0)
         assert calls
     finally:
-        imp.verify_multistart = real
-        imp.MULTISTART_NOISE_FRACTION = fraction
+        verification_stage.verify_multistart = real
+        verification_stage.MULTISTART_NOISE_FRACTION = fraction

@@ -121,7 +121,7 @@ def test_the_relief_search_ranks_a_near_cap_above_bumps_of_noise():
     from scipy.ndimage import gaussian_filter
 
     from spherebench.cloud import cloud_from_depth
-    from spherebench.method import improved as I
+    from spherebench.method import search as search_stage
     from spherebench.method.detector import prepare_frame
 
     c = np.array([0.2, 0.05, 0.9])
@@ -132,6 +132,6 @@ def test_the_relief_search_ranks_a_near_cap_above_bumps_of_noise():
     z += (0.08 / bumps.std() * bumps).astype(np.float32) * (z > 2.0)
     frame = prepare_frame(cloud_from_depth(z, cloud.intrinsics), IMPROVED)
     for relief in (False, True):
-        centres, scores, _ = I.search_frame(frame, IMPROVED, 0, relief=relief)
-        assert len(centres) == I.SEARCH_CANDIDATES and np.linalg.norm(centres[0] - c) < 0.5 * R
+        centres, scores, _ = search_stage.search_frame(frame, IMPROVED, 0, relief=relief)
+        assert len(centres) == search_stage.SEARCH_CANDIDATES and np.linalg.norm(centres[0] - c) < 0.5 * R
         assert (scores[1] < 0.01 * scores[0]) if relief else (scores[1] > 0.97 * scores[0]), (relief, scores[:3])

@@ -13,9 +13,10 @@ from spherebench.circles import mask_circle, sphere_circle_amodal, sphere_circle
 from spherebench.cloud import Cloud
 from spherebench.errors import SphereBenchError
 from spherebench.method import config_for, detect
-from spherebench.method import _kernels as K
+from spherebench.method import compiled, frame_kernels, search_kernels, verification_kernels
+from spherebench.method import frame as frame_stage
+from spherebench.method import search as search_stage
 from spherebench.method import detector as det
-from spherebench.method import improved as imp
 import search_reference as ref  # noqa: E402  (tests/ is on sys.path under pytest)
 
 from test_method_detector import cap_points, scene
@@ -26,7 +27,7 @@ R = 0.12
 def test_splitmix_replay_matches_kernel():
     state = np.array([12345], np.uint64)
     gen = ref.SplitMix64(12345)
-    assert [K.next_u01(state) for _ in range(50)] == [gen.u01() for _ in range(50)]
+    assert [compiled.next_u01(state) for _ in range(50)] == [gen.u01() for _ in range(50)]
 
 
 @pytest.mark.parametrize("ball, noise, seed, width, off_axis, occluder",
@@ -44,11 +45,11 @@ def test_compiled_search_equals_reference(ball, noise, seed, width, off_axis, oc
     cfg = config_for("improved", search={"iterations": 2000, "adaptive": False, "search_width_px": 130})
     frame = det.prepare_frame(cloud, cfg)
     assert frame.bin == max(1, width // 130)
-    cands, quals, _ = imp.search_frame(frame, cfg, seed, occluder_bound=occluder, off_axis=off_axis)
+    cands, quals, _ = search_stage.search_frame(frame, cfg, seed, occluder_bound=occluder, off_axis=off_axis)
     prm = frame.prm.copy()
-    prm[K.P_OCCLUDER_BOUND] = 1.0 if occluder else 0.0
-    prm[K.P_OFF_AXIS] = 1.0 if off_axis else 0.0
-    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed, imp.SEARCH_CANDIDATES)
+    prm[frame_kernels.P_OCCLUDER_BOUND] = 1.0 if occluder else 0.0
+    prm[frame_kernels.P_OFF_AXIS] = 1.0 if off_axis else 0.0
+    hyp, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed, search_stage.SEARCH_CANDIDATES)
     assert np.array_equal(frame.counters, ctr) and ctr[1] > 0
     assert np.array_equal(frame.hypotheses, hyp)
     # and the best hypothesis is the ball (unrefined: from box means)
@@ -62,17 +63,17 @@ def test_summed_area_table_gives_box_sums():
         assert frame.bin == b
         grid = ref.Grid(*ref.cell_images(cloud.points, frame.index_image, b), frame.prm)
         for (v, u, h) in ((0, 0, 2), (10, 15, 3), (19, 33, 1), (5, 2, 0), (-4, 3, 2), (40, 40, 1)):
-            assert K.box_sums(frame.tab, v, u, h) == grid.box_sums(v, u, h)
-            got, want = K.box_range(frame.tab, frame.prm, v, u, h), grid.box_range(v, u, h)
+            assert search_kernels.box_sums(frame.tab, v, u, h) == grid.box_sums(v, u, h)
+            got, want = search_kernels.box_range(frame.tab, frame.prm, v, u, h), grid.box_range(v, u, h)
             assert got[1] == want[1] and (got[0] == want[0] or (math.isnan(got[0]) and math.isnan(want[0])))
         # cells of 2 x 2 count all their pixels, cells of 3 x 3 their middle row (every pixel is valid here)
         rows_counted = np.arange(60) % b == b // 2 if b >= 3 else np.ones(60, bool)
-        assert frame.n_valid == 100 * rows_counted.sum() and frame.prm[K.P_CELL_PX] == b * (1 if b >= 3 else b)
+        assert frame.n_valid == 100 * rows_counted.sum() and frame.prm[frame_kernels.P_CELL_PX] == b * (1 if b >= 3 else b)
     # depth sums and counts packed in one uint64 stay apart: a frame of 10 m depths (2.4e9 mm in all at 240 x 1000)
     far = Cloud(np.column_stack([np.zeros(240_000), np.zeros(240_000), np.full(240_000, 10.0)]),
                 np.repeat(np.arange(240), 1000), np.tile(np.arange(1000), 240), Intrinsics.d435(1000, 240))
     frame = det.prepare_frame(far, config_for("improved", search={"search_width_px": 1000}))
-    assert K.box_sums(frame.tab, 120, 500, 10) == (441 * 10_000, 441, 441)
+    assert search_kernels.box_sums(frame.tab, 120, 500, 10) == (441 * 10_000, 441, 441)
 
 
 def test_window_stats_compiled_equals_reference():
@@ -80,11 +81,11 @@ def test_window_stats_compiled_equals_reference():
     frame = det.prepare_frame(cloud, config_for("improved"))
     c = np.array([0.102, -0.049, 1.003])
     for stride in (1, 2):
-        got = np.zeros(K.N_STATS)
-        K.window_stats(cloud.points, frame.index_image, *c, 0.006, 0.004, frame.prm, stride, got)
+        got = np.zeros(verification_kernels.N_STATS)
+        verification_kernels.window_stats(cloud.points, frame.index_image, *c, 0.006, 0.004, frame.prm, stride, got)
         want = ref.window_stats(cloud.points, frame.index_image, c, 0.006, 0.004, frame.prm, stride)
         assert np.allclose(got, want, rtol=1e-5, atol=2e-5)  # residual sums: the kernel rounds differently
-        assert got[K.ST_INLIER] > 0.7 * got[K.ST_VALID_DISC] and got[K.ST_IN_N] > 10 and got[K.ST_OUTV_N] > 10
+        assert got[verification_kernels.ST_INLIER] > 0.7 * got[verification_kernels.ST_VALID_DISC] and got[verification_kernels.ST_IN_N] > 10 and got[verification_kernels.ST_OUTV_N] > 10
 
 
 def test_strata_follow_the_ransac_bound():
@@ -92,31 +93,31 @@ def test_strata_follow_the_ransac_bound():
     intr = Intrinsics.d435(424, 240)
     grid = (240, 424)
     # a room 3 m deep: the bound provides for a ball at 3 m + R, a disc of r = fx R / z cells
-    z_far = imp.far_depth_m(cfg, intr, 3.0)
+    z_far = frame_stage.far_depth_m(cfg, intr, 3.0)
     assert z_far == pytest.approx(3.12)
     r = intr.fx * R / 3.12
-    k = imp.stratum_side_ratio(imp.SAMPLE_SUCCESS, cfg.search.confidence)
-    assert imp.strata(cfg, intr, z_far, 1, grid) == (int(k * r), int(k * r))
+    k = frame_stage.stratum_side_ratio(frame_stage.SAMPLE_SUCCESS, cfg.search.confidence)
+    assert frame_stage.strata(cfg, intr, z_far, 1, grid) == (int(k * r), int(k * r))
     # k: the worst case over where the disc falls is within the confidence, a slightly larger one is not
     search = cfg.search
-    assert imp.stratified_miss(k, imp.SAMPLE_SUCCESS) <= 1 - search.confidence < imp.stratified_miss(1.05 * k, 0.8)
+    assert frame_stage.stratified_miss(k, frame_stage.SAMPLE_SUCCESS) <= 1 - search.confidence < frame_stage.stratified_miss(1.05 * k, 0.8)
     # independent draws (the area bound) would need strata of 0.74 r: half as many again
-    k_area = math.sqrt(imp.SAMPLE_SUCCESS * math.pi / -math.log(1 - cfg.search.confidence))
+    k_area = math.sqrt(frame_stage.SAMPLE_SUCCESS * math.pi / -math.log(1 - cfg.search.confidence))
     assert k_area == pytest.approx(0.739, abs=1e-3) and k > 1.18 * k_area
     # a partly visible ball: the area bound, which holds for any shape
-    s_part = imp.strata(cfg, intr, z_far, 1, grid, visible_fraction=0.5)[0]
+    s_part = frame_stage.strata(cfg, intr, z_far, 1, grid, visible_fraction=0.5)[0]
     assert s_part == int(math.sqrt(0.8 * 0.5 * math.pi * r * r / -math.log(0.01)))
     # a shallow scene needs fewer, larger strata; a deep one is capped by the noise range limit (3.5 m at 424x240)
-    assert imp.strata(cfg, intr, imp.far_depth_m(cfg, intr, 1.0), 1, grid)[0] > 2 * int(k * r)
-    assert imp.range_limit_m(cfg, intr.fx) == pytest.approx(math.sqrt(0.75 * R * intr.fx * 0.05 / 0.08))
-    assert imp.far_depth_m(cfg, intr, 8.0) == imp.far_depth_m(cfg, intr, 5.0) == imp.range_limit_m(cfg, intr.fx)
+    assert frame_stage.strata(cfg, intr, frame_stage.far_depth_m(cfg, intr, 1.0), 1, grid)[0] > 2 * int(k * r)
+    assert frame_stage.range_limit_m(cfg, intr.fx) == pytest.approx(math.sqrt(0.75 * R * intr.fx * 0.05 / 0.08))
+    assert frame_stage.far_depth_m(cfg, intr, 8.0) == frame_stage.far_depth_m(cfg, intr, 5.0) == frame_stage.range_limit_m(cfg, intr.fx)
     # cells of 3 x 3 pixels: the disc is 3 times smaller in cells
     hd = Intrinsics.d435(1280, 720)
-    assert imp.strata(cfg, hd, z_far, 3, grid)[0] == int(k * hd.fx / 3 * R / 3.12)
+    assert frame_stage.strata(cfg, hd, z_far, 3, grid)[0] == int(k * hd.fx / 3 * R / 3.12)
     # without the bound: about `iterations` strata; never fewer than min_iterations
-    sv, su = imp.strata(config_for("improved", search={"adaptive": False, "iterations": 400}), intr, z_far, 1, grid)
+    sv, su = frame_stage.strata(config_for("improved", search={"adaptive": False, "iterations": 400}), intr, z_far, 1, grid)
     assert 400 <= -(-240 // sv) * -(-424 // su) <= 520
-    sv, su = imp.strata(config_for("improved", search={"min_iterations": 2000}), intr, 0.5, 1, grid)
+    sv, su = frame_stage.strata(config_for("improved", search={"min_iterations": 2000}), intr, 0.5, 1, grid)
     assert -(-240 // sv) * -(-424 // su) >= 2000
 
 
@@ -141,25 +142,25 @@ def test_stratified_miss_matches_simulated_draws():
         exact = float(np.prod(1 - p * np.array(share)))
         se = math.sqrt(exact * (1 - exact) / trials)
         assert abs(simulated - exact) < 4 * se + 1e-4
-        assert exact <= imp.stratified_miss(k, p) + 1e-9  # the worst case covers every offset
+        assert exact <= frame_stage.stratified_miss(k, p) + 1e-9  # the worst case covers every offset
     # and the worst case is far below the area bound exp(-p pi / k^2) of independent draws
-    assert imp.stratified_miss(k, p) < 0.5 * math.exp(-p * math.pi / k ** 2)
+    assert frame_stage.stratified_miss(k, p) < 0.5 * math.exp(-p * math.pi / k ** 2)
 
 
 def test_search_draws_one_first_cell_per_stratum():
     cloud = scene(ball_c=(0.05, 0.0, 1.2), noise=0.004, width=160, height=120, seed=2)
     cfg = config_for("improved")
     frame = det.prepare_frame(cloud, cfg)
-    imp.search_frame(frame, cfg, 3)
+    search_stage.search_frame(frame, cfg, 3)
     sv, su = frame.stratum
     assert frame.counters[0] == frame.iterations == -(-120 // sv) * -(-160 // su)
 
 
 def test_scene_depth_from_the_histogram():
     # the scene depth comes from the frame's histogram (98th percentile, to a bin's upper edge)
-    hist = np.zeros(imp.HIST_BINS, np.int64)
+    hist = np.zeros(frame_stage.HIST_BINS, np.int64)
     hist[[20, 40, 60]] = [50, 48, 2]
-    assert imp.hist_percentile(hist, 98.0) == pytest.approx(41 * imp.HIST_STEP_M)
+    assert frame_stage.hist_percentile(hist, 98.0) == pytest.approx(41 * frame_stage.HIST_STEP_M)
 
 
 def test_exact_circle_analytic_inside_rasterised_at_border():
@@ -243,19 +244,19 @@ def test_preparation_matches_numpy_in_any_point_order(width, height):
     pts[::97, 0] = np.nan
     pts[5::89, 2] = -1.0
     pts[7::101, 2] = 1500.0  # millimetres
-    row_cell, col_cell = imp.cell_lookup(h, w, b)
+    row_cell, col_cell = frame_stage.cell_lookup(h, w, b)
     results = []
     for order in (np.arange(len(pts)), np.arange(len(pts))[::-1]):
         img = np.zeros((h, w), np.int32)
         tab = np.full((hc + 1, wc + 1), 7, np.uint64)  # stale contents: every entry must be written
-        hist = np.ones(imp.HIST_BINS, np.int64)
-        n_ok, n_big = K.prepare_organised(pts[order], cloud.rows[order], cloud.cols[order], img, tab, row_cell,
-                                          col_cell, np.float32(50.0), hist, np.float32(1.0 / imp.HIST_STEP_M))
-        stride = max(K.HIST_STRIDE, len(pts) // K.HIST_SAMPLES)
+        hist = np.ones(frame_stage.HIST_BINS, np.int64)
+        n_ok, n_big = frame_kernels.prepare_organised(pts[order], cloud.rows[order], cloud.cols[order], img, tab, row_cell,
+                                          col_cell, np.float32(50.0), hist, np.float32(1.0 / frame_stage.HIST_STEP_M))
+        stride = max(frame_kernels.HIST_STRIDE, len(pts) // frame_kernels.HIST_SAMPLES)
         sampled = order[::stride]
         sampled = sampled[np.isfinite(pts[sampled]).all(axis=1) & (pts[sampled, 2] > 0)]
-        bins = np.minimum((pts[sampled, 2] * np.float32(1.0 / imp.HIST_STEP_M)).astype(np.int64), imp.HIST_BINS - 1)
-        assert np.array_equal(hist, np.bincount(bins, minlength=imp.HIST_BINS))
+        bins = np.minimum((pts[sampled, 2] * np.float32(1.0 / frame_stage.HIST_STEP_M)).astype(np.int64), frame_stage.HIST_BINS - 1)
+        assert np.array_equal(hist, np.bincount(bins, minlength=frame_stage.HIST_BINS))
         results.append((n_ok, n_big, np.where(img >= 0, order[np.maximum(img, 0)], -1), tab))
     (ok1, big1, img1, tab1), (ok2, big2, img2, tab2) = results
     finite = np.isfinite(pts).all(axis=1)
@@ -264,7 +265,7 @@ def test_preparation_matches_numpy_in_any_point_order(width, height):
     assert np.array_equal(img1, img2) and (img1 >= 0).sum() == good.sum()
     z_mm = (np.minimum(pts[good, 2] * np.float32(1000.0) + np.float32(0.5), np.float32(2.0 ** 32))
             .astype(np.int64).astype(np.uint64))
-    packed = z_mm + (np.uint64(1) << np.uint64(K.COUNT_SHIFT))
+    packed = z_mm + (np.uint64(1) << np.uint64(frame_kernels.COUNT_SHIFT))
     cells = np.zeros((hc + 1, wc + 1), np.uint64)
     r, c = row_cell[cloud.rows[good]], col_cell[cloud.cols[good]]
     np.add.at(cells, (r[r >= 0], c[r >= 0]), packed[r >= 0])

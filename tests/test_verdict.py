@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from spherebench.method.config import IMPROVED, config_for
+from spherebench.method.config import IMPROVED
 from spherebench.method.verdict import FEATURE_NAMES, MODEL_PATH, N_FEATURES, FittedVerdict, load_verdict, verdict_features
 
 pytest.importorskip("sklearn")

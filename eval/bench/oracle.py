@@ -9,10 +9,10 @@ mAP.
 **The detector's ceiling** (``ceiling``): verification started from the truth, so that the search
 cannot lose the ball.
 
-For each true ball, the detector's own verification (``improved.verify_organised``: refinement,
-evidence, free-radius size check; ``improved.rescore`` near the threshold) runs on the same prepared
+For each true ball, the detector's own verification (``verification.verify_organised``: refinement,
+evidence, free-radius size check; ``verification.rescore`` near the threshold) runs on the same prepared
 frame (the frame's measured noise included) from the true centre and from the six starts about it
-that ``rescore`` uses (``improved.RESCORE_STARTS``): where the noise is a good part of R, the
+that ``rescore`` uses (``verification.RESCORE_STARTS``): where the noise is a good part of R, the
 refinement's optima lie a cm or two apart and one start's end is a draw. The ball is within the
 **ceiling** when one of them accepts it as the detector would (size check passed, score at least
 ``min_score``) with its refined centre within 2 cm of the truth: a detector whose search always
@@ -33,7 +33,7 @@ import numpy as np
 
 from spherebench.cloud import Cloud
 from spherebench.method import detect
-from spherebench.method import improved
+from spherebench.method import compiled, verification
 from spherebench.method.config import DetectorConfig
 from spherebench.method.detector import prepare_frame
 
@@ -106,10 +106,10 @@ def truth_verifications(frame, centre_m, config: DetectorConfig, buf):
     starts around it, each rescored where its score lies near the threshold: Candidates, or None
     where a start verifies nothing, in the order of the starts."""
     c = np.asarray(centre_m, np.float64)
-    for off in ((0.0, 0.0, 0.0),) + improved.RESCORE_STARTS:
-        v = improved.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
-        if v is not None and abs(v.score - config.verification.accept_score) < improved.RESCORE_BAND:
-            v = improved.rescore(frame, v, config, buf)
+    for off in ((0.0, 0.0, 0.0),) + verification.RESCORE_STARTS:
+        v = verification.verify_organised(frame, c + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
+        if v is not None and abs(v.score - config.verification.accept_score) < verification.RESCORE_BAND:
+            v = verification.rescore(frame, v, config, buf)
         yield v
 
 
@@ -127,7 +127,7 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
     """Per true ball (``centres_m``: (B, 3) metres): {score, size_ok, error_m, within (the ceiling),
     separable (None unless asked)}. The cloud must be organised (a depth frame)."""
     frame = prepare_frame(cloud, config)
-    buf = improved.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+    buf = compiled.workspace("inliers", (frame.index_image.size + 1,), np.int64)
     out = []
     for c in centres_m:
         best = {"score": 0.0, "size_ok": False, "error_m": math.inf, "within": False, "separable": None}

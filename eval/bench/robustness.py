@@ -34,7 +34,7 @@ from spherebench.eval.metrics.metrics3d import FOUND_M, detection_counts, scene_
 from spherebench.eval.metrics.sensor_grid import GRID_AXES, grid_key
 from spherebench.method import config_for
 from spherebench.method.detector import prepare_frame
-from spherebench.method.improved import frame_noise_correlation_px
+from spherebench.method.noise import frame_noise_correlation_px
 from spherebench.parallel import executor, single_thread_here
 
 #: The issue's time figure before this work: improved's 424x240 frame over paper-lstsq's (ratio).

@@ -1,7 +1,7 @@
 """Fitting the detector's verdict (``method/verdict.py``) on the candidates of both sensor models.
 
 1. ``collect``: the improved detector runs on every scene of `train` and `train-stereo` with no
-   verdict (``improved.unscored``: every candidate scores the same, nothing is accepted, every search
+   verdict (``verdict.unscored``: every candidate scores the same, nothing is accepted, every search
    and retry runs; ``COLLECT_OVERRIDES``: every distinct verified sphere that passes the size check is
    reported), so that no earlier model steers what the next one sees. Each candidate becomes a row: its
    ``verdict_features``, its
@@ -36,16 +36,16 @@ from spherebench.eval.metrics.calibration import expected_calibration_error
 from spherebench.eval.metrics.metrics3d import found_limit_m
 from spherebench.method.config import DetectorConfig, config_for
 from spherebench.method.detector import detect
-from spherebench.method.improved import unscored
+from spherebench.method.verdict import unscored
 from spherebench.method.verdict import FEATURE_NAMES, verdict_features
 from spherebench.parallel import executor
 from spherebench.provenance import dist_version
 
-#: the collection's detector (with ``improved.unscored``): nothing accepted, every verified candidate that passes
+#: the collection's detector (with ``verdict.unscored``): nothing accepted, every verified candidate that passes
 #: the size check kept and reported, duplicates (centres within 1.2 cm) suppressed
 COLLECT_OVERRIDES = {"verification.accept_score": 1.0, "verification.rank_floor": 0.0, "verification.min_score": 0.0,
                      "verification.max_spheres": 100, "verification.nms_distance_fraction": 0.05}
-#: the score every candidate gets in the collection (``improved.unscored``)
+#: the score every candidate gets in the collection (``verdict.unscored``)
 COLLECT_SCORE = 0.5
 #: scenes whose index is this modulo CALIBRATION_EVERY are held apart from the fit, for the calibration
 CALIBRATION_EVERY, CALIBRATION_REST = 5, 4
@@ -258,7 +258,7 @@ def model_card(df: pd.DataFrame, comparison: dict, model: FittedModel, seed: int
                    "held_apart_candidates": int(((df.dataset == name) & cal).sum())} for name in sorted(set(df.dataset))}
     card = {"model": comparison["chosen"], "seed": seed, "collection_seeds": seeds,
             "datasets": [str(d) for d in datasets], "data": data, "features": list(FEATURE_NAMES),
-            "collection_overrides": COLLECT_OVERRIDES,
+            "collection_overrides": COLLECT_OVERRIDES, "collection_score": COLLECT_SCORE,
             "held_apart": f"scenes whose index is {CALIBRATION_REST} mod {CALIBRATION_EVERY}",
             "cross_sensor": {k: v for k, v in comparison.items() if k != "chosen"},
             "calibration": model.calibration, "knots": len(model.knots[0]), "command": command,
@@ -266,7 +266,8 @@ def model_card(df: pd.DataFrame, comparison: dict, model: FittedModel, seed: int
     lines = [f"# Model card: the fitted verdict ({comparison['chosen']})", "",
              "The probability that a verified sphere's centre lies within 2 cm (3 cm beyond 3 m) of a ball's, "
              "from the quantities verification measures on it (`method/verdict.py`, FEATURE_NAMES).", "",
-             "- Data: the improved detector's candidates (hand-set verdict, floor 1e-4) on "
+             "- Data: the improved detector's candidates, collected with no verdict (nothing accepted, every search "
+             "and retry run, every distinct verified sphere that passes the size check) on "
              + ", ".join(f"`{d}` ({v['scenes']} scenes, {v['candidates']} candidates, {v['positives']} positive)"
                          for d, v in data.items())
              + f", run seeds {', '.join(map(str, seeds))}.",

@@ -19,7 +19,7 @@ from spherebench.eval.bench.sweep import read_settings
 from spherebench.method import config_for
 from spherebench.method.config import DetectorConfig
 from spherebench.method.detector import prepare_frame
-from spherebench.method.improved import noise_a
+from spherebench.method.noise import noise_a
 
 
 def parser(doc: str) -> argparse.ArgumentParser:

@@ -1,0 +1,99 @@
+"""Stage 2, the search (organised clouds): hypotheses of ball centres from box means of depth.
+
+One RANSAC draw per stratum of the cell grid (strata a few cells a side, in raster order, sized
+by the standard bound for the smallest ball the frame can hold: ``strata``) gives a first cell;
+from it a stencil of boxes whose size follows the ball's image radius at that depth descends to the
+local minimum of the range (the ball's front point, on the ray through its centre) and tests the
+cap and the outline in O(1) (``search_kernels.front_hypothesis``). Raw three-point samples cannot
+place a ball beyond about 1.5 m at 424x240 (one pixel's noise exceeds the relief between two
+samples); a box mean of n pixels has sigma / sqrt(n). The paper's three points within a ball
+diameter are here five boxes about the first cell, and the known radius enters as the cap's
+curvature.
+
+While no sphere is accepted the improved pipeline searches again (``search_frame``'s switches,
+``disc_search``, ``hole_search``): hypotheses ranked by their cap's relief, the descent past
+occluders, the stencil stretched off the optical axis, discs standing out of their background, and
+holes ringed by a ball's face.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from spherebench.method import frame_kernels as FK
+from spherebench.method import search_kernels as SK
+from spherebench.method.config import DetectorConfig
+from spherebench.method.frame import PreparedFrame
+
+# How the search and its retries work; each chosen on the training splits
+# (docs/experiments/2026-12-04-config-history.md and the records it points to). The stencil's
+# geometry is ``search_kernels``'.
+SEARCH_CANDIDATES = 16  # hypotheses kept per search, by score
+DISC_NOISE_FRACTION = 0.25  # the disc search starts where one pixel's noise reaches this * R
+DISC_INNER_FRACTION = 0.5  # its inner box's half-side (* r, the disc radius)
+DISC_SIDE_OFFSET_FRACTION = 1.7  # its four side boxes' offset (* r): clear of the outline's mixed pixels
+DISC_SIDE_HALF_FRACTION = 0.35  # their half-side (* r)
+DISC_GAP_FRACTION = 1.0  # a side box is behind when farther than the inner box by R ...
+DISC_GAP_SIGMAS = 3.0  # ... and 3 standard errors
+DISC_MIN_BEHIND = 3  # at least 3 of the four side boxes behind (a ball on a floor has one not)
+DISC_STEP_FRACTION = 0.5  # visit every k-th cell, k half the disc radius at max_range_m
+HOLE_MIN_RING = 6  # of the eight directions from a hole cell, at least this many reach its ring
+HOLE_MIN_FRACTION = 0.45  # the hole's mean radius at least this * r (smaller: blobs of dropout)
+HOLE_STEP_FRACTION = 0.25  # visit every k-th cell, k this * the disc radius at max_range_m
+HOLE_MIN_RANGE_M = 0.3  # the ring is looked for within the disc radius of a ball this near (m)
+
+
+def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int,
+                 occluder_bound: bool = False, off_axis: bool = False,
+                 relief: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,), occluded (M,)
+    bool: passed the pretest with a side hidden by an occluder, ``search_kernels.front_hypothesis``), best first.
+    occluder_bound: the descent leaves out side boxes in front of a cap (``frame_kernels.P_OCCLUDER_BOUND``);
+    off_axis: the stencil follows the silhouette's stretch off the optical axis (``search_kernels.stencil_stretch``);
+    relief: the hypotheses ranked by how far their cap stands out of the noise (``search_kernels._relief_llr``)."""
+    hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
+    counters = np.zeros(2, np.int64)
+    prm = frame.prm
+    if occluder_bound or off_axis or relief:
+        prm = prm.copy()
+        if occluder_bound:
+            prm[FK.P_OCCLUDER_BOUND] = 1.0
+        if off_axis:
+            prm[FK.P_OFF_AXIS] = 1.0
+        if relief:
+            prm[FK.P_ORDER_RELIEF] = 1.0
+    m = SK.search_organised(frame.tab, prm, np.uint64(seed), hyp, counters)
+    frame.counters = counters  # diagnostics (see search_kernels.search_organised)
+    frame.hypotheses = hyp[:m]
+    centres = SK.cell_centres(frame.prm, hyp[:m])
+    return centres, hyp[:m, 4].copy(), hyp[:m, 5] > 0.0
+
+
+def disc_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run ``search_kernels.disc_hypotheses`` on the frame beyond the depth where one pixel's noise reaches
+    ``DISC_NOISE_FRACTION`` R; returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
+    R = config.radius_m
+    z_min = math.sqrt(DISC_NOISE_FRACTION * R / frame.noise_a) if frame.noise_a > 0 else math.inf
+    fc = frame.prm[FK.P_FX] / frame.bin
+    step = max(1, int(DISC_STEP_FRACTION * fc * R / config.search.max_range_m))
+    hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
+    retry = config.retry
+    m = SK.disc_hypotheses(frame.tab, frame.prm, z_min, DISC_INNER_FRACTION, DISC_SIDE_OFFSET_FRACTION,
+                          DISC_SIDE_HALF_FRACTION, DISC_GAP_FRACTION * R, DISC_GAP_SIGMAS, DISC_MIN_BEHIND, step, hyp)
+    frame.hypotheses = hyp[:m]
+    return SK.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)
+
+
+def hole_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run ``search_kernels.hole_hypotheses`` on the frame (every ``HOLE_STEP_FRACTION`` of a far ball's disc);
+    returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
+    R = config.radius_m
+    fc = frame.prm[FK.P_FX] / frame.bin
+    retry = config.retry
+    step = max(1, int(HOLE_STEP_FRACTION * fc * R / config.search.max_range_m))
+    hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
+    m = SK.hole_hypotheses(frame.tab, frame.prm, HOLE_MIN_RANGE_M, step, HOLE_MIN_RING, HOLE_MIN_FRACTION, hyp)
+    frame.hypotheses = hyp[:m]
+    return SK.cell_centres(frame.prm, hyp[:m]), hyp[:m, 4].copy(), np.zeros(m, bool)

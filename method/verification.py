@@ -1,0 +1,209 @@
+"""Stage 3, verification: a hypothesis refined into a sphere and measured, then scored by the verdict.
+
+Gauss-Newton with R fixed, re-selecting the inliers each round: first on ||p - c|| - R (from a
+start some cm to the side, the residuals along rays that miss the sphere hardly move the centre),
+then on the residual along each pixel's ray, where the D435's noise lies
+(``verification_kernels.verify_organised``). A free-radius fit is the size check, a hard gate (most
+candidates stop there). Then the statistics of the whole silhouette and its outline ring
+(``verification_kernels.window_stats``: the shares of pixels that are inliers, seen behind the
+sphere, hugging it, continuing or attached at the outline, seen through the inner disc or the edge
+band, the relief of the inner zone against the outer ones), which the verdict turns into a
+probability (``verdict``). Where one pixel's noise nears R the hypothesis is verified from several
+starts, and a candidate near the acceptance threshold takes the mean over six starts about it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from spherebench.circles import norm3
+from spherebench.method import frame_kernels as FK
+from spherebench.method import verification_kernels as VK
+from spherebench.method.config import DetectorConfig
+from spherebench.method.frame import PreparedFrame
+from spherebench.method.noise import mean_variance_inflation
+from spherebench.method.outline import (
+    OUTLINE_EVIDENCE_MIN_MOVE_PX, OUTLINE_EVIDENCE_MIN_SCORE, OUTLINE_EVIDENCE_NOISE_FRACTION, outline_centre,
+    outline_size)
+from spherebench.method.verdict import verdict
+
+# Where verification starts from; each chosen on the training splits
+# (docs/experiments/2026-12-04-config-history.md and the records it points to).
+RESCORE_BAND = 0.15  # a candidate within this of accept_score is verified again from six starts
+RESCORE_OFFSET_XY = 0.2  # the six starts' offsets across the line of sight (* R) ...
+RESCORE_OFFSET_Z = 0.33  # ... and along it (* R)
+MULTISTART_NOISE_FRACTION = 0.5  # while none is accepted, seven starts where one pixel's noise exceeds this * R
+OCCLUDED_PUSH_FRACTION = 0.5  # an occluded hypothesis is verified again pushed back by this * R ...
+OCCLUDED_PUSH_STARTS = 4  # ... from up to this many starts ...
+OCCLUDED_PUSH_NOISE_FRACTION = 0.25  # ... where one pixel's noise is below this * R
+NOISE_FROM_DATA = True  # the final band narrows to a candidate's own residual spread where that is below the model's
+
+#: a candidate's stats by name: ``verification_kernels.window_stats``' slots
+_STAT_NAMES = {"valid_disc": VK.ST_VALID_DISC, "inlier": VK.ST_INLIER, "front": VK.ST_FRONT,
+               "front_near": VK.ST_FRONT_NEAR, "behind": VK.ST_BEHIND, "invalid_disc": VK.ST_INVALID_DISC,
+               "ring": VK.ST_RING, "ring_continued": VK.ST_RING_CONT, "ring_front": VK.ST_RING_FRONT,
+               "valid_inner": VK.ST_VALID_INNER, "behind_inner": VK.ST_BEHIND_INNER,
+               "edge_n": VK.ST_EDGE_N, "edge_behind": VK.ST_EDGE_BEHIND, "ring_spread": VK.ST_RING_SPREAD,
+               "inner_n": VK.ST_IN_N, "inner_sum": VK.ST_IN_SUM,
+               "outer_h_n": VK.ST_OUTH_N, "outer_h_sum": VK.ST_OUTH_SUM, "outer_v_n": VK.ST_OUTV_N,
+               "outer_v_sum": VK.ST_OUTV_SUM}
+#: ``rescore``'s six starts about a refined centre (units of R): across the line of sight (camera x and y)
+#: and along it (z), where the refinement's optima lie a cm or two apart at 2-3 m
+RESCORE_STARTS = ((RESCORE_OFFSET_XY, 0.0, 0.0), (-RESCORE_OFFSET_XY, 0.0, 0.0), (0.0, RESCORE_OFFSET_XY, 0.0),
+                  (0.0, -RESCORE_OFFSET_XY, 0.0), (0.0, 0.0, RESCORE_OFFSET_Z), (0.0, 0.0, -RESCORE_OFFSET_Z))
+
+
+@dataclass
+class Candidate:
+    """One verified sphere before it becomes a ``Sphere`` (indices into the searched points)."""
+
+    centre_m: np.ndarray
+    inliers: np.ndarray
+    eps_m: float
+    free_centre_m: np.ndarray
+    free_radius_m: float
+    free_radius_se_m: float
+    rmse_m: float
+    stats: dict
+    score: float  # the probability of a ball (``verdict``)
+    size_ok: bool
+    raw_score: float  # the verdict's score before its calibration
+
+
+def size_ok(free_r: float, free_se: float, config: DetectorConfig) -> bool:
+    """The size check: the free radius free_r (m) within the tolerance plus ``size_sigmas`` of its
+    standard error free_se (m; R standing in for an unknown one) of R, and never beyond
+    ``verification_kernels.SIZE_LIMIT_FRACTION`` R whatever the error says; True without ``size_check``."""
+    if not config.refinement.size_check:
+        return True
+    R = config.radius_m
+    se = free_se if math.isfinite(free_se) else R
+    d = abs(free_r - R)
+    return bool(math.isfinite(free_r) and d <= config.radius_tolerance_m + config.refinement.size_sigmas * se
+                and d <= VK.SIZE_LIMIT_FRACTION * R)
+
+
+def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+                     gate: np.ndarray | None = None, hold_direction: bool = False) -> Candidate | None:
+    """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it.
+    Where one pixel's noise at the refined centre is at least ``OUTLINE_EVIDENCE_NOISE_FRACTION`` R
+    (``DetectorConfig.outline.outline_evidence``), the candidate is then re-centred on its outline and
+    verified again from there with its direction held: the cap's relief leaves the refined centre a
+    pixel or more beside the ball, and the evidence is taken where the outline says the ball is.
+    gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
+    fits move the centre along its ray only (``fit_kernels.fit_range``)."""
+    v = _verify_once(frame, c0, config, buf, gate, hold_direction)
+    if (v is None or hold_direction or not config.outline.outline_evidence or v.score < OUTLINE_EVIDENCE_MIN_SCORE
+            or frame.noise_a * float(v.centre_m[2]) ** 2 < OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m):
+        return v
+    oc = outline_centre(frame, v.centre_m, config)
+    size = outline_size(frame, oc, config) if config.outline.outline_size else None
+    # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
+    if size is None and (float(np.linalg.norm(oc - v.centre_m)) * frame.prm[FK.P_FX] / float(oc[2])
+                         < OUTLINE_EVIDENCE_MIN_MOVE_PX):
+        return v
+    # the kernel's early stop judges the depth fit's radius, which the outline's replaces
+    return _verify_once(frame, oc, config, buf, gate if size is None else frame.no_gate, True, size)
+
+
+def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+                 gate: np.ndarray | None, hold_direction: bool,
+                 size: tuple[float, float] | None = None) -> Candidate | None:
+    """One pass of the verification kernel (``verification_kernels.verify_organised``) from c0, scored. size: the
+    outline's angular radius and its standard error (``outline_size``), which then give the size
+    check's radius in place of the depth fit's (at the verified centre's distance)."""
+    out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
+    VK.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
+                       config.refinement.refine_iterations, VK.FIT_MAX_POINTS,
+                       VK.RAY_S_MIN_FRACTION, NOISE_FROM_DATA,
+                       frame.gate if gate is None else gate, hold_direction, buf, out, st)
+    n = int(out[VK.V_N])
+    if n < config.verification.min_inliers:  # too few, or failed the size check (-1)
+        return None
+    stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
+    # pixels per effective sample of the evidence's counts and zone means: the window's stride
+    # (``verification_kernels.window_stride``, as the kernel took it) against the noise's correlation length
+    cz = float(out[VK.V_CZ])
+    stride = VK.window_stride(float(out[VK.V_CX]), float(out[VK.V_CY]), cz, config.radius_m * VK.RING_FACTOR,
+                             max(frame.prm[FK.P_FX], frame.prm[FK.P_FY]), 4.0 * VK.FIT_MAX_POINTS)
+    stats["pixels_per_sample"] = mean_variance_inflation(frame.noise_corr_px, int(stride))
+    # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
+    # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
+    # quantisation steps) would otherwise fail a real ball's zone means by a few mm
+    stats["sigma_m"] = frame.prm[FK.P_NOISE_A] * float(out[VK.V_CZ]) ** 2
+    stats["sigma_measured_m"] = float(out[VK.V_SIGMA])
+    stats["eps_m"] = float(out[VK.V_EPS])
+    # the share of the silhouette's pixels with depth that no nearer surface hides (an occluder: more
+    # than R / 2 in front of the sphere; ``verification_kernels.window_stats``' FRONT less FRONT_NEAR)
+    vd = stats["valid_disc"]
+    stats["visible_fraction"] = 1.0 - max(0.0, stats["front"] - stats["front_near"]) / vd if vd > 0 else 0.0
+    free_r, free_se = float(out[VK.V_FR]), float(out[VK.V_FSE])
+    if size is not None:
+        rho = float(np.linalg.norm(out[VK.V_CX:VK.V_CZ + 1]))
+        free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
+    stats.update(depth_m=cz, n_inliers=float(n), rmse_m=float(out[VK.V_RMSE]), free_radius_m=free_r,
+                 free_radius_se_m=free_se, noise_ratio=frame.noise_ratio)
+    raw, score = verdict(stats, config.radius_m)
+    # inliers: filled in for the reported spheres only (``verification_kernels.final_inliers``)
+    return Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[VK.V_EPS]),
+                     free_centre_m=out[VK.V_FCX:VK.V_FCZ + 1].copy(), free_radius_m=free_r,
+                     free_radius_se_m=free_se, rmse_m=float(out[VK.V_RMSE]), stats=stats, score=score,
+                     size_ok=size_ok(free_r, free_se, config), raw_score=raw)
+
+
+def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
+                      buf: np.ndarray) -> Candidate | None:
+    """A hypothesis whose depth noise is a good part of R (``MULTISTART_NOISE_FRACTION``), verified from
+    its centre and from each of ``RESCORE_STARTS`` about it: where one pixel's noise nears R, the
+    refinement's end depends on its start by a few cm, and a hypothesis a few cm off converges
+    off the ball's optimum. The best-scoring verification that passes the size check is kept."""
+    best = None
+    for off in ((0.0, 0.0, 0.0),) + RESCORE_STARTS:
+        v = verify_organised(frame, c0 + config.radius_m * np.asarray(off), config, buf)
+        if v is not None and v.size_ok and (best is None or v.score > best.score):
+            best = v
+    return best
+
+
+def verify_pushed(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
+                  buf: np.ndarray) -> Candidate | None:
+    """A hypothesis that passed the search's pretest by an occluded side, verified from its centre and,
+    while that fails, from starts pushed back along its ray (``OCCLUDED_PUSH_FRACTION`` R each, at most
+    ``OCCLUDED_PUSH_STARTS``, only where one pixel's noise is below ``OCCLUDED_PUSH_NOISE_FRACTION`` R):
+    the occluder's pixels in its centre box pull the front range, and the start, towards the camera,
+    by up to the occluder's gap. The first verification that passes the size check within
+    ``RESCORE_BAND`` of accept_score is returned, else the best that passes it (the first of equals),
+    else the last."""
+    R = config.radius_m
+    ray = c0 / max(norm3(c0), 1e-9)
+    quiet = frame.prm[FK.P_NOISE_A] * c0[2] ** 2 < OCCLUDED_PUSH_NOISE_FRACTION * R
+    v = best = None
+    for j in range(1 + (OCCLUDED_PUSH_STARTS if quiet else 0)):
+        v = verify_organised(frame, c0 + j * OCCLUDED_PUSH_FRACTION * R * ray, config, buf)
+        if v is not None and v.size_ok:
+            if v.score >= config.verification.accept_score - RESCORE_BAND:
+                return v
+            best = v if best is None or v.score > best.score else best
+    return best if best is not None else v
+
+
+def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: np.ndarray) -> Candidate:
+    """A candidate near the score threshold, verified again from each of ``RESCORE_STARTS`` about its centre
+    (without the kernel's early stop, so that each start's whole score and size verdict count): its
+    score becomes the mean of all (a start left with too few inliers counts 0) and its size check
+    the majority's. The centre, evidence and fits stay the first verification's; stats gets
+    "score_single", the first score (see ``RESCORE_BAND``); the raw score is averaged alike."""
+    scores, raws = [cand.score], [cand.raw_score]
+    size_ok = [cand.size_ok]
+    for off in RESCORE_STARTS:
+        v = verify_organised(frame, cand.centre_m + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
+        scores.append(0.0 if v is None else v.score)
+        raws.append(0.0 if v is None else v.raw_score)
+        size_ok.append(v is not None and v.size_ok)
+    cand.stats["score_single"] = cand.score
+    cand.score, cand.raw_score = float(np.mean(scores)), float(np.mean(raws))
+    cand.size_ok = 2 * sum(size_ok) > len(size_ok)
+    return cand
