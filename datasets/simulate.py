@@ -200,6 +200,12 @@ def _stereo_twin(name: str, code: int, stereo: Mapping | None = None) -> Preset:
 
 register_preset(_stereo_twin("default", 6))
 register_preset(_stereo_twin("hard", 7))
+# `default-stereo`'s scenes (its seed stream: the same layouts, within the few mm that the image's
+# border moves a ball drawn in view) rendered at the D435's other depth modes: the resolution study
+# of `make eval` (``eval.bench.resolution``)
+for _res in ("848x480", "1280x720"):
+    register_preset(replace(PRESETS["default-stereo"], name=f"default-stereo-{_res.split('x')[0]}", resolutions=((_res, 1.0),),
+                            benchmark=False, description=f"`default-stereo`'s scenes at {_res}"))
 # train's twin: as train draws its analytic sensor per scene, this draws the unit's light and
 # imager per scene (TRAIN_STEREO), so that choices made on it hold across units and rooms
 register_preset(_stereo_twin("train", 8, TRAIN_STEREO))

@@ -8,7 +8,8 @@ stencil). ``DetectorConfig`` holds the model (R, eps, the pipeline) and one froz
 verification.min_score=0.4``); ``override`` and ``config_for`` take such paths. The settings are the
 physical facts (R, the sensor's noise) and the error rates (the bound's confidence, the score
 thresholds), with the switches an ablation needs; how a stage works is its module's constants
-(``improved``, ``_kernels``), and whether a candidate is a ball is the fitted verdict's (``verdict``).
+(``frame``, ``noise``, ``search``, ``verification``, ``outline`` and their kernels), and whether a
+candidate is a ball is the fitted verdict's (``verdict``).
 
 Presets: ``PAPER`` is section 2.5 of Roman-Rivera et al. (2023) as written (three points drawn from
 the whole cloud, the known-radius minimal solver, eps = 1 cm, 1,000 iterations, the candidate-centre

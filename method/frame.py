@@ -3,7 +3,7 @@
 One pass over the points (``frame_kernels.prepare_organised``) builds the index image, the
 summed-area table of depth and valid count over cells of ``search_width_px``-wide binning, and a
 depth histogram (the scene's far depth). The frame's noise is measured (``noise``), the search's
-strata sized (``search.strata``), and the kernels' parameter vector filled (``parameters``).
+strata sized (``frame.strata``), and the kernels' parameter vector filled (``parameters``).
 """
 
 from __future__ import annotations

@@ -581,7 +581,7 @@ def search_organised(tab, prm, seed, cands, counters):
 
     Why strata rather than independent draws: a ball is missed only if every stratum it covers draws
     off it or fails, so the miss probability is at most that of as many independent draws (the
-    bound, ``search.strata``) and far below it once the ball covers whole strata; and first cells
+    bound, ``frame.strata``) and far below it once the ball covers whole strata; and first cells
     in raster order keep the table's rows in cache (a third of the time per draw of random points).
     counters (2,) int64 gets: first cells drawn, hypotheses past the pretest. Returns the number of
     hypotheses kept.

@@ -334,14 +334,15 @@ def build_grid(points: np.ndarray, cell_m: float) -> dict:
     return {"order": order, "keys": keys[order], "origin": lo, "cell": float(cell_m), "dims": dims}
 
 
-def unorganised_score(stats: dict, n_inliers: int, free_r: float, free_se: float, config: DetectorConfig) -> float:
-    """An unorganised cloud's score in [0, 1]: no image, so no silhouette for the fitted verdict to
-    read. The product of the support n / (n + min_inliers), the interior's emptiness
-    (1 - min(1, q))^2, q the density of points in the ball's inner half over that in its shell (a
-    wall it cuts, volumetric noise: a real ball hides its interior), and the size's agreement
-    exp(-d^2 / 2), d the free radius's deviation from R in units of the tolerance plus its standard
-    error; mapped by the logistic map fitted to the hand-set product on organised candidates
-    (``UNORGANISED_CALIBRATION``). Hand-set: docs/detector.md, "Unorganised clouds"."""
+def unorganised_score(stats: dict, n_inliers: int, free_r: float, free_se: float,
+                      config: DetectorConfig) -> tuple[float, float]:
+    """An unorganised cloud's (evidence product, probability), each in [0, 1]: no image, so no
+    silhouette for the fitted verdict to read. The product of the support n / (n + min_inliers), the
+    interior's emptiness (1 - min(1, q))^2, q the density of points in the ball's inner half over
+    that in its shell (a wall it cuts, volumetric noise: a real ball hides its interior), and the
+    size's agreement exp(-d^2 / 2), d the free radius's deviation from R in units of the tolerance
+    plus its standard error; the probability is the product through ``UNORGANISED_CALIBRATION``'s
+    logistic map. Hand-set: docs/detector.md, "Unorganised clouds"."""
     score = n_inliers / (n_inliers + config.verification.min_inliers)
     if "interior_density_ratio" in stats:
         score *= (1.0 - min(1.0, stats["interior_density_ratio"])) ** 2
@@ -349,11 +350,11 @@ def unorganised_score(stats: dict, n_inliers: int, free_r: float, free_se: float
         se = free_se if math.isfinite(free_se) else config.radius_m
         d = (free_r - config.radius_m) / (config.radius_tolerance_m + se) if math.isfinite(free_r) else math.inf
         score *= math.exp(-0.5 * d * d) if math.isfinite(d) else 0.0
-    score = min(max(score, 0.0), 1.0)
+    score = float(min(max(score, 0.0), 1.0))
     if score <= 0.0 or score >= 1.0:
-        return float(score)
+        return score, score
     slope, offset = UNORGANISED_CALIBRATION
-    return 1.0 / (1.0 + math.exp(-(slope * math.log(score / (1.0 - score)) + offset)))
+    return score, 1.0 / (1.0 + math.exp(-(slope * math.log(score / (1.0 - score)) + offset)))
 
 
 def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfig) -> Candidate | None:
@@ -388,7 +389,7 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
     v_shell = (R + e) ** 3 - max(R - e, 0.0) ** 3  # volumes / (4 pi / 3)
     stats = {"inside": inside, "shell": float(n),
              "interior_density_ratio": (inside / max(r_in, 1e-12) ** 3) / (n / v_shell) if r_in > 0 else 0.0}
-    score = unorganised_score(stats, n, float(free_r), float(free_se), config)
+    raw, score = unorganised_score(stats, n, float(free_r), float(free_se), config)
     return Candidate(centre_m=c, inliers=idx, eps_m=e, free_centre_m=np.asarray(free_c), free_radius_m=float(free_r),
                      free_radius_se_m=float(free_se), rmse_m=rmse, stats=stats, score=score,
-                     size_ok=size_ok(float(free_r), float(free_se), config), raw_score=score)
+                     size_ok=size_ok(float(free_r), float(free_se), config), raw_score=raw)

@@ -85,7 +85,8 @@ def ring_sector(du, dv):
 @kernel
 def ring_spread(out):
     """The share of the ring's pixels attached (out[ST_SECTOR_ATTACHED + k]) outside the half ring,
-    N_SECTORS / 2 consecutive sectors, that holds the most of them (``improved.RING_SPREAD_FREE``)."""
+    N_SECTORS / 2 consecutive sectors, that holds the most of them: a ball rests on one side, clutter
+    shaped like a cap is embedded all round (a verdict input)."""
     total = 0.0
     attached = 0.0
     for k in range(N_SECTORS):

@@ -967,5 +967,6 @@ def test_reported_score_is_the_verdicts_calibrated_probability():
     slope, offset = unorganised_stage.UNORGANISED_CALIBRATION
     product = 100 / (100 + 30) * (1.0 - 0.5) ** 2  # support, interior; the size agrees exactly
     want = 1.0 / (1.0 + math.exp(-(slope * math.log(product / (1.0 - product)) + offset)))
-    assert unorganised_stage.unorganised_score({"interior_density_ratio": 0.5}, 100, R, 0.001, IMPROVED) == pytest.approx(want)
-    assert unorganised_stage.unorganised_score({"interior_density_ratio": 1.5}, 100, R, 0.001, IMPROVED) == 0.0
+    got = unorganised_stage.unorganised_score({"interior_density_ratio": 0.5}, 100, R, 0.001, IMPROVED)
+    assert got == pytest.approx((product, want))
+    assert unorganised_stage.unorganised_score({"interior_density_ratio": 1.5}, 100, R, 0.001, IMPROVED) == (0.0, 0.0)
