@@ -8,7 +8,7 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: help eval test venv stream-bench data data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real clean distclean
+.PHONY: help eval test venv stream-bench data data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide data-resolution realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real clean distclean
 
 # ---- help: every target with its line (the `## ` comment after the target's name)
 help:  ## list the targets with one line each
@@ -32,6 +32,7 @@ data-hard-sensor: $(DATA)/hard-sensor/coco_gt.json  ## hard's scenes, each with 
 data-stereo: $(DATA)/default-stereo/coco_gt.json $(DATA)/hard-stereo/coco_gt.json  ## default's and hard's twins through the stereo sensor model
 data-train-stereo: $(DATA)/train-stereo/coco_gt.json  ## train's twin through the stereo sensor model
 data-wide: $(DATA)/wide/coco_gt.json $(DATA)/wide-stereo/coco_gt.json  ## the wide grammar (pitched cameras, supports, textures) and its stereo twin
+data-resolution: $(DATA)/default-stereo-848/coco_gt.json $(DATA)/default-stereo-1280/coco_gt.json  ## default-stereo's scenes at 848x480 and 1280x720 (the resolution study)
 
 # every preset is registered in datasets/simulate.py (hard-sensor: hard's scenes under the robust
 # grid's span of sensors, drawn per scene; `make sweep` reports it)
@@ -51,8 +52,9 @@ $(DATA)/real/lidar-spherecalib/dataset.json: | venv
 # ---- the benchmark
 # every method on data/default, data/hard and data/robust (the sensor grid), on data/wide (the wider
 # scene grammar) and on the stereo twins of default, hard and wide (the transfer table), Table 2 on
-# data/paper -> results/ (resumable; FORCE=1 recomputes every prediction set)
-eval: venv data data-hard data-robust data-stereo data-wide  ## every method on default, hard, robust, wide and the stereo twins; Table 2 on paper -> results/
+# data/paper, and the resolution study (default-stereo's scenes at 424x240, 848x480 and 1280x720) -> results/
+# (resumable; FORCE=1 recomputes every prediction set)
+eval: venv data data-hard data-robust data-stereo data-wide data-resolution  ## every method on default, hard, robust, wide and the stereo twins; Table 2 on paper; the resolution study -> results/
 	$(SB) eval --data $(DATA) --out results --seed $(SEED) --workers $(WORKERS) $(if $(FORCE),--force)
 	cp results/hough_config.json baselines/hough_config.json  # the package's copy (package data)
 

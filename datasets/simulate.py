@@ -104,7 +104,7 @@ class Preset:
     """What a preset builds: its default size, its families (with shares) and resolutions."""
 
     name: str
-    code: int                                   # enters every scene seed: disjoint streams per preset
+    code: int                                   # enters every scene seed: one stream per preset (shared by its resolution_of renderings)
     n_default: int
     families: tuple[tuple[str, float], ...]
     resolutions: tuple[tuple[str, float], ...] = (("424x240", 1.0),)
@@ -120,6 +120,7 @@ class Preset:
     variant_of: str | None = None               # a variant: that preset's scenes with sensor_overrides
     sensor_overrides: Mapping = field(default_factory=dict)
     holes: tuple[tuple[str, float], ...] = ()   # family -> share of its scenes whose balls get a Hole (HOLE_STREAM)
+    resolution_of: str | None = None            # the preset whose seed stream (layouts) this one renders at its resolutions
 
 
 #: The roles the results' reading (``eval.bench.prose``) looks presets up by, rather than by name.
@@ -204,8 +205,9 @@ register_preset(_stereo_twin("hard", 7))
 # border moves a ball drawn in view) rendered at the D435's other depth modes: the resolution study
 # of `make eval` (``eval.bench.resolution``)
 for _res in ("848x480", "1280x720"):
-    register_preset(replace(PRESETS["default-stereo"], name=f"default-stereo-{_res.split('x')[0]}", resolutions=((_res, 1.0),),
-                            benchmark=False, description=f"`default-stereo`'s scenes at {_res}"))
+    register_preset(replace(PRESETS["default-stereo"], name=f"default-stereo-{_res.split('x')[0]}",
+                            resolutions=((_res, 1.0),), benchmark=False, resolution_of="default-stereo",
+                            description=f"`default-stereo`'s scenes at {_res}"))
 # train's twin: as train draws its analytic sensor per scene, this draws the unit's light and
 # imager per scene (TRAIN_STEREO), so that choices made on it hold across units and rooms
 register_preset(_stereo_twin("train", 8, TRAIN_STEREO))

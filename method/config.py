@@ -162,7 +162,7 @@ class Noise(_Group):
     noise_z2_per_m: float | None = None  # A given outright (1/m; None: the stereo model at the stream's fx)
     noise_estimate: bool = True  # organised: measure A on the frame (second differences of depth)
     noise_correlation: bool = True  # organised: measure the noise's correlation length on the frame
-    noise_sigmas: float = 2.5  # the inlier band's half-width: max(eps, noise_sigmas * sigma_z) (1.2 % of a ball's pixels out)
+    noise_sigmas: float = 2.5  # inlier band: max(eps, noise_sigmas * sigma_z) (1.2 % of a ball's pixels out)
 
     RULES: typing.ClassVar[dict] = {"noise_subpixel": ">= 0", "noise_baseline_m": ">= 0", "noise_z2_per_m": ">= 0",
                                     "noise_sigmas": ">= 0"}

@@ -3,7 +3,8 @@
 One pass over the points (``frame_kernels.prepare_organised``) builds the index image, the
 summed-area table of depth and valid count over cells of ``search_width_px``-wide binning, and a
 depth histogram (the scene's far depth). The frame's noise is measured (``noise``), the search's
-strata sized (``frame.strata``), and the kernels' parameter vector filled (``parameters``).
+strata sized by the RANSAC bound for the smallest ball the frame can hold (``strata``), and the
+kernels' parameter vector filled (``parameters``).
 """
 
 from __future__ import annotations
@@ -18,9 +19,11 @@ from spherebench.method import verification_kernels as VK
 from spherebench.method.compiled import workspace
 from spherebench.method.config import DetectorConfig
 from spherebench.method.noise import (
-    NOISE_ESTIMATE_LAG_PX, NOISE_MODEL_TOLERANCE, noise_mean_square, frame_noise_correlation_px,
-    mean_variance_inflation, noise_a)
+    NOISE_ESTIMATE_LAG_PX, NOISE_MODEL_TOLERANCE, frame_noise_correlation_px, mean_variance_inflation, noise_a,
+    noise_mean_square)
 
+# The frame's limits and the search's bound; each chosen on the training splits
+# (docs/experiments/2026-12-04-config-history.md and the records it points to).
 MM_LIMIT_M = 50.0  # a cloud whose median |z| is beyond this is in millimetres (``input.mm_check``)
 SAMPLE_SUCCESS = 0.8  # the chance that a first cell on the ball gives a hypothesis that passes the pretest
 BOUND_NOISE_FRACTION = 0.75  # the bound provides for balls to where one pixel's noise is this * R ...
@@ -74,7 +77,8 @@ def far_depth_m(config: DetectorConfig, intr, z_scene_m: float, a: float | None 
 
 def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape: tuple[int, int],
            visible_fraction: float = 1.0) -> tuple[int, int]:
-    """The search's strata: (rows, columns) of cells; one first cell is drawn in each (``search_kernels.search_organised``).
+    """The search's strata: (rows, columns) of cells; one first cell is drawn in each
+    (``search_kernels.search_organised``).
 
     The standard RANSAC bound for the smallest ball the frame can hold: a ball of radius R at depth
     z_far shows a disc of r = fx R / (bin z_far) cells. A first cell on it gives a passing
@@ -83,9 +87,9 @@ def strata(config: DetectorConfig, intr, z_far_m: float, bin_px: int, grid_shape
     the worst case over where the disc falls depends on s / r alone (``stratified_miss``), so
     s = k r with k the largest ratio whose worst case is within 1 - confidence
     (``stratum_side_ratio``: 0.89 for p = 0.8 and 99 %, where as many independent uniform draws as
-    strata would need 0.74, nearly half as many draws again). With ``visible_fraction`` (of the ball, provided for) below 1 the
-    visible part is no disc, and the area bound is used instead: prod_j (1 - p f_j) <=
-    exp(-p A / s^2), A the visible area, which holds for any shape. The number of strata is kept
+    strata would need 0.74, nearly half as many draws again). With ``visible_fraction`` (the share of
+    the ball provided for) below 1 the visible part is no disc, and the area bound is used instead:
+    prod_j (1 - p f_j) <= exp(-p A / s^2), A the visible area, which holds for any shape. The number of strata is kept
     within [min_iterations, iterations] (about: strata are whole cells). Without ``adaptive``,
     ``iterations`` strata.
     """

@@ -115,7 +115,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     # ringed by a ball's face, and verify the hypotheses not verified before
     retries = [] if frame is None else (
         ([lambda: search.search_frame(frame, config, seed, relief=True)] if config.retry.retry_relief else [])
-        + ([lambda: search.search_frame(frame, config, seed, occluder_bound=True)] if config.retry.retry_occluder else [])
+        + ([lambda: search.search_frame(frame, config, seed, occluder_bound=True)]
+           if config.retry.retry_occluder else [])
         + ([lambda: search.search_frame(frame, config, seed, off_axis=True)] if config.retry.retry_off_axis else [])
         + ([lambda: search.disc_search(frame, config)] if config.retry.retry_disc else [])
         + ([lambda: search.hole_search(frame, config)] if config.retry.retry_hole else []))

@@ -1,10 +1,10 @@
-"""The verdict stage: a verified sphere's probability of being a ball, from a model fitted on both
+"""Stage 4, the verdict: a verified sphere's probability of being a ball, from a model fitted on both
 sensor models.
 
-Verification (``verification._verify_once``) measures each candidate: its inliers, its free radius and
-that radius's standard error, and how the pixels of its silhouette and outline lie against the
-sphere (``verification_kernels.window_stats``). ``verdict_features`` turns one candidate's measurements into a
-fixed vector of scale-free quantities (shares, ratios to the frame's noise, logarithms of counts and
+Verification (``verification._verify_once``) measures each candidate: its inliers, its free radius
+and that radius's standard error, and how the pixels of its silhouette and outline lie against the
+sphere (``verification_kernels.window_stats``). ``verdict_features`` turns one candidate's
+measurements into a fixed vector of scale-free quantities (shares, ratios to the frame's noise, logarithms of counts and
 ranges); a model fitted on the candidates of `train` and `train-stereo` (``make train-verifier``)
 maps that vector to the probability that a ball's centre lies within 2 cm (3 cm beyond 3 m) of the
 candidate's, calibrated on scenes held apart from its fit.
@@ -150,7 +150,8 @@ class FittedVerdict:
         return p[:, 1].astype(np.float64)  # (B, 2): exported without ZipMap
 
     def scores(self, stats: dict, radius_m: float) -> tuple[float, float]:
-        """One candidate's (model score, calibrated probability of being a ball); stats: ``verdict_features``'."""
+        """One candidate's (model score, calibrated probability of being a ball); stats:
+        ``verdict_features``'."""
         s = float(self.model_scores(verdict_features(stats, radius_m))[0])
         return s, float(np.interp(s, self.knots_score, self.knots_p))
 
@@ -165,13 +166,13 @@ def load_verdict(path: str = str(MODEL_PATH)) -> FittedVerdict:
     return FittedVerdict(Path(path))
 
 
-#: a constant standing in for the fitted verdict's probability (``unscored``); None: the verdict's
+#: the constants standing in for the fitted verdict (``unscored``, innermost last); empty: the verdict's
 _UNSCORED: list[float] = []
 
 
 @contextlib.contextmanager
 def unscored(score: float = 0.5):
-    """Within it, every organised candidate of this thread's process scores ``score`` (raw and
+    """Within it, every organised candidate of this process scores ``score`` (raw and
     probability) in place of the fitted verdict's, so that no model steers which candidates are
     verified and kept: with accept_score 1 nothing is accepted and every search and retry runs
     (``make train-verifier`` collects its candidates so)."""
@@ -184,7 +185,7 @@ def unscored(score: float = 0.5):
 
 def verdict(stats: dict, radius_m: float) -> tuple[float, float]:
     """(raw score, probability) of one verified candidate: the fitted verdict's
-    (``verdict.FittedVerdict.scores``), or ``unscored``'s constant."""
+    (``FittedVerdict.scores``), or ``unscored``'s constant."""
     if _UNSCORED:
         return _UNSCORED[-1], _UNSCORED[-1]
     return load_verdict().scores(stats, radius_m)

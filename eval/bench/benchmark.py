@@ -7,9 +7,11 @@ Steps of ``run_benchmark`` (each resumable; finished work with the same inputs i
    in DATA/train-hough if needed; cached in OUT/hough_config.json);
 2. predictions of every available method on DATA/default, DATA/hard, DATA/robust, DATA/wide and
    the stereo twins DATA/default-stereo, DATA/hard-stereo, DATA/wide-stereo (OUT/predictions/);
-3. Table 2 on DATA/paper (the paper configuration, z 3, 2, 1.5; 10,000 iterations on E2), and the
+3. Table 2 on DATA/paper (the paper configuration, z 3, 2, 1.5; 10,000 iterations on E2), the
    oracle's ceiling of the improved detector on DATA/robust (``studies.oracle_balls``, cached in
-   OUT/oracle_robust.json), drawn beside its rates in the robustness figure;
+   OUT/oracle_robust.json), drawn beside its rates in the robustness figure, and the resolution
+   study (``resolution``: the improved detector and its ceiling on `default-stereo`'s scenes at
+   424x240, 848x480 and 1280x720, DATA/default-stereo-848 and DATA/default-stereo-1280);
 4. (``evaluate.evaluate``) metrics.json, tables/, figures/ (on `robust` also the robustness figure: rates per sensor
    condition and range band; the transfer table and figure, each analytic preset beside its
    stereo twin; the calibration table and reliability figure of the 3D methods' scores),
@@ -29,6 +31,7 @@ from spherebench.datasets.simulate import benchmark_presets
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.evaluate import evaluate
 from spherebench.eval.bench.report import results_run
+from spherebench.eval.bench.resolution import missing_presets, resolution_study, resolution_table
 from spherebench.eval.bench.studies import oracle_balls
 from spherebench.eval.metrics.sensor_grid import ceiling_by_cell
 
@@ -80,10 +83,10 @@ def run_benchmark(data: Path, out: Path, seed: int = 0, workers: int = 2, force:
                   engine: str = "local", address: str | None = None, log=print) -> dict:
     """`make eval`: see the module docstring. Returns metrics.json's content."""
     data, out = Path(data), Path(out)
-    for name in (*BENCHMARK_PRESETS, TABLE2_PRESET):
+    for name in (*BENCHMARK_PRESETS, TABLE2_PRESET, *missing_presets(data)):
         if not (data / name / "coco_gt.json").is_file():
-            raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust data-stereo data-wide` "
-                                   f"(spherebench generate --preset {name} --out {data / name})")
+            raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust data-stereo data-wide "
+                                   f"data-resolution` (spherebench generate --preset {name} --out {data / name})")
     with results_run(out):
         return _benchmark(data, out, seed, workers, force, methods, progress, command, engine, address, log)
 
@@ -96,15 +99,20 @@ def _benchmark(data, out, seed, workers, force, methods, progress, command, engi
         hough = tuned_hough_config(out / "hough_config.json", data / "train-hough", seed=0, workers=workers,
                                    progress=progress, log=log, engine=engine, address=address)
     hough_s = round(time.perf_counter() - t0, 1)
-    ceilings = None
+    ceilings, extra = None, []
     if methods is None or "improved" in methods:
         balls = oracle_balls(data / "robust", out / "oracle_robust.json", seed=seed, workers=workers, log=log,
                              engine=engine, address=address)
         ceilings = {"robust": ceiling_by_cell(balls)} if balls else None
+        t0 = time.perf_counter()
+        extra.append(resolution_table(resolution_study(data, out, seed=seed, workers=workers, force=force, log=log,
+                                                       engine=engine, address=address)))
+        resolution_s = round(time.perf_counter() - t0, 1)
     return evaluate({name: data / name for name in BENCHMARK_PRESETS}, out, methods=methods, seed=seed,
                     workers=workers, force=force, hough_config=hough, table2_dir=data / TABLE2_PRESET,
                     progress=progress, title="SphereBench results", intro=BENCHMARK_INTRO, ceilings=ceilings,
                     extra_provenance={"command": command, "hough_tuning_seconds": hough_s,
                                       "hough_config": str(out / "hough_config.json") if hough is not None else None,
-                                      "oracle": str(out / "oracle_robust.json") if ceilings else None},
-                    log=log, engine=engine, address=address)
+                                      "oracle": str(out / "oracle_robust.json") if ceilings else None,
+                                      **({"resolution_study_seconds": resolution_s} if extra else {})},
+                    log=log, engine=engine, address=address, extra_tables=extra)

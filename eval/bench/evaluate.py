@@ -48,13 +48,14 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
              progress: bool = True, title: str = "SphereBench results", intro: list[str] | None = None,
              paper_rows_for: Sequence[str] = ("default", "hard"), extra_provenance: dict | None = None,
              ceilings: dict[str, dict] | None = None, beside=None, log=print, engine: str = "local",
-             address: str | None = None) -> dict:
+             address: str | None = None, extra_tables: Sequence = ()) -> dict:
     """Run, score and report ``datasets`` ({label: folder}) into ``out``. Returns metrics.json's content.
 
     ceilings: per-cell ceilings of the improved detector's 3D rate on a grid preset, {label:
     {(subpixel, correlation, dropouts, band label): rate}}, drawn in its robustness figure.
     beside: another evaluation (``recorded.Beside``, from ``recorded.load_beside``): each Table 3 is
-    set beside that one's dataset."""
+    set beside that one's dataset. extra_tables: tables of other studies (``tables.Table``), written
+    and listed after the others."""
     out = Path(out)
     skipped: dict[str, str] = {}
     per_dataset = {}
@@ -106,7 +107,7 @@ def evaluate(datasets: dict[str, Path], out: Path, methods: Sequence[str] | None
         "predictions (COCO results with CircleNet's fields) in `predictions/`."]
     t0 = time.perf_counter()
     write_results(out, per_dataset, t2, skipped, prov, title, intro, paper_rows_for=paper_rows_for,
-                  figures=figures, ceilings=ceilings, beside=beside)
+                  figures=figures, ceilings=ceilings, beside=beside, extra_tables=extra_tables)
     stage_s["report"] = round(time.perf_counter() - t0, 1)
     return json.loads((out / "metrics.json").read_text())
 

@@ -145,7 +145,7 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
                   skipped: dict[str, str], prov: dict, title: str, intro: list[str],
                   paper_rows_for: Sequence[str] = ("default", "hard"), figures: bool = True,
                   ceilings: dict[str, dict] | None = None,
-                  beside=None) -> dict[str, Path]:
+                  beside=None, extra_tables: Sequence[Table] = ()) -> dict[str, Path]:
     """Tables, figures, metrics.json, README.md and provenance.json under ``out`` (all atomic).
 
     per_dataset: {label: (dataset folder, its coco_gt dict, scored sets)}. Returns the paths written.
@@ -153,7 +153,8 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     correlation, dropouts, band label): rate}}, drawn in the robustness figure
     (``figures.robustness``), e.g. an oracle's; None: none.
     beside: another evaluation (``recorded.Beside``): each dataset's Table 3 is also set beside the
-    same methods' on its dataset (``recorded.beside_table``).
+    same methods' on its dataset (``recorded.beside_table``). extra_tables: tables of other studies
+    (the resolution study's), written and listed after the others.
     A recorded dataset (``recorded.facts``) gets sentences on what its ground truth is, and its
     3D table and figures say that its centres are references. Sub-folders of figures/ that other
     tools wrote (the annotation review sheets) are kept when figures/ is replaced.
@@ -165,6 +166,7 @@ def write_results(out: Path, per_dataset: dict[str, tuple[Path, dict, Sequence[S
     calib = calibration.sets_calibration({label: (data_dir, sets) for label, (data_dir, _, sets) in per_dataset.items()},
                                          references=[label for label, f in facts.items() if f is not None])
     tables, transfer_rows = _tables(per_dataset, facts, about, t2, paper_rows_for, beside, calib)
+    tables += list(extra_tables)
     metrics = metrics_json(sets_by)
     fig_paths = _figures(out, per_dataset, facts, metrics, transfer_rows, ceilings, calib) if figures else {}
     write_tables(out / "tables", tables)
