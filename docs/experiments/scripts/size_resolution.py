@@ -38,7 +38,7 @@ from spherebench.datasets.outputs import atomic_write_bytes
 from spherebench.eval.bench.calibration import scene_truths
 from spherebench.eval.bench.oracle import beats, truth_verifications
 from spherebench.eval.bench.seeds import detection_seed
-from spherebench.method import config_for, improved
+from spherebench.method import compiled, config_for
 from spherebench.method.detector import detect, prepare_frame
 from spherebench.parallel import executor
 
@@ -55,7 +55,7 @@ def scene_balls(job: tuple) -> list[dict]:
     config = config_for("improved", radius_m=BASKETBALL_M)  # a basketball detector, whatever the ball
     cloud = inout.load_cloud(Path(scene_dir))
     frame = prepare_frame(cloud, config)
-    buf = improved.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+    buf = compiled.workspace("inliers", (frame.index_image.size + 1,), np.int64)
     reported = [s.centre_m for s in detect(cloud, config, seed=detection_seed(0, index))]
     out = []
     for b in gt["balls"]:

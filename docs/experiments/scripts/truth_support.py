@@ -11,7 +11,7 @@ what ``render`` computes and the saved Scene drops: the true z image and the lab
 item each pixel shows), so that floor, wall, the ball and distractor spheres can be told apart. The
 rebuilt depth must equal the scene's depth.png byte for byte (``rebuild`` says where it does not).
 
-``CandidateLog`` wraps ``improved.verify_organised``, ``verify_multistart`` and ``verify_pushed`` while it
+``CandidateLog`` wraps ``verification.verify_organised``, ``verify_multistart`` and ``verify_pushed`` while it
 is open (library functions replaced at run time, restored on exit; no library code changes) and records
 every top-level verification the detector's ``_verify_candidates`` makes, accepted or not.
 """
@@ -32,7 +32,7 @@ from spherebench.datasets import simulate
 from spherebench.datasets.primitives import raycast
 from spherebench.datasets.stereo import StereoSensor
 from spherebench.eval.metrics.metrics3d import FOUND_M  # noqa: F401  (a detection this near a ball finds it, m)
-from spherebench.method import config_for, improved
+from spherebench.method import config_for, verification
 from spherebench.method.config import DetectorConfig
 
 #: Range bands of a ball's surface distance |c| - R (m), as ``spherebench robustness`` bands it.
@@ -202,13 +202,13 @@ class CandidateLog:
 
     def __enter__(self):
         for n in self.NAMES + ("rescore",):
-            self._orig[n] = getattr(improved, n)
-            setattr(improved, n, self._wrap(self._orig[n], n != "rescore"))
+            self._orig[n] = getattr(verification, n)
+            setattr(verification, n, self._wrap(self._orig[n], n != "rescore"))
         return self
 
     def __exit__(self, *exc):
         for n, f in self._orig.items():
-            setattr(improved, n, f)
+            setattr(verification, n, f)
         return False
 
 
