@@ -46,11 +46,9 @@ def load_hough_config(path: str | Path) -> HoughConfig:
     """A HoughConfig from JSON: a tuning cache ({"config": {...}}) or the fields themselves."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text())
+        d = inout.read_json(path)
     except OSError as exc:
         raise SphereBenchError(f"cannot read Hough configuration {path} ({exc.strerror})") from None
-    except json.JSONDecodeError as exc:
-        raise SphereBenchError(f"{path} is not valid JSON ({exc})") from None
     d = d.get("config", d) if isinstance(d, dict) else d
     try:
         return HoughConfig(**d)
@@ -61,10 +59,10 @@ def load_hough_config(path: str | Path) -> HoughConfig:
 def _cached(cache_path: Path, key: str) -> HoughConfig | None:
     if cache_path.is_file():
         try:
-            cached = json.loads(cache_path.read_text())
+            cached = inout.read_json(cache_path)
             if cached.get("key") == key:
                 return HoughConfig(**cached["config"])
-        except (OSError, json.JSONDecodeError, TypeError, KeyError):
+        except (OSError, SphereBenchError, TypeError, KeyError, AttributeError):
             pass
     return None
 

@@ -41,6 +41,7 @@ from spherebench.datasets.outputs import (COLOUR_FILES, MARK, PNG_SIGNATURE, ato
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError, require
+from spherebench.reading import read_json  # the reading gate, for every reader here
 
 CATEGORY_ID = 1
 DEFAULT_CATEGORY = "basketball"
@@ -57,18 +58,6 @@ def write_json(path: str | Path, obj, indent: int | None = 1) -> None:
     """JSON (json_bytes), atomically."""
     atomic_write_bytes(path, json_bytes(obj, indent))
 
-
-def read_json(path: str | Path):
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            return json.load(f)
-    except FileNotFoundError:
-        raise SphereBenchError(f"{path}: file not found") from None
-    except IsADirectoryError:
-        raise SphereBenchError(f"{path}: is a folder, not a JSON file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SphereBenchError(f"{path}: not valid JSON ({exc}); is the file truncated?") from None
 
 # --------------------------------------------------------------------------- schemas
 #

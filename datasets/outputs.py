@@ -28,6 +28,7 @@ import zlib
 from pathlib import Path
 
 from spherebench.errors import SphereBenchError
+from spherebench.reading import read_json
 
 #: Written into a folder that a command fills over time (evaluate's results, a training run).
 OWNER_MARKER = ".spherebench-output.json"
@@ -240,8 +241,8 @@ def _report_is_ours(js: Path, kind: str) -> bool:
     """An existing OUT.json written by the same report: it names the kind ("report": kind, which only
     write_report writes; a key such as "seed" any JSON file may hold)."""
     try:
-        old = json.loads(js.read_text())
-    except (OSError, ValueError, UnicodeDecodeError):
+        old = read_json(js)
+    except SphereBenchError:
         return False
     return isinstance(old, dict) and old.get("report") == kind
 
@@ -334,8 +335,8 @@ def owned_by_kind(kind: str, legacy: str | None = None):
     def is_ours(path: Path) -> bool:
         marker = Path(path) / OWNER_MARKER
         if marker.is_file():
-            with contextlib.suppress(OSError, ValueError, AttributeError):
-                return json.loads(marker.read_text()).get("kind") == kind
+            with contextlib.suppress(SphereBenchError, AttributeError):
+                return read_json(marker).get("kind") == kind
             return False
         return legacy is not None and (Path(path) / legacy).is_file()
     return is_ours
@@ -415,9 +416,9 @@ def _stale_temporaries(final: Path):
     for tmp in final.parent.glob(f".tmp-{glob.escape(final.name)}.*"):
         owner = tmp / _TMP_OWNER
         try:
-            info = json.loads(owner.read_text())
+            info = read_json(owner)
             pid, host = int(info["pid"]), str(info["host"])
-        except (OSError, ValueError, KeyError, TypeError):
+        except (SphereBenchError, ValueError, KeyError, TypeError):
             continue  # not ours, or not readable: leave it
         if host != socket.gethostname() or pid == os.getpid():
             continue

@@ -12,9 +12,11 @@ Thin driver: the drawing is in ``spherebench.datasets.annotate``.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from spherebench import options
+from spherebench.camera import MAX_IMAGE_SIDE_PX
 from spherebench.datasets import inout, outputs
 from spherebench.datasets.annotate import ball_point_colours, draw_detections, draw_ground_truth
 from spherebench.errors import SphereBenchError
@@ -63,10 +65,16 @@ def scene_predictions(path: Path, scene_id: str, min_score: float) -> list[tuple
             continue
         try:
             (cx, cy), rad, score = r["circle_center"], r["circle_radius"], float(r["score"])
+            circle = (float(cx), float(cy), float(rad))
         except (KeyError, TypeError, ValueError):
             raise SphereBenchError(f"{path}: result {i} lacks circle_center, circle_radius or score") from None
+        # a circle is drawn in pixels: finite, and a radius no larger than a frame's side
+        if not (all(math.isfinite(v) for v in (*circle, score)) and 0 <= circle[2] <= MAX_IMAGE_SIDE_PX
+                and max(abs(circle[0]), abs(circle[1])) <= 4 * MAX_IMAGE_SIDE_PX):
+            raise SphereBenchError(f"{path}: result {i} has a circle or score that is not a finite pixel circle "
+                                   f"({r['circle_center']}, {r['circle_radius']}, {r['score']}); fix the file")
         if score >= min_score:
-            found.append(((float(cx), float(cy), float(rad)), score))
+            found.append((circle, score))
     return sorted(found, key=lambda d: -d[1])
 
 

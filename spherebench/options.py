@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from spherebench.errors import SphereBenchError
 from spherebench.parallel import check_engine, check_reachable
+from spherebench.reading import parse_json
 
 
 def _integer(text: str, least: int, what: str, too_small: str) -> int:
@@ -112,8 +112,8 @@ def parse_overrides(items: list[str]) -> dict:
         if not sep or not name.strip():
             raise SphereBenchError(f"--set {item!r}: give NAME=VALUE, e.g. --set min_score=0.3")
         try:
-            out[name.strip()] = json.loads(value)
-        except json.JSONDecodeError:
+            out[name.strip()] = parse_json(value, f"--set {name.strip()}")
+        except SphereBenchError:  # a word (or an absurd number): a string, for the configuration to refuse
             infinite = value.strip().lower().lstrip("+-") in ("inf", "infinity")
             out[name.strip()] = float(value.strip()) if infinite else value
     return out

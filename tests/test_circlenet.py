@@ -504,6 +504,9 @@ def test_bad_training_folders_are_clear_errors(tmp_path, tiny_data, monkeypatch,
     (tmp_path / "broken").mkdir()
     (tmp_path / "broken" / "coco_gt.json").write_text("{")
     _one_line_error(monkeypatch, capsys, "train", "--data", str(tmp_path / "broken"), "--out", str(tmp_path / "o"),
+                    match="coco_gt.json: not valid JSON")
+    (tmp_path / "broken" / "coco_gt.json").write_text("[]")
+    _one_line_error(monkeypatch, capsys, "train", "--data", str(tmp_path / "broken"), "--out", str(tmp_path / "o"),
                     match="not a COCO file")
     one = make_dataset(tmp_path / "one", n=1, negatives=0)
     _one_line_error(monkeypatch, capsys, "train", "--data", str(one), "--out", str(tmp_path / "o"), match="at least 2")

@@ -103,6 +103,15 @@ def test_show_draws_a_methods_predictions(small_default, tmp_path, capsys):
     assert cli.main(["show", str(scene), "--method", "absent", "--results", str(tmp_path / "results"),
                      "--out-png", str(tmp_path / "x.png")]) == 2
     assert "not found" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
+    # a circle that is no finite pixel circle: one line, nothing drawn
+    for centre, radius in (([5, 5], float("nan")), ([5, 5], 1e308), ([float("inf"), 5], 3)):
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps([{"image_id": 0, "category_id": 1, "circle_center": centre, "circle_radius": radius,
+                                    "score": 0.9, "scene_id": scene.name}]))
+        assert cli.main(["show", str(scene), "--predictions", str(bad), "--out-png", str(tmp_path / "y.png")]) == 2
+        err = capsys.readouterr().err
+        assert "not a finite pixel circle" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "y.png").exists()
 
 
 def test_provider_and_missing_models_are_one_line_errors(small_default, tmp_path, capsys, monkeypatch):

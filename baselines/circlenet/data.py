@@ -14,7 +14,6 @@ the same seed gives the same samples, whatever the worker count and across a res
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import torch
 from spherebench.baselines.circlenet.imaging import (PAD_VALUE, STRIDE, fit_image, input_size, load_image, pad_image,
                                                      pixel_to_grid, scale_circles)
 from spherebench.circles import circle_from_points
+from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 
 #: Targets are Gaussians whose radius is the centre displacement at which a circle still overlaps
@@ -73,10 +73,10 @@ def read_dataset(root) -> list[ImageRecord]:
     if not coco_path.is_file():
         raise SphereBenchError(f"{root} has no coco_gt.json: not a dataset folder "
                                "(make one with `spherebench generate --preset train`)")
+    coco = inout.read_json(coco_path)
     try:
-        coco = json.loads(coco_path.read_text())
         images, anns = coco["images"], coco.get("annotations", [])
-    except (json.JSONDecodeError, KeyError, TypeError, UnicodeDecodeError) as exc:
+    except (KeyError, TypeError, AttributeError) as exc:
         raise SphereBenchError(f"{coco_path} is not a COCO file with images ({exc}); regenerate the dataset") from None
     if not images:
         raise SphereBenchError(f"{coco_path} lists no images: the dataset is empty")

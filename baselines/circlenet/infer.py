@@ -13,7 +13,6 @@ its weights and its outputs at the training size are unchanged), and the circles
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -27,6 +26,7 @@ from spherebench.baselines.circlenet.imaging import (FORMAT_VERSION, INPUT_NAME,
                                                      unscale_circles)
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
+from spherebench.reading import parse_json
 
 # ONNX Runtime's telemetry off unless the user has said otherwise: read once, when the library
 # loads, it stops the device id and event store written under
@@ -85,8 +85,10 @@ class CircleNetDetector:
             raise SphereBenchError(f"cannot load model {path}: not a valid ONNX file ({first})") from None
         raw = self.session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
         try:
-            self.metadata = json.loads(raw) if raw else None
-        except json.JSONDecodeError:
+            self.metadata = parse_json(raw, f"{path}'s metadata") if raw else None
+        except SphereBenchError:  # another tool's metadata: not our model (said below)
+            self.metadata = None
+        if not isinstance(self.metadata, dict):
             self.metadata = None
         outputs = [o.name for o in self.session.get_outputs()]
         if (self.metadata is None or self.metadata.get("format_version") != FORMAT_VERSION

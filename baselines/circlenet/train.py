@@ -34,7 +34,7 @@ from spherebench.baselines.circlenet.infer import CircleNetDetector
 from spherebench.baselines.circlenet.loss import circlenet_loss
 from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, count_parameters, decode
 from spherebench.baselines.circlenet.onnx_export import export_onnx
-from spherebench.datasets import outputs
+from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.metrics.coco_eval import coco_from_circles, evaluate_circles, results_from_circles
 from spherebench.parallel import usable_cpus
@@ -381,8 +381,8 @@ def _finish(model, config, seed, out, train_dir, train_recs, val_recs, val_set, 
     for d_path in dirs:
         meta, meta_path = {}, Path(d_path) / "dataset.json"
         if meta_path.is_file():
-            with contextlib.suppress(json.JSONDecodeError, UnicodeDecodeError):
-                d = json.loads(meta_path.read_text())
+            with contextlib.suppress(SphereBenchError, TypeError):
+                d = inout.read_json(meta_path)
                 meta = {k: d[k] for k in ("name", "preset", "seed") if k in d}
         metas.append(meta)
     # one folder: its fields as before; several: each folder's in "datasets"

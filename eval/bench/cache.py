@@ -19,6 +19,7 @@ from pathlib import Path
 
 from spherebench.circles import circle_bbox
 from spherebench.datasets import inout
+from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.registry import PAPER_CIRCLE, MethodSpec
 from spherebench.eval.bench.seeds import DETECTION_SEED_RULE
 from spherebench.provenance import file_sha256, machine_info, now_utc
@@ -46,8 +47,10 @@ def is_finished(pred_path: Path, key: str) -> bool:
     if not pred_path.is_file() or not meta_file.is_file():
         return False
     try:
-        meta = json.loads(meta_file.read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        meta = inout.read_json(meta_file)
+    except (OSError, SphereBenchError):
+        return False
+    if not isinstance(meta, dict):
         return False
     return meta.get("key") == key and meta.get("predictions_sha256") == file_sha256(pred_path)
 

@@ -19,7 +19,6 @@ temporary name, then swapped in), so an interrupted run never leaves a half-writ
 from __future__ import annotations
 
 import contextlib
-import json
 import shutil
 from pathlib import Path
 from typing import Sequence
@@ -35,6 +34,7 @@ from spherebench.eval.bench.result_tables import (detections_table, family_table
 from spherebench.eval.bench.scoring import ScoredSet, metrics_json, sensor_rows_by_method
 from spherebench.eval.bench.tables import Table
 from spherebench.provenance import json_safe
+from spherebench.reading import read_json
 
 
 # --------------------------------------------------------------------------- writing
@@ -84,8 +84,8 @@ def report_folder(folder: Path):
         yield tmp, kept
         ours = sorted(p.name for p in tmp.iterdir() if not p.name.startswith("."))
         before = set(ours)
-        with contextlib.suppress(OSError, ValueError):
-            listed = json.loads((folder / WRITTEN_LIST).read_text())
+        with contextlib.suppress(SphereBenchError):
+            listed = read_json(folder / WRITTEN_LIST)
             before = set(listed) if isinstance(listed, list) else before
         for entry in sorted(folder.iterdir()) if folder.is_dir() else ():
             if entry.name in before or entry.name == WRITTEN_LIST:

@@ -25,6 +25,7 @@ from spherebench.method import IMPROVED, DetectorConfig, config_for, detect, war
 from spherebench.parallel import executor
 from spherebench.method.verdict import MODEL_PATH as VERDICT_MODEL
 from spherebench.provenance import code_version, file_sha256, json_safe
+from spherebench.reading import read_json
 
 #: The modules whose source defines the oracle's rows (with the detector's configuration and the data).
 ORACLE_MODULES = ("spherebench.eval.bench.oracle", "spherebench.method", "spherebench.eval.metrics.sensor_grid",
@@ -53,11 +54,11 @@ def oracle_balls(data_dir: str | Path, cache_path: str | Path, seed: int = 0, wo
                                     sort_keys=True).encode()).hexdigest()
     if cache_path.is_file():
         try:
-            cached = json.loads(cache_path.read_text())
+            cached = read_json(cache_path)
             if cached.get("key") == key:
                 log(f"oracle: ceiling rows reused from {cache_path}")
                 return cached["balls"]
-        except (OSError, json.JSONDecodeError, TypeError, KeyError):
+        except (SphereBenchError, TypeError, KeyError, AttributeError):
             pass
     t0 = time.perf_counter()
     scenes = dataset_scenes(data_dir)

@@ -32,7 +32,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import io
-import json
 import math
 from pathlib import Path
 from typing import Callable
@@ -44,6 +43,7 @@ from pycocotools.cocoeval import COCOeval
 from spherebench.circles import circle_bbox
 from spherebench.errors import SphereBenchError
 from spherebench.eval.metrics.circle_iou import circle_intersection_matrix, circle_iou_matrix
+from spherebench.reading import read_json
 
 #: COCO's IoU thresholds, 0.50:0.05:0.95 (linspace, as pycocotools, to avoid arange drift).
 IOU_THRESHOLDS = np.linspace(0.5, 0.95, 10)
@@ -80,23 +80,18 @@ def _with_circle_geometry(ann: dict, circle: tuple[float, float, float]) -> dict
 
 def load_ground_truth(gt: dict | str | Path, verbose: bool = False) -> COCO:
     """A pycocotools COCO object from a circle GT dict or JSON file (the dict is not modified)."""
+    source = "ground truth"
     if isinstance(gt, (str, Path)):
-        try:
-            with open(gt, encoding="utf-8") as f:
-                gt = json.load(f)
-        except OSError as exc:
-            raise SphereBenchError(f"cannot read ground-truth file {gt} ({exc.strerror}): pass a dataset's "
-                                   "coco_gt.json") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise SphereBenchError(f"ground-truth file is not valid JSON ({exc}): regenerate it") from None
+        source = f"{gt}: ground truth"
+        gt = read_json(gt)  # the reading gate: one line for a missing, damaged or hostile file
     keys = ("images", "annotations", "categories")
     if not isinstance(gt, dict) or not all(isinstance(gt.get(k), list) for k in keys):
-        raise SphereBenchError("ground truth must be a COCO dict with lists 'images', 'annotations' and 'categories'")
+        raise SphereBenchError(f"{source} must be a COCO dict with lists 'images', 'annotations' and 'categories'")
     if not all(isinstance(x, dict) and ("id" in x or k == "annotations") for k in keys for x in gt[k]):
-        raise SphereBenchError("ground-truth images, annotations and categories must be dicts (images and "
+        raise SphereBenchError(f"{source}: its images, annotations and categories must be dicts (images and "
                                "categories with an 'id')")
     if not gt["images"] or not gt["categories"]:
-        raise SphereBenchError("ground truth has no images or no categories: nothing to evaluate on")
+        raise SphereBenchError(f"{source} has no images or no categories: nothing to evaluate on")
     data = {k: copy.deepcopy(gt[k]) for k in ("images", "annotations", "categories")}
     image_ids = {img.get("id") for img in data["images"]}
     ids = [a.get("id") for a in data["annotations"]]

@@ -1,0 +1,94 @@
+"""The reading gate (``spherebench.reading``): every JSON reader on the same hostile set gives one
+line naming the file, never a traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from spherebench import reading
+from spherebench.baselines import hough_tuning
+from spherebench.baselines.circlenet import data as circlenet_data
+from spherebench.datasets import inout
+from spherebench.errors import SphereBenchError
+from spherebench.eval.bench import cache, recorded
+from spherebench.eval.metrics import coco_eval
+from spherebench.options import parse_overrides
+
+#: name -> text: what a hostile or damaged JSON file may hold
+HOSTILE = {
+    "nested 200,000 deep": "[" * 200_000 + "]" * 200_000,
+    "an object nested 5,000 deep": '{"a": ' * 5_000 + "1" + "}" * 5_000,
+    "an integer of 5,000 digits": '{"fx": ' + "9" * 5_000 + "}",
+    "an integer of 400 digits": '{"width": ' + "1" * 400 + ', "fx": -' + "7" * 400 + "}",
+    "truncated": '{"images": [1, 2',
+    "empty": "",
+    "not UTF-8": b"\xff\xfe\x00{",
+    "a list": "[1, 2, 3]",
+}
+
+#: (reader, the file name it reads in a folder, or None: the file itself)
+READERS = {
+    "intrinsics": (inout.read_intrinsics, None),
+    "camera json": (inout.read_camera_json, None),
+    "LabelMe": (inout.read_labelme, None),
+    "gt.json": (inout.read_scene_gt, "gt.json"),
+    "dataset.json": (inout.read_dataset_meta, "dataset.json"),
+    "coco_gt.json": (inout.read_coco_gt, "coco_gt.json"),
+    "predictions": (cache.read_predictions, None),
+    "--beside metrics": (lambda p: recorded.load_beside(p, "default"), None),
+    "Hough configuration": (hough_tuning.load_hough_config, None),
+    "COCO ground truth": (coco_eval.load_ground_truth, None),
+    "CircleNet training folder": (circlenet_data.read_dataset, "coco_gt.json"),
+}
+
+
+def _write(folder: Path, name: str, text) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    return path
+
+
+@pytest.mark.parametrize("case", list(HOSTILE))
+@pytest.mark.parametrize("reader", list(READERS))
+def test_every_reader_refuses_hostile_json_in_one_line(tmp_path, reader, case):
+    read, inside = READERS[reader]
+    if reader == "predictions" and case == "a list":
+        pytest.skip("a list is what a predictions file holds")
+    if reader == "predictions":  # its meta file beside it, well formed
+        _write(tmp_path, "input.meta.json", "{}")
+    if inside is None:
+        target = path = _write(tmp_path, "input.json", HOSTILE[case])
+    else:
+        target, path = tmp_path, _write(tmp_path, inside, HOSTILE[case])
+        if inside == "coco_gt.json" and reader == "CircleNet training folder":
+            (tmp_path / "scenes").mkdir()
+    with pytest.raises(SphereBenchError) as err:
+        read(target)
+    message = str(err.value)
+    assert "\n" not in message and path.name in message, message
+
+
+def test_the_gate_names_what_it_refuses(tmp_path, monkeypatch):
+    assert reading.parse_json('{"seed": 18446744073709551615}', "x") == {"seed": 2 ** 64 - 1}  # a uint64 seed
+    with pytest.raises(SphereBenchError, match="an integer of 21 digits"):
+        reading.parse_json("[" + "1" * 21 + "]", "x")
+    with pytest.raises(SphereBenchError, match="nested deeper"):
+        reading.parse_json("[" * 100_000 + "]" * 100_000, "x")
+    monkeypatch.setattr(reading, "MAX_JSON_BYTES", 10)
+    big = _write(tmp_path, "big.json", "[" + "1, " * 10 + "1]")
+    with pytest.raises(SphereBenchError, match="big.json: 33 bytes, more than a JSON file"):
+        reading.read_json(big)
+    monkeypatch.undo()
+    assert reading.parse_json("[NaN, Infinity]", "x")[1] == float("inf")  # finiteness: the schema's to refuse
+
+
+def test_a_setting_of_absurd_digits_is_a_string_for_the_configuration_to_refuse():
+    from spherebench.method import config_for
+
+    got = parse_overrides(["search.iterations=" + "9" * 5_000, "verification.min_score=0.5"])
+    assert isinstance(got["search.iterations"], str) and got["verification.min_score"] == 0.5
+    with pytest.raises(SphereBenchError, match="search.iterations=.* must be an integer"):
+        config_for("improved", got)
