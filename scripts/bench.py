@@ -15,6 +15,7 @@ from spherebench.cli import run_module
 from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.speed import MIN_SCORES, bench, markdown, run_info
+from spherebench.eval.bench.tasks import dataset_scenes
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,6 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     for ds in args.datasets:
         inout.list_scenes(ds)  # a clear error for a missing dataset before any work
+        if not any(s.has_cloud for s in dataset_scenes(ds, args.limit)):
+            raise SphereBenchError(f"{ds}: no scene has a cloud.ply, and bench times the 3D detector on clouds: "
+                                   f"rebuild it with `spherebench generate ... --clouds` (the train presets write none)")
     if args.out is not None:
         outputs.check_report_out(args.out, "bench")
     try:

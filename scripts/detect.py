@@ -114,9 +114,24 @@ def _scene_dir(path: Path) -> Path | None:
 def ball_radius(path: Path, given: float | None) -> tuple[float, str]:
     """(radius m, its source) for one input: --radius, the dataset's, the scene's or the default."""
     scene = _scene_dir(path)
-    # a scene's dataset.json and gt.json are read even where --radius or the other makes them moot:
-    # a damaged one is refused, never passed over
-    meta, gt = (inout.scene_dataset_meta(scene), inout.read_scene_gt(scene)) if scene is not None else ({}, {})
+    # a scene folder's dataset.json and gt.json are read even where --radius or the other makes them moot:
+    # a damaged one is refused, never passed over. A cloud given by its path is read as that file: the
+    # files beside it count only where they are a scene's of SphereBench, else they are another tool's
+    meta, gt = {}, {}
+    if scene is not None:
+        for name, read in (("gt.json", inout.read_scene_gt), ("dataset.json", inout.scene_dataset_meta)):
+            try:
+                got = read(scene)
+            except SphereBenchError as exc:
+                if path.is_dir():
+                    raise
+                print(f"note: {path}: the {name} beside it is not a SphereBench scene's, so it is ignored ({exc})",
+                      file=sys.stderr)
+                break  # one line: a scene whose gt.json is another tool's has no dataset of ours above it
+            if name == "gt.json":
+                gt = got
+            else:
+                meta = got
     if given is not None:
         return given, "--radius"
     if meta.get("ball_radius_m") is not None:

@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         circlenet_spec(args.model)  # a corrupt model is refused now, not after the other methods have run
     beside, beside_record = load_beside(args.beside, args.beside_label) if args.beside else (None, None)
     progress = not args.quiet
-    with results_run(out):  # claimed before anything is written under it (Hough tuning included)
+    with results_run(out, inputs=tuple(datasets.values())):  # claimed before anything is written (Hough tuning too)
         hough = hough_config_for_run(args.methods, args.hough_config, out, args.workers, progress,
                                      engine=args.engine, address=args.address)
         metrics = evaluate(datasets, out, methods=args.methods, seed=args.seed, workers=args.workers,

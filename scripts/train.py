@@ -17,6 +17,9 @@ from dataclasses import replace
 from spherebench import options
 from spherebench.errors import SphereBenchError, require
 
+#: the widest backbone taken: 4x ResNet-18's own (64); 100,000 asked for a 360 GB tensor
+MAX_RESNET_WIDTH = 256
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--data", required=True, action="append", metavar="DIR",
@@ -61,8 +64,9 @@ def run(args) -> int:
     if args.image_size is not None:
         model["image_size"] = _parse_size(args.image_size)
     if args.resnet_width is not None:
-        if args.resnet_width < 1:
-            raise SphereBenchError("--resnet-width must be at least 1")
+        if not 1 <= args.resnet_width <= MAX_RESNET_WIDTH:
+            raise SphereBenchError(f"--resnet-width {args.resnet_width}: give 1 to {MAX_RESNET_WIDTH} (64 is ResNet-18's "
+                                   "own width; wider ones outgrow a machine's memory)")
         if args.backbone == "hourglass":
             raise SphereBenchError("--resnet-width sets the resnet18 backbone's widths; it has no effect on "
                                    "--backbone hourglass")

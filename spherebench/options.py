@@ -86,8 +86,10 @@ def parse_seeds(text: str) -> list[int]:
     bounds: list[tuple[int, int]] = []
     try:
         for part in (p.strip() for p in text.split(",") if p.strip()):
-            lo, _, hi = part.partition("-")
-            bounds.append((int(lo), int(hi) if hi else int(lo)))
+            lo, dash, hi = part.partition("-")
+            if dash and not hi.strip():  # "1-": an open range says no last seed
+                raise SphereBenchError(f"--seeds {text!r}: the range {part} has no end: give both, e.g. {lo}-{lo}")
+            bounds.append((int(lo), int(hi) if dash else int(lo)))
     except ValueError:
         bounds = []
     if not bounds or any(lo < 0 or hi < 0 for lo, hi in bounds):

@@ -408,3 +408,44 @@ def test_an_evaluation_after_make_eval_is_not_dirty_for_what_make_eval_wrote(tmp
     assert provenance.git_state(tmp_path, outputs=outputs)["dirty"] is False
     (tmp_path / "baselines" / "other.json").write_text("new\n")
     assert provenance.git_state(tmp_path, outputs=outputs)["dirty"] is True
+
+
+# ---------------------------------------------------------------- refusals the docs promise (issue 46)
+
+def test_open_seed_ranges_absurd_widths_and_cloudless_benches_are_refused(small_default, tmp_path, capsys):
+    _fails(capsys, ["sweep", small_default, "--seeds", "1-", "--out", tmp_path / "s"], "--seeds '1-'", "has no end")
+    assert not list(tmp_path.glob("s*"))
+    _fails(capsys, ["train", "--data", small_default, "--out", tmp_path / "t", "--resnet-width", "100000"],
+           "--resnet-width 100000", "1 to 256")
+    assert not (tmp_path / "t").exists()
+    cloudless = simulate.generate_dataset("train", tmp_path / "cloudless", n=2, progress=False)  # train writes none
+    _fails(capsys, ["bench", cloudless, "--out", tmp_path / "b"], "no scene has a cloud.ply")
+    assert not list(tmp_path.glob("b*"))
+
+
+def test_results_are_never_written_inside_the_data_they_read(small_default, tmp_path, capsys):
+    from spherebench.eval.bench.report import results_run
+
+    data = tmp_path / "data"
+    shutil.copytree(small_default, data / "default")
+    before = _listing(data)
+    _fails(capsys, ["evaluate", "--data", data / "default", "--out", data / "default" / "res", "--methods",
+                    "improved"], "inside the dataset")
+    with pytest.raises(SphereBenchError, match="is the input"):
+        with results_run(data / "results", inputs=(data,)):  # `eval --data data --out data/results`
+            pass
+    assert _listing(data) == before and not (data / "results").exists()
+
+
+def test_a_cloud_given_by_its_path_ignores_another_tools_gt_json_beside_it(small_default, tmp_path, capsys):
+    scene = inout.list_scenes(small_default)[0]
+    shutil.copy(scene / "cloud.ply", tmp_path / "cloud.ply")
+    shutil.copy(scene / "intrinsics.json", tmp_path / "intrinsics.json")
+    (tmp_path / "gt.json").write_text('{"annotations": [], "tool": "another one"}')
+    assert cli.main(["detect", str(tmp_path / "cloud.ply"), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert _json_lines(cap.out)[0]["radius_source"] == "default" and _json_lines(cap.out)[0]["detections"]
+    assert len(cap.err.strip().splitlines()) == 1 and "not a SphereBench scene's, so it is ignored" in cap.err
+    # a scene folder given as such is still read strictly
+    (tmp_path / "scenes").mkdir()
+    _fails(capsys, ["detect", tmp_path], "gt.json")

@@ -449,7 +449,7 @@ def test_cli_train_options_reach_the_config(monkeypatch, capsys, tmp_path):
     default, full = seen
     assert (default.model.resnet_width, default.onnx_weights) == (32, "float32")  # `make train`'s model
     assert (full.model.backbone, full.model.resnet_width, full.onnx_weights) == ("resnet18", 64, "float16")
-    _one_line_error(monkeypatch, capsys, *base, "--resnet-width", "0", match="at least 1")
+    _one_line_error(monkeypatch, capsys, *base, "--resnet-width", "0", match="--resnet-width 0: give 1 to 256")
     _one_line_error(monkeypatch, capsys, *base, "--backbone", "hourglass", "--resnet-width", "64",
                     match="no effect on --backbone hourglass")
 

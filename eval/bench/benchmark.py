@@ -87,7 +87,7 @@ def run_benchmark(data: Path, out: Path, seed: int = 0, workers: int = 2, force:
         if not (data / name / "coco_gt.json").is_file():
             raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust data-stereo data-wide "
                                    f"data-resolution` (spherebench generate --preset {name} --out {data / name})")
-    with results_run(out):
+    with results_run(out, inputs=(data,)):
         return _benchmark(data, out, seed, workers, force, methods, progress, command, engine, address, log)
 
 

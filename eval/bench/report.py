@@ -56,11 +56,11 @@ def claim_results_dir(out: str | Path) -> Path:
 RESULTS_RESUMABLE = ("predictions", "hough_config.json", "train-hough", "oracle_robust.json")
 
 
-def results_run(out: str | Path):
+def results_run(out: str | Path, inputs=()):
     """claim_results_dir for the length of an evaluation (``outputs.output_run``): a failed or stopped
     run removes a folder it made and holds nothing a rerun reuses (RESULTS_RESUMABLE), and says what
-    it kept otherwise."""
-    return outputs.output_run(out, RESULTS_KIND, RESULTS_RESUMABLE, legacy=RESULTS_LEGACY_FILE)
+    it kept otherwise. inputs: the folders read (the data), which the results may not lie in or above."""
+    return outputs.output_run(out, RESULTS_KIND, RESULTS_RESUMABLE, legacy=RESULTS_LEGACY_FILE, inputs=inputs)
 
 
 def _in_results_dir(folder: Path) -> bool:
