@@ -626,10 +626,14 @@ def read_coco_gt(dataset_dir: str | Path) -> dict:
     if not coco["categories"]:
         raise SphereBenchError(f"{path}: categories is empty (it names the ball's category); {rebuild}")
     ids = {im["id"] for im in coco["images"]}
+    categories = {c["id"] for c in coco["categories"]}
     for i, ann in enumerate(coco["annotations"]):
         if ann["image_id"] not in ids:
             raise SphereBenchError(f"{path}: annotations[{i}].image_id is {ann['image_id']}, which no image has; "
                                    f"{rebuild}")
+        if ann.get("category_id") is not None and ann["category_id"] not in categories:
+            raise SphereBenchError(f"{path}: annotations[{i}].category_id is {ann['category_id']}, which no category "
+                                   f"has; {rebuild}")
     return coco
 
 
@@ -691,6 +695,7 @@ def read_camera_json(path: str | Path) -> Intrinsics:
     if not isinstance(d, dict):
         raise SphereBenchError(f"{path}: intrinsics must be a JSON object with width, height, ppx, ppy, fx, fy")
     d = dict(d)
+    check_schema(path, d, INTRINSICS_NUMBERS)  # "615.0" is refused as read_intrinsics refuses it, not read as text
     if "model" in d:
         d["model"] = _distortion_name(d["model"])
     try:

@@ -40,6 +40,10 @@ MAX_FOCAL_RATIO = 3.0
 MAX_IMAGE_SIDE_PX = 8192
 
 
+#: The largest distortion coefficient taken: lens calibrations give |k| of a few units at most (a
+#: fisheye's Brown-Conrady fit reaches tens); 1e308 overflows the projection.
+MAX_DISTORTION_COEFF = 100.0
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Camera intrinsics with the fields of pyrealsense2's ``rs.intrinsics`` plus the depth unit.
@@ -77,8 +81,9 @@ class Intrinsics:
             problems.append(f"depth_scale={self.depth_scale} must be > 0 (0.001 for millimetre depth)")
         if self.model not in DISTORTION_MODELS:
             problems.append(f"distortion model '{self.model}' is not supported (use one of {', '.join(DISTORTION_MODELS)})")
-        if len(self.coeffs) != 5 or not all(math.isfinite(c) for c in self.coeffs):
-            problems.append("coeffs must be five finite numbers (k1, k2, p1, p2, k3)")
+        if len(self.coeffs) != 5 or not all(math.isfinite(c) and abs(c) <= MAX_DISTORTION_COEFF for c in self.coeffs):
+            problems.append(f"coeffs must be five numbers (k1, k2, p1, p2, k3) within +-{MAX_DISTORTION_COEFF:g}, "
+                            f"not {list(self.coeffs)}")
         if problems:
             raise SphereBenchError("invalid intrinsics: " + "; ".join(problems))
 

@@ -236,10 +236,7 @@ def _run_guarded(prog: str, work) -> int:
             print(f"{prog}: error: {exc}{_kept(exc)}", file=sys.stderr)
             return 2
         except KeyboardInterrupt as exc:
-            signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
-            what = "interrupted" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
-            print(f"{prog}: {what}; {getattr(exc, 'kept', 'no partial output is left')}", file=sys.stderr)
-            return 128 + int(signum)
+            return _interrupted(prog, exc)
         except BrokenPipeError:
             # the reader has gone (e.g. `| head`): send what is still buffered nowhere, exit as by SIGPIPE
             with contextlib.suppress(OSError):
@@ -249,6 +246,15 @@ def _run_guarded(prog: str, work) -> int:
         except OSError as exc:
             print(f"{prog}: error: {os_error_message(exc)}{_kept(exc)}", file=sys.stderr)
             return 2
+
+
+def _interrupted(prog: str, exc: KeyboardInterrupt) -> int:
+    """Ctrl-C or a terminating signal: one line, and exit status 128 + the signal."""
+    signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+    what = "interrupted" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
+    with contextlib.suppress(OSError, ValueError):  # stderr closed: the status says it
+        print(f"{prog}: {what}; {getattr(exc, 'kept', 'no partial output is left')}", file=sys.stderr)
+    return 128 + int(signum)
 
 
 def _kept(exc: BaseException) -> str:
@@ -272,15 +278,21 @@ def run_module(name: str, driver, argv: list[str] | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(argv[0] if argv else None)
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # --help, --version, or a usage error already printed
-        return int(exc.code or 0)
-    if args.command is None:
-        parser.print_help()
-        return 2
-    return run_guarded(f"spherebench {args.command}", lambda: args._driver.run(args))
+    # a signal from the first moment on is one line: the drivers' imports (numpy, OpenCV, torch) take a
+    # few tenths of a second, in which Ctrl-C would otherwise print a traceback
+    with _signals_as_interrupts():
+        try:
+            parser = build_parser(argv[0] if argv else None)
+            try:
+                args = parser.parse_args(argv)
+            except SystemExit as exc:  # --help, --version, or a usage error already printed
+                return int(exc.code or 0)
+        except KeyboardInterrupt as exc:
+            return _interrupted(f"spherebench {argv[0]}" if argv else "spherebench", exc)
+        if args.command is None:
+            parser.print_help()
+            return 2
+        return run_guarded(f"spherebench {args.command}", lambda: args._driver.run(args))
 
 
 if __name__ == "__main__":

@@ -449,3 +449,22 @@ def test_a_cloud_given_by_its_path_ignores_another_tools_gt_json_beside_it(small
     # a scene folder given as such is still read strictly
     (tmp_path / "scenes").mkdir()
     _fails(capsys, ["detect", tmp_path], "gt.json")
+
+
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_a_signal_while_the_drivers_load_is_one_line(monkeypatch, capsys, signal_name):
+    """Before a command runs, its driver's imports (numpy, OpenCV, torch) take a few tenths of a
+    second; a signal then is one line and 128 + the signal, as during the run."""
+    import signal
+
+    def interrupted(_name):
+        if signal_name == "SIGINT":
+            raise KeyboardInterrupt
+        signal.raise_signal(signal.SIGTERM)  # the handler main installed turns it into an interrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    status = cli.main(["detect", "x.ply"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 128 + int(getattr(signal, signal_name))
+    word = "interrupted" if signal_name == "SIGINT" else "stopped by SIGTERM"
+    assert err == [f"spherebench detect: {word}; no partial output is left"]

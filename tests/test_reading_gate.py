@@ -92,3 +92,26 @@ def test_a_setting_of_absurd_digits_is_a_string_for_the_configuration_to_refuse(
     assert isinstance(got["search.iterations"], str) and got["verification.min_score"] == 0.5
     with pytest.raises(SphereBenchError, match="search.iterations=.* must be an integer"):
         config_for("improved", got)
+
+
+def test_values_the_schemas_refuse(small_default, tmp_path):
+    """Past the gate, each reader's schema: a category no category has, a focal length given as text
+    to `prepare --intrinsics`, distortion coefficients no lens has."""
+    import json
+    import shutil
+
+    data = tmp_path / "d"
+    shutil.copytree(small_default, data)
+    coco = json.loads((data / "coco_gt.json").read_text())
+    coco["annotations"][0]["category_id"] = 7
+    (data / "coco_gt.json").write_text(json.dumps(coco))
+    with pytest.raises(SphereBenchError, match=r"annotations\[0\].category_id is 7, which no category has"):
+        inout.read_coco_gt(data)
+    intr = json.loads((inout.list_scenes(small_default)[0] / "intrinsics.json").read_text())
+    for changed, says in (({"fx": "615.0"}, 'fx must be a finite number > 0, not "615.0"'),
+                          ({"coeffs": [1e308, 0, 0, 0, 0]}, "coeffs must be five numbers")):
+        path = _write(tmp_path, "camera.json", json.dumps({**intr, **changed}))
+        with pytest.raises(SphereBenchError, match=says):
+            inout.read_camera_json(path)
+        with pytest.raises(SphereBenchError, match=says):
+            inout.read_intrinsics(path)
