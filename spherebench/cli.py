@@ -56,6 +56,12 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
+    def _print_message(self, message, file=None):
+        # argparse drops a failed write (a help sent to a full disk would be lost with status 0):
+        # let it reach main, which says so in one line
+        if message:
+            (file or sys.stderr).write(message)
+
 
 def build_parser(wanted: str | None = None) -> argparse.ArgumentParser:
     """The whole command line; only ``wanted``'s driver is imported and given its arguments (start-up
@@ -248,6 +254,30 @@ def _run_guarded(prog: str, work) -> int:
             return 2
 
 
+def _flushed(status: int) -> int:
+    """``status`` once what was printed has reached stdout; a full disk there (the help sent to
+    /dev/full) is one line and status 2 (``_unwritten``), not a lost help with status 0."""
+    try:
+        sys.stdout.flush()
+    except OSError as exc:
+        return _unwritten(exc)
+    return status
+
+
+def _unwritten(exc: OSError) -> int:
+    """The help or usage could not be written: one line on stderr (none if stderr fails too) and
+    status 2; a closed pipe (`| head`) quietly, as by SIGPIPE. What is left in stdout's buffer goes
+    nowhere, not into the interpreter's exit."""
+    with contextlib.suppress(OSError, ValueError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    if isinstance(exc, BrokenPipeError):
+        return 128 + int(getattr(signal, "SIGPIPE", 13))
+    with contextlib.suppress(OSError, ValueError):
+        print(f"spherebench: error: cannot write to standard output ({exc.strerror or exc}): free space or write "
+              "somewhere else", file=sys.stderr)
+    return 2
+
+
 def _interrupted(prog: str, exc: KeyboardInterrupt) -> int:
     """Ctrl-C or a terminating signal: one line, and exit status 128 + the signal."""
     signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
@@ -286,7 +316,9 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 args = parser.parse_args(argv)
             except SystemExit as exc:  # --help, --version, or a usage error already printed
-                return int(exc.code or 0)
+                return _flushed(int(exc.code or 0))
+            except OSError as exc:  # the help or the usage could not be written
+                return _unwritten(exc)
         except KeyboardInterrupt as exc:
             return _interrupted(f"spherebench {argv[0]}" if argv else "spherebench", exc)
         if args.command is None:

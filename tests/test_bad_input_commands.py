@@ -10,6 +10,7 @@ import json
 import math
 import random
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -468,3 +469,20 @@ def test_a_signal_while_the_drivers_load_is_one_line(monkeypatch, capsys, signal
     assert status == 128 + int(getattr(signal, signal_name))
     word = "interrupted" if signal_name == "SIGINT" else "stopped by SIGTERM"
     assert err == [f"spherebench detect: {word}; no partial output is left"]
+
+
+def test_a_help_that_cannot_be_written_is_one_line_and_status_2():
+    """argparse drops a failed write; sent to a full disk, the help was lost with status 0."""
+    import subprocess
+    import sys
+
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this system")
+    for argv in (["--help"], ["detect", "--help"]):
+        with open("/dev/full", "w") as full:
+            run = subprocess.run([sys.executable, "-m", "spherebench.cli", *argv], stdout=full, stderr=subprocess.PIPE,
+                                 text=True, timeout=120)
+        assert run.returncode == 2, run.stderr
+        assert run.stderr.strip().splitlines() == [
+            "spherebench: error: cannot write to standard output (No space left on device): free space or write "
+            "somewhere else"]

@@ -115,3 +115,14 @@ def test_values_the_schemas_refuse(small_default, tmp_path):
             inout.read_camera_json(path)
         with pytest.raises(SphereBenchError, match=says):
             inout.read_intrinsics(path)
+
+
+def test_training_folders_check_every_scenes_gt_json(small_default, tmp_path):
+    import shutil
+
+    data = tmp_path / "d"
+    shutil.copytree(small_default, data)
+    assert len(circlenet_data.read_dataset(data)) == 6
+    (inout.list_scenes(data)[2] / "gt.json").write_text("[]")
+    with pytest.raises(SphereBenchError, match="gt.json: the file must be a JSON object, not"):
+        circlenet_data.read_dataset(data)

@@ -95,6 +95,11 @@ def read_dataset(root) -> list[ImageRecord]:
     missing = [str(r.path) for r in records if not r.path.is_file()]
     if missing:
         raise SphereBenchError(f"{len(missing)} image(s) listed in {coco_path} are missing, e.g. {missing[0]}")
+    # the files of a dataset are checked before any work (docs/formats.md): each scene's gt.json too,
+    # though training reads the circles of coco_gt.json only
+    for r in records:
+        if (r.path.parent / "gt.json").is_file():
+            inout.read_scene_gt(r.path.parent)
     return records
 
 
