@@ -397,6 +397,7 @@ def output_run(path: str | Path, kind: str, resumable=(), resume: str = "rerun t
     checkpoint); else the exception says what was kept (its ``kept``, which cli.run_guarded prints),
     so that no message claims a clean slate that is not there."""
     made = not Path(path).exists()
+    parents = missing_parents(Path(path))
     check_not_in_dataset(path)
     path = claim_output_dir(path, kind, legacy, inputs=inputs)
     try:
@@ -408,6 +409,7 @@ def output_run(path: str | Path, kind: str, resumable=(), resume: str = "rerun t
             exc.kept = f"completed work is kept in {', '.join(map(str, kept))}: {resume}"
         elif made:
             shutil.rmtree(path, ignore_errors=True)
+            remove_if_empty(parents)
         raise
 
 
@@ -430,12 +432,33 @@ def _stale_temporaries(final: Path):
             pass  # alive, another user's
 
 
+def missing_parents(path: Path) -> list[Path]:
+    """The folders above ``path`` that do not exist yet, nearest first: what making it creates."""
+    out = []
+    for parent in Path(path).absolute().parents:
+        if parent.exists():
+            break
+        out.append(parent)
+    return out
+
+
+def remove_if_empty(folders) -> None:
+    """Remove each folder of ``folders`` (nearest first) that is empty: the parents a stopped or
+    failed run created for an output it did not finish, and nothing anyone put there since."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty, or gone: what is there is kept
+            return
+
+
 @contextlib.contextmanager
 def atomic_directory(final: str | Path, is_ours):
     """Yield a temporary sibling folder; on success it replaces ``final``, on error (or a signal turned
     into KeyboardInterrupt) it is removed. ``final`` is replaced only if it is empty or ``is_ours``
     recognises it (see check_output_dir); stale temporaries of ``final`` from dead runs are removed."""
     final = check_output_dir(final, is_ours)
+    made = missing_parents(final)
     final.parent.mkdir(parents=True, exist_ok=True)
     for stale in _stale_temporaries(final):
         shutil.rmtree(stale, ignore_errors=True)
@@ -457,6 +480,7 @@ def atomic_directory(final: str | Path, is_ours):
             os.replace(tmp, final)
     except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        remove_if_empty(made)
         if isinstance(exc, OSError) and exc.filename is None:  # a write's error (a full disk) names no file
             raise named_error(exc, final) from None
         raise

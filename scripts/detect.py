@@ -181,6 +181,11 @@ def _check_outputs(args: argparse.Namespace, streaming: bool) -> None:
         outputs.check_output_dir(args.labelme_out, outputs.owned_by_kind(LABELME_KIND), "--labelme-out", args.paths)
 
 
+class _NothingWritten(Exception):
+    """No LabelMe file was written: the --labelme-out folder is not made (``outputs.atomic_directory``
+    removes its temporary folder on the way out)."""
+
+
 #: The kind of a --labelme-out folder (outputs.OWNER_MARKER): replaced by a later run, never another's files.
 LABELME_KIND = "detect-labelme"
 
@@ -421,7 +426,7 @@ def run(args: argparse.Namespace) -> int:
                    if args.labelme_out is not None else contextlib.nullcontext())
     config = _configs(args.method, extra)
     try:
-        with labelme_ctx as labelme_dir:
+        with contextlib.suppress(_NothingWritten), labelme_ctx as labelme_dir:
             if labelme_dir is not None:
                 outputs.write_owner_marker(labelme_dir, LABELME_KIND)
             for job in jobs:
@@ -432,6 +437,8 @@ def run(args: argparse.Namespace) -> int:
                         _detect_in_file(args, job, config, intr, labelme_dir, log)
                 except (SphereBenchError, OSError) as exc:
                     bad.skip(job.raw, exc)
+            if labelme_dir is not None and all(p.name.startswith(".") for p in labelme_dir.iterdir()):
+                raise _NothingWritten  # every input refused: no folder holding its markers alone is left
     except BaseException as exc:
         if args.rerun_save and Path(args.rerun_save).exists():  # streamed as it went: what it has is readable
             exc.kept = f"{args.rerun_save} holds what was logged before the stop"

@@ -486,3 +486,17 @@ def test_a_help_that_cannot_be_written_is_one_line_and_status_2():
         assert run.stderr.strip().splitlines() == [
             "spherebench: error: cannot write to standard output (No space left on device): free space or write "
             "somewhere else"]
+
+
+def test_a_refused_or_stopped_run_leaves_no_folder_it_made(tmp_path, capsys, monkeypatch):
+    """Neither the --labelme-out folder of a run whose every input was refused, nor the parents a
+    stopped run created for its output."""
+    _fails(capsys, ["detect", tmp_path / "absent.ply", "--labelme-out", tmp_path / "new" / "lm"], "absent.ply")
+    assert list(tmp_path.iterdir()) == []
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(simulate, "simulate_scene", stopped)
+    assert cli.main(["generate", "--preset", "paper", "--out", str(tmp_path / "n1" / "n2" / "g")]) == 130
+    assert "interrupted" in capsys.readouterr().err and list(tmp_path.iterdir()) == []
