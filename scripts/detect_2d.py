@@ -45,7 +45,7 @@ def add_arguments(parser) -> None:
                         help="drop circles scoring below S (default 0.3, CenterNet's display threshold; "
                              "use 0 for mAP)")
     parser.add_argument("--top-k", type=options.count, default=100, metavar="K", help="at most K circles per image (default 100)")
-    parser.add_argument("--threads", type=options.count, default=None, metavar="N", help="ONNX Runtime threads (default: all)")
+    parser.add_argument("--threads", type=options.threads, default=None, metavar="N", help="ONNX Runtime threads (default: all)")
     parser.add_argument("--provider", default=None, metavar="NAME",
                         help="ONNX Runtime execution provider: cpu (default), cuda (needs onnxruntime-gpu), or a "
                              "full name such as CUDAExecutionProvider")

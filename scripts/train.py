@@ -39,7 +39,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=options.seed, default=0, metavar="N", help="seed of the split, init and augmentation")
     parser.add_argument("--device", default=None, help="auto (default), cpu, cuda, cuda:1, ...")
     parser.add_argument("--workers", type=options.loader_workers, default=None, metavar="N", help="data-loading processes (default 0)")
-    parser.add_argument("--threads", type=int, default=None, metavar="N",
+    parser.add_argument("--threads", type=options.threads, default=None, metavar="N",
                         help="CPU threads (default: one per core; 1 is faster when other jobs share the cores)")
     parser.add_argument("--onnx-weights", choices=["float32", "float16"], default=None,
                         help="how model.onnx stores its weights (default float32; float16 halves the file, "

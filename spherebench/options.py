@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from spherebench.errors import SphereBenchError
 from spherebench.parallel import check_engine, check_reachable
@@ -27,6 +28,16 @@ def seed(text: str) -> int:
 def count(text: str) -> int:
     """A positive count (scenes, passes): an integer from 1."""
     return _integer(text, 1, "", "give 1 or more")
+
+
+def threads(text: str) -> int:
+    """CPU threads for one process: an integer from 1 to four per CPU of this machine (and at least
+    64): more only queue (999,999 asked ONNX Runtime for a pool that hung the process)."""
+    most = max(64, 4 * (os.cpu_count() or 1))
+    value = _integer(text, 1, "", "give 1 or more threads")
+    if value > most:
+        raise argparse.ArgumentTypeError(f"{value}: give at most {most} threads (four per CPU of this machine)")
+    return value
 
 
 def workers(text: str) -> int:

@@ -500,3 +500,14 @@ def test_a_refused_or_stopped_run_leaves_no_folder_it_made(tmp_path, capsys, mon
     monkeypatch.setattr(simulate, "simulate_scene", stopped)
     assert cli.main(["generate", "--preset", "paper", "--out", str(tmp_path / "n1" / "n2" / "g")]) == 130
     assert "interrupted" in capsys.readouterr().err and list(tmp_path.iterdir()) == []
+
+
+def test_a_thread_count_beyond_the_machine_is_refused(capsys):
+    import os
+
+    most = max(64, 4 * (os.cpu_count() or 1))
+    for argv in (["detect-2d", "x.png", "--threads", "999999"], ["train", "--data", "d", "--out", "o", "--threads",
+                                                                  str(most + 1)]):
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"give at most {most} threads" in err[0], err
