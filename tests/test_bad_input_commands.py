@@ -511,3 +511,20 @@ def test_a_thread_count_beyond_the_machine_is_refused(capsys):
         assert cli.main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"give at most {most} threads" in err[0], err
+
+
+def test_detect_writes_nothing_under_home(small_default, tmp_path):
+    """ONNX Runtime (the fitted verdict) would write a telemetry device id under ~/.cache; the package
+    asks it not to (ORT_DISABLE_TELEMETRY), keeping a user's own setting."""
+    import os
+    import subprocess
+    import sys
+
+    home = tmp_path / "home"
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("ORT_DISABLE_TELEMETRY", "XDG_CACHE_HOME")}
+    env["HOME"] = str(home)
+    run = subprocess.run([sys.executable, "-m", "spherebench.cli", "detect", str(inout.list_scenes(small_default)[0])],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert sorted(str(p.relative_to(home)) for p in home.rglob("*")) == []

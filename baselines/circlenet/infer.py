@@ -28,11 +28,7 @@ from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.reading import parse_json
 
-# ONNX Runtime's telemetry off unless the user has said otherwise: read once, when the library
-# loads, it stops the device id and event store written under
-# ~/.cache/Microsoft/DeveloperTools/.onnxruntime/ at import. Worker processes inherit it.
-os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
-import onnxruntime as ort  # noqa: E402
+import onnxruntime as ort  # after spherebench's import, which turns its telemetry off (ORT_DISABLE_TELEMETRY)
 
 #: The shipped model (committed by ``make train``; package data of the wheel).
 DEFAULT_MODEL = Path(__file__).resolve().with_name("model.onnx")
