@@ -363,8 +363,8 @@ _FLAT_ORDER = """
     min_inliers size_check size_tolerance_m size_tolerance_fraction size_sigmas max_spheres
     nms_distance_fraction min_score max_points mm_check retry_occluder retry_off_axis retry_disc retry_hole
     accept_score rank_floor retry_relief""".split()
-#: The settings removed when the verdict was fitted (issue 45): the hand-set verdict's allowances,
-#: exponents and floors went, and the stages' inner workings became their modules' constants.
+#: The names of settings no longer kept: the hand-set verdict's allowances, exponents and floors (the
+#: fitted verdict replaced them), and the stages' inner workings (their modules' constants now).
 REMOVED = frozenset("""
     sample_success bound_noise_fraction hypothesis_min_range_m bound_visible_fraction pretest_slack
     search_candidates sample_retries noise_estimate_lag_px noise_estimate_samples noise_estimate_min_samples

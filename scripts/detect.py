@@ -119,19 +119,14 @@ def ball_radius(path: Path, given: float | None) -> tuple[float, str]:
     # files beside it count only where they are a scene's of SphereBench, else they are another tool's
     meta, gt = {}, {}
     if scene is not None:
-        for name, read in (("gt.json", inout.read_scene_gt), ("dataset.json", inout.scene_dataset_meta)):
-            try:
-                got = read(scene)
-            except SphereBenchError as exc:
-                if path.is_dir():
-                    raise
-                print(f"note: {path}: the {name} beside it is not a SphereBench scene's, so it is ignored ({exc})",
-                      file=sys.stderr)
-                break  # one line: a scene whose gt.json is another tool's has no dataset of ours above it
-            if name == "gt.json":
-                gt = got
-            else:
-                meta = got
+        try:
+            gt = inout.read_scene_gt(scene)
+            meta = inout.scene_dataset_meta(scene)
+        except SphereBenchError as exc:  # it names the file
+            if path.is_dir():
+                raise
+            print(f"note: {path}: the file beside it is not a SphereBench scene's, so it is ignored ({exc})",
+                  file=sys.stderr)
     if given is not None:
         return given, "--radius"
     if meta.get("ball_radius_m") is not None:

@@ -411,7 +411,7 @@ def test_an_evaluation_after_make_eval_is_not_dirty_for_what_make_eval_wrote(tmp
     assert provenance.git_state(tmp_path, outputs=outputs)["dirty"] is True
 
 
-# ---------------------------------------------------------------- refusals the docs promise (issue 46)
+# ---------------------------------------------------------------- refusals the docs promise
 
 def test_open_seed_ranges_absurd_widths_and_cloudless_benches_are_refused(small_default, tmp_path, capsys):
     _fails(capsys, ["sweep", small_default, "--seeds", "1-", "--out", tmp_path / "s"], "--seeds '1-'", "has no end")

@@ -215,7 +215,7 @@ def test_an_intrinsics_number_given_as_text_says_what_it_got(data, capsys):
 @pytest.mark.parametrize("argv", [[], ["--radius", "0.2"]])
 def test_detect_refuses_a_damaged_gt_json_of_the_scene_it_reads(data, capsys, argv):
     """A scene folder is read strictly; a cloud given by its path is read as that file, the damaged
-    gt.json beside it ignored with one note (issue 46: a sidecar counts only in the project's schema)."""
+    gt.json beside it ignored with one note (a sidecar counts only in the project's schema)."""
     (_scene(data) / "gt.json").write_text('{"scene_id": 5')
     _fails(capsys, ["detect", _scene(data), *argv], "gt.json", "not valid JSON")
     assert cli.main(["detect", str(_scene(data) / "cloud.ply"), *argv]) == 0

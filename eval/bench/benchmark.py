@@ -31,7 +31,7 @@ from spherebench.datasets.simulate import benchmark_presets
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.evaluate import evaluate
 from spherebench.eval.bench.report import results_run
-from spherebench.eval.bench.resolution import missing_presets, resolution_study, resolution_table
+from spherebench.eval.bench.resolution import RESOLUTION_PRESETS, resolution_study, resolution_table
 from spherebench.eval.bench.studies import oracle_balls
 from spherebench.eval.metrics.sensor_grid import ceiling_by_cell
 
@@ -83,7 +83,7 @@ def run_benchmark(data: Path, out: Path, seed: int = 0, workers: int = 2, force:
                   engine: str = "local", address: str | None = None, log=print) -> dict:
     """`make eval`: see the module docstring. Returns metrics.json's content."""
     data, out = Path(data), Path(out)
-    for name in (*BENCHMARK_PRESETS, TABLE2_PRESET, *missing_presets(data)):
+    for name in (*BENCHMARK_PRESETS, TABLE2_PRESET, *RESOLUTION_PRESETS.values()):
         if not (data / name / "coco_gt.json").is_file():
             raise SphereBenchError(f"{data / name} is missing: build it with `make data data-hard data-robust data-stereo data-wide "
                                    f"data-resolution` (spherebench generate --preset {name} --out {data / name})")
