@@ -28,6 +28,7 @@ import json
 import math
 import shutil
 import warnings
+import zlib
 from pathlib import Path
 
 import cv2
@@ -196,6 +197,26 @@ def _check_frame_size(path: Path, width: int, height: int) -> None:
                                f"({MAX_IMAGE_SIDE_PX} px a side at most): the file is damaged or not a camera frame")
 
 
+def _png_fault(data: bytes) -> str | None:
+    """What is wrong with a PNG's chunks (one running past the end of the file, a checksum that does
+    not match, no IEND chunk), or None (also for another format): of such a file libpng prints a line
+    of its own on stderr before OpenCV gives up, so it is refused before it is decoded."""
+    if data[:8] != PNG_SIGNATURE:
+        return None
+    i = len(PNG_SIGNATURE)
+    while i + 12 <= len(data):  # a chunk: length (4 bytes), type (4), data (length), CRC of type and data (4)
+        end = i + 12 + int.from_bytes(data[i:i + 4], "big")
+        kind = data[i + 4:i + 8]
+        if end > len(data):
+            break
+        if zlib.crc32(data[i + 4:end - 4]) != int.from_bytes(data[end - 4:end], "big"):
+            return f"damaged (the checksum of its {kind.decode('latin-1')!r} chunk does not match)"
+        if kind == b"IEND":
+            return None
+        i = end
+    return "truncated (it ends inside its data, before the IEND chunk)"
+
+
 @functools.cache
 def _quiet_opencv() -> None:
     """OpenCV's own log off, once per process: of a damaged image it prints WARN and ERROR lines of
@@ -211,6 +232,9 @@ def _imread(path: Path, flags: int) -> np.ndarray:
     size = _header_size(data[:1 << 16].tobytes())
     if size is not None:
         _check_frame_size(path, *size)  # before OpenCV allocates the frame
+    fault = _png_fault(data.tobytes()) if data[:8].tobytes() == PNG_SIGNATURE else None
+    if fault:
+        raise SphereBenchError(f"{path}: not a readable image: the PNG is {fault}")
     try:
         img = cv2.imdecode(data, flags) if data.size else None
     except cv2.error:  # e.g. an unknown format's header promising more than CV_IO_MAX_IMAGE_PIXELS

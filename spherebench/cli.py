@@ -19,7 +19,7 @@ import sys
 import threading
 from pathlib import Path
 
-from spherebench import __version__
+from spherebench import __version__, caches
 from spherebench.errors import SphereBenchError
 
 #: (subcommand, driver module under spherebench.scripts, one-line help)
@@ -221,10 +221,7 @@ def run_guarded(prog: str, work) -> int:
     (`>&-`) refused before any work, since the next file opened would take its descriptor and receive
     what is printed (a one-line error; none if stderr is closed too)."""
     if sys.stdout is None:
-        if sys.stderr is not None:
-            print(f"{prog}: error: stdout is closed: run with stdout open, or send it to a file "
-                  "(> FILE, > /dev/null)", file=sys.stderr)
-        return 2
+        return _stdout_closed(prog)
     stdout, sys.stdout = sys.stdout, _Stdout(sys.stdout)
     try:
         return _run_guarded(prog, work)
@@ -252,6 +249,16 @@ def _run_guarded(prog: str, work) -> int:
         except OSError as exc:
             print(f"{prog}: error: {os_error_message(exc)}{_kept(exc)}", file=sys.stderr)
             return 2
+
+
+def _stdout_closed(prog: str) -> int:
+    """Stdout closed (`>&-`, Python's sys.stdout is None): one line (none if stderr is closed too) and
+    status 2, before anything is printed or opened."""
+    if sys.stderr is not None:
+        with contextlib.suppress(OSError, ValueError):
+            print(f"{prog}: error: stdout is closed: run with stdout open, or send it to a file "
+                  "(> FILE, > /dev/null)", file=sys.stderr)
+    return 2
 
 
 def _flushed(status: int) -> int:
@@ -308,6 +315,10 @@ def run_module(name: str, driver, argv: list[str] | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    caches.use_cache_folder()  # before numba, matplotlib or torch is imported
+    if sys.stdout is None:  # before argparse writes a help, a version or a usage error
+        known = argv and argv[0] in {name for name, _, _ in COMMANDS}
+        return _stdout_closed(f"spherebench {argv[0]}" if known else "spherebench")
     # a signal from the first moment on is one line: the drivers' imports (numpy, OpenCV, torch) take a
     # few tenths of a second, in which Ctrl-C would otherwise print a traceback
     with _signals_as_interrupts():

@@ -6,7 +6,9 @@ in input order, run by
   processes (``process_pool``);
 - ``ray``: the tasks of a Ray cluster (``--engine ray [--address ADDR]``; without an address a
   local one is started with ``workers`` CPUs; joining one is given up after
-  ``RAY_CONNECT_TIMEOUT_S``). Ray is the optional extra ``distributed``.
+  ``RAY_CONNECT_TIMEOUT_S``). Ray is the optional extra ``distributed``. A local cluster keeps its
+session folder in a temporary folder of the run's and its token in the run's environment
+(``_local_session``): both go with it.
 Every worker, local or Ray, is pinned to one thread (``SINGLE_THREAD_ENV``, ``pin_single_thread``):
 the benchmark's times are single-threaded, and the output of a task depends on its arguments only,
 so the results are the same whichever engine runs them.
@@ -28,8 +30,11 @@ import importlib.util
 import logging
 import multiprocessing
 import os
+import secrets
+import shutil
 import signal
 import sys
+import tempfile
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -46,6 +51,8 @@ SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_N
 ENGINES = ("local", "ray")
 #: How long joining a Ray cluster (--address) may take before it is given up, seconds.
 RAY_CONNECT_TIMEOUT_S = 30.0
+#: Ray's variables of token authentication: where the user set one, a local cluster keeps to it.
+RAY_AUTH_VARIABLES = ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")
 #: How often a worker without a parent-death signal (not Linux) checks that its parent lives, seconds.
 PARENT_POLL_S = 1.0
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
@@ -220,11 +227,19 @@ def _local(workers: int, isolated: bool = False):
     # workers' initializer: numba rereads it in this process at its next compilation, and refuses
     # a value other than its running thread pool's
     child_env = {k: v for k, v in SINGLE_THREAD_ENV.items() if k != "NUMBA_NUM_THREADS"}
-    saved = {k: os.environ.get(k) for k in child_env}
-    os.environ.update(child_env)
+    with _environ(child_env), process_pool(workers, initializer=pin_single_thread, start_method="spawn") as pool:
+        yield LocalPool(pool, workers)
+
+
+@contextlib.contextmanager
+def _environ(changes: dict, also=()):
+    """This process's environment with ``changes`` (variable -> value) for the duration (its child
+    processes inherit them), then as it was; so are the variables ``also``, which a library may set
+    meanwhile."""
+    saved = {k: os.environ.get(k) for k in (*changes, *also)}
+    os.environ.update(changes)
     try:
-        with process_pool(workers, initializer=pin_single_thread, start_method="spawn") as pool:
-            yield LocalPool(pool, workers)
+        yield
     finally:
         for k, v in saved.items():
             if v is None:
@@ -321,6 +336,28 @@ def _join_cluster(ray, address: str, runtime_env: dict, timeout_s: float = RAY_C
         raise failure[0]
 
 
+#: the longest path Ray puts below a local cluster's folder in the temporary folder (a socket)
+_RAY_SOCKET_TAIL = "/sbray-xxxxxxxx/session_YYYY-MM-DD_HH-MM-SS_UUUUUU_PPPPPPP/sockets/plasma_store"
+
+
+@contextlib.contextmanager
+def _local_session():
+    """A temporary folder for a local cluster's session (its logs and sockets, which Ray keeps for
+    good under $TMPDIR/ray), in /tmp where $TMPDIR is too deep for a socket's path, removed after
+    it; and, unless the user set one of Ray's own (``RAY_AUTH_VARIABLES``), a token of the run's in
+    the environment, where Ray's processes find it: Ray turns token authentication on for a new
+    local cluster and would write a token to ~/.ray/auth_token."""
+    here = tempfile.gettempdir()
+    # Ray's sockets lie in the session folder, and a Unix socket's path has 107 bytes at most
+    folder = tempfile.mkdtemp(prefix="sbray-", dir=here if len(here) + len(_RAY_SOCKET_TAIL) <= 107 else "/tmp")
+    token = {} if any(os.environ.get(k) for k in RAY_AUTH_VARIABLES) else {"RAY_AUTH_TOKEN": secrets.token_hex(32)}
+    try:
+        with _environ(token, also=RAY_AUTH_VARIABLES):  # ray.init sets RAY_AUTH_MODE here
+            yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 @contextlib.contextmanager
 def _ray(workers: int, address: str | None):
     try:
@@ -329,27 +366,28 @@ def _ray(workers: int, address: str | None):
         raise SphereBenchError(f"--engine ray: Ray is installed but does not load ({_first_line(exc)}): "
                                "reinstall it (pip install 'spherebench[distributed]')") from None
     started = not ray.is_initialized()
-    if started:
-        if address:
-            check_reachable(address)
-        # every Ray worker starts single-threaded, as a local worker does
-        runtime_env = {"env_vars": dict(SINGLE_THREAD_ENV)}
-        try:
-            if address:
-                _join_cluster(ray, address, runtime_env, RAY_CONNECT_TIMEOUT_S)  # read at the call, not at import
-            else:
-                ray.init(num_cpus=pool_size(workers), include_dashboard=False, runtime_env=runtime_env,
-                         log_to_driver=False)
-        except SphereBenchError:
-            raise
-        except Exception as exc:  # e.g. ConnectionError, ValueError (ray:// without ray[client]), RuntimeError
-            where = f"--address {address}" if address else "--engine ray (a local cluster)"
-            raise SphereBenchError(f"{where}: Ray did not start: {_first_line(exc)}") from None
-    try:
-        yield RayTasks(ray, max(1, int(ray.cluster_resources().get("CPU", workers))))
-    finally:
+    with contextlib.ExitStack() as session:
         if started:
-            ray.shutdown()
+            if address:
+                check_reachable(address)
+            # every Ray worker starts single-threaded, as a local worker does
+            runtime_env = {"env_vars": dict(SINGLE_THREAD_ENV)}
+            try:
+                if address:
+                    _join_cluster(ray, address, runtime_env, RAY_CONNECT_TIMEOUT_S)  # read at the call, not at import
+                else:
+                    ray.init(num_cpus=pool_size(workers), include_dashboard=False, runtime_env=runtime_env,
+                             log_to_driver=False, _temp_dir=session.enter_context(_local_session()))
+            except SphereBenchError:
+                raise
+            except Exception as exc:  # e.g. ConnectionError, ValueError (ray:// without ray[client]), RuntimeError
+                where = f"--address {address}" if address else "--engine ray (a local cluster)"
+                raise SphereBenchError(f"{where}: Ray did not start: {_first_line(exc)}") from None
+        try:
+            yield RayTasks(ray, max(1, int(ray.cluster_resources().get("CPU", workers))))
+        finally:
+            if started:
+                ray.shutdown()
 
 
 def check_engine(workers: int, engine: str, address: str | None) -> None:

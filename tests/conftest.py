@@ -6,7 +6,13 @@ import re
 
 import pytest
 
-from spherebench.datasets import simulate
+from spherebench import caches
+
+# the command's cache folders for the tests that run in this process too, before numba is imported:
+# the kernels are compiled once for both, and the commands run as subprocesses inherit them
+caches.use_cache_folder()
+
+from spherebench.datasets import simulate  # noqa: E402
 
 
 @pytest.fixture(scope="session")

@@ -17,6 +17,7 @@ import socket
 import stat
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -108,6 +109,21 @@ def test_a_png_with_a_truncated_header_gets_one_line(data, tmp_path, capfd):
     assert cli.main(["detect-2d", str(scene)]) == 2
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a readable image" in err[0], err
+
+
+def test_a_png_cut_in_its_data_or_altered_gets_one_line(data, tmp_path, capfd):
+    """libpng prints a line of its own ("libpng error: ...") of a PNG that ends inside its image data
+    or whose checksum fails, whatever OpenCV's log level: such a file is refused before it is decoded."""
+    scene = Path(shutil.copytree(_scene(data), tmp_path / "scene"))
+    whole = (scene / "depth.png").read_bytes()
+    altered = bytearray(whole)
+    altered[len(whole) // 2] ^= 0xFF
+    for damaged, why in ((whole[:len(whole) // 2], "truncated"), (whole[:-5], "truncated"), (bytes(altered), "checksum")):
+        (scene / "depth.png").write_bytes(damaged)
+        (scene / "cloud.ply").unlink(missing_ok=True)  # the depth image is the scene's cloud
+        assert cli.main(["detect", str(scene)]) == 2
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "not a readable image" in err[0] and why in err[0], err
 
 
 # ---------------------------------------------------------------- messages that named the wrong thing

@@ -212,6 +212,14 @@ def test_stdout_closed_is_one_line_on_stderr(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.xyz"]
 
 
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["detect", "--help"], ["detect", "--no-such-option"]])
+def test_stdout_closed_before_argparse_writes_is_one_line(tmp_path, argv):
+    done = subprocess.run([sys.executable, "-m", "spherebench.cli", *argv], cwd=tmp_path,
+                          preexec_fn=lambda: os.close(1), stderr=subprocess.PIPE, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and "stdout is closed" in done.stderr, done.stderr
+
+
 # --------------------------------------------------------------------------- progress in a log
 
 

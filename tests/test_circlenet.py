@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
 import sys
 import warnings
 
@@ -271,6 +272,24 @@ def test_a_tiny_model_overfits_eight_images(tmp_path):
     assert np.median(np.hypot(*(found[:, :2] - gt[:, :2]).T)) < 3.0
 
 
+def test_narrow_models_train_on_contiguous_tensors_on_the_cpu():
+    """A width-8 backbone's strided 1x1 convolutions take 8 channels: torch 2.13's CPU backward of
+    those on channels-last tensors aborts the process at the model's image size, so training keeps
+    them contiguous (in a child process: the failure is a crash, not an exception)."""
+    assert ctrain.memory_format(CircleNet(CircleNetConfig(resnet_width=8)), "cpu") == torch.contiguous_format
+    assert ctrain.memory_format(CircleNet(CircleNetConfig(resnet_width=32)), "cpu") == torch.channels_last
+    step = ("import torch\n"
+            "from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig\n"
+            "from spherebench.baselines.circlenet.train import memory_format\n"
+            "model = CircleNet(CircleNetConfig(resnet_width=8))\n"
+            "layout = memory_format(model, 'cpu')\n"
+            "model = model.to(memory_format=layout)\n"
+            "x = torch.randn(1, 3, 256, 448).contiguous(memory_format=layout)\n"
+            "sum(t.sum() for t in model(x)).backward()\n")
+    done = subprocess.run([sys.executable, "-c", step], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
 def test_coco_circle_map_on_known_cases():
     gt = {1: np.array([[10.0, 10.0, 5.0]]), 2: np.zeros((0, 3)), 3: np.array([[30.0, 20.0, 8.0]])}
     perfect = {1: np.array([[10.0, 10.0, 5.0, 0.9]]), 3: np.array([[30.0, 20.0, 8.0, 0.8]])}
@@ -313,6 +332,8 @@ def test_train_writes_everything_and_resume_gives_the_same_model(tmp_path, tiny_
     with pytest.raises(KeyboardInterrupt):
         ctrain.train(tiny_data, tmp_path / "cut", tiny_config(checkpoint_minutes=0), seed=3, progress=False)
     monkeypatch.setattr(ctrain, "_learning_rate", real)
+    # what --resume reads, and nothing else of the run's (the history travels in the checkpoint)
+    assert sorted(p.name for p in (tmp_path / "cut").iterdir() if not p.name.startswith(".")) == ["checkpoint.pt"]
     state = torch.load(tmp_path / "cut" / "checkpoint.pt", map_location="cpu", weights_only=True)
     assert (state["epoch"], state["batch_pos"]) == (1, 1)
     with pytest.raises(SphereBenchError, match="already holds a training run"):

@@ -4,6 +4,9 @@ local engine (``spherebench.parallel.executor``)."""
 from __future__ import annotations
 
 import filecmp
+import os
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -11,7 +14,7 @@ from spherebench.baselines.hough import HoughConfig
 from spherebench.datasets import simulate
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import registry, tasks
-from spherebench.parallel import executor
+from spherebench.parallel import RAY_AUTH_VARIABLES, executor
 
 ray = pytest.importorskip("ray", reason="the `distributed` extra (ray) is not installed")
 
@@ -22,7 +25,15 @@ def three(tmp_path_factory):
     return simulate.generate_dataset("default", tmp_path_factory.mktemp("raydata") / "three", n=3, progress=False)
 
 
-def test_ray_and_local_engines_write_the_same_predictions(three, tmp_path):
+def test_ray_and_local_engines_write_the_same_predictions(three, tmp_path, monkeypatch):
+    # a local cluster's session folder and token go with it: nothing is left in TMPDIR or HOME
+    temp = Path(tempfile.mkdtemp(dir="/tmp"))  # a Unix socket's path has 107 bytes at most: not under tmp_path
+    (tmp_path / "home").mkdir()
+    monkeypatch.setenv("TMPDIR", str(temp))
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    for variable in RAY_AUTH_VARIABLES:
+        monkeypatch.delenv(variable, raising=False)
     specs = [registry.detector_spec("improved"), registry.pyransac3d_spec(points=500, iterations=40),
              registry.hough_spec(HoughConfig())]
     local = tasks.run_methods(three, tmp_path / "local", specs, seed=1, workers=1, progress=False, log=lambda m: None)
@@ -32,6 +43,9 @@ def test_ray_and_local_engines_write_the_same_predictions(three, tmp_path):
     for name, path in local.items():
         assert filecmp.cmp(path, ray_paths[name], shallow=False), name
     assert not ray.is_initialized()  # the local cluster it started is shut down
+    assert list(temp.iterdir()) == [] and list((tmp_path / "home").iterdir()) == []
+    temp.rmdir()
+    assert all(variable not in os.environ for variable in RAY_AUTH_VARIABLES)
 
 
 def test_engine_arguments_are_checked():

@@ -4,7 +4,8 @@
     checkpoint.pt        the run's state, rewritten atomically after every epoch and every
                          ``checkpoint_minutes``; ``resume=True`` continues from it, bit for bit
                          the same batches (the data order and augmentation derive from the seed)
-    history.json         per-iteration loss, per-epoch validation mAP / mAP.50 / mAP.75
+    history.json         per-iteration loss, per-epoch validation mAP / mAP.50 / mAP.75 (at the end;
+                         a stopped run leaves the checkpoint alone, which holds it)
     training_curve.png   both, as a figure
     model.onnx           the final model (not a best-of-epochs pick: no selection on validation)
     model_card.json/.md  data, seed, epochs, time, device, validation mAP of the ONNX model, command
@@ -117,7 +118,7 @@ def predict(model: CircleNet, dataset: CircleDataset, batch_size: int = 16, devi
                                          num_workers=min(workers, usable_cpus()))
     out = {}
     for batch in loader:
-        x = batch["image"].to(device).float().contiguous(memory_format=torch.channels_last)
+        x = batch["image"].to(device).float().contiguous(memory_format=memory_format(model, device))
         with torch.autocast(device.type, dtype=amp or torch.float32, enabled=amp is not None):
             heat, offset, radius = model(x)
         heat, offset, radius = heat.float(), offset.float(), radius.float()
@@ -129,6 +130,15 @@ def predict(model: CircleNet, dataset: CircleDataset, batch_size: int = 16, devi
 
 
 # ---------------------------------------------------------------- training
+
+def memory_format(model: torch.nn.Module, device: torch.device) -> torch.memory_format:
+    """Channels-last (faster convolutions) unless the model has a strided 1x1 convolution of 2 to 15
+    input channels on the CPU: torch 2.13's CPU backward of one on channels-last tensors corrupts
+    the heap (the process aborts) on images of the model's size (a narrow ``--resnet-width``)."""
+    narrow = any(isinstance(m, torch.nn.Conv2d) and m.kernel_size == (1, 1) and m.stride != (1, 1)
+                 and 1 < m.in_channels < 16 for m in model.modules())
+    return torch.contiguous_format if narrow and torch.device(device).type == "cpu" else torch.channels_last
+
 
 def _atomic_write(path: Path, write) -> None:
     tmp = path.with_name(f".tmp-{path.name}")
@@ -300,7 +310,9 @@ def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt
     if config.threads:
         torch.set_num_threads(config.threads)  # OpenMP threads that wait on each other crawl on a busy machine
     torch.manual_seed(seed)
-    model = CircleNet(config.model).to(device, memory_format=torch.channels_last)
+    model = CircleNet(config.model)
+    layout = memory_format(model, device)
+    model = model.to(device, memory_format=layout)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     history = {"loss": [], "val": []}
     epoch, batch_pos, iteration, seconds = 0, 0, 0, 0.0
@@ -336,7 +348,7 @@ def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt
             lr = _learning_rate(config, iteration, total_iters)
             for group in optimizer.param_groups:
                 group["lr"] = lr
-            x = batch["image"].to(device).float().contiguous(memory_format=torch.channels_last)
+            x = batch["image"].to(device).float().contiguous(memory_format=layout)
             targets = {k: batch[k].to(device) for k in ("heat", "cells", "mask", "offset", "radius")}
             with torch.autocast(device.type, dtype=amp or torch.float32, enabled=amp is not None):
                 stages = model.forward_stages(x)
@@ -360,10 +372,8 @@ def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt
                                               workers=config.workers))
         history["val"].append({"epoch": epoch + 1, **val})
         epoch, batch_pos = epoch + 1, 0
-        save(epoch, 0)
+        save(epoch, 0)  # the history travels in the checkpoint: a stopped run leaves only what --resume reads
         last_save = time.monotonic()
-        _atomic_write(out / "history.json", lambda tmp: tmp.write_text(json.dumps(history)))
-        plot_training_curve(history, out / "training_curve.png")
         if progress:
             progress_write(f"epoch {epoch}/{config.epochs}: loss {running if running is not None else float('nan'):.4f}, "
                            f"val mAP {val['mAP']:.3f}, mAP.50 {val['mAP50']:.3f}")
@@ -374,7 +384,10 @@ def _train(config: TrainConfig, device: torch.device, seed: int, out: Path, ckpt
 
 def _finish(model, config, seed, out, train_dir, train_recs, val_recs, val_set, val_gt, history,
             iteration, seconds, device, amp, command) -> dict:
-    """Export the final model to ONNX, score the exported file on validation, write the model card."""
+    """Export the final model to ONNX, score the exported file on validation, write the history, its
+    curve and the model card."""
+    _atomic_write(out / "history.json", lambda tmp: tmp.write_text(json.dumps(history)))
+    plot_training_curve(history, out / "training_curve.png")
 
     dirs = [train_dir] if isinstance(train_dir, (str, Path)) else list(train_dir)
     metas = []
