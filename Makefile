@@ -8,7 +8,7 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: help eval test venv stream-bench data data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide data-resolution realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real clean distclean
+.PHONY: help eval test venv stream-bench data data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide data-resolution realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real pattern clean distclean
 
 # ---- help: every target with its line (the `## ` comment after the target's name)
 help:  ## list the targets with one line each
@@ -132,6 +132,9 @@ sweep: venv data data-hard data-hard-sensor  ## the detector over seeds 0-7 -> r
 	$(SB) sweep $(DATA)/default $(DATA)/hard $(DATA)/hard-sensor --seeds 0-7 --workers $(WORKERS) --out results/sweep
 sweep-train: venv data-train  ## the detector over seeds 0-3 on train -> results/sweep_train.md
 	$(SB) sweep $(DATA)/train --seeds 0-3 --workers $(WORKERS) --out results/sweep_train
+
+pattern: venv  ## redraw the stereo sensor's shipped dot pattern (datasets/d435_pattern.npz) from its seed
+	$(PY) -c "from spherebench.datasets import stereo; stereo.write_pattern_file()"
 
 test: venv  ## the test suite (pytest)
 	$(PY) -m pytest -q

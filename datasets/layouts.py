@@ -26,7 +26,7 @@ DISTRACTOR_RADII_M = (0.11, 0.09, 0.065, 0.15)
 class Item:
     """A primitive and what it is; albedo (infrared, 0-1) and texture set its surface for the
     stereo model (None: the model draws the albedo, untextured); the analytic model ignores both.
-    hole: a target ball's missing depth over part of its face (``simulate.Hole``), applied by
+    hole: a target ball's missing depth over part of its face (``families.Hole``), applied by
     either sensor model to its depth; None: none."""
 
     shape: object

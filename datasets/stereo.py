@@ -20,6 +20,7 @@ whatever numpy's generators do later; another seed or dot count is drawn at run 
 from __future__ import annotations
 
 import functools
+import io
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -30,6 +31,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from spherebench.camera import Intrinsics, image_rays
+from spherebench.datasets.outputs import atomic_write_bytes
 from spherebench.datasets.primitives import CURVED, Box, Cylinder, Plane, SolidSphere, raycast
 from spherebench.errors import SphereBenchError
 
@@ -215,8 +217,11 @@ def draw_pattern(seed: int, n_dots: int) -> np.ndarray:
 
 
 def write_pattern_file(path: Path = PATTERN_FILE) -> None:
-    """Write the shipped pattern (run once; the file is part of the package)."""
-    np.savez_compressed(path, dots=draw_pattern(PATTERN_SEED, PATTERN_DOTS), seed=PATTERN_SEED)
+    """Write the shipped pattern, atomically (``make pattern``; the file is part of the package, and a
+    test checks that it holds what its seed draws)."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, dots=draw_pattern(PATTERN_SEED, PATTERN_DOTS), seed=PATTERN_SEED)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 @functools.lru_cache(maxsize=8)

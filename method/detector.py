@@ -17,6 +17,7 @@ import numpy as np
 
 from spherebench.circles import sphere_circle_exact, sphere_circle_paper, sphere_circle_visible
 from spherebench.cloud import Cloud, cloud_from_depth
+from spherebench import sphere_distance
 from spherebench.errors import SphereBenchError
 from spherebench.method.config import IMPROVED, DetectorConfig
 from spherebench.method.frame import MM_LIMIT_M, PreparedFrame
@@ -255,8 +256,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         trace.ransac_indices = index[trace.ransac_indices]
         trace.kept_indices = index[trace.kept_indices]
         inl_orig = index[inl]
-        res = np.linalg.norm(cloud.points[inl_orig].astype(np.float64) - centre, axis=1) - R
-        rmse = float(np.sqrt(np.mean(res * res))) if len(res) else float("nan")
+        rmse = sphere_distance.rmse(cloud.points[inl_orig], centre, R)
         # the paper has no confidence: a saturating function of the support stands in for it
         score = len(inl_orig) / (len(inl_orig) + 100.0)
         cp, ce = sphere_circles(cloud, centre, R)

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from spherebench.method.unorganised import shell_counts
+from spherebench import sphere_distance
 from spherebench.method import sphere_model as sm
 from spherebench.method.config import DetectorConfig
 from spherebench.method.ransac import draw_distinct, sample_loop
@@ -126,7 +127,7 @@ def run_paper(points: np.ndarray, config: DetectorConfig, rng: np.random.Generat
     if counts[best] < 3:
         return None
     c0 = centres[best]
-    chosen = np.flatnonzero(np.abs(sm.residuals(points, c0, R)) <= eps)
+    chosen = np.flatnonzero(np.abs(sphere_distance.residuals(points, c0, R)) <= eps)
     z, keep = zscore_keep(zscore_values(points[chosen], c0, R, config.paper.zscore_variable),
                           config.paper.zscore_threshold)
     kept = chosen[keep]
@@ -138,7 +139,7 @@ def run_paper(points: np.ndarray, config: DetectorConfig, rng: np.random.Generat
         inliers = np.flatnonzero(np.linalg.norm(points - centre, axis=1) <= R)
     else:
         centre = sm.refine_fixed_radius(points[kept], c0, R)
-        inliers = np.flatnonzero(np.abs(sm.residuals(points, centre, R)) <= eps)
+        inliers = np.flatnonzero(np.abs(sphere_distance.residuals(points, centre, R)) <= eps)
     trace = PaperTrace(ransac_centre_m=c0, ransac_radius_m=float(radii[best]), ransac_indices=chosen, zscores=z,
                        kept_indices=kept, barycentre_m=bary, zscore_threshold=config.paper.zscore_threshold,
                        zscore_variable=config.paper.zscore_variable, iterations=its, candidate_centres_m=centres,

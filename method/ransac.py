@@ -8,23 +8,9 @@ candidate centres, a best model...) and may stop the loop early.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
-
-
-def required_iterations(sample_success: float, confidence: float) -> float:
-    """Standard RANSAC bound: draws needed to get one good sample with probability ``confidence``.
-
-    sample_success: probability that one draw is all-inlier (w^s for s global draws with inlier
-    ratio w; w * q^2 for a local sampler). Returns inf when it is 0, 1 when it is 1.
-    """
-    if sample_success >= 1.0:
-        return 1.0
-    if sample_success <= 0.0:
-        return math.inf
-    return math.log(1.0 - confidence) / math.log1p(-sample_success)
 
 
 def draw_distinct(rng: np.random.Generator, n_items: int, count: int, size: int) -> np.ndarray:

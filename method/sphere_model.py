@@ -1,4 +1,5 @@
-"""The sphere model: minimal solvers, residuals, and least-squares fits (readable numpy).
+"""The sphere model: minimal solvers and least-squares fits (readable numpy; the residuals and their
+RMS, shared with the metrics, are ``spherebench.sphere_distance``'s).
 
 This module is the reference: the compiled kernels (``fit_kernels``, ``unorganised``) do the same arithmetic point
 by point and the tests compare them with these functions.
@@ -86,17 +87,6 @@ def solve_eq12_lstsq(p1, p2, p3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     c = q - np.einsum("ij,ij->i", q, n)[:, None] * n
     r = np.linalg.norm(_as3(p1) - c, axis=1)
     return c, r, ok
-
-
-def residuals(points_m: np.ndarray, centre_m, radius_m: float) -> np.ndarray:
-    """Signed distances (N,) metres of points (N, 3) from the sphere: ||p - c|| - R."""
-    return np.linalg.norm(_as3(points_m) - np.asarray(centre_m, np.float64).reshape(1, 3), axis=1) - radius_m
-
-
-def rmse(points_m: np.ndarray, centre_m, radius_m: float) -> float:
-    """Root mean square of ``residuals``: the RMSE of Table 2 as defined by this project (metres)."""
-    r = residuals(points_m, centre_m, radius_m)
-    return float(np.sqrt(np.mean(r * r))) if len(r) else float("nan")
 
 
 def refine_fixed_radius(points_m: np.ndarray, centre_m, radius_m: float, iterations: int = 10,

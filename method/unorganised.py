@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from spherebench import sphere_distance
 from spherebench.method import fit_kernels as FIT
 from spherebench.method.compiled import kernel, next_u01, part
 from spherebench.method.config import DetectorConfig
@@ -379,8 +380,7 @@ def verify_unorganised(points: np.ndarray, c0: np.ndarray, config: DetectorConfi
         return None
     idx = buf[:n].copy()
     free_c, free_r, free_se, _ = FIT.fit_free_radius(points, idx, c[0], c[1], c[2], R, 8)
-    res = np.linalg.norm(points[idx].astype(np.float64) - c, axis=1) - R
-    rmse = float(np.sqrt(np.mean(res * res)))
+    rmse = sphere_distance.rmse(points[idx], c, R)
     # a ball hides its interior: points in its inner half (and ``INTERIOR_BANDS`` shell half-widths under
     # its surface) are another surface the sphere cuts (a wall, clutter) or volumetric noise; a noisy
     # sensor's returns off the ball itself do not reach that deep (a 16-beam LiDAR's do 3 cm deep)

@@ -11,7 +11,7 @@ import os
 import sys
 
 from spherebench import options
-from spherebench.cli import run_module
+from spherebench.scripts.cli import run_module
 from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.speed import MIN_SCORES, bench, markdown, run_info

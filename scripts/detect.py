@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from spherebench import options, viz
-from spherebench.cli import BadInputs
+from spherebench.scripts.cli import BadInputs
 from spherebench.cloud import in_front_of_camera
 from spherebench.datasets import depth_frames, detections, inout, outputs
 from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text

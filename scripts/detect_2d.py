@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from spherebench import options
-from spherebench.cli import BadInputs
+from spherebench.scripts.cli import BadInputs
 from spherebench.datasets import detections
 from spherebench.errors import SphereBenchError
 

@@ -13,7 +13,7 @@ import argparse
 import sys
 
 from spherebench import options
-from spherebench.cli import run_module
+from spherebench.scripts.cli import run_module
 from spherebench.datasets import inout, outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.robustness import markdown, robustness

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from spherebench import options
-from spherebench.datasets import depth_frames, outputs, simulate
+from spherebench.datasets import depth_frames, outputs, rendering
 from spherebench.datasets.bagwrite import write_realsense_bag
 from spherebench.method import config_for, stream, warm_up
 
@@ -41,7 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _recording(folder: Path, size: str, n_frames: int, n_scenes: int, fps: int, seed: int) -> Path:
 
     families = ("clean", "cluttered")
-    scenes = [simulate.simulate_scene("default", k, families[k % 2], seed, size) for k in range(n_scenes)]
+    scenes = [rendering.simulate_scene("default", k, families[k % 2], seed, size) for k in range(n_scenes)]
     frames = [scenes[k % n_scenes].depth for k in range(n_frames)]
     return write_realsense_bag(folder / f"sim_{size}.bag", frames, scenes[0].intrinsics, fps=fps)
 
@@ -86,6 +86,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    from spherebench.cli import run_module
+    from spherebench.scripts.cli import run_module
 
     sys.exit(run_module("stream_bench", sys.modules[__name__]))

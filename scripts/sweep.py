@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from spherebench import options
-from spherebench.cli import run_module
+from spherebench.scripts.cli import run_module
 from spherebench.datasets import inout, outputs
 from spherebench.eval.bench.sweep import markdown, read_settings, sweep
 

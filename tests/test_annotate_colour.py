@@ -14,7 +14,7 @@ import pytest
 
 from spherebench.camera import Intrinsics, deproject, image_rays
 from spherebench.circles import mask_circle, sphere_silhouette_mask
-from spherebench.cli import main
+from spherebench.scripts.cli import main
 from spherebench.datasets import inout
 from spherebench.datasets.annotate import (balls_from_labelme, colour_mask, fit_sphere_fixed_radius,
                                            labelme_from_mask, labelme_text, mask_fit_centre, parse_hsv)

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spherebench import cli, provenance
+from spherebench import provenance
+from spherebench.scripts import cli
 from spherebench.baselines import pyransac3d_peer as peer
 from spherebench.baselines.circlenet.infer import DEFAULT_MODEL
 from spherebench.camera import Intrinsics, image_rays
@@ -480,7 +481,7 @@ def test_a_help_that_cannot_be_written_is_one_line_and_status_2():
         pytest.skip("no /dev/full on this system")
     for argv in (["--help"], ["detect", "--help"]):
         with open("/dev/full", "w") as full:
-            run = subprocess.run([sys.executable, "-m", "spherebench.cli", *argv], stdout=full, stderr=subprocess.PIPE,
+            run = subprocess.run([sys.executable, "-m", "spherebench.scripts.cli", *argv], stdout=full, stderr=subprocess.PIPE,
                                  text=True, timeout=120)
         assert run.returncode == 2, run.stderr
         assert run.stderr.strip().splitlines() == [
@@ -524,7 +525,7 @@ def test_detect_writes_nothing_under_home(small_default, tmp_path):
     home.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("ORT_DISABLE_TELEMETRY", "XDG_CACHE_HOME")}
     env["HOME"] = str(home)
-    run = subprocess.run([sys.executable, "-m", "spherebench.cli", "detect", str(inout.list_scenes(small_default)[0])],
+    run = subprocess.run([sys.executable, "-m", "spherebench.scripts.cli", "detect", str(inout.list_scenes(small_default)[0])],
                          env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert sorted(str(p.relative_to(home)) for p in home.rglob("*")) == []

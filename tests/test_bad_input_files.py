@@ -15,7 +15,8 @@ import zlib
 import numpy as np
 import pytest
 
-from spherebench import cli, options
+from spherebench import options
+from spherebench.scripts import cli
 from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
 from test_bad_input_commands import _fails, _listing  # noqa: E402  (tests/ is on sys.path under pytest)

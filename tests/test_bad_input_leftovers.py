@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.datasets import inout, outputs, simulate
 from test_bad_input_commands import _fails, _listing, big_ball  # noqa: E402, F401  (tests/ is on sys.path)
 
@@ -148,7 +148,7 @@ def test_a_ray_address_that_never_answers_gets_our_line_only(data, tmp_path):
     with socket.socket() as server:
         server.bind(("127.0.0.1", 0))
         server.listen(4)
-        code = ("import sys; from spherebench import cli, parallel; parallel.RAY_CONNECT_TIMEOUT_S = 2.0; "
+        code = ("import sys; from spherebench import parallel; from spherebench.scripts import cli; parallel.RAY_CONNECT_TIMEOUT_S = 2.0; "
                 "sys.exit(cli.main(sys.argv[1:]))")
         argv = ["sweep", str(data), "--seeds", "0", "--engine", "ray", "--address",
                 f"127.0.0.1:{server.getsockname()[1]}"]

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.datasets import inout, outputs
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.cloud import cloud_from_depth
 from spherebench.datasets import frame_sources, inout, prepare
 from test_prepare import INTR, counts, labelme, render, shape, write_intrinsics_json  # tests/ is on sys.path

@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 import pytest
 
-from spherebench import cli, parallel, progress
+from spherebench import parallel, progress
+from spherebench.scripts import cli
 from spherebench.datasets import simulate
 from spherebench.errors import SphereBenchError
 
@@ -85,7 +86,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
 @pytest.mark.skipif(parallel.usable_cpus() < 2, reason="one CPU: generate runs in one process")
 def test_workers_die_when_their_parent_is_killed(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "spherebench.cli", "generate", "--n", "400", "--workers", "2",
+    proc = subprocess.Popen([sys.executable, "-m", "spherebench.scripts.cli", "generate", "--n", "400", "--workers", "2",
                              "--quiet", "--out", str(tmp_path / "ds")], cwd=tmp_path,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers: set[int] = set()
@@ -205,7 +206,7 @@ def test_a_ray_that_does_not_load_is_one_line(tmp_path, monkeypatch):
 def test_stdout_closed_is_one_line_on_stderr(tmp_path):
     cloud = tmp_path / "c.xyz"
     cloud.write_text("0 0 1\n")
-    done = subprocess.run([sys.executable, "-m", "spherebench.cli", "detect", str(cloud)], cwd=tmp_path,
+    done = subprocess.run([sys.executable, "-m", "spherebench.scripts.cli", "detect", str(cloud)], cwd=tmp_path,
                           preexec_fn=lambda: os.close(1), stderr=subprocess.PIPE, text=True, timeout=120)
     assert done.returncode == 2, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1 and "stdout is closed" in done.stderr, done.stderr
@@ -214,7 +215,7 @@ def test_stdout_closed_is_one_line_on_stderr(tmp_path):
 
 @pytest.mark.parametrize("argv", [["--version"], ["--help"], ["detect", "--help"], ["detect", "--no-such-option"]])
 def test_stdout_closed_before_argparse_writes_is_one_line(tmp_path, argv):
-    done = subprocess.run([sys.executable, "-m", "spherebench.cli", *argv], cwd=tmp_path,
+    done = subprocess.run([sys.executable, "-m", "spherebench.scripts.cli", *argv], cwd=tmp_path,
                           preexec_fn=lambda: os.close(1), stderr=subprocess.PIPE, text=True, timeout=120)
     assert done.returncode == 2, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1 and "stdout is closed" in done.stderr, done.stderr
@@ -249,7 +250,7 @@ def test_a_long_stage_in_a_log_prints_at_most_a_line_per_interval(capsys):
 
 _HOME_SCRIPT = """
 import sys
-from spherebench import cli
+from spherebench.scripts import cli
 w = sys.argv[1]
 refused = [["detect-2d", w + "/missing.png"], ["evaluate", "--data", w + "/missing", "--out", w + "/ev"],
            ["prepare", w + "/bad.bag", "--out", w + "/p"], ["detect", w + "/bad.db3"],

@@ -33,7 +33,7 @@ def test_each_library_gets_a_sub_folder_unless_the_user_set_its_own(tmp_path):
 
 _PROBE = """
 import json, sys
-from spherebench import cli
+from spherebench.scripts import cli
 before = sorted(m for m in ("numba", "matplotlib", "torch") if m in sys.modules)
 code = cli.main(["generate", "--help"])
 import numba, matplotlib

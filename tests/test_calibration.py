@@ -107,7 +107,7 @@ def test_no_detections_have_no_calibration():
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     """Four `default` scenes in data/default and `spherebench evaluate --methods improved` on them."""
-    from spherebench.cli import main
+    from spherebench.scripts.cli import main
     from spherebench.datasets import simulate
     root = tmp_path_factory.mktemp("calib")
     data = simulate.generate_dataset("default", root / "data" / "default", n=4, progress=False)

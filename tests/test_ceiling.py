@@ -57,7 +57,7 @@ def test_the_ceiling_is_a_method_beside_the_detector(tmp_path):
     paths = tasks.run_methods(data, tmp_path / "p", specs, workers=1, progress=False, log=lambda m: None)
     fits = json.loads(paths["own-pixel-fit"].read_text())
     assert len(fits) == 3 and all(r["score"] == 1.0 for r in fits)  # one per ball of the analytic model
-    from spherebench.cli import main
+    from spherebench.scripts.cli import main
     out = tmp_path / "out"
     assert main(["evaluate", "--data", str(data), "--out", str(out), "--methods", "improved", "own-pixel-fit",
                  "--workers", "1", "--quiet", "--no-figures"]) == 0

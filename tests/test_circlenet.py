@@ -27,7 +27,7 @@ from spherebench.baselines.circlenet.loss import circlenet_loss, focal_loss
 from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, decode
 from spherebench.baselines.circlenet.onnx_export import export_onnx
 from spherebench.circles import mask_circle
-from spherebench.cli import main
+from spherebench.scripts.cli import main
 from spherebench.errors import SphereBenchError
 
 TINY = dict(resnet_width=8, neck_channels=16, head_channels=16, hourglass_stem=8,

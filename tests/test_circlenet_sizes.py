@@ -19,7 +19,7 @@ from spherebench.baselines.circlenet.model import CircleNet, CircleNetConfig, de
 from spherebench.baselines.circlenet.onnx_export import export_onnx
 from spherebench.baselines.circlenet.size_study import KINECT, render
 from spherebench.camera import Intrinsics
-from spherebench.cli import main
+from spherebench.scripts.cli import main
 from spherebench.datasets import inout
 
 TINY = dict(resnet_width=8, neck_channels=16, head_channels=16)

@@ -11,7 +11,7 @@ import pytest
 
 from spherebench import provenance
 from spherebench.baselines.hough import HoughConfig
-from spherebench.datasets import inout, outputs, simulate
+from spherebench.datasets import inout, outputs, presets, simulate
 from spherebench.datasets import fingerprint
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import cache, prose, registry, report, result_tables, scoring, seeds, studies, tables, tasks
@@ -175,7 +175,7 @@ def test_shipped_gpu_circlenets_are_found(tmp_path):
 
 
 def test_evaluate_cli(tiny, tmp_path):
-    from spherebench.cli import main
+    from spherebench.scripts.cli import main
     hough_file = tmp_path / "hough.json"
     hough_file.write_text(json.dumps({"param2": 15.0}))
     out = tmp_path / "out"
@@ -284,9 +284,9 @@ def test_the_reading_names_presets_and_methods_by_their_registered_roles(tiny, t
     paths = tasks.run_methods(tiny, tmp_path, _specs(("improved",)), workers=1, progress=False, log=lambda m: None)
     coco, scenes = inout.read_coco_gt(tiny), tasks.dataset_scenes(tiny)
     sets = [scoring.score_set(paths[o], coco, scenes) for o in ("improved", "improved+paper-circle")]
-    protocol = simulate.PRESETS["default"]
-    monkeypatch.setitem(simulate.PRESETS, "default", dataclasses.replace(protocol, role=""))
-    monkeypatch.setitem(simulate.PRESETS, "mine", dataclasses.replace(protocol, name="mine", description="my protocol"))
+    protocol = presets.PRESETS["default"]
+    monkeypatch.setitem(presets.PRESETS, "default", dataclasses.replace(protocol, role=""))
+    monkeypatch.setitem(presets.PRESETS, "mine", dataclasses.replace(protocol, name="mine", description="my protocol"))
     text = prose.reading({"mine": sets}, None, {})
     assert text[0].startswith("On `mine` (my protocol) the best circle mAP is improved's")
     assert any(s.startswith("In 3D, `improved` finds") and "of the `mine` balls" in s for s in text)
@@ -312,7 +312,7 @@ def test_circlenet_runs_from_an_onnx_file(tiny, tmp_path):
 
 
 def test_transfer_table_pairs_a_preset_with_its_stereo_twin(tiny, tmp_path):
-    from spherebench.cli import main
+    from spherebench.scripts.cli import main
     from spherebench.eval.bench import transfer
     from spherebench.eval.metrics import metrics3d
 

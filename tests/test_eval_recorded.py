@@ -14,7 +14,7 @@ import pytest
 
 from spherebench.baselines.hough import HoughConfig
 from spherebench.circles import sphere_silhouette_mask
-from spherebench.cli import main
+from spherebench.scripts.cli import main
 from spherebench.datasets import frame_sources, inout
 from spherebench.datasets import prepare as prep
 from spherebench.datasets.annotate import labelme_from_mask, labelme_text

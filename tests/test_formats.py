@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.datasets import inout
 
 NUMBER = (int, float)

@@ -8,16 +8,17 @@ import math
 import numpy as np
 import pytest
 
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import families, inout, presets, rendering, simulate
+from spherebench.datasets.sensor import D435Sensor
 from spherebench.datasets.stereo import StereoSensor
 from test_stereo_sensor import _files
 
 
 def _scenes(preset: str, n: int, resolution: str = "424x240"):
     """The first n scenes of a preset at one resolution (the stereo model is slow at 848x480)."""
-    sensor = StereoSensor() if preset.endswith("-stereo") else simulate.D435Sensor()
+    sensor = StereoSensor() if preset.endswith("-stereo") else D435Sensor()
     jobs = [job for job in simulate.plan(preset, 20) if job[2] == resolution][:n]
-    return [simulate.simulate_scene(preset, i, family, 0, res, sensor=sensor) for i, family, res in jobs]
+    return [rendering.simulate_scene(preset, i, family, 0, res, sensor=sensor) for i, family, res in jobs]
 
 
 @pytest.mark.parametrize("preset", ["holes", "holes-stereo"])
@@ -39,7 +40,7 @@ def test_the_hole_leaves_the_balls_ground_truth_as_it_was(preset, monkeypatch):
     """The mask, silhouette, circles and centre are those of the scene without its hole (a sensor
     effect), and the depth differs only on the hole's pixels, inside the mask."""
     holed = _scenes(preset, 1)[0]
-    monkeypatch.setattr(simulate, "punch_hole", lambda *args: 0.0)
+    monkeypatch.setattr(rendering, "punch_hole", lambda *args: 0.0)
     whole = _scenes(preset, 1)[0]
     a, b = holed.balls[0], whole.balls[0]
     assert np.array_equal(a.mask, b.mask) and np.array_equal(a.silhouette, b.silhouette)
@@ -50,7 +51,7 @@ def test_the_hole_leaves_the_balls_ground_truth_as_it_was(preset, monkeypatch):
 
 
 def test_other_families_record_no_hole():
-    scene = simulate.simulate_scene("default", 0, "clean", 0, "424x240")
+    scene = rendering.simulate_scene("default", 0, "clean", 0, "424x240")
     assert "hole_fraction" not in scene.meta
 
 
@@ -65,8 +66,8 @@ def test_holes_generates_the_same_bytes_for_any_workers_and_records_the_fraction
         scene = inout.read_scene(scene_dir)
         mask = scene.balls[0].mask
         assert gt["meta"]["hole_fraction"][0] == pytest.approx(1 - (mask & (scene.depth > 0)).sum() / mask.sum())
-    assert not simulate.PRESETS["holes"].benchmark and not simulate.PRESETS["holes-stereo"].benchmark
-    assert simulate.PRESETS["holes-stereo"].twin_of == "holes"
+    assert not presets.PRESETS["holes"].benchmark and not presets.PRESETS["holes-stereo"].benchmark
+    assert presets.PRESETS["holes-stereo"].twin_of == "holes"
 
 
 def test_trains_share_of_holes_leaves_its_whole_scenes_as_they_were(monkeypatch):
@@ -74,10 +75,10 @@ def test_trains_share_of_holes_leaves_its_whole_scenes_as_they_were(monkeypatch)
     the share set to none, those scenes lose their hole only, and every other scene is unchanged."""
     jobs = [job for job in simulate.plan("train", 400) if job[1] in ("clean", "cluttered")
             and job[2] == "424x240"][:30]
-    holed = [simulate.simulate_scene("train", i, f, 0, r) for i, f, r in jobs]
-    monkeypatch.setitem(simulate.PRESETS, "train",
-                        dataclasses.replace(simulate.PRESETS["train"], holes=()))
-    whole = [simulate.simulate_scene("train", i, f, 0, r) for i, f, r in jobs]
+    holed = [rendering.simulate_scene("train", i, f, 0, r) for i, f, r in jobs]
+    monkeypatch.setitem(presets.PRESETS, "train",
+                        dataclasses.replace(presets.PRESETS["train"], holes=()))
+    whole = [rendering.simulate_scene("train", i, f, 0, r) for i, f, r in jobs]
     with_hole = [a for a in holed if "hole_fraction" in a.meta]
     assert 2 <= len(with_hole) <= 14, len(with_hole)  # a fifth of 30, loosely
     for a, b in zip(holed, whole):
@@ -152,9 +153,9 @@ def test_hard_holds_twenty_holed_balls_after_its_first_140_scenes():
     with seven families (blocks of 20), and the stereo twin has the same plan."""
     jobs = simulate.plan("hard")
     assert len(jobs) == 160 and [f for _i, f, _r in jobs[140:]] == ["holed"] * 20
-    assert [f for _i, f, _r in jobs[:140]] == [f for f in simulate.HARD_FAMILIES for _ in range(20)]
-    rng = np.random.default_rng([simulate.PRESETS["hard"].code, 0, 7])  # plan's resolution stream
-    names, shares = zip(*simulate.PRESETS["hard"].resolutions)
+    assert [f for _i, f, _r in jobs[:140]] == [f for f in families.HARD_FAMILIES for _ in range(20)]
+    rng = np.random.default_rng([presets.PRESETS["hard"].code, 0, 7])  # plan's resolution stream
+    names, shares = zip(*presets.PRESETS["hard"].resolutions)
     before = rng.choice(names, size=140, p=np.asarray(shares) / sum(shares))
     assert [r for _i, _f, r in jobs[:140]] == [str(r) for r in before]
     assert [f for _i, f, _r in simulate.plan("hard-stereo")] == [f for _i, f, _r in jobs]

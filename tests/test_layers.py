@@ -26,9 +26,9 @@ LAYERS = {
     "metrics": ("spherebench.eval", "spherebench.eval.metrics"),
     "baselines": ("spherebench.baselines",),
     "bench": ("spherebench.eval.bench",),
-    "drivers": ("spherebench.scripts", "spherebench.cli"),
+    "drivers": ("spherebench.scripts", "spherebench.scripts.cli"),
 }
-#: The layers each layer may import besides its own. ``spherebench.cli`` loads the drivers by name
+#: The layers each layer may import besides its own. ``spherebench.scripts.cli`` loads the drivers by name
 #: (importlib) only when their subcommand runs: no import statement, so no edge.
 MAY_IMPORT = {
     "core": (),
@@ -92,7 +92,33 @@ def module_imports(path: Path, module: str, is_package: bool, known: set[str]) -
             for a in node.names:
                 sub = f"{base}.{a.name}"
                 found.append((sub if sub in known else base, node.lineno))
+        elif isinstance(node, ast.Call) and _imports_by_name(node):
+            named = _literal_head(node.args[0]).rstrip(".")  # f"spherebench.scripts.{name}" -> the package
+            if named:
+                found.append((named, node.lineno))
     return [(m, line) for m, line in found if m == "spherebench" or m.startswith("spherebench.")]
+
+
+def _imports_by_name(call: ast.Call) -> bool:
+    """A call of importlib.import_module or __import__ with an argument: an import that no import
+    statement shows."""
+    f = call.func
+    name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+    return name in ("import_module", "__import__") and bool(call.args)
+
+
+def _literal_head(node: ast.expr) -> str:
+    """The text a string argument starts with, as far as it is literal (an f-string's leading text)."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return node.value
+    if isinstance(node, ast.JoinedStr):
+        head = ""
+        for part in node.values:
+            if not (isinstance(part, ast.Constant) and isinstance(part.value, str)):
+                break
+            head += part.value
+        return head
+    return ""
 
 
 def import_edges(modules: dict[str, tuple[Path, bool]]) -> list[tuple[str, str, int]]:
@@ -223,11 +249,11 @@ def test_the_declared_layers_form_a_dag():
 def test_every_module_is_walked():
     modules = installed_modules()
     assert set(modules) == set(checkout_modules(ROOT))  # the installed package is this checkout's
-    assert {"spherebench.cli", "spherebench.datasets.inout", "spherebench.method.detector",
+    assert {"spherebench.scripts.cli", "spherebench.datasets.inout", "spherebench.method.detector",
             "spherebench.eval.metrics.coco_eval", "spherebench.eval.bench.registry",
             "spherebench.baselines.circlenet.infer", "spherebench.scripts.detect"} <= set(modules)
     assert layer_of("spherebench.eval") == "metrics" and layer_of("spherebench.eval.bench.runner") == "bench"
-    assert layer_of("spherebench.cli") == "drivers" and layer_of("spherebench.camera") == "core"
+    assert layer_of("spherebench.scripts.cli") == "drivers" and layer_of("spherebench.camera") == "core"
 
 
 def test_a_bad_edge_is_named(tmp_path):
@@ -235,13 +261,17 @@ def test_a_bad_edge_is_named(tmp_path):
     found and named with its line."""
     bad = tmp_path / "fake.py"
     bad.write_text("import numpy\nfrom spherebench.camera import Intrinsics\n\n\ndef f():\n"
-                   "    from spherebench.method import detect\n    return detect\n")
+                   "    from spherebench.method import detect\n    return detect\n\n\n"
+                   "def g(name):\n    return importlib.import_module(f'spherebench.scripts.{name}')\n")
     modules = {"spherebench.datasets.fake": (bad, False), "spherebench.method": (tmp_path / "none.py", True)}
     edges = [(importer, target, line) for importer, (path, pkg) in modules.items() if path.is_file()
              for target, line in module_imports(path, importer, pkg, set(modules))]
     assert edges == [("spherebench.datasets.fake", "spherebench.camera", 2),
-                     ("spherebench.datasets.fake", "spherebench.method", 6)]
+                     ("spherebench.datasets.fake", "spherebench.method", 6),
+                     ("spherebench.datasets.fake", "spherebench.scripts", 11)]
     assert violations(edges) == ["spherebench.datasets.fake:6 imports spherebench.method (data -> method; data may "
+                                 "import core)",
+                                 "spherebench.datasets.fake:11 imports spherebench.scripts (data -> drivers; data may "
                                  "import core)"]
     assert violations([("spherebench.baselines.hough", "spherebench.eval.bench.report", 3)]) == [
         "spherebench.baselines.hough:3 imports spherebench.eval.bench.report (baselines -> bench; baselines may "
@@ -258,7 +288,7 @@ def test_relative_imports_and_cycles_are_read(tmp_path):
     assert folder_of("spherebench.eval.bench.registry", {"spherebench.eval.bench"}) == "eval/bench"
     assert folder_of("spherebench.eval.bench", set()) == "eval"  # a module of that name, in eval/
     assert folder_of("spherebench.baselines.circlenet.infer", set()) == "baselines"
-    assert folder_of("spherebench.cli", set()) == "spherebench"
+    assert folder_of("spherebench.scripts.cli", set()) == "scripts" and folder_of("spherebench.caches", set()) == "spherebench"
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": {"c"}}) is None
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.datasets import inout
 
 

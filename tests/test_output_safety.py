@@ -17,12 +17,12 @@ from pathlib import Path
 
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.datasets import inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import report
 
-SB = [sys.executable, "-m", "spherebench.cli"]
+SB = [sys.executable, "-m", "spherebench.scripts.cli"]
 
 
 def _gen(out, *extra) -> int:

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import cloud_from_depth
 from spherebench.datasets import inout

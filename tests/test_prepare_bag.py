@@ -12,7 +12,7 @@ pytest.importorskip("pyrealsense2")
 # rosbags is in the test extra (pure Python): missing, it is an error rather than a skip
 from spherebench.datasets.bagwrite import write_realsense_bag  # noqa: E402
 
-from spherebench import cli  # noqa: E402
+from spherebench.scripts import cli  # noqa: E402
 from spherebench.camera import Intrinsics, image_rays  # noqa: E402
 from spherebench.datasets import inout  # noqa: E402
 

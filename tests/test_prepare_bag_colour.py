@@ -19,7 +19,7 @@ rs = pytest.importorskip("pyrealsense2")
 
 from spherebench.datasets.bagwrite import ColourStream, write_realsense_bag  # noqa: E402
 
-from spherebench import cli  # noqa: E402
+from spherebench.scripts import cli  # noqa: E402
 from spherebench.camera import Intrinsics, align_to_depth, image_rays, project  # noqa: E402
 from spherebench.datasets import inout  # noqa: E402
 

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.datasets import inout
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import inout, presets, simulate
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import resolution
 
@@ -21,8 +21,8 @@ def one_per_mode(tmp_path_factory):
 
 
 def test_the_modes_share_their_layouts(one_per_mode):
-    presets = [simulate.PRESETS[p] for p in resolution.RESOLUTION_PRESETS.values()]
-    assert all(p.resolution_of == "default-stereo" and p.code == presets[0].code for p in presets[1:])
+    chosen = [presets.PRESETS[p] for p in resolution.RESOLUTION_PRESETS.values()]
+    assert all(p.resolution_of == "default-stereo" and p.code == chosen[0].code for p in chosen[1:])
     centres, sizes = {}, {}
     for mode, preset in resolution.RESOLUTION_PRESETS.items():
         scenes = inout.list_scenes(one_per_mode / preset)

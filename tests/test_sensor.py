@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.camera import Intrinsics, image_rays
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import inout, presets, rendering, simulate
 from spherebench.datasets.layouts import Layout
 from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, raycast
 from spherebench.datasets.sensor import D435Sensor, parse_settings
@@ -58,7 +58,7 @@ def test_flat_wall_noise_keeps_its_rms_and_has_the_set_correlation_length(width,
     correlation length (1/e lag, rows and columns) is correlation_px x width / 424, within 10 %."""
     intr = Intrinsics.d435(width, height)
     sensor = replace(BARE, correlation_px=corr_px)
-    depth, z_true, _ = simulate.render(_wall(1.5), intr, sensor, np.random.default_rng(3))
+    depth, z_true, _ = rendering.render(_wall(1.5), intr, sensor, np.random.default_rng(3))
     assert (depth > 0).all()
     err = depth * intr.depth_scale - z_true
     sigma = float(sensor.sigma_z_m(1.5, intr.fx))
@@ -82,7 +82,7 @@ def test_flat_wall_noise_keeps_its_rms_and_has_the_set_correlation_length(width,
 def test_depth_scale_error_and_bias_shift_the_depth():
     intr = Intrinsics.d435(424, 240)
     sensor = replace(BARE, subpixel=0.02, depth_scale_error=0.004, depth_bias_m=-0.003)
-    depth, z_true, _ = simulate.render(_wall(2.0), intr, sensor, np.random.default_rng(0))
+    depth, z_true, _ = rendering.render(_wall(2.0), intr, sensor, np.random.default_rng(0))
     shift = float(np.mean(depth * intr.depth_scale - z_true))
     assert shift == pytest.approx(2.0 * 0.004 - 0.003, abs=3e-4)
 
@@ -92,9 +92,9 @@ def test_dropouts_take_the_set_share_of_planar_surfaces_in_blobs_and_spare_curve
     intr = Intrinsics.d435(424, 240)
     layout = _room_with_ball()
     _z, label = raycast([it.shape for it in layout.items], image_rays(intr), intr)
-    off = simulate.render(layout, intr, BARE, np.random.default_rng(0))[0]
+    off = rendering.render(layout, intr, BARE, np.random.default_rng(0))[0]
     sensor = replace(BARE, dropout_probability=1.0, dropout_fraction=0.4, dropout_ball=ball)
-    on = simulate.render(layout, intr, sensor, np.random.default_rng(0))[0]
+    on = rendering.render(layout, intr, sensor, np.random.default_rng(0))[0]
     dropped = (on == 0) & (off > 0)
     assert (on[~dropped] == off[~dropped]).all()  # the dropouts leave the rest of the frame as it was
     shares = {it.kind: float(dropped[label == k + 1].mean()) for k, it in enumerate(layout.items)}
@@ -108,9 +108,9 @@ def test_dropouts_take_the_set_share_of_planar_surfaces_in_blobs_and_spare_curve
 
 
 def test_at_probability_one_half_a_cluttered_frame_loses_some_surfaces_never_the_ball():
-    scene_off = simulate.simulate_scene("default", 3, "cluttered", 0, "424x240")
+    scene_off = rendering.simulate_scene("default", 3, "cluttered", 0, "424x240")
     half = D435Sensor(dropout_probability=0.5)
-    scene_on = simulate.simulate_scene("default", 3, "cluttered", 0, "424x240", sensor=half)
+    scene_on = rendering.simulate_scene("default", 3, "cluttered", 0, "424x240", sensor=half)
     lost = (scene_on.depth == 0) & (scene_off.depth > 0)
     assert 0.02 < lost.mean() < 0.4
     assert not (lost & scene_on.balls[0].silhouette).any()
@@ -120,12 +120,12 @@ def test_new_parameters_at_their_off_values_reproduce_the_nominal_scene():
     """Features off (other newer parameters changed, off values given explicitly) draw nothing:
     the same depth and ground truth as the nominal sensor; a nominal dataset's scenes record no
     sensor of their own and its dataset.json record has the original keys only."""
-    nominal = simulate.simulate_scene("default", 1, "cluttered", 0, "424x240")
+    nominal = rendering.simulate_scene("default", 1, "cluttered", 0, "424x240")
     off = D435Sensor(dropout_fraction=0.9, dropout_blob_px=3.0, dropout_ball=True, correlation_px=0.0)
     explicit = {"correlation_px": 0.0, "dropout_probability": 0.0, "depth_scale_error": 0.0, "depth_bias_m": 0.0,
                 "flying_mix": (0.1, 0.9)}
-    for scene in (simulate.simulate_scene("default", 1, "cluttered", 0, "424x240", sensor=off),
-                  simulate.simulate_scene("default", 1, "cluttered", 0, "424x240", sensor_overrides=explicit)):
+    for scene in (rendering.simulate_scene("default", 1, "cluttered", 0, "424x240", sensor=off),
+                  rendering.simulate_scene("default", 1, "cluttered", 0, "424x240", sensor_overrides=explicit)):
         assert np.array_equal(scene.depth, nominal.depth)
         assert all(np.array_equal(a.mask, b.mask) for a, b in zip(scene.balls, nominal.balls))
         assert scene.meta["sensor"]["correlation_px"] == 0.0
@@ -136,17 +136,17 @@ def test_new_parameters_at_their_off_values_reproduce_the_nominal_scene():
 
 def test_ranges_are_drawn_per_scene_from_the_scene_seed():
     ranges = {"subpixel": (0.05, 0.2), "correlation_px": (0.0, 1.5), "flying_mix": (0.2, 0.3)}
-    draws = [simulate.scene_sensor("default", 0, i, overrides=ranges)[0] for i in range(20)]
-    assert draws == [simulate.scene_sensor("default", 0, i, overrides=ranges)[0] for i in range(20)]
+    draws = [rendering.scene_sensor("default", 0, i, overrides=ranges)[0] for i in range(20)]
+    assert draws == [rendering.scene_sensor("default", 0, i, overrides=ranges)[0] for i in range(20)]
     assert all(0.05 <= s.subpixel <= 0.2 and 0 <= s.correlation_px <= 1.5 and s.flying_mix == (0.2, 0.3)
                for s in draws)
     assert len({s.subpixel for s in draws}) == 20
-    assert draws[0] != simulate.scene_sensor("default", 1, 0, overrides=ranges)[0]  # another --seed
+    assert draws[0] != rendering.scene_sensor("default", 1, 0, overrides=ranges)[0]  # another --seed
 
 
 def test_robust_plan_balances_cells_families_and_resolutions():
     jobs = simulate.plan("robust")
-    cells = [simulate.scene_sensor("robust", 0, i) for i, _f, _r in jobs]
+    cells = [rendering.scene_sensor("robust", 0, i) for i, _f, _r in jobs]
     per_cell = Counter(c["cell"] for _s, c in cells)
     assert len(jobs) == 400 and len(per_cell) == 20 and set(per_cell.values()) == {20}
     mix = Counter((c["cell"], f, r) for (_s, c), (_i, f, r) in zip(cells, jobs))
@@ -182,9 +182,9 @@ def test_robust_dataset_is_byte_identical_for_the_same_seed_and_records_each_sce
 
 
 def test_robust_seeds_are_disjoint_from_the_other_presets():
-    robust = {simulate.generation_seed(simulate.PRESETS["robust"], s, i) for s in range(3) for i in range(400)}
+    robust = {presets.generation_seed(presets.PRESETS["robust"], s, i) for s in range(3) for i in range(400)}
     for name in ("default", "paper", "hard", "train"):
-        assert not robust & {simulate.generation_seed(simulate.PRESETS[name], s, i) for s in range(3) for i in range(2000)}
+        assert not robust & {presets.generation_seed(presets.PRESETS[name], s, i) for s in range(3) for i in range(2000)}
 
 
 @pytest.mark.parametrize("setting,named", [

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from spherebench import cli
+from spherebench.scripts import cli
 from spherebench.camera import Intrinsics
 from spherebench.cloud import Cloud
 from spherebench.datasets import inout

@@ -14,7 +14,7 @@ import pytest
 
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import mask_circle, norm3, sphere_circle_amodal, sphere_silhouette_mask
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import families, inout, presets, rendering, simulate
 from spherebench.datasets.layouts import Layout
 from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, raycast
 from spherebench.datasets.sensor import D435Sensor, apply_sensor, shadow_mask
@@ -33,7 +33,7 @@ def _wall(z_m: float) -> Layout:
 def test_wall_noise_matches_intels_stereo_model(z_m):
     """Depth noise on a flat wall facing the camera is sigma_z = z^2 subpixel / (f B), within 20 %."""
     intr = Intrinsics.d435(424, 240)
-    depth, z_true, _ = simulate.render(_wall(z_m), intr, QUIET, np.random.default_rng(1))
+    depth, z_true, _ = rendering.render(_wall(z_m), intr, QUIET, np.random.default_rng(1))
     valid = depth > 0
     err = depth[valid] * intr.depth_scale - z_true[valid]
     expected = QUIET.sigma_z_m(z_m, intr.fx)
@@ -113,15 +113,15 @@ def test_visible_mask_is_first_surface_and_valid_depth(paper_dataset):
 
 
 def test_hard_families_meet_their_visibility_rules():
-    occ = simulate.simulate_scene("hard", 3, "occluded", 0, "424x240")
+    occ = rendering.simulate_scene("hard", 3, "occluded", 0, "424x240")
     assert 0.4 <= occ.balls[0].visible_fraction <= 0.7
-    out = simulate.simulate_scene("hard", 4, "out_of_frame", 0, "424x240")
+    out = rendering.simulate_scene("hard", 4, "out_of_frame", 0, "424x240")
     assert 0.3 <= out.balls[0].visible_fraction <= 0.85
-    neg = simulate.simulate_scene("hard", 1, "negative", 0, "848x480")
+    neg = rendering.simulate_scene("hard", 1, "negative", 0, "848x480")
     assert neg.balls == [] and neg.depth.shape == (480, 848)
-    two = simulate.simulate_scene("hard", 6, "two", 0, "424x240")
+    two = rendering.simulate_scene("hard", 6, "two", 0, "424x240")
     assert len(two.balls) == 2
-    dis = simulate.simulate_scene("hard", 0, "distractor", 0, "424x240")
+    dis = rendering.simulate_scene("hard", 0, "distractor", 0, "424x240")
     assert dis.meta["distractors"] and all(d["radius_m"] != 0.12 for d in dis.meta["distractors"])
 
 
@@ -137,9 +137,9 @@ def test_same_seed_same_bytes_any_worker_count(tmp_path):
 
 
 def test_train_seeds_are_disjoint_from_every_evaluation_preset():
-    train = {simulate.generation_seed(simulate.PRESETS["train"], 0, i) for i in range(2000)}
+    train = {presets.generation_seed(presets.PRESETS["train"], 0, i) for i in range(2000)}
     for name in ("default", "paper", "hard"):
-        evaluation = {simulate.generation_seed(simulate.PRESETS[name], s, i) for s in range(3) for i in range(300)}
+        evaluation = {presets.generation_seed(presets.PRESETS[name], s, i) for s in range(3) for i in range(300)}
         assert not train & evaluation
 
 
@@ -231,12 +231,12 @@ def test_the_hard_sensor_preset_is_hard_under_its_sensor_settings(tmp_path):
 
 
 def test_presets_and_families_are_registered():
-    assert simulate.benchmark_presets() == ("default", "hard", "robust", "wide", "default-stereo", "hard-stereo",
+    assert presets.benchmark_presets() == ("default", "hard", "robust", "wide", "default-stereo", "hard-stereo",
                                             "wide-stereo")
-    assert simulate.preset_with_role(simulate.PRESET_PROTOCOL) == "default"
-    for preset in simulate.PRESETS.values():  # every preset's families are built by its grammar
-        assert all((preset.grammar, f) in simulate.FAMILIES for f, _share in preset.families)
+    assert presets.preset_with_role(presets.PRESET_PROTOCOL) == "default"
+    for preset in presets.PRESETS.values():  # every preset's families are built by its grammar
+        assert all((preset.grammar, f) in families.FAMILIES for f, _share in preset.families)
     with pytest.raises(ValueError, match="registered already"):
-        simulate.register_preset(simulate.PRESETS["default"])
+        presets.register_preset(presets.PRESETS["default"])
     with pytest.raises(ValueError, match="registered already"):
-        simulate.register_family("classic", "clean", lambda vis: True)(simulate.family_clean)
+        families.register_family("classic", "clean", lambda vis: True)(families.family_clean)

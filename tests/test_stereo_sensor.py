@@ -120,10 +120,12 @@ def test_same_seed_same_bytes():
     assert digest(5) != digest(6)
 
 
-def test_the_shipped_pattern_is_the_one_its_seed_draws():
-    with np.load(stereo.PATTERN_FILE) as f:
-        assert int(f["seed"]) == stereo.PATTERN_SEED
-        assert np.array_equal(f["dots"], stereo.draw_pattern(stereo.PATTERN_SEED, stereo.PATTERN_DOTS))
+def test_the_shipped_pattern_is_the_one_its_seed_draws(tmp_path):
+    stereo.write_pattern_file(tmp_path / "pattern.npz")  # what `make pattern` writes over the shipped file
+    with np.load(stereo.PATTERN_FILE) as shipped, np.load(tmp_path / "pattern.npz") as redrawn:
+        assert int(shipped["seed"]) == int(redrawn["seed"]) == stereo.PATTERN_SEED
+        assert np.array_equal(shipped["dots"], stereo.draw_pattern(stereo.PATTERN_SEED, stereo.PATTERN_DOTS))
+        assert np.array_equal(shipped["dots"], redrawn["dots"])
 
 
 @pytest.mark.parametrize("changes, words", [
@@ -165,7 +167,7 @@ def _files(root) -> dict:
 
 
 def test_generate_stereo_gives_the_same_bytes_for_any_workers_and_records_its_model(tmp_path):
-    from spherebench import cli
+    from spherebench.scripts import cli
     from spherebench.datasets import inout
 
     for name, workers in (("one", "1"), ("two", "2")):
@@ -185,7 +187,7 @@ def test_generate_stereo_gives_the_same_bytes_for_any_workers_and_records_its_mo
 
 @pytest.mark.parametrize("argv", [["--preset", "robust"], ["--sensor", "subpixel=0.1"]])
 def test_generate_stereo_refuses_the_analytic_models_settings(tmp_path, capsys, argv):
-    from spherebench import cli
+    from spherebench.scripts import cli
 
     assert cli.main(["generate", "--n", "2", "--quiet", "--sensor-model", "stereo", *argv,
                      "--out", str(tmp_path / "ds")]) == 2
@@ -197,29 +199,29 @@ def test_generate_stereo_refuses_the_analytic_models_settings(tmp_path, capsys, 
 # ---------------------------------------------------------------- the stereo twins
 
 def test_stereo_twins_repeat_their_presets_families_with_other_seeds():
-    from spherebench.datasets import simulate
+    from spherebench.datasets import presets, simulate
 
     for name in ("default", "hard", "train"):
-        base, twin = simulate.PRESETS[name], simulate.PRESETS[f"{name}-stereo"]
+        base, twin = presets.PRESETS[name], presets.PRESETS[f"{name}-stereo"]
         assert (twin.families, twin.n_default, twin.resolutions) == (base.families, base.n_default, base.resolutions)
         assert twin.sensor_model == "stereo" and twin.twin_of == name and twin.sensor is None
         # its own seed stream, shared only with its renderings at other resolutions (the resolution study)
-        assert twin.code not in {p.code for p in simulate.PRESETS.values() if p is not twin and p.resolution_of != twin.name}
+        assert twin.code not in {p.code for p in presets.PRESETS.values() if p is not twin and p.resolution_of != twin.name}
         assert [f for _i, f, _r in simulate.plan(twin.name, 40)] == [f for _i, f, _r in simulate.plan(name, 40)]
-    assert not simulate.PRESETS["train-stereo"].clouds and simulate.PRESETS["default-stereo"].clouds
+    assert not presets.PRESETS["train-stereo"].clouds and presets.PRESETS["default-stereo"].clouds
 
 
 def test_train_stereo_draws_each_scenes_unit_inside_its_ranges():
-    from spherebench.datasets import simulate
+    from spherebench.datasets import presets, rendering
 
-    ranges = simulate.PRESETS["train-stereo"].stereo
+    ranges = presets.PRESETS["train-stereo"].stereo
     stereo.check_stereo_ranges(ranges)
-    drawn = [simulate.scene_stereo("train-stereo", 0, i) for i in range(20)]
+    drawn = [rendering.scene_stereo("train-stereo", 0, i) for i in range(20)]
     for name, (lo, hi) in ranges.items():
         values = [getattr(s, name) for s in drawn]
         assert all(lo <= v <= hi for v in values) and len(set(values)) == 20, name
-    assert simulate.scene_stereo("train-stereo", 0, 3) == drawn[3]  # a scene's draw depends on its seed only
-    assert simulate.scene_stereo("default-stereo", 0, 3) == StereoSensor()  # no ranges: the nominal unit
+    assert rendering.scene_stereo("train-stereo", 0, 3) == drawn[3]  # a scene's draw depends on its seed only
+    assert rendering.scene_stereo("default-stereo", 0, 3) == StereoSensor()  # no ranges: the nominal unit
 
 
 @pytest.mark.parametrize("ranges,match", [({"mode": ("sgbm", "hh")}, "not a numeric"),
@@ -234,8 +236,8 @@ def test_bad_stereo_ranges_are_one_line_errors(ranges, match):
 
 
 def test_a_stereo_twin_refuses_the_analytic_model_and_records_its_draws(tmp_path, capsys):
-    from spherebench import cli
-    from spherebench.datasets import inout, simulate
+    from spherebench.scripts import cli
+    from spherebench.datasets import inout, presets
 
     assert cli.main(["generate", "--preset", "default-stereo", "--sensor-model", "analytic", "--n", "2", "--quiet",
                      "--out", str(tmp_path / "no")]) == 2
@@ -245,7 +247,7 @@ def test_a_stereo_twin_refuses_the_analytic_model_and_records_its_draws(tmp_path
                      "--out", str(tmp_path / "ts")]) == 0
     meta = inout.read_dataset_meta(tmp_path / "ts")
     assert (meta["sensor_model"], meta["twin_of"], meta["clouds"]) == ("stereo", "train", False)
-    ranges = simulate.PRESETS["train-stereo"].stereo
+    ranges = presets.PRESETS["train-stereo"].stereo
     assert set(meta["stereo_ranges"]) == set(ranges)
     scene = sorted((tmp_path / "ts" / "scenes").iterdir())[1]
     gt = inout.read_scene_gt(scene)

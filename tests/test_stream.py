@@ -12,7 +12,7 @@ import pytest
 
 rs = pytest.importorskip("pyrealsense2")
 
-from spherebench import cli  # noqa: E402
+from spherebench.scripts import cli  # noqa: E402
 from spherebench.camera import Intrinsics  # noqa: E402
 from spherebench.cloud import cloud_from_depth, depth_to_metres  # noqa: E402
 from spherebench.datasets import depth_frames, inout  # noqa: E402

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from spherebench.camera import Intrinsics
-from spherebench.datasets import simulate, wide_scenes
+from spherebench.datasets import presets, rendering, wide_scenes
 from spherebench.datasets.layouts import Layout
 from spherebench.datasets.primitives import Box, Cylinder, Plane, SolidSphere, Texture
 from spherebench.datasets.stereo import StereoSensor, stereo_frame
@@ -25,11 +25,11 @@ def _sha(scene) -> str:
 
 def test_existing_presets_keep_their_bytes():
     # hashes of the depth frames built by the code before the wide grammar
-    assert _sha(simulate.simulate_scene("default", 150, "cluttered", 0, "424x240")) \
+    assert _sha(rendering.simulate_scene("default", 150, "cluttered", 0, "424x240")) \
         == "f00d5baf3d735dd3ecda7771efdf1a958c3590197b57570c7dc533b6bf678663"
-    assert _sha(simulate.simulate_scene("paper", 0, "E3", 0, "424x240")) \
+    assert _sha(rendering.simulate_scene("paper", 0, "E3", 0, "424x240")) \
         == "e7ecfad58f47b6f342fb49a93098c7b5e2dc41b2af0eed6815236dcd234534ec"
-    assert _sha(simulate.simulate_scene("default-stereo", 150, "cluttered", 0, "424x240", sensor=StereoSensor())) \
+    assert _sha(rendering.simulate_scene("default-stereo", 150, "cluttered", 0, "424x240", sensor=StereoSensor())) \
         == "e285cbf3ad6551448968641c5c3078055906f88cc728af4d1f862f864ee7a9a2"
 
 
@@ -125,7 +125,7 @@ def test_the_stereo_model_images_an_items_texture_and_albedo():
 
 
 def test_generate_wide_gives_the_same_bytes_for_any_workers_and_records_its_grammar(tmp_path):
-    from spherebench import cli
+    from spherebench.scripts import cli
     from spherebench.datasets import inout
 
     for name, workers in (("one", "1"), ("two", "2")):
@@ -140,8 +140,8 @@ def test_generate_wide_gives_the_same_bytes_for_any_workers_and_records_its_gram
 
 
 def test_wide_stereo_is_its_twin_and_deterministic():
-    twin = simulate.PRESETS["wide-stereo"]
+    twin = presets.PRESETS["wide-stereo"]
     assert (twin.families, twin.twin_of, twin.sensor_model, twin.grammar) == \
-        (simulate.PRESETS["wide"].families, "wide", "stereo", "wide")
-    a, b = (simulate.simulate_scene("wide-stereo", 1, "shelf", 0, "424x240", sensor=StereoSensor()) for _ in range(2))
+        (presets.PRESETS["wide"].families, "wide", "stereo", "wide")
+    a, b = (rendering.simulate_scene("wide-stereo", 1, "shelf", 0, "424x240", sensor=StereoSensor()) for _ in range(2))
     assert np.array_equal(a.depth, b.depth) and a.balls and a.balls[0].visible_fraction >= 0.5

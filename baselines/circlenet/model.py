@@ -268,10 +268,6 @@ class CircleNet(nn.Module):
         return torch.sigmoid(out["heat"]), out["offset"], out["radius"]
 
 
-def build_model(config: CircleNetConfig | None = None) -> CircleNet:
-    return CircleNet(config)
-
-
 @torch.no_grad()
 def decode(heat: torch.Tensor, offset: torch.Tensor, radius: torch.Tensor, top_k: int = 100,
            image_size: tuple[int, int] | None = None) -> torch.Tensor:

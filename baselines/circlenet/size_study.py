@@ -30,7 +30,7 @@ from spherebench.baselines.circlenet.imaging import load_image
 from spherebench.baselines.circlenet.infer import DEFAULT_MODEL, CircleNetDetector, scene_focal_px
 from spherebench.baselines.circlenet.train import coco_circle_map
 from spherebench.camera import Intrinsics
-from spherebench.datasets import inout, simulate
+from spherebench.datasets import inout, presets, rendering, simulate
 from spherebench.datasets.reproject import colourise_depth
 
 #: The recorded set's camera (``datasets.prepare.POCHANG_INTRINSICS``), with the D435's depth unit.
@@ -40,7 +40,7 @@ RULES = ("native", "focal", "width")
 
 
 class _KinectCamera(Intrinsics):
-    """Stands in for ``Intrinsics`` inside ``simulate`` so that its scenes are seen by KINECT."""
+    """Stands in for ``Intrinsics`` inside ``rendering`` so that its scenes are seen by KINECT."""
 
     @classmethod
     def d435(cls, width: int = 424, height: int = 240) -> Intrinsics:
@@ -50,11 +50,11 @@ class _KinectCamera(Intrinsics):
 def render(preset: str, index: int, family: str, camera: str):
     """(RGB image, intrinsics, ground-truth circles (N, 3) px) of one scene seen by one camera."""
     if camera.startswith("kinect"):
-        with mock.patch.object(simulate, "Intrinsics", _KinectCamera), \
-                mock.patch.dict(simulate.RESOLUTIONS, {camera: (KINECT.width, KINECT.height)}):
-            scene = simulate.simulate_scene(preset, index, family, 0, camera)
+        with mock.patch.object(rendering, "Intrinsics", _KinectCamera), \
+                mock.patch.dict(presets.RESOLUTIONS, {camera: (KINECT.width, KINECT.height)}):
+            scene = rendering.simulate_scene(preset, index, family, 0, camera)
     else:
-        scene = simulate.simulate_scene(preset, index, family, 0, camera)
+        scene = rendering.simulate_scene(preset, index, family, 0, camera)
     rgb = colourise_depth(scene.depth_m())[:, :, ::-1].copy()
     gt = np.asarray([b.circle_px for b in scene.balls if b.circle_px is not None], np.float64).reshape(-1, 3)
     return rgb, scene.intrinsics, gt

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Sequence
 
 from spherebench.baselines.hough_tuning import tuned_hough_config
-from spherebench.datasets.simulate import benchmark_presets
+from spherebench.datasets.presets import benchmark_presets
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench.evaluate import evaluate
 from spherebench.eval.bench.report import results_run

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from spherebench.datasets import inout
-from spherebench.datasets.simulate import benchmark_presets
+from spherebench.datasets.presets import benchmark_presets
 from spherebench.eval.bench.cache import meta_path, read_predictions
 from spherebench.eval.bench.registry import ROLE_CEILING, methods_with_role
 from spherebench.eval.bench.scoring import ScoredSet, not_run

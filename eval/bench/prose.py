@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from spherebench.datasets.simulate import PRESET_HARD, PRESET_PROTOCOL, PRESETS, preset_with_role
+from spherebench.datasets.presets import PRESET_HARD, PRESET_PROTOCOL, PRESETS, preset_with_role
 from spherebench.eval.bench.paper_numbers import PAPER_TABLE2, PAPER_TABLE3
 from spherebench.eval.bench.registry import (PAPER_CIRCLE, ROLE_CEILING, ROLE_DETECTOR, ROLE_LEARNED_2D, ROLE_PAPER,
                                              method_with_role,

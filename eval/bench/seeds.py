@@ -8,7 +8,7 @@ on Ray. Every run of a detector goes through it: the prediction sets of ``evalua
 eval``, Table 2, the oracle's ceiling, ``bench``, ``sweep`` and ``robustness`` (their seeds are
 run seeds).
 
-Not to be confused with ``datasets.simulate.generation_seed(preset, seed, index)``, the seed from
+Not to be confused with ``datasets.presets.generation_seed(preset, seed, index)``, the seed from
 which the simulator builds a scene (layout, sensor draw): it includes the preset, so that the
 presets' scenes never share a seed; this one is the detector's random stream on a built scene.
 """

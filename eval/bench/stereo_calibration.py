@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from spherebench.camera import Intrinsics, image_rays
-from spherebench.datasets import simulate
+from spherebench.datasets import families, presets
 from spherebench.datasets.primitives import Box, Plane, raycast
 from spherebench.datasets.sensor import D435Sensor, apply_sensor
 from spherebench.datasets.stereo import StereoSensor, stereo_depth
@@ -165,7 +165,7 @@ def timing(n: int = 5) -> float:
     intr = Intrinsics.d435(848, 480)
     times = []
     for k in range(n):
-        layout = simulate.family_cluttered(np.random.default_rng(100 + k), intr, simulate.BASKETBALL_RADIUS_M)
+        layout = families.family_cluttered(np.random.default_rng(100 + k), intr, presets.BASKETBALL_RADIUS_M)
         t0 = time.perf_counter()
         stereo_depth(layout, intr, StereoSensor(), np.random.default_rng(k))
         times.append(time.perf_counter() - t0)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from spherebench import sphere_distance
 from spherebench.errors import SphereBenchError
 
 
@@ -56,8 +57,7 @@ def sphere_rmse(points_m, centre_m, radius_m: float) -> float:
     c = _centre(centre_m, "centre")
     if not radius_m > 0:
         raise SphereBenchError(f"radius_m={radius_m} must be > 0 metres")
-    resid = np.linalg.norm(p - c, axis=1) - float(radius_m)
-    return float(np.sqrt(np.mean(resid * resid)))
+    return sphere_distance.rmse(p, c, radius_m)
 
 
 def barycentre(points_m) -> np.ndarray:

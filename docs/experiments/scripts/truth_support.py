@@ -27,9 +27,9 @@ from typing import Callable, Iterable
 import numpy as np
 
 from spherebench.camera import Intrinsics, image_rays
-from spherebench.datasets import inout
-from spherebench.datasets import simulate
+from spherebench.datasets import families, inout, presets, rendering
 from spherebench.datasets.primitives import raycast
+from spherebench.datasets.sensor import D435Sensor
 from spherebench.datasets.stereo import StereoSensor
 from spherebench.eval.metrics.metrics3d import FOUND_M  # noqa: F401  (a detection this near a ball finds it, m)
 from spherebench.method import config_for, verification
@@ -149,21 +149,21 @@ def rebuild(scene_dir: str | Path) -> dict:
     preset_name, index, resolution = meta["preset"], int(meta["index"]), meta["resolution"]
     ds = json.loads((scene_dir.parent.parent / "dataset.json").read_text())
     seed = int(ds["seed"])
-    preset = simulate.PRESETS[preset_name]
+    preset = presets.PRESETS[preset_name]
     stereo = meta.get("sensor_model") == "stereo"
-    rng = np.random.default_rng(simulate.generation_seed(preset, seed, index))
+    rng = np.random.default_rng(presets.generation_seed(preset, seed, index))
     if stereo:
-        sensor = simulate.scene_stereo(preset_name, seed, index, StereoSensor())
+        sensor = rendering.scene_stereo(preset_name, seed, index, StereoSensor())
     else:
-        sensor, _cell = simulate.scene_sensor(preset_name, seed, index, simulate.D435Sensor(), None)
-    w, h = simulate.RESOLUTIONS[resolution]
+        sensor, _cell = rendering.scene_sensor(preset_name, seed, index, D435Sensor(), None)
+    w, h = presets.RESOLUTIONS[resolution]
     intr = Intrinsics.d435(w, h)
     intr = Intrinsics(**{**intr.to_dict(), "depth_scale": sensor.depth_scale_m})
     rays = image_rays(intr)
-    kind = simulate.FAMILIES[(preset.grammar, gt["family"])]
+    kind = families.FAMILIES[(preset.grammar, gt["family"])]
     for _attempt in range(40):
         layout = kind.build(rng, intr, float(ds.get("ball_radius_m", 0.12)))
-        depth, z_true, balls = simulate.render(layout, intr, sensor, rng, rays)
+        depth, z_true, balls = rendering.render(layout, intr, sensor, rng, rays)
         if kind.fixed or kind.accept([b.visible_fraction for b in balls]):
             break
     shapes = [it.shape for it in layout.items]
