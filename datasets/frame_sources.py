@@ -37,7 +37,7 @@ import numpy as np
 
 from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics, align_to_depth, project
 from spherebench.cloud import Cloud, depth_to_metres
-from spherebench.datasets import inout, recordings
+from spherebench.datasets import foreign_formats, inout, recordings
 from spherebench.errors import SphereBenchError
 
 #: metres per depth.png count for inputs whose depth is not integer counts (clouds, float32 raw).
@@ -461,7 +461,7 @@ def raw_frames(paths: list[Path], raw: RawFormat, intr: Intrinsics | None, selec
 
     def frames():
         for p in picked:
-            values = inout.read_raw_depth(p, intr.width, intr.height, raw.dtype, raw.byte_order)
+            values = foreign_formats.read_raw_depth(p, intr.width, intr.height, raw.dtype, raw.byte_order)
             swapped_values = values.byteswap()
             check_raw_reading(values, str(p), _raw_readings(values, swapped_values, raw))
             meta = {"source": p.name}
@@ -490,9 +490,9 @@ def read_cloud_file(path: Path, intr: Intrinsics | None) -> Cloud:
     if suffix == ".ply":
         return inout.read_ply(path)
     if suffix == ".pcd":
-        return inout.read_pcd(path, intr)
+        return foreign_formats.read_pcd(path, intr)
     if suffix in (".xyz", ".txt"):
-        return inout.read_xyz(path)
+        return foreign_formats.read_xyz(path)
     raise SphereBenchError(f"{path}: unknown point-cloud format '{path.suffix}' (.ply, .pcd, .xyz)")
 
 
@@ -574,7 +574,7 @@ def camera_from_options(intrinsics_file: Path | None = None, fx: float | None = 
     if intrinsics_file is not None:
         if given:
             raise SphereBenchError(f"give intrinsics as --intrinsics FILE or as {', '.join(numbers)}, not both")
-        intr = inout.read_camera_json(intrinsics_file)
+        intr = foreign_formats.read_camera_json(intrinsics_file)
         if width is not None and (width, height) != (intr.width, intr.height):
             raise SphereBenchError(f"{intrinsics_file}: intrinsics are {intr.width}x{intr.height} but the frames "
                                    f"are {width}x{height} ({size_option}): give the intrinsics of this stream")

@@ -16,8 +16,10 @@ Dataset layout (simulated and recorded alike)::
 Writes are atomic, through ``spherebench.datasets.outputs`` (which also says what may be replaced):
 a file is written to a temporary name and renamed; a scene folder and a whole dataset are built
 under a temporary name and renamed when complete, so an interrupted or failed run leaves nothing
-half-written behind. RealSense recordings are played back by ``spherebench.datasets.recordings``;
-the detectors' JSON records are ``spherebench.datasets.detections``'.
+half-written behind. Every JSON file is read through the reading gate and checked against its
+schema (``spherebench.reading``). Other tools' formats (raw frames, camera JSON, PCD, XYZ, LabelMe)
+are ``foreign_formats``'; RealSense recordings are played back by ``recordings``; the detectors'
+JSON records are ``detections``'.
 """
 
 from __future__ import annotations
@@ -27,7 +29,6 @@ import io
 import json
 import math
 import shutil
-import warnings
 import zlib
 from pathlib import Path
 
@@ -35,14 +36,15 @@ import cv2
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from spherebench.camera import MAX_IMAGE_SIDE_PX, Intrinsics
+from spherebench.camera import INTRINSICS_NUMBERS, MAX_IMAGE_SIDE_PX, Intrinsics
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
+from spherebench.datasets import foreign_formats
 from spherebench.datasets.outputs import (COLOUR_FILES, MARK, PNG_SIGNATURE, atomic_directory, atomic_write_bytes,
                                           is_dataset_dir, mark_png, never_replace)
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.datasets.scene import Ball, Scene
-from spherebench.errors import SphereBenchError, require
-from spherebench.reading import read_json  # the reading gate, for every reader here
+from spherebench.errors import SphereBenchError
+from spherebench.reading import check_schema, read_checked_json, read_json  # the reading gate
 
 CATEGORY_ID = 1
 DEFAULT_CATEGORY = "basketball"
@@ -58,103 +60,6 @@ def json_bytes(obj, indent: int | None = 1) -> bytes:
 def write_json(path: str | Path, obj, indent: int | None = 1) -> None:
     """JSON (json_bytes), atomically."""
     atomic_write_bytes(path, json_bytes(obj, indent))
-
-
-# --------------------------------------------------------------------------- schemas
-#
-# Every JSON file the tool reads is checked against its schema here (check_schema), so that a
-# damaged or hand-edited file is refused in one line naming the file and the field, never met
-# later as a TypeError. A schema is a dict of fields (a name ending in "?" may be absent or null),
-# a one-item list (a list of such items) or the name of a kind of value (_KINDS).
-
-#: Ball radii (m) taken anywhere (--radius, dataset.json, gt.json): from a 5 mm bead, at a depth
-#: camera's nearest range still several pixels wide, to a 2 m balloon, twice the largest inflatable
-#: ball made. Beyond these the number is a unit slip (mm for m), not a ball.
-BALL_RADIUS_RANGE_M = (0.005, 2.0)
-
-
-def _finite(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _integer(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _numbers(v, n: int) -> bool:
-    return isinstance(v, list) and len(v) == n and all(_finite(x) for x in v)
-
-
-def is_ball_radius(v) -> bool:
-    return _finite(v) and BALL_RADIUS_RANGE_M[0] <= v <= BALL_RADIUS_RANGE_M[1]
-
-
-_KINDS = {
-    "text": (lambda v: isinstance(v, str), "a string"),
-    "bool": (lambda v: isinstance(v, bool), "true or false"),
-    "int": (_integer, "an integer"),
-    "number": (_finite, "a finite number"),
-    "positive": (lambda v: _finite(v) and v > 0, "a finite number > 0"),
-    "length": (lambda v: _finite(v) and v >= 0, "a finite number >= 0"),
-    "fraction": (lambda v: _finite(v) and 0 <= v <= 1, "a number from 0 to 1"),
-    "size": (lambda v: _integer(v) and 0 < v <= MAX_IMAGE_SIDE_PX,
-             f"a whole number of pixels from 1 to {MAX_IMAGE_SIDE_PX}"),
-    "radius": (is_ball_radius, "a ball radius in metres, {:g} to {:g}".format(*BALL_RADIUS_RANGE_M)),
-    "xy": (lambda v: _numbers(v, 2), "[x, y], two finite numbers"),
-    "xyz": (lambda v: _numbers(v, 3), "[x, y, z], three finite numbers"),
-    "circle": (lambda v: _numbers(v, 3) and v[2] >= 0, "[cx, cy, r], three finite numbers, r >= 0"),
-    "object": (lambda v: isinstance(v, dict), "a JSON object"),
-    "list": (lambda v: isinstance(v, list), "a list"),
-}
-
-
-def _shown(value) -> str:
-    """A value as the file spells it, or what it is where that is long."""
-    text = json.dumps(value)
-    if len(text) <= 40:
-        return text
-    return "a JSON object" if isinstance(value, dict) else "a list" if isinstance(value, list) else text[:37] + "..."
-
-
-def check_schema(path: str | Path, value, schema, fix: str = "fix the file or rebuild the dataset", field: str = ""):
-    """``value``, read from ``path``, checked against ``schema`` (above); returned as it is. A
-    SphereBenchError names the file, the first wrong field (as balls[0].radius_m) and ``fix``."""
-    where = field or "the file"
-    if isinstance(schema, dict):
-        if not isinstance(value, dict):
-            raise SphereBenchError(f"{path}: {where} must be a JSON object, not {_shown(value)}; {fix}")
-        for key, sub in schema.items():
-            name = key.rstrip("?")
-            inner = (f"{name} of {field}" if " " in field else f"{field}.{name}") if field else name
-            if value.get(name) is None:
-                if key.endswith("?"):
-                    continue
-                raise SphereBenchError(f"{path}: {inner} is missing; {fix}")
-            check_schema(path, value[name], sub, fix, inner)
-    elif isinstance(schema, list):
-        if not isinstance(value, list):
-            raise SphereBenchError(f"{path}: {where} must be a list, not {_shown(value)}; {fix}")
-        for i, item in enumerate(value):
-            check_schema(path, item, schema[0], fix, f"{field}[{i}]")
-    else:
-        ok, what = _KINDS[schema]
-        if not ok(value):
-            raise SphereBenchError(f"{path}: {where} must be {what}, not {_shown(value)}; {fix}")
-    return value
-
-
-def read_checked_json(path: str | Path, schema, fix: str = "fix the file or rebuild the dataset"):
-    """A JSON file (``read_json``) checked against ``schema`` (``check_schema``)."""
-    return check_schema(path, read_json(path), schema, fix)
-
-
-def check_ball_radius(value: float, what: str = "--radius") -> float:
-    """A ball radius given on the command line (m), within BALL_RADIUS_RANGE_M, or a one-line error."""
-    if not is_ball_radius(value):
-        lo, hi = BALL_RADIUS_RANGE_M
-        raise SphereBenchError(f"{what} {value:g}: a ball radius is {lo:g} to {hi:g} metres (e.g. 0.12 for a "
-                               "basketball)")
-    return float(value)
 
 
 # --------------------------------------------------------------------------- images
@@ -326,12 +231,6 @@ def write_intrinsics(path: str | Path, intr: Intrinsics) -> None:
     write_json(path, intr.to_dict())
 
 
-#: intrinsics.json's real-valued fields, JSON numbers (a string such as "nan" is none): what is
-#: missing, and the sizes, Intrinsics.from_dict words.
-INTRINSICS_NUMBERS = {"ppx?": "number", "ppy?": "number", "fx?": "positive", "fy?": "positive",
-                      "depth_scale?": "positive"}
-
-
 def read_intrinsics(path: str | Path) -> Intrinsics:
     """intrinsics.json (pyrealsense2 field names; a scene folder gives its own)."""
     path = Path(path)
@@ -410,22 +309,9 @@ def read_ply(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
     return Cloud(pts, intrinsics=intrinsics)
 
 
-def read_xyz(path: str | Path) -> Cloud:
-    """Plain-text point list, one 'x y z [...]' per line (metres), unorganised."""
-    path = Path(path)
-    if not path.is_file():
-        raise SphereBenchError(f"{path}: file not found")
-    try:
-        with warnings.catch_warnings():  # an empty file: numpy warns, and detect() says what is wrong
-            warnings.simplefilter("ignore", UserWarning)
-            data = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", usecols=(0, 1, 2))
-    except (ValueError, IndexError) as exc:
-        raise SphereBenchError(f"{path}: not an XYZ text file with three numbers per line ({exc})") from None
-    with np.errstate(over="ignore"):  # beyond float32 becomes inf, a non-finite point like NaN: callers drop them
-        return Cloud(data.astype(np.float32))
-
-
-CLOUD_READERS = {".ply": read_ply, ".xyz": read_xyz, ".txt": read_xyz}
+#: The cloud files ``load_cloud`` reads, by suffix: the project's PLY, and other tools' formats.
+CLOUD_READERS = {".ply": read_ply, ".pcd": foreign_formats.read_pcd, ".xyz": foreign_formats.read_xyz,
+                 ".txt": foreign_formats.read_xyz}
 
 
 def load_cloud(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
@@ -659,201 +545,3 @@ def read_coco_gt(dataset_dir: str | Path) -> dict:
             raise SphereBenchError(f"{path}: annotations[{i}].category_id is {ann['category_id']}, which no category "
                                    f"has; {rebuild}")
     return coco
-
-
-# --------------------------------------------------------------------------- recorded-data readers
-# (what `spherebench prepare` reads: raw frames, lenient camera JSON, PCD, LabelMe)
-
-RAW_DTYPES = {"uint16": "u2", "float32": "f4"}
-RAW_BYTE_ORDERS = {"little": "<", "big": ">"}
-
-
-def read_raw_depth(path: str | Path, width: int, height: int, dtype: str = "uint16",
-                   byte_order: str = "little") -> np.ndarray:
-    """A headerless row-major depth frame -> (height, width) array of ``dtype`` (native byte order).
-
-    The file must hold exactly width * height values; anything else means a truncated file or a
-    wrong size/dtype, reported as such.
-    """
-    path = Path(path)
-    if dtype not in RAW_DTYPES or byte_order not in RAW_BYTE_ORDERS:
-        raise SphereBenchError(f"raw depth dtype must be one of {', '.join(RAW_DTYPES)} and byte order one of "
-                               f"{', '.join(RAW_BYTE_ORDERS)}, got {dtype} {byte_order}")
-    if not path.is_file():
-        raise SphereBenchError(f"{path}: file not found")
-    dt = np.dtype(RAW_BYTE_ORDERS[byte_order] + RAW_DTYPES[dtype])
-    expected = int(width) * int(height) * dt.itemsize
-    size = path.stat().st_size
-    if size != expected:
-        other = next(k for k in RAW_DTYPES if k != dtype)
-        if size == int(width) * int(height) * np.dtype(RAW_DTYPES[other]).itemsize:
-            raise SphereBenchError(f"{path}: {size} bytes, but a {width}x{height} {dtype} frame is {expected} bytes; "
-                                   f"it is exactly a {width}x{height} {other} frame: try --raw-dtype {other}")
-        raise SphereBenchError(f"{path}: {size} bytes, but a {width}x{height} {dtype} frame is {expected} bytes: "
-                               "the file is truncated, or --raw-size/--raw-dtype are wrong")
-    data = np.fromfile(path, dtype=dt).reshape(int(height), int(width))
-    return data.astype(dt.newbyteorder("="))
-
-
-def _distortion_name(model) -> str:
-    """'Brown Conrady', 'distortion.brown_conrady', 'RS2_DISTORTION_BROWN_CONRADY' -> 'brown_conrady'."""
-    name = str(model).strip().lower().replace(" ", "_").replace("-", "_")
-    return name.removeprefix("rs2_distortion_").removeprefix("distortion.") or "none"
-
-
-def read_camera_json(path: str | Path) -> Intrinsics:
-    """Intrinsics from a JSON object in pyrealsense2's field names (width, height, ppx, ppy, fx, fy,
-    model, coeffs; depth_scale optional) or a scene's intrinsics.json.
-
-    More lenient than ``read_intrinsics``: the distortion model may be spelled as pyrealsense2
-    prints it ('Brown Conrady', 'distortion.brown_conrady'), and the object may be wrapped as
-    {"intrinsics": {...}} or {"depth": {...}}.
-    """
-    path = Path(path)
-    d = read_json(path)
-    if isinstance(d, dict) and "fx" not in d:
-        for key in ("intrinsics", "depth"):
-            if isinstance(d.get(key), dict):
-                d = d[key]
-                break
-    if not isinstance(d, dict):
-        raise SphereBenchError(f"{path}: intrinsics must be a JSON object with width, height, ppx, ppy, fx, fy")
-    d = dict(d)
-    check_schema(path, d, INTRINSICS_NUMBERS)  # "615.0" is refused as read_intrinsics refuses it, not read as text
-    if "model" in d:
-        d["model"] = _distortion_name(d["model"])
-    try:
-        return Intrinsics.from_dict(d)
-    except SphereBenchError as exc:
-        raise SphereBenchError(f"{path}: {exc}") from None
-
-
-# PCD (the Point Cloud Library's format, v0.7): ascii, binary and binary_compressed data, read by
-# Open3D's tensor reader (NaN points kept). Its header is also read here: Open3D keeps no WIDTH and
-# HEIGHT, which say whether the cloud is an organised depth grid.
-
-def _pcd_header(path: Path) -> tuple[int, int]:
-    """(WIDTH, HEIGHT) of a PCD file's header, checked before any point is read: x, y, z fields,
-    POINTS = WIDTH x HEIGHT within a camera's frame (MAX_IMAGE_SIDE_PX a side), and data holding
-    that many points (Open3D pads a file cut short with zeros)."""
-    if not path.is_file():
-        raise SphereBenchError(f"{path}: file not found")
-    header: dict[str, list[str]] = {}
-    with open(path, "rb") as f:
-        while "DATA" not in header:
-            raw = f.readline()
-            if not raw.endswith(b"\n"):
-                raise SphereBenchError(f"{path}: not a PCD file (no DATA line in the header; truncated?)")
-            line = raw.decode("ascii", errors="replace").strip()
-            if not line or line.startswith("#"):
-                continue
-            key, *values = line.split()
-            header[key.upper()] = values
-            if len(header) == 1 and key.upper() not in ("VERSION", "FIELDS"):
-                raise SphereBenchError(f"{path}: not a PCD file (it starts with '{line[:40]}')")
-        offset = f.tell()
-    try:
-        names = header["FIELDS"]
-        width, height = int(header["WIDTH"][0]), int(header["HEIGHT"][0])
-        n_points = int(header.get("POINTS", [width * height])[0])
-        mode = header["DATA"][0].lower()
-        counts = [int(c) for c in header.get("COUNT", ["1"] * len(names))]
-        point_bytes = sum(int(b) * c for b, c in zip(header.get("SIZE", []), counts, strict=True))
-    except (KeyError, IndexError, ValueError) as exc:
-        raise SphereBenchError(f"{path}: PCD header is incomplete or malformed ({exc})") from None
-    if not {"x", "y", "z"} <= set(names):
-        raise SphereBenchError(f"{path}: PCD header must list x, y and z fields")
-    if n_points != width * height:
-        raise SphereBenchError(f"{path}: PCD says POINTS {n_points} but WIDTH x HEIGHT = {width}x{height}")
-    if mode not in ("ascii", "binary", "binary_compressed"):
-        raise SphereBenchError(f"{path}: unknown PCD DATA type '{mode}' (ascii, binary or binary_compressed)")
-    if n_points > MAX_IMAGE_SIDE_PX ** 2 or (height > 1 and max(width, height) > MAX_IMAGE_SIDE_PX):
-        raise SphereBenchError(f"{path}: PCD header promises {width}x{height} points, beyond any depth camera's "
-                               f"frame ({MAX_IMAGE_SIDE_PX} px a side at most): the file is damaged")
-    held = _pcd_points_held(path, mode, offset, point_bytes)
-    if held < n_points:
-        raise SphereBenchError(f"{path}: PCD data holds {held} points, the header promises {n_points}: the file "
-                               "is truncated or corrupt")
-    return width, height
-
-
-def _pcd_points_held(path: Path, mode: str, offset: int, point_bytes: int) -> int:
-    """How many points a PCD file's data (from ``offset``) holds: its non-blank lines (ascii), its
-    bytes (binary) or its stated uncompressed size (binary_compressed, whose compressed bytes
-    must all be there)."""
-    size = path.stat().st_size - offset
-    if mode == "ascii":
-        with open(path, "rb") as f:
-            f.seek(offset)
-            return sum(1 for line in f if line.strip())
-    if point_bytes <= 0:
-        raise SphereBenchError(f"{path}: PCD header gives no SIZE of its fields, needed for {mode} data")
-    if mode == "binary":
-        return size // point_bytes
-    with open(path, "rb") as f:
-        f.seek(offset)
-        stated = f.read(8)
-    packed, unpacked = (int.from_bytes(stated[:4], "little"), int.from_bytes(stated[4:], "little"))
-    return unpacked // point_bytes if len(stated) == 8 and size - 8 >= packed else 0
-
-
-def _read_pcd(path: Path) -> tuple[Cloud, int, int]:
-    """(cloud, width, height) of a PCD file; NaN points are dropped, an organised one keeps pixels."""
-    width, height = _pcd_header(path)
-    # here, not at the top: open3d takes seconds to import, only PCD files need it, and it is an extra
-    o3d = require("open3d", "viz", "reading PCD files")
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # its failures are ours to say
-    pcd = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
-    n = width * height
-    xyz = pcd.point.positions.numpy().astype(np.float64) if "positions" in pcd.point else np.zeros((0, 3))
-    if len(xyz) != n:
-        raise SphereBenchError(f"{path}: PCD data holds {len(xyz)} points, the header promises {n}: the file "
-                               "is truncated or corrupt")
-    valid = np.all(np.isfinite(xyz), axis=1)
-    idx = np.nonzero(valid)[0]
-    pts = xyz[valid].astype(np.float32)
-    if height > 1:
-        return Cloud(pts, (idx // width).astype(np.int32), (idx % width).astype(np.int32)), width, height
-    return Cloud(pts), width, height
-
-
-def read_pcd(path: str | Path, intrinsics: Intrinsics | None = None) -> Cloud:
-    """PCD (ascii, binary, binary_compressed) -> Cloud in the file's units (metres by convention).
-
-    WIDTH x HEIGHT with HEIGHT > 1 is an organised cloud: point i is pixel (i // WIDTH, i % WIDTH)
-    and NaN points are the invalid pixels (dropped, the others keep their row/col). Given
-    intrinsics, an organised cloud's size must match them.
-    """
-    path = Path(path)
-    cloud, width, height = _read_pcd(path)
-    if intrinsics is not None:
-        if cloud.rows is not None and (width, height) != (intrinsics.width, intrinsics.height):
-            raise SphereBenchError(f"{path}: organised PCD is {width}x{height} but the intrinsics are "
-                                   f"{intrinsics.width}x{intrinsics.height}: give the intrinsics of this camera")
-        cloud.intrinsics = intrinsics
-    return cloud
-
-
-CLOUD_READERS[".pcd"] = read_pcd
-
-
-#: A LabelMe file and each of its shapes: the keys SphereBench uses.
-LABELME_SCHEMA = {"imagePath?": "text", "imageWidth": "size", "imageHeight": "size", "shapes": ["object"]}
-LABELME_SHAPE_SCHEMA = {"label?": "text", "shape_type?": "text", "points": "list"}
-
-
-def read_labelme(path: str | Path) -> dict:
-    """A LabelMe annotation file -> its JSON object, checked for the keys SphereBench uses
-    (imagePath, imageWidth, imageHeight, shapes with label, shape_type, points)."""
-    path = Path(path)
-    d = read_json(path)
-    if not isinstance(d, dict) or not isinstance(d.get("shapes"), list):
-        raise SphereBenchError(f"{path}: not a LabelMe file (no 'shapes' list)")
-    fix = "fix the shape in LabelMe or remove it"
-    check_schema(path, d, LABELME_SCHEMA, fix)
-    for i, shape in enumerate(d["shapes"]):
-        name = f"LabelMe shape {i} ({shape.get('shape_type') or 'polygon'} {shape.get('label')!r})"
-        check_schema(path, shape, LABELME_SHAPE_SCHEMA, fix, name)
-        for k, point in enumerate(shape["points"]):
-            check_schema(path, point, "xy", fix, f"point {k} of {name}")
-    return d

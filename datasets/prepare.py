@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from spherebench import __version__
+from spherebench import __version__, reading
 from spherebench.camera import Intrinsics
 from spherebench.cloud import depth_to_metres
-from spherebench.datasets import inout, outputs
+from spherebench.datasets import foreign_formats, inout, outputs
 from spherebench.datasets.annotate import AnnotationIndex, mask_fit_centre
 from spherebench.datasets.frame_sources import (FrameSelection, Plan, RawFormat, RecordedFrame, bag_frames, check_units,
                                                 cloud_frames, depth_png_frames, files_of, natural_key, raw_frames,
@@ -59,7 +59,7 @@ class PrepareOptions:
     label: str | None = None
 
     def __post_init__(self) -> None:
-        inout.check_ball_radius(self.ball_radius_m)
+        reading.check_ball_radius(self.ball_radius_m)
         if self.depth_scale is not None and not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
             raise SphereBenchError(f"--depth-scale must be > 0 metres per unit, got {self.depth_scale}")
 
@@ -318,7 +318,7 @@ def _keep_labelme(labelme: Path, scene_dir: Path, colour_name: str | None, colou
     """A scene's LabelMe file kept beside the image it was drawn on (image.png, or the colour frame
     when its imagePath names the colour frame as kept or as given: ``colour_sources``), where
     LabelMe looks when that image is reopened."""
-    doc = inout.read_labelme(labelme)
+    doc = foreign_formats.read_labelme(labelme)
     drawn = Path(str(doc.get("imagePath") or "").replace("\\", "/")).name
     on_colour = colour_name is not None and drawn in (*outputs.COLOUR_FILES, *colour_sources)
     kept = colour_name if on_colour else "image.png"

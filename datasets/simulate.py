@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spherebench import __version__
+from spherebench import __version__, reading
 from spherebench.camera import Intrinsics
 from spherebench.datasets import inout, outputs
 from spherebench.datasets.families import FAMILIES
@@ -90,7 +90,7 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         sensor_model = preset.sensor_model
     if clouds is None:
         clouds = preset.clouds
-    inout.check_ball_radius(radius_m)
+    reading.check_ball_radius(radius_m)
     for name, value in overrides.items():
         check_setting(name, value)
     jobs = plan(preset_name, n, seed)

@@ -28,11 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
+from spherebench import reading
 from spherebench.cloud import depth_to_metres
-from spherebench.datasets import inout, outputs
-from spherebench.datasets.annotate import (DEFAULT_HSV, LABELME_OFFSET_PX, colour_mask, contact_sheet,
-                                           labelme_from_mask, labelme_text, mask_fit_centre, parse_hsv,
-                                           polygon_mask, review_tile)
+from spherebench.datasets import foreign_formats, inout, outputs
+from spherebench.datasets.annotate import (DEFAULT_HSV, LABELME_OFFSET_PX, colour_mask, labelme_from_mask, labelme_text,
+                                           mask_fit_centre, parse_hsv, polygon_mask)
+from spherebench.datasets.drawing import contact_sheet, review_tile
 from spherebench.errors import SphereBenchError
 
 SHEET_KIND = "annotate-sheets"
@@ -87,7 +88,7 @@ def _labelme_mask(path: Path, shape) -> np.ndarray | None:
     """The union of a LabelMe file's polygons (None: no polygon, or no file)."""
     if not path.is_file():
         return None
-    doc = inout.read_labelme(path)
+    doc = foreign_formats.read_labelme(path)
     mask = np.zeros(shape, bool)
     for s in doc["shapes"]:
         if (s.get("shape_type") or "polygon") == "polygon":
@@ -126,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     hsv = parse_hsv(args.hsv)
     if not outputs.is_dataset_dir(args.dataset):
         raise SphereBenchError(f"{args.dataset}: not a dataset (no dataset.json); prepare one with `spherebench prepare`")
-    radius = (inout.check_ball_radius(args.radius) if args.radius is not None
+    radius = (reading.check_ball_radius(args.radius) if args.radius is not None
               else inout.read_dataset_meta(args.dataset).get("ball_radius_m"))
     if radius is None:
         raise SphereBenchError(f"{args.dataset}/dataset.json gives no ball_radius_m: give --radius")

@@ -32,11 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
-from spherebench import options, viz
+from spherebench import options, reading, viz
 from spherebench.scripts.cli import BadInputs
 from spherebench.cloud import in_front_of_camera
 from spherebench.datasets import depth_frames, detections, inout, outputs
-from spherebench.datasets.annotate import draw_detections, labelme_from_circles, labelme_text
+from spherebench.datasets.annotate import labelme_from_circles, labelme_text
+from spherebench.datasets.drawing import draw_detections
 from spherebench.datasets.frame_sources import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.errors import SphereBenchError
@@ -268,7 +269,7 @@ def _check_arguments(args: argparse.Namespace) -> bool:
     """Every argument checked, before any input is read; whether the inputs hold a stream (a
     recording or the camera)."""
     if args.radius is not None:
-        inout.check_ball_radius(args.radius)
+        reading.check_ball_radius(args.radius)
         _tolerance(args, args.radius, "--radius", "--radius")
     if args.depth_noise is not None and not (np.isfinite(args.depth_noise) and args.depth_noise >= 0):
         raise SphereBenchError(f"--depth-noise {args.depth_noise}: give sigma_z / z^2 in 1/m, >= 0 (e.g. 0.0015)")

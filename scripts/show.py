@@ -18,7 +18,7 @@ from pathlib import Path
 from spherebench import options
 from spherebench.camera import MAX_IMAGE_SIDE_PX
 from spherebench.datasets import inout, outputs
-from spherebench.datasets.annotate import ball_point_colours, draw_detections, draw_ground_truth
+from spherebench.datasets.drawing import ball_point_colours, draw_detections, draw_ground_truth
 from spherebench.errors import SphereBenchError
 
 

@@ -39,6 +39,11 @@ MAX_FOCAL_RATIO = 3.0
 #: anything is allocated for it.
 MAX_IMAGE_SIDE_PX = 8192
 
+#: intrinsics.json's real-valued fields, JSON numbers (a kind of ``reading.check_schema``) (a string such as "nan" is none): what is
+#: missing, and the sizes, Intrinsics.from_dict words.
+INTRINSICS_NUMBERS = {"ppx?": "number", "ppy?": "number", "fx?": "positive", "fy?": "positive",
+                      "depth_scale?": "positive"}
+
 
 #: The largest distortion coefficient taken: lens calibrations give |k| of a few units at most (a
 #: fisheye's Brown-Conrady fit reaches tens); 1e308 overflows the projection.

@@ -196,3 +196,10 @@ def circle_from_points(points_px: np.ndarray) -> tuple[float, float, float] | No
         return None
     (cx, cy), r = cv2.minEnclosingCircle(pts)
     return float(cx), float(cy), float(r)
+
+
+def disc_mask(circle_px, shape: tuple[int, int]) -> np.ndarray:
+    """Pixels (H, W) bool whose centre lies within the circle (cx, cy, r) px."""
+    cx, cy, r = circle_px
+    v, u = np.mgrid[0:shape[0], 0:shape[1]]
+    return (u - cx) ** 2 + (v - cy) ** 2 <= r * r

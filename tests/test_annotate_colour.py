@@ -15,7 +15,7 @@ import pytest
 from spherebench.camera import Intrinsics, deproject, image_rays
 from spherebench.circles import mask_circle, sphere_silhouette_mask
 from spherebench.scripts.cli import main
-from spherebench.datasets import inout
+from spherebench.datasets import foreign_formats, inout
 from spherebench.datasets.annotate import (balls_from_labelme, colour_mask, fit_sphere_fixed_radius,
                                            labelme_from_mask, labelme_text, mask_fit_centre, parse_hsv)
 from spherebench.datasets.scene import Scene
@@ -177,7 +177,7 @@ def test_annotate_writes_labelme_beside_the_colour_and_notes_empty_frames(tmp_pa
     notes = [s for s in cap.err.splitlines() if s.startswith("note:")]
     assert len(notes) == 1 and "1 frame(s)" in notes[0] and "frame_1" in notes[0]
     assert not (ds / "scenes/frame_1/colour.json").exists()
-    doc = inout.read_labelme(ds / "scenes/frame_0/colour.json")
+    doc = foreign_formats.read_labelme(ds / "scenes/frame_0/colour.json")
     assert doc["imagePath"] == "colour.jpg" and len(doc["shapes"]) == 1
     assert {"closeup_01.png", "overview_01.png"} <= {p.name for p in (tmp_path / "sheets").iterdir()}
     # a second run would replace a person's corrections: refused, nothing touched
@@ -220,7 +220,7 @@ def test_the_committed_kinect_annotations_name_every_frame():
     files = sorted(ANNOTATIONS.glob("*.json"))
     assert [p.stem for p in files] == [f"kinect_1_dep_{i:02d}" for i in range(0, 100, 3)]
     for p in files:
-        doc = inout.read_labelme(p)
+        doc = foreign_formats.read_labelme(p)
         assert (doc["imageWidth"], doc["imageHeight"], doc["imagePath"]) == (640, 480, "colour.jpg")
         assert [s["shape_type"] for s in doc["shapes"]] == ["polygon"] and doc["shapes"][0]["label"] == "ball"
         assert "reviewed by eye" in doc["shapes"][0]["description"]
@@ -237,7 +237,7 @@ def test_prepare_kinect_with_the_committed_masks(tmp_path, capsys):
     s21, s24 = inout.list_scenes(out)
     src = REALDATA / "pochang_rgbd_sphere/sensors/Kinect_1/kinect_1_rgb_24.jpg"
     assert (s24 / "colour.jpg").read_bytes() == src.read_bytes()
-    assert inout.read_labelme(s24 / "colour.json")["imagePath"] == "colour.jpg"
+    assert foreign_formats.read_labelme(s24 / "colour.json")["imagePath"] == "colour.jpg"
     g = inout.read_json(s24 / "gt.json")
     ball = g["balls"][0]
     assert g["annotated"] and ball["center_source"] == "mask-fit" and max(ball["center_se_m"]) < 0.01

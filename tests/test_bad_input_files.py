@@ -15,7 +15,7 @@ import zlib
 import numpy as np
 import pytest
 
-from spherebench import options
+from spherebench import options, reading
 from spherebench.scripts import cli
 from spherebench.datasets import inout, simulate
 from spherebench.errors import SphereBenchError
@@ -101,12 +101,12 @@ def test_show_names_a_damaged_gt_json(dataset, tmp_path, capsys):
 
 def test_check_schema_names_nested_fields_and_allows_absent_optional_ones(tmp_path):
     schema = {"a": "int", "b?": [{"c": "xyz"}]}
-    assert inout.check_schema("f.json", {"a": 1}, schema) == {"a": 1}
-    assert inout.check_schema("f.json", {"a": 1, "b": None}, schema)
+    assert reading.check_schema("f.json", {"a": 1}, schema) == {"a": 1}
+    assert reading.check_schema("f.json", {"a": 1, "b": None}, schema)
     for value, says in (({"b": []}, "f.json: a is missing"), ({"a": True}, "a must be an integer, not true"),
                         ({"a": 1, "b": [{"c": [0, 0, float("nan")]}]}, "b[0].c must be [x, y, z]")):
         with pytest.raises(SphereBenchError, match=says.replace("[", r"\[")):
-            inout.check_schema("f.json", value, schema)
+            reading.check_schema("f.json", value, schema)
 
 
 def test_a_labelme_point_that_is_not_a_number_is_named_with_its_shape(tmp_path, capsys):

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from spherebench.datasets import inout
+from spherebench.datasets import foreign_formats, inout
 from spherebench.errors import SphereBenchError
 
 
@@ -41,7 +41,7 @@ def test_read_pcd_matches_open3d_writer(tmp_path, points, mode):
     path = tmp_path / f"c_{mode}.pcd"
     o3d.io.write_point_cloud(str(path), pc, write_ascii=mode == "ascii", compressed=mode == "binary_compressed")
     assert f"DATA {mode}".encode() in path.read_bytes()[:400]
-    cloud = inout.read_pcd(path)
+    cloud = foreign_formats.read_pcd(path)
     assert cloud.rows is None and len(cloud) == len(pts)
     np.testing.assert_allclose(cloud.points, pts, atol=1e-6)
     assert inout.load_cloud(path).points.shape == (len(pts), 3)  # registered in CLOUD_READERS
@@ -55,7 +55,7 @@ def test_read_pcd_organised_with_nan_and_padding_field(tmp_path):
     rec["x"][[1, 7]] = np.nan  # invalid pixels of an organised cloud
     path = tmp_path / "org.pcd"
     path.write_bytes(_pcd_header(["x", "y", "z", "rgb"], [4] * 4, ["F"] * 4, w, h, "binary") + rec.tobytes())
-    cloud = inout.read_pcd(path)
+    cloud = foreign_formats.read_pcd(path)
     assert len(cloud) == 10
     keep = [i for i in range(12) if i not in (1, 7)]
     np.testing.assert_array_equal(cloud.rows, np.array(keep) // w)
@@ -67,7 +67,7 @@ def test_read_pcd_organised_with_nan_and_padding_field(tmp_path):
     path2 = tmp_path / "org_c.pcd"
     path2.write_bytes(_pcd_header(["x", "y", "z", "rgb"], [4] * 4, ["F"] * 4, w, h, "binary_compressed")
                       + np.array([len(comp), len(plain)], "<u4").tobytes() + comp)
-    c2 = inout.read_pcd(path2)
+    c2 = foreign_formats.read_pcd(path2)
     np.testing.assert_array_equal(c2.points, cloud.points)
     np.testing.assert_array_equal(c2.rows, cloud.rows)
 
@@ -89,7 +89,7 @@ def test_read_pcd_bad_files(tmp_path, points, damage):
     path = tmp_path / "bad.pcd"
     path.write_bytes(body)
     with pytest.raises(SphereBenchError, match="bad.pcd"):
-        inout.read_pcd(path)
+        foreign_formats.read_pcd(path)
 
 
 def test_read_raw_depth_orders_and_size(tmp_path):
@@ -98,39 +98,39 @@ def test_read_raw_depth_orders_and_size(tmp_path):
     (tmp_path / "be.raw").write_bytes(d.astype(">u2").tobytes())
     f = d.astype(np.float32) / 1000
     (tmp_path / "bef.raw").write_bytes(f.astype(">f4").tobytes())
-    np.testing.assert_array_equal(inout.read_raw_depth(tmp_path / "le.raw", 4, 3), d)
-    np.testing.assert_array_equal(inout.read_raw_depth(tmp_path / "be.raw", 4, 3, byte_order="big"), d)
-    np.testing.assert_array_equal(inout.read_raw_depth(tmp_path / "bef.raw", 4, 3, "float32", "big"), f)
+    np.testing.assert_array_equal(foreign_formats.read_raw_depth(tmp_path / "le.raw", 4, 3), d)
+    np.testing.assert_array_equal(foreign_formats.read_raw_depth(tmp_path / "be.raw", 4, 3, byte_order="big"), d)
+    np.testing.assert_array_equal(foreign_formats.read_raw_depth(tmp_path / "bef.raw", 4, 3, "float32", "big"), f)
     with pytest.raises(SphereBenchError, match="truncated"):
-        inout.read_raw_depth(tmp_path / "le.raw", 5, 3)
+        foreign_formats.read_raw_depth(tmp_path / "le.raw", 5, 3)
 
 
 def test_read_camera_json_lenient(tmp_path):
     d = {"width": 848, "height": 480, "ppx": 421.5, "ppy": 240.25, "fx": 426.0, "fy": 425.5,
          "model": "Brown Conrady", "coeffs": [0.1, 0, 0, 0, 0]}
     (tmp_path / "a.json").write_text(json.dumps({"depth": d}))
-    intr = inout.read_camera_json(tmp_path / "a.json")
+    intr = foreign_formats.read_camera_json(tmp_path / "a.json")
     assert intr.model == "brown_conrady" and intr.fx == 426.0 and intr.depth_scale == 0.001
     (tmp_path / "b.json").write_text(json.dumps({"width": 848, "fx": 1}))
     with pytest.raises(SphereBenchError, match="b.json.*lack"):
-        inout.read_camera_json(tmp_path / "b.json")
+        foreign_formats.read_camera_json(tmp_path / "b.json")
     (tmp_path / "c.json").write_text('{"width": 8')
     with pytest.raises(SphereBenchError, match="truncated"):
-        inout.read_camera_json(tmp_path / "c.json")
+        foreign_formats.read_camera_json(tmp_path / "c.json")
 
 
 def test_read_labelme_checks_structure(tmp_path):
     good = {"shapes": [{"label": "ball", "shape_type": "circle", "points": [[1, 2], [3, 4]]}],
             "imagePath": "image.png", "imageWidth": 8, "imageHeight": 6}
     (tmp_path / "g.json").write_text(json.dumps(good))
-    assert inout.read_labelme(tmp_path / "g.json")["imageWidth"] == 8
+    assert foreign_formats.read_labelme(tmp_path / "g.json")["imageWidth"] == 8
     bad = dict(good, shapes=[{"label": "ball", "points": "nope"}])
     (tmp_path / "b.json").write_text(json.dumps(bad))
     with pytest.raises(SphereBenchError, match="shape 0"):
-        inout.read_labelme(tmp_path / "b.json")
+        foreign_formats.read_labelme(tmp_path / "b.json")
     (tmp_path / "n.json").write_text(json.dumps({"imageWidth": 8}))
     with pytest.raises(SphereBenchError, match="not a LabelMe"):
-        inout.read_labelme(tmp_path / "n.json")
+        foreign_formats.read_labelme(tmp_path / "n.json")
 
 
 def test_scene_folder_without_cloud_is_deprojected_from_its_depth(small_default, tmp_path):

@@ -256,6 +256,40 @@ def test_every_module_is_walked():
     assert layer_of("spherebench.scripts.cli") == "drivers" and layer_of("spherebench.camera") == "core"
 
 
+#: The most lines a module of the package holds (the detector's stage modules included): one job each.
+MAX_MODULE_LINES = 700
+
+
+def test_every_module_keeps_to_one_job_in_at_most_700_lines():
+    long = {name: n for name, (path, _) in installed_modules().items()
+            if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+
+
+def test_the_package_imports_no_driver_by_name():
+    """The dispatcher of the command lives with the drivers: below them, no module names
+    ``spherebench.scripts`` in an import, an ``importlib`` call or any string (the core once loaded
+    the drivers by name)."""
+    named = []
+    for name, (path, _) in installed_modules().items():
+        if layer_of(name) == "drivers":
+            continue
+        tree = ast.parse(path.read_text(), str(path))
+        named += [f"{name}:{node.lineno}" for node in ast.walk(tree)
+                  if isinstance(node, ast.Constant) and isinstance(node.value, str)
+                  and node.value.startswith("spherebench.scripts")]
+    assert not named, "modules below the drivers that name them: " + ", ".join(named)
+
+
+def test_every_driver_is_a_subcommand_or_a_make_target():
+    from spherebench.scripts import cli
+    drivers = {name.rpartition(".")[2] for name in installed_modules() if name.startswith("spherebench.scripts.")}
+    subcommands = {module for _, module, _ in cli.COMMANDS}
+    makefile = (ROOT / "Makefile").read_text()
+    targets = {d for d in drivers if f"-m spherebench.scripts.{d}" in makefile}
+    assert drivers - {"cli"} == subcommands | targets and not subcommands & targets
+
+
 def test_a_bad_edge_is_named(tmp_path):
     """The check can fail: an import up the layers, inside a function of a temporary module, is
     found and named with its line."""

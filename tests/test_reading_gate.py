@@ -10,7 +10,7 @@ import pytest
 from spherebench import reading
 from spherebench.baselines import hough_tuning
 from spherebench.baselines.circlenet import data as circlenet_data
-from spherebench.datasets import inout
+from spherebench.datasets import foreign_formats, inout
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import cache, recorded
 from spherebench.eval.metrics import coco_eval
@@ -31,8 +31,8 @@ HOSTILE = {
 #: (reader, the file name it reads in a folder, or None: the file itself)
 READERS = {
     "intrinsics": (inout.read_intrinsics, None),
-    "camera json": (inout.read_camera_json, None),
-    "LabelMe": (inout.read_labelme, None),
+    "camera json": (foreign_formats.read_camera_json, None),
+    "LabelMe": (foreign_formats.read_labelme, None),
     "gt.json": (inout.read_scene_gt, "gt.json"),
     "dataset.json": (inout.read_dataset_meta, "dataset.json"),
     "coco_gt.json": (inout.read_coco_gt, "coco_gt.json"),
@@ -112,7 +112,7 @@ def test_values_the_schemas_refuse(small_default, tmp_path):
                           ({"coeffs": [1e308, 0, 0, 0, 0]}, "coeffs must be five numbers")):
         path = _write(tmp_path, "camera.json", json.dumps({**intr, **changed}))
         with pytest.raises(SphereBenchError, match=says):
-            inout.read_camera_json(path)
+            foreign_formats.read_camera_json(path)
         with pytest.raises(SphereBenchError, match=says):
             inout.read_intrinsics(path)
 

@@ -10,7 +10,7 @@ from spherebench.scripts import cli
 from spherebench.camera import Intrinsics
 from spherebench.cloud import Cloud
 from spherebench.datasets import inout
-from spherebench.datasets.annotate import BALL_RGB, REST_RGB, ball_point_colours
+from spherebench.datasets.drawing import BALL_RGB, REST_RGB, ball_point_colours
 from spherebench.datasets.scene import Ball, Scene
 
 INTR = Intrinsics(width=64, height=48, ppx=31.5, ppy=23.5, fx=60.0, fy=60.0)
