@@ -228,4 +228,9 @@ def read_labelme(path: str | Path) -> dict:
         check_schema(path, shape, LABELME_SHAPE_SCHEMA, fix, name)
         for k, point in enumerate(shape["points"]):
             check_schema(path, point, "xy", fix, f"point {k} of {name}")
+            # a shape may reach past the image's edge (the shape of another image is said later), not
+            # past any frame's reach: a point of 1e300 px is a damaged file
+            if max(abs(point[0]), abs(point[1])) > 4 * MAX_IMAGE_SIDE_PX:
+                raise SphereBenchError(f"{path}: point {k} of {name}, ({point[0]:g}, {point[1]:g}), lies beyond any "
+                                       f"image (more than {4 * MAX_IMAGE_SIDE_PX} px from its corner); {fix}")
     return d

@@ -404,7 +404,7 @@ def write_scene(scenes_dir: str | Path, scene: Scene, ball_radius_m: float, writ
 
 
 #: gt.json (write_scene): what the readers of a scene rely on.
-BALL_SCHEMA = {"radius_m": "positive", "center_m?": "xyz", "circle?": "circle", "amodal_circle?": "circle",
+BALL_SCHEMA = {"radius_m": "radius", "center_m?": "xyz", "circle?": "circle", "amodal_circle?": "circle",
                "visible_fraction?": "fraction", "mask?": "text", "silhouette?": "text", "center_source?": "text",
                "center_se_m?": "xyz"}
 GT_SCHEMA = {"scene_id": "text", "family": "text", "annotated?": "bool", "has_image?": "bool",

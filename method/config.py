@@ -35,6 +35,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from spherebench.errors import SphereBenchError
+from spherebench.reading import shown
 
 PIPELINES = ("paper", "improved")
 SAMPLINGS = ("global", "local")
@@ -49,11 +50,11 @@ ZSCORE_VARIABLES = ("distance", "residual", "x", "y", "z", "xyz")
 
 def _bad_type(path: str, v, kind: str) -> str | None:
     if kind == "bool":
-        return None if isinstance(v, bool) else f"{path}={v!r} must be true or false"
+        return None if isinstance(v, bool) else f"{path}={shown(v, repr)} must be true or false"
     if kind == "str":
-        return None if isinstance(v, str) else f"{path}={v!r} must be a string"
+        return None if isinstance(v, str) else f"{path}={shown(v, repr)} must be a string"
     if isinstance(v, bool) or not isinstance(v, int if kind == "int" else (int, float)):
-        return f"{path}={v!r} must be {'an integer' if kind == 'int' else 'a number'}"
+        return f"{path}={shown(v, repr)} must be {'an integer' if kind == 'int' else 'a number'}"
     return None
 
 
@@ -78,11 +79,11 @@ def _bad_value(path: str, v, kind: str, rule, note: str) -> str | None:
     infinity ("inf for never"), and then positive."""
     tail = f" ({note})" if note else ""
     if kind == "float" and not math.isfinite(v) and not (v > 0 and "inf" in note):
-        return f"{path}={v!r} must be {rule}{tail}" if "inf" in note else f"{path}={v!r} must be a finite number"
+        return f"{path}={shown(v, repr)} must be {rule}{tail}" if "inf" in note else f"{path}={shown(v, repr)} must be a finite number"
     if isinstance(rule, tuple):
-        return None if v in rule else f"{path}={v!r} is not one of {', '.join(rule)}"
+        return None if v in rule else f"{path}={shown(v, repr)} is not one of {', '.join(rule)}"
     if rule is not None and _breaks(v, rule):
-        return f"{path}={v!r} must be {'within ' if rule[0] in '[(' else ''}{rule}{tail}"
+        return f"{path}={shown(v, repr)} must be {'within ' if rule[0] in '[(' else ''}{rule}{tail}"
     return None
 
 
@@ -265,7 +266,7 @@ class DetectorConfig:
     def problems(self) -> list[str]:
         """Every group's problems, then the rules across groups."""
         model = [(n, getattr(self, n)) for n in ("radius_m", "eps_m")]
-        out = [f"{n}={v!r} must be a finite number" for n, v in model
+        out = [f"{n}={shown(v, repr)} must be a finite number" for n, v in model
                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)]
         if not out and self.radius_m <= 0:
             out.append(f"radius_m={self.radius_m} must be > 0 (the ball radius in metres, e.g. 0.12)")
@@ -274,11 +275,11 @@ class DetectorConfig:
         elif not out and self.eps_m >= self.radius_m:
             out.append(f"eps_m={self.eps_m} must be smaller than the radius {self.radius_m} (e.g. 0.01)")
         if self.pipeline not in PIPELINES:
-            out.append(f"pipeline={self.pipeline!r} is not one of {', '.join(PIPELINES)}")
+            out.append(f"pipeline={shown(self.pipeline, repr)} is not one of {', '.join(PIPELINES)}")
         for name, cls in GROUPS.items():
             group = getattr(self, name)
             if not isinstance(group, cls):
-                out.append(f"{name} must be a {cls.__name__}, not {group!r}")
+                out.append(f"{name} must be a {cls.__name__}, not {shown(group, repr)}")
             else:
                 out += group.problems(name + ".")
         if self.pipeline == "paper" and getattr(self.search, "sampling", None) != "global":

@@ -15,7 +15,7 @@ import argparse
 import math
 from pathlib import Path
 
-from spherebench import options
+from spherebench import options, reading
 from spherebench.camera import MAX_IMAGE_SIDE_PX
 from spherebench.datasets import inout, outputs
 from spherebench.datasets.drawing import ball_point_colours, draw_detections, draw_ground_truth
@@ -54,6 +54,10 @@ def _predictions_file(args, scene_dir: Path) -> Path | None:
     return args.predictions
 
 
+#: What show reads of each result of a predictions file (COCO results with CircleNet's circle).
+PREDICTION_SCHEMA = {"circle_center": "xy", "circle_radius": "length", "score": "number"}
+
+
 def scene_predictions(path: Path, scene_id: str, min_score: float) -> list[tuple[tuple[float, float, float], float]]:
     """((cx, cy, r) px, score) of a predictions file's detections on one scene, best first."""
     results = inout.read_json(path)
@@ -63,11 +67,9 @@ def scene_predictions(path: Path, scene_id: str, min_score: float) -> list[tuple
     for i, r in enumerate(results):
         if not isinstance(r, dict) or r.get("scene_id") != scene_id:
             continue
-        try:
-            (cx, cy), rad, score = r["circle_center"], r["circle_radius"], float(r["score"])
-            circle = (float(cx), float(cy), float(rad))
-        except (KeyError, TypeError, ValueError):
-            raise SphereBenchError(f"{path}: result {i} lacks circle_center, circle_radius or score") from None
+        reading.check_schema(path, r, PREDICTION_SCHEMA, "fix the file", f"result {i}")
+        (cx, cy), rad, score = r["circle_center"], r["circle_radius"], float(r["score"])
+        circle = (float(cx), float(cy), float(rad))
         # a circle is drawn in pixels: finite, and a radius no larger than a frame's side
         if not (all(math.isfinite(v) for v in (*circle, score)) and 0 <= circle[2] <= MAX_IMAGE_SIDE_PX
                 and max(abs(circle[0]), abs(circle[1])) <= 4 * MAX_IMAGE_SIDE_PX):

@@ -20,9 +20,18 @@ def _integer(text: str, least: int, what: str, too_small: str) -> int:
     return value
 
 
+#: The largest seed: a uint64's, what numpy's streams take whole and what a dataset.json or a
+#: result records (the reading gate reads no integer of more than 20 digits back).
+MAX_SEED = 2 ** 64 - 1
+
+
 def seed(text: str) -> int:
-    """A run seed: an integer from 0 (numpy's SeedSequence takes no negative seed)."""
-    return _integer(text, 0, " seed", "a seed is an integer from 0 up")
+    """A run seed: an integer from 0 (numpy's SeedSequence takes no negative seed) to MAX_SEED."""
+    value = _integer(text, 0, " seed", "a seed is an integer from 0 up")
+    if value > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{text if len(text) <= 30 else text[:27] + '...'}: a seed is at most "
+                                         f"2^64 - 1 ({MAX_SEED})")
+    return value
 
 
 def count(text: str) -> int:
@@ -105,6 +114,8 @@ def parse_seeds(text: str) -> list[int]:
         bounds = []
     if not bounds or any(lo < 0 or hi < 0 for lo, hi in bounds):
         raise SphereBenchError(f"--seeds {text!r}: give non-negative seeds, e.g. 0-3 or 0,1,5")
+    if any(hi > MAX_SEED for _lo, hi in bounds):
+        raise SphereBenchError(f"--seeds {text!r}: a seed is at most 2^64 - 1 ({MAX_SEED})")
     reversed_range = next(((lo, hi) for lo, hi in bounds if hi < lo), None)
     if reversed_range is not None:
         lo, hi = reversed_range

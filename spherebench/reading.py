@@ -127,9 +127,13 @@ _KINDS = {
 }
 
 
-def _shown(value) -> str:
-    """A value as the file spells it, or what it is where that is long."""
-    text = json.dumps(value)
+def shown(value, spell=json.dumps) -> str:
+    """A value in a one-line message, spelt by ``spell`` (as a JSON file spells it, or ``repr`` as
+    Python does), or what it is where that is long (a 120 KB --set value is not repeated back)."""
+    try:
+        text = spell(value)
+    except (TypeError, ValueError):
+        text = repr(value)
     if len(text) <= 40:
         return text
     return "a JSON object" if isinstance(value, dict) else "a list" if isinstance(value, list) else text[:37] + "..."
@@ -141,7 +145,7 @@ def check_schema(path: str | Path, value, schema, fix: str = "fix the file or re
     where = field or "the file"
     if isinstance(schema, dict):
         if not isinstance(value, dict):
-            raise SphereBenchError(f"{path}: {where} must be a JSON object, not {_shown(value)}; {fix}")
+            raise SphereBenchError(f"{path}: {where} must be a JSON object, not {shown(value)}; {fix}")
         for key, sub in schema.items():
             name = key.rstrip("?")
             inner = (f"{name} of {field}" if " " in field else f"{field}.{name}") if field else name
@@ -152,13 +156,13 @@ def check_schema(path: str | Path, value, schema, fix: str = "fix the file or re
             check_schema(path, value[name], sub, fix, inner)
     elif isinstance(schema, list):
         if not isinstance(value, list):
-            raise SphereBenchError(f"{path}: {where} must be a list, not {_shown(value)}; {fix}")
+            raise SphereBenchError(f"{path}: {where} must be a list, not {shown(value)}; {fix}")
         for i, item in enumerate(value):
             check_schema(path, item, schema[0], fix, f"{field}[{i}]")
     else:
         ok, what = _KINDS[schema]
         if not ok(value):
-            raise SphereBenchError(f"{path}: {where} must be {what}, not {_shown(value)}; {fix}")
+            raise SphereBenchError(f"{path}: {where} must be {what}, not {shown(value)}; {fix}")
     return value
 
 

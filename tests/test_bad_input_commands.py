@@ -326,12 +326,15 @@ def test_benchmark_subcommands_refuse_bad_input_in_one_line(tmp_path, capsys, ar
     ("evidence.occlusion_discount=0.5", "evidence.occlusion_discount (no longer a setting"),
     ("outline.outline_noise_fraction=-inf", "outline.outline_noise_fraction=-inf must be >= 0"),
     ("verification.min_scor=0.4", "unknown detector parameter verification.min_scor"),
+    # a value of 120 KB (nested too deep to be JSON: a string) is not repeated back whole
+    ("verification.min_score=" + "[" * 120_000, "verification.min_score='[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[..."),
 ])
 def test_sweep_refuses_a_bad_setting_in_one_line(small_default, tmp_path, capsys, setting, says):
     argv = ["sweep", str(small_default), "--seeds", "0", "--set", setting, "--out", str(tmp_path / "out")]
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("spherebench sweep: error:") and len(err.strip().splitlines()) == 1 and says in err
+    assert len(err) < 300
     assert not (tmp_path / "out.md").exists() and not (tmp_path / "out.json").exists()
 
 
@@ -417,6 +420,13 @@ def test_an_evaluation_after_make_eval_is_not_dirty_for_what_make_eval_wrote(tmp
 def test_open_seed_ranges_absurd_widths_and_cloudless_benches_are_refused(small_default, tmp_path, capsys):
     _fails(capsys, ["sweep", small_default, "--seeds", "1-", "--out", tmp_path / "s"], "--seeds '1-'", "has no end")
     assert not list(tmp_path.glob("s*"))
+    # a seed a dataset.json could not hold and the reading gate would not read back (over 20 digits)
+    _fails(capsys, ["generate", "--preset", "default", "--n", "1", "--out", tmp_path / "g", "--seed", str(2 ** 64)],
+           "at most 2^64 - 1")
+    _fails(capsys, ["generate", "--preset", "default", "--n", "1", "--out", tmp_path / "g", "--seed", "9" * 400],
+           "at most 2^64 - 1")
+    _fails(capsys, ["sweep", small_default, "--seeds", f"0,{2 ** 64}", "--out", tmp_path / "s"], "at most 2^64 - 1")
+    assert not list(tmp_path.glob("[gs]*"))
     _fails(capsys, ["train", "--data", small_default, "--out", tmp_path / "t", "--resnet-width", "100000"],
            "--resnet-width 100000", "1 to 256")
     assert not (tmp_path / "t").exists()

@@ -61,7 +61,7 @@ DAMAGE = {  # what is done to a copy of the dataset -> the words of the one line
                        ("gt.json", "must be a JSON object, not [1]")),
     "gt.json ball radius": (lambda ds: _edit(inout.list_scenes(ds)[0] / "gt.json",
                                              balls=[{"radius_m": "big", "circle": None}]),
-                            ("gt.json", "balls[0].radius_m must be a finite number > 0", '"big"')),
+                            ("gt.json", "balls[0].radius_m must be a ball radius in metres", '"big"')),
     "coco images a number": (lambda ds: (ds / "coco_gt.json").write_text('{"images": 5}'),
                              ("coco_gt.json", "images must be a list, not 5")),
 }

@@ -126,3 +126,40 @@ def test_training_folders_check_every_scenes_gt_json(small_default, tmp_path):
     (inout.list_scenes(data)[2] / "gt.json").write_text("[]")
     with pytest.raises(SphereBenchError, match="gt.json: the file must be a JSON object, not"):
         circlenet_data.read_dataset(data)
+
+
+def test_numbers_that_are_text_or_out_of_range_are_refused(small_default, tmp_path):
+    """A number spelt as text ("37.7") is no number of a file of ours, a ball radius of 1e308 no
+    ball's, and a LabelMe point at 1e300 px on no image."""
+    import json
+    import shutil
+
+    from spherebench.eval.metrics.coco_eval import load_ground_truth, load_results
+    from spherebench.scripts.show import scene_predictions
+
+    data = tmp_path / "d"
+    shutil.copytree(small_default, data)
+    scene = inout.list_scenes(data)[0]
+    result = {"image_id": 1, "category_id": 1, "circle_center": [100.0, 80.0], "circle_radius": 20.0, "score": 0.9,
+              "scene_id": scene.name}
+    preds = _write(tmp_path, "preds.json", json.dumps([{**result, "circle_radius": "20.0"}]))
+    with pytest.raises(SphereBenchError, match=r"preds.json: circle_radius of result 0 must be"):
+        scene_predictions(preds, scene.name, 0.0)
+    gt = load_ground_truth(data / "coco_gt.json")
+    for bad in ({"score": "0.9"}, {"circle_center": ["100", 80.0]}):
+        with pytest.raises(SphereBenchError, match="result 0 lacks"):
+            load_results(gt, [{**result, **bad}])
+    assert len(load_results(gt, [result]).getAnnIds()) == 1
+    metrics = _write(tmp_path, "metrics.json", json.dumps({"improved": {"default": {"mAP": "0.5"}}}))
+    with pytest.raises(SphereBenchError, match=r"metrics.json: improved.default.mAP must be a finite number"):
+        recorded.load_beside(metrics, "default")
+    doc = json.loads((scene / "gt.json").read_text())
+    doc["balls"][0]["radius_m"] = 1e308
+    (scene / "gt.json").write_text(json.dumps(doc))
+    with pytest.raises(SphereBenchError, match=r"balls\[0\].radius_m must be a ball radius"):
+        inout.read_scene_gt(scene)
+    labelme = {"imageWidth": 424, "imageHeight": 240, "shapes": [
+        {"label": "ball", "shape_type": "polygon", "points": [[10, 10], [1e300, 10], [10, 50]]}]}
+    path = _write(tmp_path, "lm.json", json.dumps(labelme))
+    with pytest.raises(SphereBenchError, match="lies beyond any image"):
+        foreign_formats.read_labelme(path)

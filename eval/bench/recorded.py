@@ -35,6 +35,7 @@ from spherebench.eval.bench.registry import PAPER_CIRCLE, ROLE_LEARNED_2D, metho
 from spherebench.eval.bench.tables import Table, fmt, rule_label
 from spherebench.eval.bench.tasks import dataset_scenes
 from spherebench.provenance import REPO_ROOT, file_sha256
+from spherebench.reading import check_schema
 
 #: Methods whose Table 3 figures the beside reading quotes, in this order, where present.
 BESIDE_READING = ("improved", "circlenet", "circlenet-analytic", "circlenet-full", "circlenet-hg", "hough")
@@ -295,6 +296,10 @@ class Beside:
     settings: dict = field(default_factory=dict)
 
 
+#: The figures of another evaluation's metrics.json that a table beside ours reads.
+BESIDE_FIGURES = {"mAP?": "number", "mAP50?": "number", "mAP75?": "number"}
+
+
 def load_beside(path: str | Path, label: str) -> tuple[Beside, dict]:
     """(``Beside``, a provenance record) of another evaluation's metrics.json, its ``label`` dataset;
     a one-line error when the file is unreadable, not a metrics.json, or has no mAP on ``label``."""
@@ -304,6 +309,10 @@ def load_beside(path: str | Path, label: str) -> tuple[Beside, dict]:
     metrics = inout.read_json(path)
     if not isinstance(metrics, dict) or not all(isinstance(v, dict) for v in metrics.values()):
         raise SphereBenchError(f"--beside {path}: not a metrics.json of `spherebench evaluate`")
+    for output, by in metrics.items():  # the figures read beside ours are numbers, as evaluate writes them
+        if isinstance(by.get(label), dict):
+            check_schema(path, by[label], BESIDE_FIGURES, "give a metrics.json of `spherebench evaluate`",
+                                 f"{output}.{label}")
     if not any(isinstance(by.get(label), dict) and by[label].get("mAP") is not None for by in metrics.values()):
         found = sorted({k for by in metrics.values() for k, v in by.items() if isinstance(v, dict) and "mAP" in v})
         raise SphereBenchError(f"--beside {path}: no circle mAP on a dataset `{label}` there (it has "

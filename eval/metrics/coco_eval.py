@@ -33,6 +33,7 @@ import contextlib
 import copy
 import io
 import math
+import numbers
 from pathlib import Path
 from typing import Callable
 
@@ -58,14 +59,21 @@ def _quiet(verbose: bool):
     return contextlib.nullcontext() if verbose else contextlib.redirect_stdout(io.StringIO())
 
 
+def _is_number(v) -> bool:
+    """A number (Python's or numpy's), not a bool and not a text that spells one."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
 def _circle_of(ann: dict, what: str) -> tuple[float, float, float]:
     """(cx, cy, r) px of an annotation or result, checked."""
     try:
         (cx, cy), r = ann["circle_center"], ann["circle_radius"]
-        cx, cy, r = float(cx), float(cy), float(r)
     except (KeyError, TypeError, ValueError):
+        cx = cy = r = None
+    if not all(_is_number(v) for v in (cx, cy, r)):  # "37.5", a text, is no radius of a file of ours
         raise SphereBenchError(f"{what} lacks a valid circle_center [x, y] and circle_radius "
-                               "(CircleNet's fields, pixels)") from None
+                               "(CircleNet's fields, pixels, as numbers)")
+    cx, cy, r = float(cx), float(cy), float(r)
     if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(r)) or r < 0:
         raise SphereBenchError(f"{what} has a non-finite circle or a negative radius: {ann['circle_center']}, {r}")
     return cx, cy, r
@@ -132,10 +140,9 @@ def load_results(coco_gt: COCO, results: list[dict], verbose: bool = False) -> C
         if res.get("category_id") not in known_cats:
             raise SphereBenchError(f"result {i} has category_id {res.get('category_id')}, not one of the ground "
                                    f"truth's {sorted(known_cats)}")
-        try:
-            score = float(res["score"])
-        except (KeyError, TypeError, ValueError):
-            raise SphereBenchError(f"result {i} lacks a numeric score") from None
+        if not _is_number(res.get("score")):
+            raise SphereBenchError(f"result {i} lacks a numeric score")
+        score = float(res["score"])
         if not math.isfinite(score):
             raise SphereBenchError(f"result {i} has a non-finite score")
         ann = {k: v for k, v in res.items() if k not in ("bbox", "segmentation", "area", "id")}
