@@ -574,6 +574,9 @@ def camera_from_options(intrinsics_file: Path | None = None, fx: float | None = 
     if intrinsics_file is not None:
         if given:
             raise SphereBenchError(f"give intrinsics as --intrinsics FILE or as {', '.join(numbers)}, not both")
+        if coeffs is not None or model != "none":  # the file's own model and coefficients hold
+            raise SphereBenchError("--model and --coeffs go with --fx --fy --ppx --ppy: the distortion of "
+                                   "--intrinsics FILE is the file's (its model and coeffs)")
         intr = foreign_formats.read_camera_json(intrinsics_file)
         if width is not None and (width, height) != (intr.width, intr.height):
             raise SphereBenchError(f"{intrinsics_file}: intrinsics are {intr.width}x{intr.height} but the frames "

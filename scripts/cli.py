@@ -113,6 +113,7 @@ _OS_ADVICE = {
     errno.ENOTDIR: "a part of the path is a file, not a folder: fix the path",
     errno.ENOENT: "no such file or folder: check the path",
     errno.ENAMETOOLONG: "the name is too long: use a shorter path",
+    errno.ELOOP: "a symbolic link that leads back to itself: fix or remove the link",
 }
 
 
@@ -243,6 +244,16 @@ def _run_guarded(prog: str, work) -> int:
         except OSError as exc:
             print(f"{prog}: error: {os_error_message(exc)}{_kept(exc)}", file=sys.stderr)
             return 2
+        except RuntimeError as exc:  # pathlib's resolve() of a link that leads back to itself
+            looped = _SYMLINK_LOOP.match(str(exc))
+            if looped is None:
+                raise
+            print(f"{prog}: error: {looped[1]}: {_OS_ADVICE[errno.ELOOP]}{_kept(exc)}", file=sys.stderr)
+            return 2
+
+
+#: What Python 3.11's pathlib raises for a symbolic link loop (RuntimeError, not OSError).
+_SYMLINK_LOOP = re.compile(r"^Symlink loop from '(.*)'$")
 
 
 def _stdout_closed(prog: str) -> int:

@@ -26,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", type=Path, help="a scene folder, DIR/scenes/<scene_id>")
     p.add_argument("--out-png", help="image with circles (default ./<scene_id>_gt.png)")
     p.add_argument("--out-ply", help="coloured cloud (default ./<scene_id>_gt.ply)")
-    p.add_argument("--tolerance", type=float, default=0.02,
+    p.add_argument("--tolerance", type=options.length, default=0.02,
                    help="image-less scenes: metres beyond the radius round a centre that count as the ball")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--predictions", type=Path, metavar="FILE",

@@ -76,6 +76,17 @@ def fraction(text: str) -> float:
     return value
 
 
+def length(text: str) -> float:
+    """A distance in metres: a finite number from 0 (NaN would compare false with every distance)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text}: give a distance in metres, a finite number from 0")
+    return value
+
+
 def out_path(text: str) -> str:
     """An output path: never empty (an unset shell variable in `--out "$OUT"` would mean the current
     folder)."""

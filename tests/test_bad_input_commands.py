@@ -539,3 +539,18 @@ def test_detect_writes_nothing_under_home(small_default, tmp_path):
                          env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert sorted(str(p.relative_to(home)) for p in home.rglob("*")) == []
+
+
+def test_a_link_loop_a_nan_tolerance_and_an_ignored_distortion_are_refused(small_default, tmp_path, capsys):
+    scene = inout.list_scenes(small_default)[0]
+    loop = tmp_path / "loop.ply"
+    loop.symlink_to(loop)  # pathlib's resolve() raises RuntimeError, not OSError, for it
+    _fails(capsys, ["detect", loop, "--json"], "loop.ply", "leads back to itself")
+    _fails(capsys, ["show", scene, "--tolerance", "nan", "--out-png", tmp_path / "s.png"], "--tolerance",
+           "a finite number from 0")
+    pngs = tmp_path / "pngs"
+    pngs.mkdir()
+    shutil.copy(scene / "depth.png", pngs / "f.png")
+    _fails(capsys, ["prepare", pngs, "--intrinsics", scene / "intrinsics.json", "--coeffs", "1", "2", "3", "4", "5",
+                    "--out", tmp_path / "p"], "--coeffs go with --fx")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loop.ply", "pngs"]
