@@ -28,6 +28,7 @@ import functools
 import io
 import json
 import math
+import os
 import shutil
 import zlib
 from pathlib import Path
@@ -40,7 +41,7 @@ from spherebench.camera import INTRINSICS_NUMBERS, MAX_IMAGE_SIDE_PX, Intrinsics
 from spherebench.cloud import Cloud, cloud_from_depth, depth_to_metres
 from spherebench.datasets import foreign_formats
 from spherebench.datasets.outputs import (COLOUR_FILES, MARK, PNG_SIGNATURE, atomic_directory, atomic_write_bytes,
-                                          is_dataset_dir, mark_png, never_replace)
+                                          mark_png, never_replace)
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.datasets.scene import Ball, Scene
 from spherebench.errors import SphereBenchError
@@ -469,7 +470,9 @@ def scene_dataset_meta(scene_dir: str | Path) -> dict:
     one line, never passed over."""
     scene_dir = Path(scene_dir)
     dataset = scene_dir.parent.parent
-    return read_dataset_meta(dataset) if scene_dir.parent.name == "scenes" and is_dataset_dir(dataset) else {}
+    # there, whatever it is (a FIFO, a folder: refused), a dataset.json is read
+    there = os.path.lexists(dataset / "dataset.json")
+    return read_dataset_meta(dataset) if scene_dir.parent.name == "scenes" and there else {}
 
 
 def build_coco_gt(dataset_dir: str | Path, category: str = DEFAULT_CATEGORY, name: str | None = None) -> dict:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import stat
 from pathlib import Path
 
 from spherebench.camera import MAX_IMAGE_SIDE_PX
@@ -62,12 +63,17 @@ def parse_json(data: bytes | str, source: str):
 
 def read_json(path: str | Path):
     """A JSON file through the reading gate (``parse_json``); a missing, unreadable or oversized file,
-    or a folder, one line."""
+    a folder, or no regular file (a FIFO would hold the reader until something writes to it), one
+    line."""
     path = Path(path)
     try:
-        size = path.stat().st_size
-        if size > MAX_JSON_BYTES:
-            raise _too_big(str(path), size)
+        st = path.stat()
+        if stat.S_ISDIR(st.st_mode):
+            raise IsADirectoryError
+        if not stat.S_ISREG(st.st_mode):
+            raise SphereBenchError(f"{path}: not a regular file (a FIFO, a device or a socket): give a JSON file")
+        if st.st_size > MAX_JSON_BYTES:
+            raise _too_big(str(path), st.st_size)
         with open(path, "rb") as f:
             data = f.read()
     except FileNotFoundError:

@@ -163,3 +163,19 @@ def test_numbers_that_are_text_or_out_of_range_are_refused(small_default, tmp_pa
     path = _write(tmp_path, "lm.json", json.dumps(labelme))
     with pytest.raises(SphereBenchError, match="lies beyond any image"):
         foreign_formats.read_labelme(path)
+
+
+def test_a_fifo_where_a_json_file_belongs_is_refused_without_waiting(small_default, tmp_path):
+    import os
+    import shutil
+
+    fifo = tmp_path / "f.json"
+    os.mkfifo(fifo)
+    with pytest.raises(SphereBenchError, match="f.json: not a regular file"):
+        reading.read_json(fifo)  # opening it would wait for a writer
+    data = tmp_path / "d"
+    shutil.copytree(small_default, data)
+    (data / "dataset.json").unlink()
+    os.mkfifo(data / "dataset.json")
+    with pytest.raises(SphereBenchError, match="dataset.json: not a regular file"):
+        inout.scene_dataset_meta(inout.list_scenes(data)[0])
