@@ -83,7 +83,13 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
+#: The terminating signals received while a command runs, in order: a library that catches the
+#: interrupt and raises one of its own (Ray's ray.get raises a plain KeyboardInterrupt) loses which.
+_received: list[int] = []
+
+
 def _raise_terminated(signum, frame):
+    _received.append(signum)
     raise Terminated(signum)
 
 
@@ -94,6 +100,7 @@ def _signals_as_interrupts():
     if threading.current_thread() is not threading.main_thread():
         yield  # only the main thread may set handlers
         return
+    _received.clear()
     saved = {s: signal.signal(s, _raise_terminated) for s in wanted}
     try:
         yield
@@ -292,7 +299,7 @@ def _unwritten(exc: OSError) -> int:
 
 def _interrupted(prog: str, exc: KeyboardInterrupt) -> int:
     """Ctrl-C or a terminating signal: one line, and exit status 128 + the signal."""
-    signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+    signum = exc.signum if isinstance(exc, Terminated) else _received[0] if _received else signal.SIGINT
     what = "interrupted" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
     with contextlib.suppress(OSError, ValueError):  # stderr closed: the status says it
         print(f"{prog}: {what}; {getattr(exc, 'kept', 'no partial output is left')}", file=sys.stderr)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import sys
 import time
 from array import array
@@ -107,9 +108,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _scene_dir(path: Path) -> Path | None:
-    """The scene folder a path belongs to: the folder itself, or the folder of a scene's cloud.ply."""
-    folder = path if path.is_dir() else path.parent
-    return folder if (folder / "gt.json").is_file() and (path.is_dir() or path.name == "cloud.ply") else None
+    """The scene folder a path belongs to: the folder itself (whose gt.json, whatever it is, is read:
+    a FIFO or a folder there is refused), or the folder of a scene's cloud.ply (beside which only a
+    file counts)."""
+    if path.is_dir():
+        return path if os.path.lexists(path / "gt.json") else None
+    return path.parent if path.name == "cloud.ply" and (path.parent / "gt.json").is_file() else None
 
 
 def ball_radius(path: Path, given: float | None) -> tuple[float, str]:

@@ -285,6 +285,18 @@ class _NotMainThreadNote(logging.Filter):
 
 
 @contextlib.contextmanager
+def _logger_level(name: str, level: int):
+    """A library's logger at ``level`` for the duration, then as it was."""
+    logger = logging.getLogger(name)
+    saved = logger.level
+    logger.setLevel(level)
+    try:
+        yield
+    finally:
+        logger.setLevel(saved)
+
+
+@contextlib.contextmanager
 def _stderr_fd_silenced():
     """File descriptor 2 on the null device for a while: Ray's core (C++) logs its connection
     attempts there, "Failed to connect to GCS ...", before any log level of its own is read (it
@@ -306,34 +318,84 @@ def _stderr_fd_silenced():
         os.close(null)
 
 
-def _join_cluster(ray, address: str, runtime_env: dict, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
-    """``ray.init(address)``, given up after ``timeout_s``: a port that answers but is not a Ray
-    cluster's (or a cluster that does not reply) is retried by Ray for minutes. It runs in a daemon
-    thread, so that a connection given up on does not hold up the command's exit. Ray's own log
-    lines of the attempt (its Python loggers below ERROR, its core's on stderr) are left out: the
-    command's one line says what went wrong."""
+#: How long a Ray start interrupted by a signal is waited for before its processes are shut down, seconds.
+RAY_START_WAIT_S = 60.0
+#: Ray's logger that warns of the token authentication it turns on for a new local cluster.
+_RAY_AUTH_LOGGER = "ray._private.authentication.authentication_token_setup"
+
+
+def _ray_init(ray, timeout_s: float | None, **init_kwargs) -> bool:
+    """``ray.init(**init_kwargs)`` in a daemon thread, waited for up to ``timeout_s`` seconds (None:
+    until it returns); True if it returned, False if it is still trying (the thread does not hold
+    up the command's exit). Off the main thread, Ray sets no SIGTERM handler of its own (its handler
+    exits the process with the signal's number, mid-start, its processes left running), so the
+    command's handler stays; a signal while Ray starts is the command's interrupt, and what the
+    start started is shut down once it returns. Ray's log lines of the start (its Python loggers
+    below ERROR, its core's on stderr, its notes of the thread and of token authentication) are
+    left out: the command's one line says what went wrong."""
     failure: list[BaseException] = []
 
-    def connect():
+    def start():
         try:
-            ray.init(address=address, runtime_env=runtime_env, log_to_driver=False, logging_level=logging.ERROR)
+            ray.init(**init_kwargs)
         except BaseException as exc:  # re-raised in the caller's thread
             failure.append(exc)
 
     worker_log, note = logging.getLogger("ray._private.worker"), _NotMainThreadNote()
     worker_log.addFilter(note)
+    thread = threading.Thread(target=start, name="ray-start", daemon=True)
     try:
-        with _stderr_fd_silenced():
-            thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
+        with _stderr_fd_silenced(), _logger_level(_RAY_AUTH_LOGGER, logging.ERROR):
             thread.start()
-            thread.join(timeout_s)
+            try:
+                thread.join(timeout_s)
+            except BaseException:  # a signal: the start is let finish, then what it started goes
+                thread.join(RAY_START_WAIT_S)
+                with contextlib.suppress(Exception):
+                    ray.shutdown()
+                raise
     finally:
         worker_log.removeFilter(note)
     if thread.is_alive():
-        raise SphereBenchError(f"--address {address}: no answer from a Ray cluster within {timeout_s:g} s: "
-                               "check that it runs there (ray status) and the address")
+        return False
     if failure:
         raise failure[0]
+    return True
+
+
+def _join_cluster(ray, address: str, runtime_env: dict, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """``ray.init(address)``, given up after ``timeout_s``: a port that answers but is not a Ray
+    cluster's (or a cluster that does not reply) is retried by Ray for minutes."""
+    if not _ray_init(ray, timeout_s, address=address, runtime_env=runtime_env, log_to_driver=False,
+                     logging_level=logging.ERROR):
+        raise SphereBenchError(f"--address {address}: no answer from a Ray cluster within {timeout_s:g} s: "
+                               "check that it runs there (ray status) and the address")
+
+
+@contextlib.contextmanager
+def _signals_held(ray):
+    """SIGINT and SIGTERM held back while a local cluster starts, then the first of them delivered to
+    the command's own handler (as the start has returned, ``ray.shutdown`` reaches every process it
+    started; cut short, the start leaves them running). Ray's start would set a SIGTERM handler of
+    its own, which exits the process mid-start: it is left out. Only the main thread handles
+    signals; elsewhere nothing is held."""
+    utils = getattr(getattr(ray, "_private", None), "utils", None)
+    if threading.current_thread() is not threading.main_thread() or not hasattr(utils, "set_sigterm_handler"):
+        yield
+        return
+    held: list[int] = []
+    saved = {s: signal.signal(s, lambda signum, frame: held.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)
+             if signal.getsignal(s) is not signal.SIG_IGN}  # an ignored signal stays ignored
+    own = utils.set_sigterm_handler
+    utils.set_sigterm_handler = lambda handler: None
+    try:
+        yield
+    finally:
+        utils.set_sigterm_handler = own
+        for s, handler in saved.items():
+            signal.signal(s, handler)
+        if held:
+            os.kill(os.getpid(), held[0])  # its handler raises where the start returned
 
 
 #: the longest path Ray puts below a local cluster's folder in the temporary folder (a socket)
@@ -376,11 +438,16 @@ def _ray(workers: int, address: str | None):
                 if address:
                     _join_cluster(ray, address, runtime_env, RAY_CONNECT_TIMEOUT_S)  # read at the call, not at import
                 else:
-                    ray.init(num_cpus=pool_size(workers), include_dashboard=False, runtime_env=runtime_env,
-                             log_to_driver=False, _temp_dir=session.enter_context(_local_session()))
-            except SphereBenchError:
-                raise
-            except Exception as exc:  # e.g. ConnectionError, ValueError (ray:// without ray[client]), RuntimeError
+                    folder = session.enter_context(_local_session())
+                    with _signals_held(ray), _logger_level(_RAY_AUTH_LOGGER, logging.ERROR):
+                        ray.init(num_cpus=pool_size(workers), include_dashboard=False, runtime_env=runtime_env,
+                                 log_to_driver=False, logging_level=logging.ERROR, _temp_dir=folder)
+            except BaseException as exc:  # a failed start, or a signal held back during it
+                with contextlib.suppress(Exception):  # what the start has started
+                    ray.shutdown()
+                if isinstance(exc, SphereBenchError) or not isinstance(exc, Exception):
+                    raise
+                # e.g. ConnectionError, ValueError (ray:// without ray[client]), RuntimeError
                 where = f"--address {address}" if address else "--engine ray (a local cluster)"
                 raise SphereBenchError(f"{where}: Ray did not start: {_first_line(exc)}") from None
         try:

@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 from spherebench import caches
@@ -29,6 +30,10 @@ def test_each_library_gets_a_sub_folder_unless_the_user_set_its_own(tmp_path):
     assert environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "c/torch")
     assert environ["MPLCONFIGDIR"] == "/users/own"
     assert not (tmp_path / "c").exists()  # made by a library when it first writes there
+    (tmp_path / "home-file").write_text("not a folder")
+    environ = {"HOME": str(tmp_path / "home-file")}
+    fallback = Path(tempfile.gettempdir()).absolute() / f"spherebench-cache-{os.getuid()}"
+    assert caches.use_cache_folder(environ) == fallback and environ["NUMBA_CACHE_DIR"] == str(fallback / "numba")
 
 
 _PROBE = """

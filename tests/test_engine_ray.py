@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import filecmp
 import os
+import signal
+import subprocess
+import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -55,3 +59,23 @@ def test_engine_arguments_are_checked():
     with pytest.raises(SphereBenchError, match="--address"):
         with executor(1, "local", "ray://head:10001"):
             pass
+
+
+@pytest.mark.parametrize("signum, delay_s", [(signal.SIGTERM, 1.5), (signal.SIGINT, 3.0)])
+def test_a_signal_while_the_local_cluster_starts_is_one_line_and_leaves_no_process(three, tmp_path, signum, delay_s):
+    """Ray's start sets a SIGTERM handler that exits mid-start (its processes left running): the
+    signal is held until the start returns, then the command's own handler stops the run."""
+    temp = Path(tempfile.mkdtemp(dir="/tmp"))  # a Unix socket's path has 107 bytes at most
+    env = {**os.environ, "TMPDIR": str(temp)}
+    run = subprocess.Popen([sys.executable, "-m", "spherebench.scripts.cli", "sweep", str(three), "--seeds", "0-3",
+                            "--workers", "1", "--engine", "ray", "--out", str(tmp_path / "sw")],
+                           env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay_s)
+    run.send_signal(signum)
+    err = run.communicate(timeout=120)[1]
+    assert run.returncode == 128 + signum, err
+    assert len(err.strip().splitlines()) == 1 and "no partial output is left" in err, err
+    time.sleep(1.0)
+    left = subprocess.run(["pgrep", "-f", str(temp)], capture_output=True, text=True).stdout.split()
+    assert left == [] and list(temp.iterdir()) == [] and not list(tmp_path.glob("sw*"))
+    temp.rmdir()
