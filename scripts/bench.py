@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     info["machine"]["load_end"] = [round(x, 2) for x in os.getloadavg()]
     result.update(info)
     md = markdown(result)
-    print(md)
+    print(md, flush=True)  # before the report's files: stdout that fails leaves none
     if args.out is not None:
         slim = {k: v for k, v in result.items() if k != "datasets"}
         slim["datasets"] = {ds: {k: v for k, v in d.items() if k != "rows"} for ds, d in result["datasets"].items()}

@@ -83,8 +83,9 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
-#: The terminating signals received while a command runs, in order: a library that catches the
-#: interrupt and raises one of its own (Ray's ray.get raises a plain KeyboardInterrupt) loses which.
+#: The signals received while a command runs, in order: a library that catches the interrupt and
+#: raises an error of its own (numpy's import an ImportError, Ray's ray.get a plain
+#: KeyboardInterrupt) loses that it was one, and which.
 _received: list[int] = []
 
 
@@ -93,15 +94,23 @@ def _raise_terminated(signum, frame):
     raise Terminated(signum)
 
 
+def _raise_interrupt(signum, frame):
+    _received.append(signum)
+    raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def _signals_as_interrupts():
-    """SIGTERM and SIGHUP handled as SIGINT for the duration (restored after: tests call main)."""
+    """SIGTERM and SIGHUP handled as SIGINT for the duration, and each signal recorded in
+    ``_received`` (restored after: tests call main). An ignored SIGINT stays ignored."""
     wanted = [s for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None]
     if threading.current_thread() is not threading.main_thread():
         yield  # only the main thread may set handlers
         return
     _received.clear()
     saved = {s: signal.signal(s, _raise_terminated) for s in wanted}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        saved[signal.SIGINT] = signal.signal(signal.SIGINT, _raise_interrupt)
     try:
         yield
     finally:
@@ -166,7 +175,7 @@ class _Stdout:
         except BrokenPipeError:
             raise
         except OSError as exc:
-            raise StdoutError(exc.errno, exc.strerror or str(exc)) from None
+            raise StdoutError(exc.errno, exc.strerror or str(exc), "<stdout>") from None  # named, so no caller names it after a file
 
     def write(self, text: str) -> int:
         return self._call(self._stream.write, text)
@@ -251,6 +260,11 @@ def _run_guarded(prog: str, work) -> int:
         except OSError as exc:
             print(f"{prog}: error: {os_error_message(exc)}{_kept(exc)}", file=sys.stderr)
             return 2
+        except ImportError as exc:  # an interrupt inside a library's import, re-raised as its ImportError
+            interrupt = _interrupt_behind(exc)
+            if interrupt is None:
+                raise
+            return _interrupted(prog, interrupt)
         except RuntimeError as exc:  # pathlib's resolve() of a link that leads back to itself
             looped = _SYMLINK_LOOP.match(str(exc))
             if looped is None:
@@ -295,6 +309,21 @@ def _unwritten(exc: OSError) -> int:
         print(f"spherebench: error: cannot write to standard output ({exc.strerror or exc}): free space or write "
               "somewhere else", file=sys.stderr)
     return 2
+
+
+def _interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The interrupt (Ctrl-C, or a terminating signal raised as one) behind an exception, if any:
+    one it was raised in handling, or, where a library's C code dropped that (numpy's import of
+    datetime), any signal received meanwhile."""
+    if _received:
+        return Terminated(_received[0]) if _received[0] != signal.SIGINT else KeyboardInterrupt()
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _interrupted(prog: str, exc: KeyboardInterrupt) -> int:
@@ -344,6 +373,11 @@ def main(argv: list[str] | None = None) -> int:
                 return _unwritten(exc)
         except KeyboardInterrupt as exc:
             return _interrupted(f"spherebench {argv[0]}" if argv else "spherebench", exc)
+        except ImportError as exc:  # numpy turns an interrupt inside its import into an ImportError
+            interrupt = _interrupt_behind(exc)
+            if interrupt is None:
+                raise
+            return _interrupted(f"spherebench {argv[0]}" if argv else "spherebench", interrupt)
         if args.command is None:
             parser.print_help()
             return 2

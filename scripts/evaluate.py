@@ -93,10 +93,11 @@ def run(args: argparse.Namespace) -> int:
                            progress=progress, title="SphereBench evaluation", paper_rows_for=(), beside=beside,
                            extra_provenance={"beside": beside_record} if beside else None,
                            engine=args.engine, address=args.address)
-    for label in datasets:
-        for method, by in metrics.items():
-            line = console_line(method, by.get(label))
-            if line:
-                print(f"{label:>20s}  {method:<28s} {line}")
-    print(f"wrote {out}/README.md, metrics.json, tables/" + ("" if args.no_figures else ", figures/"))
+        # said inside the run: stdout that fails (a full disk) fails the run, as any other write
+        for label in datasets:
+            for method, by in metrics.items():
+                line = console_line(method, by.get(label))
+                if line:
+                    print(f"{label:>20s}  {method:<28s} {line}")
+        print(f"wrote {out}/README.md, metrics.json, tables/" + ("" if args.no_figures else ", figures/"), flush=True)
     return 0

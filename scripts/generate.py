@@ -45,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
     for name in sorted(set(overrides) & (spec.grid_parameters if spec else set())):
         print(f"spherebench generate: note: --sensor {name} replaces the {args.preset} grid's {name} in every "
               "cell (the scenes keep their cell labels; gt.json records the sensor used)", file=sys.stderr)
-    out = simulate.generate_dataset(args.preset, args.out, n=args.n, seed=args.seed, radius_m=args.radius,
-                                    workers=args.workers, progress=not args.quiet, clouds=args.clouds,
-                                    sensor_overrides=overrides, sensor_model=args.sensor_model)
-    print(f"wrote {out}")
+    simulate.generate_dataset(args.preset, args.out, n=args.n, seed=args.seed, radius_m=args.radius,
+                              workers=args.workers, progress=not args.quiet, clouds=args.clouds,
+                              sensor_overrides=overrides, sensor_model=args.sensor_model,
+                              before_commit=lambda out: print(f"wrote {out}", flush=True))
     return 0

@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
                      not args.no_timing, progress=lambda s: print(s, file=sys.stderr, flush=True),
                      engine=args.engine, address=args.address)
     md = markdown(res)
-    print(md)
+    print(md, flush=True)  # before the report's files: stdout that fails leaves none
     if args.out is not None:
         print("wrote {} and {}".format(*outputs.write_report(args.out, md, res, "robustness")), file=sys.stderr)
     return 0

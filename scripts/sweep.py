@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     result = sweep(args.datasets, options.parse_seeds(args.seeds), args.method, read_settings(args.overrides, "sweep"),
                    args.workers, args.limit, engine=args.engine, address=args.address)
     md = markdown(result)
-    print(md)
+    print(md, flush=True)  # before the report's files: stdout that fails leaves none
     if args.out is not None:
         print("wrote {} and {}".format(*outputs.write_report(args.out, md, result, "sweep")), file=sys.stderr)
     return 0

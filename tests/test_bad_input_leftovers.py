@@ -197,6 +197,20 @@ def test_a_failed_write_to_stdout_names_stdout_and_stops_the_batch(data, monkeyp
     assert len(lines) == 1 and "cannot write to standard output: the disk is full" in lines[0], lines
 
 
+def test_a_full_stdout_fails_the_run_before_its_output_is_in_place(data, tmp_path, monkeypatch, capsys):
+    """generate says "wrote" before its dataset replaces --out, sweep prints its report before it writes
+    the report's files: stdout on a full disk leaves neither (status 2, one line naming stdout)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    monkeypatch.setattr(sys, "stdout", _FullDisk())
+    for argv in (["generate", "--preset", "default", "--n", "1", "--out", out / "g", "--quiet"],
+                 ["sweep", data, "--seeds", "0", "--limit", "1", "--out", out / "sw"]):
+        assert cli.main([str(a) for a in argv]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and "cannot write to standard output: the disk is full" in lines[0], lines
+    assert list(out.iterdir()) == []
+
+
 @pytest.fixture(scope="module")
 def annotated(tmp_path_factory):
     """One simulated scene with a ball (424x240)."""

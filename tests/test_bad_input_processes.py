@@ -276,3 +276,19 @@ def test_commands_leave_the_home_folder_empty(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "[2, 2, 2, 2, 2, 2, 0]", done.stdout + done.stderr
     assert not [str(p.relative_to(home)) for p in home.rglob("*")]
+
+
+def test_an_interrupt_that_a_library_turned_into_an_import_error_is_still_an_interrupt(monkeypatch):
+    """numpy re-raises what stops its import as an ImportError (with the interrupt as its context,
+    or, from C code, with none): a signal at that moment is the command's one line, not a traceback."""
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise ImportError("numpy: the C extensions failed to import")
+    except ImportError as exc:
+        assert isinstance(cli._interrupt_behind(exc), KeyboardInterrupt)
+    assert cli._interrupt_behind(ImportError("no such module")) is None
+    monkeypatch.setattr(cli, "_received", [signal.SIGTERM])
+    behind = cli._interrupt_behind(ImportError('PyCapsule_Import could not import module "datetime"'))
+    assert isinstance(behind, cli.Terminated) and behind.signum == signal.SIGTERM
