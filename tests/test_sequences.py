@@ -1,0 +1,62 @@
+"""Recordings of moving balls (``datasets.sequences``): every family renders the same frames from the
+same seed, its balls in view and truthful frame by frame, and a written sequence plays back as a
+RealSense recording of the same depth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from spherebench.camera import project
+from spherebench.datasets import sequences
+from spherebench.errors import SphereBenchError
+
+
+@pytest.mark.parametrize("family", list(sequences.SEQUENCE_FAMILIES))
+def test_each_family_is_its_seed_and_its_truth_follows_the_ball(family):
+    a = sequences.build_sequence(family, 7, fps=10, duration_s=0.6)
+    b = sequences.build_sequence(family, 7, fps=10, duration_s=0.6)
+    assert np.array_equal(a.depth, b.depth) and a.truth == b.truth
+    assert a.depth.shape == (6, 240, 424) and a.depth.dtype == np.uint16 and len(a.truth) == 6
+    targets = [m for m in a.balls if m.kind == "target"]
+    assert all(len(frame) == len(targets) for frame in a.truth)
+    for k, frame in enumerate(a.truth):
+        for ball in frame:
+            centre = np.asarray(ball["center_m"])
+            track = next(m.track for m in targets if m.track.track_id == ball["track_id"])
+            assert np.allclose(centre, track.centres_m[k], atol=1e-6)
+            if ball["circle_px"] is not None:  # the visible circle lies about the centre's image
+                u, v = project(a.intrinsics, centre[None])[0]
+                assert np.hypot(ball["circle_px"][0] - u, ball["circle_px"][1] - v) < ball["circle_px"][2]
+    seen = [ball["visible_fraction"] for frame in a.truth for ball in frame]
+    assert np.median(seen) > 0.8  # the balls are in view (the box of "behind" may hide one for a while)
+
+
+def test_balls_on_the_floor_rest_on_it_and_the_soccer_ball_is_no_target():
+    seq = sequences.build_sequence("soccer", 3, fps=10, duration_s=0.5)
+    kinds = {m.kind: m.track for m in seq.balls}
+    assert set(kinds) == {"target", "distractor"} and kinds["distractor"].radius_m == sequences.SOCCER_RADIUS_M
+    assert all(len(frame) == 1 and frame[0]["track_id"] == kinds["target"].track_id for frame in seq.truth)
+    heights = kinds["target"].centres_m[:, 1] + kinds["target"].radius_m
+    assert np.allclose(heights, heights[0])  # rolling: its lowest point on the floor in every frame
+
+
+def test_a_written_sequence_plays_back_as_a_recording_of_its_frames(tmp_path):
+    pytest.importorskip("rosbags")
+    pytest.importorskip("pyrealsense2")
+    from spherebench.datasets.depth_frames import recording_frames
+
+    seq = sequences.build_sequence("thrown", 2, fps=30, duration_s=0.2)
+    folder = sequences.write_sequence(tmp_path / "thrown_0002", seq)
+    assert sorted(p.name for p in folder.iterdir()) == ["recording.bag", "truth.json"]
+    truth = json.loads((folder / "truth.json").read_text())
+    assert truth["fps"] == 30 and len(truth["frames"]) == len(seq.times_s) == 6
+    assert truth["balls"] == [{"track_id": 0, "kind": "target", "motion": "thrown", "radius_m": 0.12}]
+    played = [np.asarray(f.depth) for f in recording_frames(folder / "recording.bag")]
+    assert len(played) == 6 and all(np.array_equal(p, d) for p, d in zip(played, seq.depth))
+    (folder / "notes.txt").write_text("mine")  # a folder holding a file of someone else's is not replaced
+    with pytest.raises(SphereBenchError):
+        sequences.write_sequence(folder, seq)
+    assert (folder / "notes.txt").read_text() == "mine"
