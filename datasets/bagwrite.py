@@ -1,5 +1,6 @@
 """Write a minimal RealSense SDK recording in the ROS1 ``.bag`` layout: synthetic recordings for
-the tests and for ``make stream-bench`` (needs ``rosbags``, of the ``test`` extra).
+the tests, ``make stream-bench`` and the motion presets (needs ``rosbags``, of the ``realsense`` and
+``test`` extras).
 
 pyrealsense2 >= 2.56 records ROS2 (``.db3``) only, but almost every existing D435 recording (the
 RealSense Viewer's and ``rs.recorder``'s up to SDK 2.55) is a ROS1 bag. This module writes such a

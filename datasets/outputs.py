@@ -289,7 +289,7 @@ def is_dataset_dir(path: Path) -> bool:
 
 # The names of what generate and prepare write in a dataset (inout writes the files): a dataset
 # holding anything else is never replaced.
-_DATASET_FILES = {"dataset.json", "coco_gt.json", "scenes", OWNER_MARKER}
+_DATASET_FILES = {"dataset.json", "coco_gt.json", "scenes", "sequences", OWNER_MARKER}
 #: colour.jpg / colour.png: a recording's colour frame registered to depth (a file kept as recorded,
 #: or a RealSense colour frame aligned to the depth, colour.png);
 #: image.json / colour.json: LabelMe annotations saved beside image.png / the colour frame

@@ -16,6 +16,7 @@ scene.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
@@ -178,6 +179,14 @@ register_preset(_stereo_twin("wide", 10))
 register_preset(Preset("holes", 11, 100, (("holed", 1.0),), (("424x240", 0.7), ("848x480", 0.3)),
                        description="a ball in clear view whose depth is missing over 30-70 % of its face"))
 register_preset(_stereo_twin("holes", 12))
+# moving balls for streams (``sequences``): recordings of 2-6 s at the depth stream's rate (90 fps; 30 at
+# 1280x720) with per-frame truth, the families of the motion grammar in equal shares; and its twin
+register_preset(Preset("motion", 13, 24, tuple((f, 1 / 6) for f in ("rolling", "thrown", "crossing", "behind", "soccer",
+                                                                  "carried")),
+                       (("424x240", 0.5), ("848x480", 0.35), ("1280x720", 0.15)), clouds=False, grammar="motion",
+                       description="recordings of moving balls with per-frame truth (rolling, thrown, crossing, "
+                                   "behind a box, beside a soccer ball, carried by hand)"))
+register_preset(_stereo_twin("motion", 14))
 # hard's scenes (the same layouts, seeds and records) under the robust grid's span of sensors, drawn
 # per scene: far and partly hidden balls on noisier, correlated units with low-texture dropouts
 register_preset(replace(PRESETS["hard"], name="hard-sensor", benchmark=False, role="", variant_of="hard",
@@ -190,3 +199,12 @@ def generation_seed(preset: Preset, seed: int, index: int) -> int:
     (its layout and sensor draw): SeedSequence((preset code, seed, index)), so that no two presets'
     scenes share one. Not the detector's seed on the built scene (``eval.bench.seeds.detection_seed``)."""
     return int(np.random.SeedSequence([preset.code, int(seed), int(index)]).generate_state(1, np.uint64)[0])
+
+
+def assign_shares(shares: tuple[tuple[str, float], ...], n: int) -> list[str]:
+    """Deterministic split of n items by shares, in blocks (largest remainder)."""
+    raw = [s * n for _, s in shares]
+    counts = [int(math.floor(x)) for x in raw]
+    for k in sorted(range(len(raw)), key=lambda k: counts[k] - raw[k])[: n - sum(counts)]:
+        counts[k] += 1
+    return [name for (name, _), c in zip(shares, counts) for _ in range(c)]

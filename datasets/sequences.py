@@ -18,17 +18,21 @@ from typing import Callable
 
 import numpy as np
 
+from spherebench import __version__
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import sphere_circle_amodal
 from spherebench.datasets import motion
 from spherebench.datasets.inout import json_bytes
 from spherebench.datasets.layouts import Item, Layout, floor_box, room
-from spherebench.datasets.outputs import atomic_directory
-from spherebench.datasets.presets import BASKETBALL_RADIUS_M, RESOLUTIONS
+from spherebench.datasets.outputs import atomic_directory, replaceable_dataset
+from spherebench.datasets.presets import BASKETBALL_RADIUS_M, PRESETS, RESOLUTIONS, assign_shares, generation_seed
 from spherebench.datasets.primitives import Box, SolidSphere
 from spherebench.datasets.rendering import render
 from spherebench.datasets.sensor import D435Sensor
 from spherebench.datasets.stereo import StereoSensor
+from spherebench.errors import SphereBenchError, require
+from spherebench.parallel import pool_size, process_pool
+from spherebench.progress import bar as progress_bar
 
 #: A size 5 soccer ball's radius, m (68-70 cm round): the ball a basketball tracker must not take.
 SOCCER_RADIUS_M = 0.11
@@ -241,7 +245,8 @@ def _is_sequence(folder: Path) -> bool:
 
 def write_sequence(folder: str | Path, seq: Sequence) -> Path:
     """Write a sequence as ``folder/recording.bag`` (a RealSense ROS1 recording, ``bagwrite``; needs
-    the ``test`` extra's rosbags) and ``folder/truth.json``, the folder replaced atomically."""
+    rosbags, of the ``realsense`` and ``test`` extras) and ``folder/truth.json``, the folder replaced
+    atomically."""
     from spherebench.datasets.bagwrite import write_realsense_bag  # here: rosbags is an extra
 
     if seq.fps != round(seq.fps):
@@ -250,3 +255,76 @@ def write_sequence(folder: str | Path, seq: Sequence) -> Path:
         write_realsense_bag(tmp / "recording.bag", list(seq.depth), seq.intrinsics, fps=int(seq.fps))
         (tmp / "truth.json").write_bytes(json_bytes(truth_document(seq)))
     return Path(folder)
+
+
+# --------------------------------------------------------------------------- a preset's recordings
+
+#: The depth stream's frame rate at each resolution, frames a second (the D435 streams 1280x720 at 30).
+SEQUENCE_FPS = {"424x240": 90, "848x480": 90, "1280x720": 30}
+#: A sequence's length, s.
+SEQUENCE_DURATION_S = (2.0, 6.0)
+
+
+def plan_sequences(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[int, str, str]]:
+    """(index, family, resolution) of every sequence of a preset of the motion grammar."""
+    preset = PRESETS[preset_name]
+    n = preset.n_default if n is None else int(n)
+    if not 1 <= n <= 100_000:
+        raise SphereBenchError(f"--n {n}: the number of sequences must be between 1 and 100,000")
+    unknown = [f for f, _share in preset.families if f not in SEQUENCE_FAMILIES]
+    if unknown:
+        raise SphereBenchError(f"the {preset_name} preset names sequence families that do not exist: "
+                               f"{', '.join(unknown)} (register_sequence_family)")
+    families = assign_shares(preset.families, n)
+    names, shares = zip(*preset.resolutions)
+    resolutions = np.random.default_rng([preset.code, int(seed), 7]).choice(names, size=n, p=np.asarray(shares) / sum(shares))
+    return [(i, f, str(r)) for i, (f, r) in enumerate(zip(families, resolutions))]
+
+
+def _build_one(args) -> str:
+    preset_name, index, family, seed, resolution, radius_m, sequences_dir = args
+    preset = PRESETS[preset_name]
+    scene_seed = generation_seed(preset, seed, index)
+    duration = float(np.random.default_rng([scene_seed, 0xD0]).uniform(*SEQUENCE_DURATION_S))
+    sensor = StereoSensor() if preset.sensor_model == "stereo" else D435Sensor()
+    seq = build_sequence(family, scene_seed, resolution, SEQUENCE_FPS[resolution], duration, sensor, radius_m)
+    name = f"{family}_{index:04d}"
+    write_sequence(sequences_dir / name, seq)
+    return name
+
+
+def generate_sequences(preset_name: str, out_dir: str | Path, n: int | None = None, seed: int = 0,
+                       radius_m: float = BASKETBALL_RADIUS_M, workers: int = 1, progress: bool = True,
+                       before_commit: Callable[[Path], None] | None = None) -> Path:
+    """Build a preset of the motion grammar into ``out_dir`` (replaced atomically when complete):
+    ``out_dir/sequences/<family>_<index>/`` (``write_sequence``) and ``dataset.json``. Each sequence is
+    drawn from its generation seed (``presets.generation_seed``), its length from a stream of it;
+    the output is the same for any number of ``workers``. before_commit: as ``simulate.generate_dataset``'s."""
+    require("rosbags", "realsense", "writing recordings (the motion presets)")
+    preset = PRESETS[preset_name]
+    jobs = plan_sequences(preset_name, n, seed)
+    out_dir = Path(out_dir)
+    with atomic_directory(out_dir, replaceable_dataset) as tmp:
+        sequences_dir = tmp / "sequences"
+        sequences_dir.mkdir()
+        tasks = [(preset_name, i, f, seed, r, radius_m, sequences_dir) for i, f, r in jobs]
+        bar = progress_bar(total=len(tasks), desc=f"generate {preset_name}", unit="sequence", enabled=progress)
+        processes = pool_size(workers, len(tasks))
+        if processes > 1:
+            with process_pool(processes) as pool:
+                for _ in pool.map(_build_one, tasks, chunksize=1):
+                    bar.update()
+        else:
+            for t in tasks:
+                _build_one(t)
+                bar.update()
+        bar.close()
+        meta = {"name": out_dir.name, "preset": preset_name, "n": len(jobs), "seed": int(seed),
+                "ball_radius_m": radius_m, "category": "basketball", "source": "simulated", "kind": "sequences",
+                "grammar": preset.grammar, "sensor_model": preset.sensor_model,
+                "fps": SEQUENCE_FPS, "duration_s": list(SEQUENCE_DURATION_S),
+                "spherebench_version": __version__, "numpy_version": np.__version__}
+        (tmp / "dataset.json").write_bytes(json_bytes(meta))
+        if before_commit is not None:
+            before_commit(out_dir)
+    return out_dir

@@ -5,7 +5,6 @@ several (the output is the same for any number).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -15,22 +14,15 @@ from spherebench import __version__, reading
 from spherebench.camera import Intrinsics
 from spherebench.datasets import inout, outputs
 from spherebench.datasets.families import FAMILIES
-from spherebench.datasets.presets import BASKETBALL_RADIUS_M, PRESETS, RESOLUTIONS, SENSOR_MODELS, resolve_preset
+from spherebench.datasets.presets import (BASKETBALL_RADIUS_M, PRESETS, RESOLUTIONS, SENSOR_MODELS, assign_shares,
+                                          resolve_preset)
 from spherebench.datasets.rendering import scene_sensor, scene_stereo, simulate_scene
 from spherebench.datasets.sensor import D435Sensor, check_setting
+from spherebench.datasets.sequences import generate_sequences
 from spherebench.datasets.stereo import StereoSensor, check_stereo, check_stereo_ranges
 from spherebench.errors import SphereBenchError
 from spherebench.parallel import pool_size, process_pool, usable_cpus
 from spherebench.progress import bar as progress_bar
-
-
-def _assign(shares: tuple[tuple[str, float], ...], n: int) -> list[str]:
-    """Deterministic split of n items by shares, in blocks (largest remainder)."""
-    raw = [s * n for _, s in shares]
-    counts = [int(math.floor(x)) for x in raw]
-    for k in sorted(range(len(raw)), key=lambda k: counts[k] - raw[k])[: n - sum(counts)]:
-        counts[k] += 1
-    return [name for (name, _), c in zip(shares, counts) for _ in range(c)]
 
 
 def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[int, str, str]]:
@@ -46,7 +38,7 @@ def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[in
                                f"{', '.join(unknown)} (register_family)")
     if preset_name == "paper" and n != 3:
         raise SphereBenchError("the paper preset is its three fixed scenes E1-E3: leave --n out")
-    families = _assign(preset.families, n)
+    families = assign_shares(preset.families, n)
     if preset.sensor is not None and preset.sensor.grid:
         # by shares within each (grid cell, family), so that every cell has the same mix
         groups: dict[tuple[int, str], list[int]] = {}
@@ -54,7 +46,7 @@ def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[in
             groups.setdefault((i % preset.sensor.n_cells, f), []).append(i)
         resolutions = [""] * n
         for members in groups.values():
-            for i, r in zip(members, _assign(preset.resolutions, len(members))):
+            for i, r in zip(members, assign_shares(preset.resolutions, len(members))):
                 resolutions[i] = r
     else:
         res_rng = np.random.default_rng([preset.code, int(seed), 7])
@@ -89,6 +81,12 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
     ``out_dir``: what fails there (the line that says so, on a full disk) leaves nothing."""
     preset_name, overrides = resolve_preset(preset_name, sensor_overrides)
     preset = PRESETS[preset_name]
+    if preset.grammar == "motion":  # recordings of moving balls, not scenes
+        if overrides or clouds or (sensor_model or preset.sensor_model) != preset.sensor_model or sensor != D435Sensor():
+            raise SphereBenchError(f"the {preset_name} preset records sequences through its own sensor model: "
+                                   "--sensor, --clouds and --sensor-model do not apply to it")
+        reading.check_ball_radius(radius_m)
+        return generate_sequences(preset_name, out_dir, n, seed, radius_m, workers, progress, before_commit)
     if sensor_model is None:
         sensor_model = preset.sensor_model
     if clouds is None:

@@ -60,3 +60,23 @@ def test_a_written_sequence_plays_back_as_a_recording_of_its_frames(tmp_path):
     with pytest.raises(SphereBenchError):
         sequences.write_sequence(folder, seq)
     assert (folder / "notes.txt").read_text() == "mine"
+
+
+def test_the_motion_preset_writes_its_recordings_the_same_for_any_number_of_workers(tmp_path, monkeypatch):
+    pytest.importorskip("rosbags")
+    from spherebench.datasets import simulate
+
+    monkeypatch.setattr(sequences, "SEQUENCE_DURATION_S", (0.05, 0.1))  # a few frames a sequence
+    plan = sequences.plan_sequences("motion", 6)
+    assert sorted(f for _i, f, _r in plan) == sorted(sequences.SEQUENCE_FAMILIES)  # one of each family
+    one = simulate.generate_dataset("motion", tmp_path / "one", n=3, progress=False)
+    two = simulate.generate_dataset("motion", tmp_path / "two", n=3, workers=2, progress=False)
+    names = sorted(p.name for p in (one / "sequences").iterdir())
+    assert names == sorted(p.name for p in (two / "sequences").iterdir()) and len(names) == 3
+    for name in names:
+        assert (one / "sequences" / name / "truth.json").read_bytes() == (two / "sequences" / name / "truth.json").read_bytes()
+    meta = json.loads((one / "dataset.json").read_text())
+    assert meta["kind"] == "sequences" and meta["preset"] == "motion" and meta["n"] == 3
+    with pytest.raises(SphereBenchError, match="--sensor, --clouds and --sensor-model do not apply"):
+        simulate.generate_dataset("motion", tmp_path / "three", n=1, clouds=True, progress=False)
+    assert not (tmp_path / "three").exists()
