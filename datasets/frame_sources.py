@@ -553,6 +553,12 @@ def files_of(path: Path) -> tuple[str, list[Path]]:
         return "raw", [path]  # a headerless frame may have any name
     if not path.is_dir():
         raise SphereBenchError(f"{path}: no such file or folder")
+    frame_suffixes = {suffix for suffixes in kinds.values() for suffix in suffixes}
+    special = sorted(p.name for p in path.iterdir()
+                     if p.suffix.lower() in frame_suffixes and not p.is_file() and not p.is_dir())
+    if special:  # named as a frame, it is no file to read (a FIFO would hold the reader)
+        raise SphereBenchError(f"{path / special[0]}: not a regular file (a FIFO, a device or a socket): move it out "
+                               "of the folder")
     found = {kind: sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() in sfx), key=natural_key)
              for kind, sfx in kinds.items()}
     found = {k: v for k, v in found.items() if v}

@@ -31,8 +31,7 @@ from spherebench.datasets.rendering import render
 from spherebench.datasets.sensor import D435Sensor
 from spherebench.datasets.stereo import StereoSensor
 from spherebench.errors import SphereBenchError, require
-from spherebench.parallel import pool_size, process_pool
-from spherebench.progress import bar as progress_bar
+from spherebench.parallel import each_with_progress
 
 #: A size 5 soccer ball's radius, m (68-70 cm round): the ball a basketball tracker must not take.
 SOCCER_RADIUS_M = 0.11
@@ -308,17 +307,7 @@ def generate_sequences(preset_name: str, out_dir: str | Path, n: int | None = No
         sequences_dir = tmp / "sequences"
         sequences_dir.mkdir()
         tasks = [(preset_name, i, f, seed, r, radius_m, sequences_dir) for i, f, r in jobs]
-        bar = progress_bar(total=len(tasks), desc=f"generate {preset_name}", unit="sequence", enabled=progress)
-        processes = pool_size(workers, len(tasks))
-        if processes > 1:
-            with process_pool(processes) as pool:
-                for _ in pool.map(_build_one, tasks, chunksize=1):
-                    bar.update()
-        else:
-            for t in tasks:
-                _build_one(t)
-                bar.update()
-        bar.close()
+        each_with_progress(_build_one, tasks, workers, f"generate {preset_name}", "sequence", progress)
         meta = {"name": out_dir.name, "preset": preset_name, "n": len(jobs), "seed": int(seed),
                 "ball_radius_m": radius_m, "category": "basketball", "source": "simulated", "kind": "sequences",
                 "grammar": preset.grammar, "sensor_model": preset.sensor_model,

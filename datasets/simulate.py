@@ -21,8 +21,7 @@ from spherebench.datasets.sensor import D435Sensor, check_setting
 from spherebench.datasets.sequences import generate_sequences
 from spherebench.datasets.stereo import StereoSensor, check_stereo, check_stereo_ranges
 from spherebench.errors import SphereBenchError
-from spherebench.parallel import pool_size, process_pool, usable_cpus
-from spherebench.progress import bar as progress_bar
+from spherebench.parallel import each_with_progress, usable_cpus
 
 
 def plan(preset_name: str, n: int | None = None, seed: int = 0) -> list[tuple[int, str, str]]:
@@ -119,17 +118,7 @@ def generate_dataset(preset_name: str, out_dir: str | Path, n: int | None = None
         scenes_dir = tmp / "scenes"
         scenes_dir.mkdir()
         tasks = [(preset_name, i, f, seed, r, radius_m, sensor, overrides, scenes_dir, clouds) for i, f, r in jobs]
-        bar = progress_bar(total=len(tasks), desc=f"generate {preset_name}", unit="scene", enabled=progress)
-        processes = pool_size(workers, len(tasks))  # no more than the scenes or the CPUs
-        if processes > 1:
-            with process_pool(processes) as pool:
-                for _ in pool.map(_build_one, tasks, chunksize=4):
-                    bar.update()
-        else:
-            for t in tasks:
-                _build_one(t)
-                bar.update()
-        bar.close()
+        each_with_progress(_build_one, tasks, workers, f"generate {preset_name}", "scene", progress, chunksize=4)
         meta = {"name": out_dir.name, "preset": preset_name, "n": len(jobs), "seed": int(seed),
                 "ball_radius_m": radius_m, "category": "basketball", "source": "simulated", "clouds": clouds,
                 "sensor": sensor.to_dict(compact=True) if sensor_model == "analytic" else sensor.to_dict()}

@@ -43,6 +43,7 @@ from typing import Callable, Iterable, Iterator
 import cv2
 
 from spherebench.errors import SphereBenchError
+from spherebench.progress import bar as progress_bar
 
 #: Environment variables that pin a worker to one thread (set before the worker starts).
 SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
@@ -147,6 +148,24 @@ def _worker_start(parent_pid: int, initializer: Callable | None, initargs: tuple
     ignore_interrupts()
     if initializer is not None:
         initializer(*initargs)
+
+
+def each_with_progress(fn: Callable, tasks: list, workers: int, desc: str, unit: str, progress: bool,
+                       chunksize: int = 1) -> None:
+    """``fn(task)`` for every task, in a pool of worker processes (``process_pool``) where ``workers``
+    (and the tasks, and the CPUs) allow more than one, advancing a progress bar (``desc``, ``unit``;
+    shown when ``progress``) as each finishes. The tasks write what they make: nothing is returned."""
+    bar = progress_bar(total=len(tasks), desc=desc, unit=unit, enabled=progress)
+    processes = pool_size(workers, len(tasks))
+    if processes > 1:
+        with process_pool(processes) as pool:
+            for _ in pool.map(fn, tasks, chunksize=chunksize):
+                bar.update()
+    else:
+        for task in tasks:
+            fn(task)
+            bar.update()
+    bar.close()
 
 
 @contextlib.contextmanager

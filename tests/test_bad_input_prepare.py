@@ -276,3 +276,19 @@ def test_labelme_of_another_image(tmp_path, capsys, doc, words):
     refused(capsys, tmp_path, [folder, "--intrinsics", write_intrinsics_json(tmp_path / "cam.json"),
                                "--labelme", tmp_path / "labelme", "--out", tmp_path / "x"], tmp_path / "x",
             "frame_0.json", *words)
+
+
+def test_a_fifo_named_as_a_frame_in_an_input_folder_is_refused(tmp_path, capsys):
+    import os
+
+    import cv2
+
+    pngs = tmp_path / "pngs"
+    pngs.mkdir()
+    cv2.imwrite(str(pngs / "a.png"), np.full((48, 64), 1500, np.uint16))
+    os.mkfifo(pngs / "zz.png")
+    assert cli.main(["prepare", str(pngs), "--fx", "60", "--fy", "60", "--ppx", "32", "--ppy", "24", "--size", "64x48",
+                     "--out", str(tmp_path / "p")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "zz.png: not a regular file" in err[0], err
+    assert not (tmp_path / "p").exists()

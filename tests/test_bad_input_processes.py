@@ -59,7 +59,7 @@ def test_processes_started_are_capped_at_the_tasks_and_cpus(tmp_path, monkeypatc
     def no_pool(*args, **kwargs):
         raise AssertionError("a process pool for a single scene")
 
-    monkeypatch.setattr(simulate, "process_pool", no_pool)
+    monkeypatch.setattr(parallel, "process_pool", no_pool)
     simulate.generate_dataset("default", tmp_path / "one", n=1, workers=999999, progress=False)
     assert (tmp_path / "one" / "dataset.json").is_file()
 
