@@ -36,3 +36,18 @@ def frame_record(source: str, detections: list[dict], ms: float, frame: int | No
     return {"input": str(source), "frame": None if frame is None else int(frame),
             "timestamp_ms": None if timestamp_ms is None else round(float(timestamp_ms), 3),
             **extra, "detections": detections, "ms": round(float(ms), 3)}
+
+
+def track_record(track_id: int, confirmed: bool, centre_m, velocity_m_s, probability: float,
+                 radius_m: float | None, detection: int | None) -> dict:
+    """One track after a frame (``detect --track``): its id, whether it is confirmed, its filtered
+    center_m [x, y, z] (m) and velocity_m_s [vx, vy, vz] (m/s), camera frame, its probability (the
+    fused evidence that it is the ball), its radius_m (the mean of its detections' free radii; None
+    where none was measured), and the index in the frame's detections of the one it took (None: it
+    took none this frame)."""
+    return {"track_id": int(track_id), "confirmed": bool(confirmed),
+            "center_m": [round(float(v), 6) for v in centre_m],
+            "velocity_m_s": [round(float(v), 4) for v in velocity_m_s],
+            "probability": round(float(probability), 6),
+            "radius_m": None if radius_m is None else round(float(radius_m), 6),
+            "detection": None if detection is None else int(detection)}

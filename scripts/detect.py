@@ -42,7 +42,7 @@ from spherebench.datasets.drawing import draw_detections
 from spherebench.datasets.frame_sources import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.errors import SphereBenchError
-from spherebench.method import IMPROVED, PRESETS, config_for, detect, stream, warm_up
+from spherebench.method import IMPROVED, PRESETS, config_for, detect, stream, tracking, warm_up
 
 #: The ball radius without --radius or a scene's own, metres: a basketball's.
 DEFAULT_RADIUS_M = 0.12
@@ -96,6 +96,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--real-time", action="store_true",
                    help="play recordings at their own rate, dropping the frames that arrive while the detector is "
                         "busy (as a camera would); default: every frame is read")
+    g.add_argument("--track", action="store_true",
+                   help="follow the balls over each recording or the camera (a Kalman filter per ball): each "
+                        "frame's line gains its tracks, with their ids, filtered centres and velocities")
     g.add_argument("--labelme-out", metavar="DIR", default=None,
                    help="also write each frame's circles as a LabelMe file DIR/<scene_id>.json, to pre-annotate "
                         "the recording (read back by `spherebench prepare REC --labelme DIR`)")
@@ -236,18 +239,26 @@ def _spheres_json(spheres) -> list[dict]:
             for s in spheres]
 
 
-def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None) -> None:
+def _tracks_json(tracks) -> list[dict]:
+    return [detections.track_record(t.track_id, t.confirmed, t.centre_m, t.velocity_m_s, t.probability, t.radius_m,
+                                    t.matched) for t in tracks]
+
+
+def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None, tracks=None) -> None:
     if args.json:
+        extra = {} if tracks is None else {"tracks": _tracks_json(tracks)}
         print(json.dumps(detections.frame_record(raw, _spheres_json(spheres), ms,
                                                  frame=None if frame is None else frame.number,
                                                  timestamp_ms=None if frame is None else frame.timestamp_ms,
-                                                 radius_m=radius, radius_source=source)), flush=True)
+                                                 radius_m=radius, radius_source=source, **extra)), flush=True)
         return
     parts = [f"({s.centre_m[0]:+.3f}, {s.centre_m[1]:+.3f}, {s.centre_m[2]:.3f}) m score {s.score:.2f} "
              f"{len(s.inlier_indices)} inliers" for s in spheres]
     where = raw if frame is None else f"{raw} frame {frame.number} ({frame.timestamp_ms:.1f} ms)"
+    followed = [f"track {t.track_id} at ({t.centre_m[0]:+.3f}, {t.centre_m[1]:+.3f}, {t.centre_m[2]:.3f}) m"
+                for t in tracks or () if t.confirmed]
     print(f"{where}: {len(spheres)} sphere(s) of radius {radius:g} m ({RADIUS_SOURCES[source]}) in {ms:.1f} ms"
-          + (": " + "; ".join(parts) if parts else ""), flush=True)
+          + (": " + "; ".join(parts) if parts else "") + ("; " + ", ".join(followed) if followed else ""), flush=True)
 
 
 def _labelme(out_dir: Path | None, scene_id: str, spheres, shape) -> None:
@@ -293,6 +304,10 @@ def _check_arguments(args: argparse.Namespace) -> bool:
                                   ("--time-range", args.time_range), ("--real-time", args.real_time)) if v]
     if stream_only and not streaming:
         raise SphereBenchError(f"{stream_only[0]} selects frames of a recording or camera: give a .bag/.db3 or --camera")
+    if args.track and not (args.camera is not None or (args.paths and all(depth_frames.is_recording(p)
+                                                                          for p in args.paths))):
+        raise SphereBenchError("--track follows balls over a recording or the camera, each on its own: give "
+                               ".bag/.db3 recordings or --camera, not clouds or scene folders")
     if args.camera is not None and args.time_range:
         raise SphereBenchError("--time-range is for recordings; with --camera use --frames A:B")
     _check_outputs(args, streaming)
@@ -353,16 +368,30 @@ def _configs(method: str, extra: dict):
     return config
 
 
+def _follow(tracker, raw: str, frame, spheres) -> list:
+    """The tracks after one frame's detections (their centres, scores and free radii)."""
+    found = [tracking.Detection(np.asarray(s.centre_m), s.score,
+                                s.free_radius_m if np.isfinite(s.free_radius_m) else None) for s in spheres]
+    try:
+        return tracker.update(frame.timestamp_ms / 1000.0, found)
+    except ValueError:  # a timestamp before the previous frame's
+        raise SphereBenchError(f"{raw}: frame {frame.number}'s timestamp ({frame.timestamp_ms:.3f} ms) comes before "
+                               "the previous frame's: the recording's clock jumps back, and tracks follow time; "
+                               "detect without --track, or select the frames before the jump (--frames)") from None
+
+
 def _detect_in_stream(args: argparse.Namespace, job: _Job, config, labelme_dir: Path | None, log) -> None:
     """Each frame of a recording or the camera detected, printed, and kept as LabelMe and in Rerun
     where asked; the stream's summary at its end."""
     frames, stats = job.streamed
     stem = scene_id_from(job.path.stem) if job.path is not None else f"camera{args.camera or ''}"
     times = array("d")  # floats, not frames: bounded over an hour-long recording
+    tracker = tracking.Tracker() if args.track else None  # one per recording: its balls are its own
     for frame, spheres, ms in stream.detect_stream(frames, config(job.radius, job.eps), args.seed, stats):
         depth_frames.print_notes(stats, f"note: {job.raw}")
         times.append(ms)
-        _print_result(args, job.raw, spheres, ms, job.radius, job.source, frame)
+        tracks = None if tracker is None else _follow(tracker, job.raw, frame, spheres)
+        _print_result(args, job.raw, spheres, ms, job.radius, job.source, frame, tracks)
         _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
         if log is not None:
             log.frame(job.raw, frame, spheres)

@@ -80,3 +80,34 @@ def test_the_motion_preset_writes_its_recordings_the_same_for_any_number_of_work
     with pytest.raises(SphereBenchError, match="--sensor, --clouds and --sensor-model do not apply"):
         simulate.generate_dataset("motion", tmp_path / "three", n=1, clouds=True, progress=False)
     assert not (tmp_path / "three").exists()
+
+
+def test_detect_track_follows_the_ball_of_a_recording_with_one_id(tmp_path, capsys):
+    pytest.importorskip("rosbags")
+    pytest.importorskip("pyrealsense2")
+    from spherebench.scripts import cli
+
+    seq = sequences.build_sequence("rolling", 4, fps=30, duration_s=0.4)
+    folder = sequences.write_sequence(tmp_path / "rolling", seq)
+    assert cli.main(["detect", str(folder / "recording.bag"), "--track", "--json"]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(lines) == len(seq.times_s) == 12 and all("tracks" in line for line in lines)
+    confirmed = [[t for t in line["tracks"] if t["confirmed"]] for line in lines]
+    assert all(len(c) == 1 and c[0]["track_id"] == 0 for c in confirmed[3:])  # from the third match on
+    truth = [frame[0]["center_m"] for frame in seq.truth]
+    errors = [np.linalg.norm(np.subtract(c[0]["center_m"], t)) for c, t in zip(confirmed[3:], truth[3:])]
+    assert max(errors) < 0.05
+    assert cli.main(["detect", str(folder / "truth.json"), "--track"]) == 2  # tracks are a recording's
+    assert "--track follows balls over a recording" in capsys.readouterr().err
+
+
+def test_a_clock_that_jumps_back_is_one_line_under_track():
+    from types import SimpleNamespace
+
+    from spherebench.method.tracking import Tracker
+    from spherebench.scripts import detect
+
+    tracker = Tracker()
+    detect._follow(tracker, "r.bag", SimpleNamespace(number=7, timestamp_ms=1000.0), [])
+    with pytest.raises(SphereBenchError, match="frame 8's timestamp .* comes before the previous frame's"):
+        detect._follow(tracker, "r.bag", SimpleNamespace(number=8, timestamp_ms=990.0), [])
