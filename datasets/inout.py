@@ -103,7 +103,7 @@ def _check_frame_size(path: Path, width: int, height: int) -> None:
                                f"({MAX_IMAGE_SIDE_PX} px a side at most): the file is damaged or not a camera frame")
 
 
-def _png_fault(data: bytes) -> str | None:
+def _png_fault(data: bytes | memoryview) -> str | None:
     """What is wrong with a PNG's chunks (one running past the end of the file, a checksum that does
     not match, no IEND chunk), or None (also for another format): of such a file libpng prints a line
     of its own on stderr before OpenCV gives up, so it is refused before it is decoded."""
@@ -112,7 +112,7 @@ def _png_fault(data: bytes) -> str | None:
     i = len(PNG_SIGNATURE)
     while i + 12 <= len(data):  # a chunk: length (4 bytes), type (4), data (length), CRC of type and data (4)
         end = i + 12 + int.from_bytes(data[i:i + 4], "big")
-        kind = data[i + 4:i + 8]
+        kind = bytes(data[i + 4:i + 8])
         if end > len(data):
             break
         if zlib.crc32(data[i + 4:end - 4]) != int.from_bytes(data[end - 4:end], "big"):
@@ -138,7 +138,7 @@ def _imread(path: Path, flags: int) -> np.ndarray:
     size = _header_size(data[:1 << 16].tobytes())
     if size is not None:
         _check_frame_size(path, *size)  # before OpenCV allocates the frame
-    fault = _png_fault(data.tobytes()) if data[:8].tobytes() == PNG_SIGNATURE else None
+    fault = _png_fault(memoryview(data))
     if fault:
         raise SphereBenchError(f"{path}: not a readable image: the PNG is {fault}")
     try:

@@ -22,7 +22,7 @@ from spherebench import __version__
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.circles import sphere_circle_amodal
 from spherebench.datasets import motion
-from spherebench.datasets.inout import json_bytes
+from spherebench.datasets.inout import write_json
 from spherebench.datasets.layouts import Item, Layout, floor_box, room
 from spherebench.datasets.outputs import atomic_directory, replaceable_dataset
 from spherebench.datasets.presets import BASKETBALL_RADIUS_M, PRESETS, RESOLUTIONS, assign_shares, generation_seed
@@ -203,6 +203,7 @@ def build_sequence(family: str, seed: int, resolution: str = "424x240", fps: flo
     extra, balls = SEQUENCE_FAMILIES[family](rng, intr, floor_y, times, radius_m)
     static.items.extend(extra)
     frames, truth = [], []
+    targets = [b for b in balls if b.kind == "target"]
     for k in range(len(times)):
         layout = Layout(items=list(static.items), floor_y_m=floor_y)
         for b in balls:  # targets first: rendering.render reports them in the layout's order
@@ -212,7 +213,6 @@ def build_sequence(family: str, seed: int, resolution: str = "424x240", fps: flo
                 layout.items.append(Item(_hand(c, b.track.radius_m), "clutter"))
         depth, _z, rendered = render(layout, intr, sensor, rng, rays)
         frames.append(depth)
-        targets = [b for b in balls if b.kind == "target"]
         truth.append([{"track_id": b.track.track_id, "center_m": [round(float(x), 6) for x in b.track.centres_m[k]],
                        "radius_m": b.track.radius_m, "visible_fraction": round(r.visible_fraction, 4),
                        "circle_px": None if r.circle_px is None else [round(float(x), 3) for x in r.circle_px],
@@ -252,7 +252,7 @@ def write_sequence(folder: str | Path, seq: Sequence) -> Path:
         raise ValueError(f"a recording's frame rate is whole frames a second, not {seq.fps}")
     with atomic_directory(folder, _is_sequence) as tmp:
         write_realsense_bag(tmp / "recording.bag", list(seq.depth), seq.intrinsics, fps=int(seq.fps))
-        (tmp / "truth.json").write_bytes(json_bytes(truth_document(seq)))
+        write_json(tmp / "truth.json", truth_document(seq))
     return Path(folder)
 
 
@@ -313,7 +313,7 @@ def generate_sequences(preset_name: str, out_dir: str | Path, n: int | None = No
                 "grammar": preset.grammar, "sensor_model": preset.sensor_model,
                 "fps": SEQUENCE_FPS, "duration_s": list(SEQUENCE_DURATION_S),
                 "spherebench_version": __version__, "numpy_version": np.__version__}
-        (tmp / "dataset.json").write_bytes(json_bytes(meta))
+        write_json(tmp / "dataset.json", meta)
         if before_commit is not None:
             before_commit(out_dir)
     return out_dir

@@ -175,7 +175,8 @@ class _Stdout:
         except BrokenPipeError:
             raise
         except OSError as exc:
-            raise StdoutError(exc.errno, exc.strerror or str(exc), "<stdout>") from None  # named, so no caller names it after a file
+            # named, so that no caller names the error after a file of its own
+            raise StdoutError(exc.errno, exc.strerror or str(exc), "<stdout>") from None
 
     def write(self, text: str) -> int:
         return self._call(self._stream.write, text)

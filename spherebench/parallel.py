@@ -337,38 +337,36 @@ def _stderr_fd_silenced():
         os.close(null)
 
 
-#: How long a Ray start interrupted by a signal is waited for before its processes are shut down, seconds.
+#: How long a join interrupted by a signal is waited for before it is shut down, seconds.
 RAY_START_WAIT_S = 60.0
 #: Ray's logger that warns of the token authentication it turns on for a new local cluster.
 _RAY_AUTH_LOGGER = "ray._private.authentication.authentication_token_setup"
 
 
-def _ray_init(ray, timeout_s: float | None, **init_kwargs) -> bool:
-    """``ray.init(**init_kwargs)`` in a daemon thread, waited for up to ``timeout_s`` seconds (None:
-    until it returns); True if it returned, False if it is still trying (the thread does not hold
-    up the command's exit). Off the main thread, Ray sets no SIGTERM handler of its own (its handler
-    exits the process with the signal's number, mid-start, its processes left running), so the
-    command's handler stays; a signal while Ray starts is the command's interrupt, and what the
-    start started is shut down once it returns. Ray's log lines of the start (its Python loggers
-    below ERROR, its core's on stderr, its notes of the thread and of token authentication) are
-    left out: the command's one line says what went wrong."""
+def _join_cluster(ray, address: str, runtime_env: dict, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """``ray.init(address)``, given up after ``timeout_s``: a port that answers but is not a Ray
+    cluster's (or a cluster that does not reply) is retried by Ray for minutes. It runs in a daemon
+    thread, so that a connection given up on does not hold up the command's exit; a signal while it
+    runs is the command's interrupt, and the connection is shut down once it returns. Ray's own log
+    lines of the attempt (its Python loggers below ERROR, its core's on stderr, its notes of the
+    thread and of token authentication) are left out: the command's one line says what went wrong."""
     failure: list[BaseException] = []
 
-    def start():
+    def connect():
         try:
-            ray.init(**init_kwargs)
+            ray.init(address=address, runtime_env=runtime_env, log_to_driver=False, logging_level=logging.ERROR)
         except BaseException as exc:  # re-raised in the caller's thread
             failure.append(exc)
 
     worker_log, note = logging.getLogger("ray._private.worker"), _NotMainThreadNote()
     worker_log.addFilter(note)
-    thread = threading.Thread(target=start, name="ray-start", daemon=True)
+    thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
     try:
         with _stderr_fd_silenced(), _logger_level(_RAY_AUTH_LOGGER, logging.ERROR):
             thread.start()
             try:
                 thread.join(timeout_s)
-            except BaseException:  # a signal: the start is let finish, then what it started goes
+            except BaseException:  # a signal: the attempt is let finish, then what it joined is left
                 thread.join(RAY_START_WAIT_S)
                 with contextlib.suppress(Exception):
                     ray.shutdown()
@@ -376,19 +374,10 @@ def _ray_init(ray, timeout_s: float | None, **init_kwargs) -> bool:
     finally:
         worker_log.removeFilter(note)
     if thread.is_alive():
-        return False
-    if failure:
-        raise failure[0]
-    return True
-
-
-def _join_cluster(ray, address: str, runtime_env: dict, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
-    """``ray.init(address)``, given up after ``timeout_s``: a port that answers but is not a Ray
-    cluster's (or a cluster that does not reply) is retried by Ray for minutes."""
-    if not _ray_init(ray, timeout_s, address=address, runtime_env=runtime_env, log_to_driver=False,
-                     logging_level=logging.ERROR):
         raise SphereBenchError(f"--address {address}: no answer from a Ray cluster within {timeout_s:g} s: "
                                "check that it runs there (ray status) and the address")
+    if failure:
+        raise failure[0]
 
 
 @contextlib.contextmanager

@@ -116,9 +116,9 @@ def predict(model: CircleNet, dataset: CircleDataset, batch_size: int = 16, devi
     device = torch.device(device)
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False,
                                          num_workers=min(workers, usable_cpus()))
-    out = {}
+    out, layout = {}, memory_format(model, device)
     for batch in loader:
-        x = batch["image"].to(device).float().contiguous(memory_format=memory_format(model, device))
+        x = batch["image"].to(device).float().contiguous(memory_format=layout)
         with torch.autocast(device.type, dtype=amp or torch.float32, enabled=amp is not None):
             heat, offset, radius = model(x)
         heat, offset, radius = heat.float(), offset.float(), radius.float()
