@@ -5,7 +5,7 @@ runs over them in ``spherebench.method.stream``:
     from spherebench.method import config_for
     from spherebench.method.stream import detect_stream
 
-    for frame, spheres, ms in detect_stream(recording_frames("capture.bag"), config_for("improved")):
+    for frame, spheres, ms, _cut_short in detect_stream(recording_frames("capture.bag"), config_for("improved")):
         print(frame.number, frame.timestamp_ms, [s.centre_m for s in spheres], ms)
 
 Frames are ``recordings.BagFrame``s (depth in counts of ``intrinsics.depth_scale``). Nothing is
@@ -46,9 +46,11 @@ CAMERA_TIMEOUT_MS = 5000
 class StreamStats:
     """What a stream delivered: frames detected; dropped, by the reader, because detection fell
     behind (real-time playback, a live camera); missing: gaps in the frame numbers that were not
-    ours to drop (frames the recording or the camera lost)."""
+    ours to drop (frames the recording or the camera lost); fps: the stream's nominal rate (0:
+    unknown)."""
 
     frames: int = 0
+    fps: int = 0
     dropped: int = 0
     missing: int = 0
     first_number: int | None = None
@@ -83,6 +85,7 @@ def recording_frames(path: str | Path, selection=None, real_time: bool = False,
     recording = recordings.BagRecording(path)  # checked here, before the first frame is asked for
     selection = selection or FrameSelection()
     stats = stats if stats is not None else StreamStats()
+    stats.fps = recording.fps
 
     def frames():
         reader = recording.frames(stop_after=selection.stop, real_time=real_time, with_colour=False)
@@ -145,6 +148,7 @@ def camera_frames(serial: str | None = None, width: int = 848, height: int = 480
     rs = _rs()
     _, serial = find_camera(serial)
     stats = stats if stats is not None else StreamStats()
+    stats.fps = int(fps)
     pipeline = rs.pipeline()
     config = rs.config()
     config.enable_device(serial)

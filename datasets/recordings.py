@@ -119,6 +119,7 @@ class BagRecording:
             raise SphereBenchError(f"{path}: the depth stream is {self._depth_profile.format()}, "
                                    "only z16 depth is supported")
         self.depth_scale = float(self._depth_sensor.as_depth_sensor().get_depth_scale())
+        self.fps = int(self._depth_profile.fps())  # the depth stream's nominal rate (0: not recorded)
         self.colour: BagColour | None = None
         self.colour_note: str | None = None
         self._colour_index = self._colour_sensor = self._colour_profile = None

@@ -32,6 +32,7 @@ from spherebench.datasets.sensor import D435Sensor
 from spherebench.datasets.stereo import StereoSensor
 from spherebench.errors import SphereBenchError, require
 from spherebench.parallel import each_with_progress
+from spherebench.reading import read_json
 
 #: A size 5 soccer ball's radius, m (68-70 cm round): the ball a basketball tracker must not take.
 SOCCER_RADIUS_M = 0.11
@@ -53,8 +54,9 @@ class MovingBall:
 @dataclass(frozen=True)
 class Sequence:
     """A rendered sequence: depth frames (T, H, W) uint16 in counts of ``intrinsics.depth_scale``,
-    their times (T,) s, the balls that move in it, and per frame a list of the targets' truth
-    (track id, centre m, radius m, visible fraction, circle px of the visible mask, amodal circle px)."""
+    their times (T,) s, the balls that move in it, per frame a list of the targets' truth (track id,
+    centre m, radius m, visible fraction, circle px of the visible mask, amodal circle px) and a list
+    of the other balls' (track id, centre m, radius m: what a tracker of the targets must not take)."""
 
     family: str
     seed: int
@@ -64,6 +66,7 @@ class Sequence:
     depth: np.ndarray
     balls: list[MovingBall]
     truth: list[list[dict]]
+    distractors: list[list[dict]]
 
 
 #: family name -> builder (rng, intr, floor_y_m, times_s, radius_m) -> (static items, moving balls).
@@ -202,7 +205,7 @@ def build_sequence(family: str, seed: int, resolution: str = "424x240", fps: flo
     room(rng, static, float(rng.uniform(4.0, 6.0)))
     extra, balls = SEQUENCE_FAMILIES[family](rng, intr, floor_y, times, radius_m)
     static.items.extend(extra)
-    frames, truth = [], []
+    frames, truth, others = [], [], []
     targets = [b for b in balls if b.kind == "target"]
     for k in range(len(times)):
         layout = Layout(items=list(static.items), floor_y_m=floor_y)
@@ -218,7 +221,9 @@ def build_sequence(family: str, seed: int, resolution: str = "424x240", fps: flo
                        "circle_px": None if r.circle_px is None else [round(float(x), 3) for x in r.circle_px],
                        "amodal_circle_px": _rounded(sphere_circle_amodal(intr, b.track.centres_m[k], b.track.radius_m))}
                       for b, r in zip(targets, rendered)])
-    return Sequence(family, int(seed), float(fps), intr, times, np.stack(frames), balls, truth)
+        others.append([{"track_id": b.track.track_id, "center_m": [round(float(x), 6) for x in b.track.centres_m[k]],
+                        "radius_m": b.track.radius_m} for b in balls if b.kind != "target"])
+    return Sequence(family, int(seed), float(fps), intr, times, np.stack(frames), balls, truth, others)
 
 
 def _rounded(circle) -> list[float] | None:
@@ -230,8 +235,8 @@ def truth_document(seq: Sequence) -> dict:
     return {"family": seq.family, "seed": seq.seed, "fps": seq.fps, "intrinsics": seq.intrinsics.to_dict(),
             "balls": [{"track_id": b.track.track_id, "kind": b.kind, "motion": b.track.kind,
                        "radius_m": b.track.radius_m} for b in seq.balls],
-            "frames": [{"index": k, "time_s": round(float(t), 6), "balls": balls}
-                       for k, (t, balls) in enumerate(zip(seq.times_s, seq.truth))]}
+            "frames": [{"index": k, "time_s": round(float(t), 6), "balls": balls, "distractors": others}
+                       for k, (t, balls, others) in enumerate(zip(seq.times_s, seq.truth, seq.distractors))]}
 
 
 #: What ``write_sequence`` writes in a sequence's folder (a folder holding only these may be replaced).
@@ -254,6 +259,29 @@ def write_sequence(folder: str | Path, seq: Sequence) -> Path:
         write_realsense_bag(tmp / "recording.bag", list(seq.depth), seq.intrinsics, fps=int(seq.fps))
         write_json(tmp / "truth.json", truth_document(seq))
     return Path(folder)
+
+
+def read_truth(folder: str | Path) -> dict:
+    """A sequence's ``truth.json`` (``truth_document``), read through the JSON gate; its frames checked
+    to be in order, one per recorded frame number."""
+    path = Path(folder) / "truth.json"
+    doc = read_json(path)
+    frames = doc.get("frames") if isinstance(doc, dict) else None
+    if not isinstance(frames, list) or [f.get("index") if isinstance(f, dict) else None for f in frames] \
+            != list(range(len(frames))):
+        raise SphereBenchError(f"{path}: not a sequence's truth (frames indexed 0, 1, ...): write it with "
+                               "spherebench generate --preset motion")
+    return doc
+
+
+def sequence_folders(dataset: str | Path) -> list[Path]:
+    """The sequences of a dataset of the motion grammar (``DIR/sequences/<name>/`` holding a recording
+    and its truth), by name; a folder beside them that is not one is passed over."""
+    root = Path(dataset) / "sequences"
+    if not root.is_dir():
+        raise SphereBenchError(f"{dataset}: no sequences/ folder: give a dataset of moving balls "
+                               "(spherebench generate --preset motion)")
+    return sorted(p for p in root.iterdir() if p.is_dir() and all((p / f).is_file() for f in SEQUENCE_FILES))
 
 
 # --------------------------------------------------------------------------- a preset's recordings

@@ -20,6 +20,7 @@ from spherebench.cloud import Cloud, cloud_from_depth
 from spherebench import sphere_distance
 from spherebench.errors import SphereBenchError
 from spherebench.method.config import IMPROVED, DetectorConfig
+from spherebench.method.deadline import Deadline
 from spherebench.method.frame import MM_LIMIT_M, PreparedFrame
 from spherebench.method.frame_kernels import finite_rows
 from spherebench.method.improved import run_improved
@@ -226,7 +227,8 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
 
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0, *,
-           min_score: float | None = None, max_spheres: int | None = None) -> list[Sphere]:
+           min_score: float | None = None, max_spheres: int | None = None,
+           deadline: Deadline | None = None) -> list[Sphere]:
     """Find balls of radius ``config.radius_m`` in ``cloud``; best first.
 
     cloud: points (N, 3) metres in the camera frame (camera at the origin, z forward), organised
@@ -236,6 +238,9 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         ``config.verification.min_score``; the improved pipeline ranks none below its ``rank_floor``),
         at most max_spheres (default ``config.verification.max_spheres``). The search is the same
         whatever they are: a lower min_score adds spheres below the others, it changes none.
+    deadline: a latency bound (``deadline.Deadline``): the improved pipeline reports what it has
+        verified when the time is up, and ``deadline.cut_short`` says whether it was; the paper's
+        pipeline runs to its end.
     Raises SphereBenchError on bad input (see the module docstring).
     """
     if not isinstance(config, DetectorConfig):
@@ -267,13 +272,13 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         # organised: NaN points get no pixel, so the searched points are the cloud's own
         frame = prepare_frame(cloud, config)
         work, index, subsampled = cloud, None, False
-        found = run_improved(cloud.points, frame, config, search_seed(seed), least, max_spheres)
+        found = run_improved(cloud.points, frame, config, search_seed(seed), least, max_spheres, deadline)
         depth = FrameDepth(frame)
     else:
         depth = None
         rng = np.random.default_rng(seed)
         work, index, subsampled = prepare_cloud(cloud, config, rng)
-        found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)), least, max_spheres)
+        found = run_improved(work.points, None, config, int(rng.integers(0, 2 ** 63)), least, max_spheres, deadline)
     spheres = []
     for v in found:
         if subsampled:

@@ -26,6 +26,34 @@ def finite_rows(points):
 
 
 @kernel
+def deproject_counts(depth, scale, rays, v0, v1, u0, u1):
+    """The organised cloud of a depth image's window [v0, v1) x [u0, u1): points (N, 3) float32 m and
+    their pixel rows, cols (N,) int32 in the window, from depth (H, W) uint16 counts of ``scale`` m
+    (0: no depth) and rays (H, W, 3) with z = 1. Row-major, each point as ``cloud.cloud_from_depth``
+    makes it (float32 depth, times the float64 ray, rounded to float32): the same cloud in one pass."""
+    s = np.float32(scale)
+    n = 0
+    for v in range(v0, v1):
+        for u in range(u0, u1):
+            n += depth[v, u] != 0
+    points = np.empty((n, 3), np.float32)
+    rows = np.empty(n, np.int32)
+    cols = np.empty(n, np.int32)
+    k = 0
+    for v in range(v0, v1):
+        for u in range(u0, u1):
+            d = depth[v, u]
+            if d == 0:
+                continue
+            z = np.float64(np.float32(d) * s)
+            for j in range(3):
+                points[k, j] = np.float32(rays[v, u, j] * z)
+            rows[k], cols[k] = v - v0, u - u0
+            k += 1
+    return points, rows, cols
+
+
+@kernel
 def build_index_image(rows, cols, height, width):
     """(H, W) int32 image of point indices (-1: no point) from per-point pixel rows, cols (N,)."""
     img = np.full((height, width), -1, np.int32)

@@ -22,6 +22,7 @@ from spherebench.method import frame_kernels as FK
 from spherebench.method import verification_kernels as VK
 from spherebench.method.compiled import workspace
 from spherebench.method.config import DetectorConfig
+from spherebench.method.deadline import Deadline
 from spherebench.method.frame import PreparedFrame
 from spherebench.method.verification import Candidate
 
@@ -32,7 +33,7 @@ RETRY_NEW_FRACTION = 0.25  # a retry's hypothesis this near (* R) a verified sta
 def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: np.ndarray, quals: np.ndarray,
                        occluded: np.ndarray, config: DetectorConfig, buf: np.ndarray | None,
                        found: list[Candidate], ranked: list[Candidate], limit_none: int | None = None,
-                       multistart: bool = True) -> list[np.ndarray]:
+                       multistart: bool = True, deadline: Deadline | None = None) -> list[np.ndarray]:
     """Verify the search's candidates (M, 3) m, best first, appending the accepted ones
     (``accept_score``) to ``found`` and the others that pass the size check and may rank
     (``rank_floor``) to ``ranked``; returns the starts verified. While none is accepted, an
@@ -40,7 +41,7 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
     ``verify_candidates_if_none`` (or ``limit_none``), and the hypotheses that passed the search's
     pretest only by an occluded side: a frame with a ball pays nothing for either. multistart: a
     noisy hypothesis is verified from several starts while none is accepted
-    (``verification.verify_multistart``)."""
+    (``verification.verify_multistart``). deadline: none is verified once it has passed."""
     if limit_none is None:
         ver = config.verification
         limit_none = max(ver.verify_candidates, ver.verify_candidates_if_none if frame is not None else 0)
@@ -60,6 +61,8 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         # a start within R of a sphere already accepted converges onto it, and would be suppressed
         if any(math.dist(c0, v.centre_m) < config.radius_m for v in found):
             continue
+        if deadline is not None and deadline.passed():
+            break
         verified.append(c0)
         if frame is None:
             v = unorganised.verify_unorganised(points, c0, config)
@@ -86,13 +89,16 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
 
 
 def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
-                 seed: int, min_score: float | None = None, max_spheres: int | None = None) -> list[Candidate]:
+                 seed: int, min_score: float | None = None, max_spheres: int | None = None,
+                 deadline: Deadline | None = None) -> list[Candidate]:
     """Search, verify the best candidates, drop the failed ones, suppress duplicates. Best first.
 
     frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
     The search and its verdicts are the same whatever is reported: the distinct verified spheres
     whose score is at least min_score (default ``verification.min_score``, never below ``rank_floor``),
-    at most max_spheres (default ``verification.max_spheres``), are returned.
+    at most max_spheres (default ``verification.max_spheres``), are returned. deadline: the
+    verifications and retries stop once it has passed (``deadline``); what was verified by then is
+    reported.
     """
     ver = config.verification
     least = max(ver.min_score if min_score is None else min_score, ver.rank_floor)
@@ -109,7 +115,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         buf = None
     found: list[Candidate] = []
     ranked: list[Candidate] = []
-    verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found, ranked)
+    verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found, ranked,
+                                  deadline=deadline)
     # organised frames where none is accepted: search again, the descent past occluders, then the
     # stencil stretched off the axis, then for discs standing out of their background, then for holes
     # ringed by a ball's face, and verify the hypotheses not verified before
@@ -121,7 +128,7 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         + ([lambda: search.disc_search(frame, config)] if config.retry.retry_disc else [])
         + ([lambda: search.hole_search(frame, config)] if config.retry.retry_hole else []))
     for retry in retries:
-        if found:  # a frame with a ball found pays nothing for the retries
+        if found or (deadline is not None and deadline.passed()):  # a frame with a ball found pays nothing for the retries
             break
         cands, quals, occluded = retry()
         new = [k for k, c in enumerate(cands)
@@ -129,7 +136,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         # the best verify_candidates of a retry's new hypotheses, each verified from one start: on `train`
         # 16, or the multistart of noisy ones, found about as many balls, at twice the time on an empty frame
         verified += _verify_candidates(points, frame, cands[new], quals[new], occluded[new], config, buf, found,
-                                       ranked, limit_none=config.verification.verify_candidates, multistart=False)
+                                       ranked, limit_none=config.verification.verify_candidates, multistart=False,
+                                       deadline=deadline)
     # suppression before the cut, so that the spheres reported at any threshold are those above it at
     # the floor: a sphere is only ever suppressed by a better one
     kept: list[Candidate] = []

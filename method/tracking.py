@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -50,18 +51,21 @@ SCORE_CLIP = 1e-3
 
 @dataclass
 class Detection:
-    """One detection of a frame: centre (3,) m, its score (a probability that it is the ball) and
-    its free radius (m; None where unmeasured)."""
+    """One detection of a frame: centre (3,) m, its score (a probability that it is the ball), its
+    free radius (m; None where unmeasured) and its centre's standard error per axis (m; None: the
+    tracker's ``MEASUREMENT_SIGMA_M``)."""
 
     centre_m: np.ndarray
     score: float
     radius_m: float | None = None
+    sigma_m: float | None = None
 
 
 @dataclass
 class Track:
-    """A followed ball: its filter state (centre, velocity; 6,) and covariance (6, 6), its id, when
-    it last matched, its recent matches (True/False per frame), its fused evidence."""
+    """A followed ball, as the tracker keeps it: its filter state (centre, velocity; 6,) and covariance
+    (6, 6), its id, when it was last predicted and last matched, its recent matches (True/False per
+    frame), and its fused evidence as running sums (bounded over an hour-long stream)."""
 
     track_id: int
     state: np.ndarray
@@ -70,8 +74,10 @@ class Track:
     last_match_s: float
     hits: list[bool] = field(default_factory=list)
     confirmed: bool = False
-    log_odds: list[float] = field(default_factory=list)
-    radii_m: list[float] = field(default_factory=list)
+    log_odds_sum: float = 0.0
+    n_scores: int = 0
+    radius_sum_m: float = 0.0
+    n_radii: int = 0
     matched: int | None = None  # the index of this frame's detection it took, None: none
 
     @property
@@ -85,11 +91,31 @@ class Track:
     @property
     def probability(self) -> float:
         """The fused probability that the track is the ball: its detections' mean log-odds."""
-        return 1.0 / (1.0 + math.exp(-float(np.mean(self.log_odds)))) if self.log_odds else 0.5
+        return 1.0 / (1.0 + math.exp(-self.log_odds_sum / self.n_scores)) if self.n_scores else 0.5
 
     @property
     def radius_m(self) -> float | None:
-        return float(np.mean(self.radii_m)) if self.radii_m else None
+        return self.radius_sum_m / self.n_radii if self.n_radii else None
+
+    def state_now(self) -> "TrackState":
+        return TrackState(self.track_id, self.confirmed, self.state[:3].copy(), self.state[3:].copy(),
+                          self.covariance.copy(), self.probability, self.radius_m, self.matched)
+
+
+class TrackState(NamedTuple):
+    """A track as it stood after one frame (a copy: the tracker goes on): its id, whether it is
+    confirmed, its filtered centre (3,) m and velocity (3,) m/s, camera frame, their covariance (6, 6),
+    its fused probability and radius (m; None where unmeasured), and the index of the frame's detection
+    it took (None: none)."""
+
+    track_id: int
+    confirmed: bool
+    centre_m: np.ndarray
+    velocity_m_s: np.ndarray
+    covariance: np.ndarray
+    probability: float
+    radius_m: float | None
+    matched: int | None
 
 
 def _log_odds(score: float) -> float:
@@ -99,7 +125,7 @@ def _log_odds(score: float) -> float:
 
 class Tracker:
     """Tracks over a stream: ``update(time_s, detections)`` once per frame, in time order; it returns
-    the live tracks after the frame (confirmed and tentative; ``Track.matched`` says which
+    the live tracks after the frame (``TrackState``s, confirmed and tentative; ``matched`` says which
     detection each took)."""
 
     def __init__(self, gravity_m_s2=None, accel_noise_m_s2: float | None = None,
@@ -117,6 +143,19 @@ class Tracker:
         self.next_id = 0
         self.time_s: float | None = None
 
+    def predict(self, time_s: float) -> list[TrackState]:
+        """Every live track advanced to ``time_s``: where to look for its ball in that frame (its
+        centre and covariance); ``update`` at the same time goes on from there."""
+        self._check_time(time_s)
+        for t in self.tracks:
+            self._predict(t, time_s)
+        return [t.state_now() for t in self.tracks]
+
+    def _check_time(self, time_s: float) -> None:
+        if self.time_s is not None and time_s < self.time_s:
+            raise ValueError(f"frame time {time_s} s is before the previous one ({self.time_s} s): frames "
+                             "must come in time order")
+
     def _predict(self, track: Track, time_s: float) -> None:
         dt = time_s - track.last_time_s
         if dt <= 0:
@@ -130,33 +169,32 @@ class Tracker:
         track.covariance = f @ track.covariance @ f.T + q
         track.last_time_s = time_s
 
+    def _noise(self, d: Detection) -> np.ndarray:
+        """A detection's centre covariance (3, 3), m^2."""
+        return self.r if d.sigma_m is None else float(d.sigma_m) ** 2 * np.eye(3)
+
     def _distances(self, detections: list[Detection]) -> np.ndarray:
         """Squared Mahalanobis distances (tracks, detections) of each detection from each prediction."""
         out = np.full((len(self.tracks), len(detections)), np.inf)
         for i, t in enumerate(self.tracks):
-            s = t.covariance[:3, :3] + self.r
-            s_inv = np.linalg.inv(s)
             for j, d in enumerate(detections):
                 e = np.asarray(d.centre_m, np.float64) - t.centre_m
-                out[i, j] = float(e @ s_inv @ e)
+                out[i, j] = float(e @ np.linalg.solve(t.covariance[:3, :3] + self._noise(d), e))
         return out
 
     def _correct(self, track: Track, detection: Detection) -> None:
         h = np.hstack([np.eye(3), np.zeros((3, 3))])
-        s = h @ track.covariance @ h.T + self.r
+        s = h @ track.covariance @ h.T + self._noise(detection)
         gain = track.covariance @ h.T @ np.linalg.inv(s)
         track.state = track.state + gain @ (np.asarray(detection.centre_m, np.float64) - track.centre_m)
         track.covariance = (np.eye(6) - gain @ h) @ track.covariance
 
-    def update(self, time_s: float, detections: list[Detection]) -> list[Track]:
+    def update(self, time_s: float, detections: list[Detection]) -> list[TrackState]:
         """Advance every track to ``time_s``, assign this frame's detections, start, confirm and end
         tracks; returns the live tracks."""
-        if self.time_s is not None and time_s < self.time_s:
-            raise ValueError(f"frame time {time_s} s is before the previous one ({self.time_s} s): frames "
-                             "must come in time order")
+        self.predict(time_s)
         self.time_s = time_s
         for t in self.tracks:
-            self._predict(t, time_s)
             t.matched = None
         taken: set[int] = set()
         if self.tracks and detections:
@@ -175,14 +213,16 @@ class Tracker:
         for j, d in enumerate(detections):
             if j not in taken:
                 self.tracks.append(self._start(time_s, d, j))
-        return list(self.tracks)
+        return [t.state_now() for t in self.tracks]
 
     def _take(self, track: Track, time_s: float, d: Detection, index: int) -> None:
         """``track`` takes detection ``index``: its evidence joins the track's."""
         track.matched, track.last_match_s = index, time_s
-        track.log_odds.append(_log_odds(d.score))
+        track.log_odds_sum += _log_odds(d.score)
+        track.n_scores += 1
         if d.radius_m is not None:
-            track.radii_m.append(float(d.radius_m))
+            track.radius_sum_m += float(d.radius_m)
+            track.n_radii += 1
 
     def _reacquire(self, time_s: float, detections: list[Detection], taken: set[int]) -> None:
         """Detections left over take the nearest unmatched track within ``REACQUIRE_M``, whose state
@@ -197,18 +237,17 @@ class Tracker:
             if dist[i, k] <= REACQUIRE_M:
                 t, j = free_tracks[i], free[k]
                 t.state = np.concatenate([np.asarray(detections[j].centre_m, np.float64), np.zeros(3)])
-                t.covariance = self._initial_covariance()
+                t.covariance = self._initial_covariance(detections[j])
                 self._take(t, time_s, detections[j], j)
                 taken.add(j)
 
-    def _initial_covariance(self) -> np.ndarray:
-        # the velocity unknown: a walking or throwing pace's spread (3 m/s)
-        return np.diag([*np.diag(self.r), 9.0, 9.0, 9.0])
+    def _initial_covariance(self, d: Detection) -> np.ndarray:
+        # the centre as the detection's; the velocity unknown: a walking or throwing pace's spread (3 m/s)
+        return np.diag([*np.diag(self._noise(d)), 9.0, 9.0, 9.0])
 
     def _start(self, time_s: float, d: Detection, index: int) -> Track:
         track = Track(self.next_id, np.concatenate([np.asarray(d.centre_m, np.float64), np.zeros(3)]),
-                      self._initial_covariance(),
-                      time_s, time_s, hits=[True], log_odds=[_log_odds(d.score)], matched=index,
-                      radii_m=[] if d.radius_m is None else [float(d.radius_m)])
+                      self._initial_covariance(d), time_s, time_s, hits=[True])
+        self._take(track, time_s, d, index)
         self.next_id += 1
         return track

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import sys
 import time
@@ -42,7 +43,7 @@ from spherebench.datasets.drawing import draw_detections
 from spherebench.datasets.frame_sources import FrameSelection, scene_id_from
 from spherebench.datasets.reproject import colourise_depth
 from spherebench.errors import SphereBenchError
-from spherebench.method import IMPROVED, PRESETS, config_for, detect, stream, tracking, warm_up
+from spherebench.method import IMPROVED, PRESETS, config_for, detect, stream, warm_up
 
 #: The ball radius without --radius or a scene's own, metres: a basketball's.
 DEFAULT_RADIUS_M = 0.12
@@ -97,8 +98,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="play recordings at their own rate, dropping the frames that arrive while the detector is "
                         "busy (as a camera would); default: every frame is read")
     g.add_argument("--track", action="store_true",
-                   help="follow the balls over each recording or the camera (a Kalman filter per ball): each "
-                        "frame's line gains its tracks, with their ids, filtered centres and velocities")
+                   help="follow the balls over each recording or the camera (a Kalman filter per ball), searching "
+                        "a window about each followed ball and the whole frame when one is lost: each frame's "
+                        "line gains its tracks, with their ids, filtered centres and velocities")
+    g.add_argument("--budget-ms", type=options.budget_ms, default=None, metavar="MS",
+                   help="each frame's latency bound: the detector answers with what it has verified by then and "
+                        "the frame's JSON says cut_short (default: the frame period for the camera and --real-time, "
+                        "none for a recording read frame by frame, whose output is then the seed's alone)")
     g.add_argument("--labelme-out", metavar="DIR", default=None,
                    help="also write each frame's circles as a LabelMe file DIR/<scene_id>.json, to pre-annotate "
                         "the recording (read back by `spherebench prepare REC --labelme DIR`)")
@@ -244,9 +250,12 @@ def _tracks_json(tracks) -> list[dict]:
                                     t.matched) for t in tracks]
 
 
-def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None, tracks=None) -> None:
+def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None, tracks=None,
+                  **stream_fields) -> None:
+    """One input's or frame's result, a JSON line or a sentence; stream_fields: a stream frame's
+    cut_short and search, in its JSON line."""
     if args.json:
-        extra = {} if tracks is None else {"tracks": _tracks_json(tracks)}
+        extra = dict(stream_fields) if tracks is None else {**stream_fields, "tracks": _tracks_json(tracks)}
         print(json.dumps(detections.frame_record(raw, _spheres_json(spheres), ms,
                                                  frame=None if frame is None else frame.number,
                                                  timestamp_ms=None if frame is None else frame.timestamp_ms,
@@ -257,7 +266,8 @@ def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str
     where = raw if frame is None else f"{raw} frame {frame.number} ({frame.timestamp_ms:.1f} ms)"
     followed = [f"track {t.track_id} at ({t.centre_m[0]:+.3f}, {t.centre_m[1]:+.3f}, {t.centre_m[2]:.3f}) m"
                 for t in tracks or () if t.confirmed]
-    print(f"{where}: {len(spheres)} sphere(s) of radius {radius:g} m ({RADIUS_SOURCES[source]}) in {ms:.1f} ms"
+    cut = " (cut short by --budget-ms)" if stream_fields.get("cut_short") else ""
+    print(f"{where}: {len(spheres)} sphere(s) of radius {radius:g} m ({RADIUS_SOURCES[source]}) in {ms:.1f} ms{cut}"
           + (": " + "; ".join(parts) if parts else "") + ("; " + ", ".join(followed) if followed else ""), flush=True)
 
 
@@ -301,9 +311,10 @@ def _check_arguments(args: argparse.Namespace) -> bool:
         raise SphereBenchError("nothing to detect in: give PATHs (clouds, scene folders, recordings) or --camera")
     streaming = args.camera is not None or any(depth_frames.is_recording(p) for p in args.paths)
     stream_only = [o for o, v in (("--every", args.every != 1), ("--frames", args.frames),
-                                  ("--time-range", args.time_range), ("--real-time", args.real_time)) if v]
+                                  ("--time-range", args.time_range), ("--real-time", args.real_time),
+                                  ("--budget-ms", args.budget_ms is not None)) if v]
     if stream_only and not streaming:
-        raise SphereBenchError(f"{stream_only[0]} selects frames of a recording or camera: give a .bag/.db3 or --camera")
+        raise SphereBenchError(f"{stream_only[0]} is for the frames of a recording or the camera: give a .bag/.db3 or --camera")
     if args.track and not (args.camera is not None or (args.paths and all(depth_frames.is_recording(p)
                                                                           for p in args.paths))):
         raise SphereBenchError("--track follows balls over a recording or the camera, each on its own: give "
@@ -368,35 +379,53 @@ def _configs(method: str, extra: dict):
     return config
 
 
-def _follow(tracker, raw: str, frame, spheres) -> list:
-    """The tracks after one frame's detections (their centres, scores and free radii)."""
-    found = [tracking.Detection(np.asarray(s.centre_m), s.score,
-                                s.free_radius_m if np.isfinite(s.free_radius_m) else None) for s in spheres]
-    try:
-        return tracker.update(frame.timestamp_ms / 1000.0, found)
-    except ValueError:  # a timestamp before the previous frame's
-        raise SphereBenchError(f"{raw}: frame {frame.number}'s timestamp ({frame.timestamp_ms:.3f} ms) comes before "
-                               "the previous frame's: the recording's clock jumps back, and tracks follow time; "
-                               "detect without --track, or select the frames before the jump (--frames)") from None
+def _in_time_order(frames, raw: str):
+    """The frames, refused in one line from the first whose timestamp comes before the previous one's
+    (tracks follow time)."""
+    last = -math.inf
+    for frame in frames:
+        if frame.timestamp_ms < last:
+            raise SphereBenchError(f"{raw}: frame {frame.number}'s timestamp ({frame.timestamp_ms:.3f} ms) comes "
+                                   "before the previous frame's: the recording's clock jumps back, and tracks follow "
+                                   "time; detect without --track, or select the frames before the jump (--frames)")
+        last = frame.timestamp_ms
+        yield frame
+
+
+def _budget(args: argparse.Namespace, stats: depth_frames.StreamStats, live: bool) -> float | None:
+    """A stream's per-frame budget, ms: --budget-ms, else where frames come in real time (``live``:
+    the camera, --real-time) its frame period; None: no bound (a recording read frame by frame
+    waits for the detector, and its output is then the seed's alone)."""
+    if args.budget_ms is not None:
+        return None if math.isinf(args.budget_ms) else args.budget_ms
+    return 1000.0 / stats.fps if live and stats.fps > 0 else None
 
 
 def _detect_in_stream(args: argparse.Namespace, job: _Job, config, labelme_dir: Path | None, log) -> None:
-    """Each frame of a recording or the camera detected, printed, and kept as LabelMe and in Rerun
-    where asked; the stream's summary at its end."""
+    """Each frame of a recording or the camera detected (and tracked with --track), printed, and kept
+    as LabelMe and in Rerun where asked; the stream's summary at its end."""
     frames, stats = job.streamed
     stem = scene_id_from(job.path.stem) if job.path is not None else f"camera{args.camera or ''}"
     times = array("d")  # floats, not frames: bounded over an hour-long recording
-    tracker = tracking.Tracker() if args.track else None  # one per recording: its balls are its own
-    for frame, spheres, ms in stream.detect_stream(frames, config(job.radius, job.eps), args.seed, stats):
+    live = args.real_time or job.path is None
+    cfg, budget = config(job.radius, job.eps), _budget(args, stats, live)
+    if args.track:  # a tracker per recording: its balls are its own
+        results = stream.track_stream(_in_time_order(frames, job.raw), cfg, args.seed, stats, budget)
+    else:
+        results = stream.detect_stream(frames, cfg, args.seed, stats, budget)
+    for r in results:
+        frame, spheres = r.frame, r.spheres
         depth_frames.print_notes(stats, f"note: {job.raw}")
-        times.append(ms)
-        tracks = None if tracker is None else _follow(tracker, job.raw, frame, spheres)
-        _print_result(args, job.raw, spheres, ms, job.radius, job.source, frame, tracks)
+        times.append(r.ms)
+        extra = {} if budget is None else {"cut_short": r.cut_short}
+        if args.track:
+            extra.update(search=r.search, tracks=r.tracks)
+        _print_result(args, job.raw, spheres, r.ms, job.radius, job.source, frame, **extra)
         _labelme(labelme_dir, f"{stem}_{frame.index:06d}", spheres, frame.intrinsics.shape)
         if log is not None:
             log.frame(job.raw, frame, spheres)
     depth_frames.print_notes(stats, f"note: {job.raw}")
-    _stream_summary(job.raw, times, stats, args.real_time or job.path is None)
+    _stream_summary(job.raw, times, stats, live)
 
 
 def _detect_in_file(args: argparse.Namespace, job: _Job, config, intr, labelme_dir: Path | None, log) -> None:

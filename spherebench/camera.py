@@ -99,6 +99,18 @@ class Intrinsics:
         return cls(width=width, height=height, ppx=(width - 1) / 2.0, ppy=(height - 1) / 2.0,
                    fx=f, fy=f, model="brown_conrady", depth_scale=D435_DEPTH_SCALE_M)
 
+    def window(self, v0: int, v1: int, u0: int, u1: int) -> "Intrinsics":
+        """The intrinsics of pixels [v0, v1) x [u0, u1) as an image of their own (a crop): the
+        principal point moved to its corner, where it may lie outside it. Not checked as a camera's
+        are (a crop's principal point is off its image by design); a window of valid intrinsics is valid."""
+        if not (0 <= v0 < v1 <= self.height and 0 <= u0 < u1 <= self.width):
+            raise ValueError(f"window rows {v0}:{v1}, columns {u0}:{u1} is not within the {self.width}x{self.height} image")
+        crop = object.__new__(Intrinsics)
+        for name, value in {**self.__dict__, "width": int(u1 - u0), "height": int(v1 - v0),
+                            "ppx": float(self.ppx) - u0, "ppy": float(self.ppy) - v0}.items():
+            object.__setattr__(crop, name, value)
+        return crop
+
     @property
     def shape(self) -> tuple[int, int]:
         """(height, width) of the image, numpy order."""

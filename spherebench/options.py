@@ -87,6 +87,19 @@ def length(text: str) -> float:
     return value
 
 
+def budget_ms(text: str) -> float:
+    """A time budget in milliseconds: a positive finite number, or "none" for no bound (inf)."""
+    if text.strip().lower() in ("none", "off", "inf"):
+        return float("inf")
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number: give milliseconds, or none") from None
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text}: give a time in milliseconds above 0, or none for no bound")
+    return value
+
+
 def out_path(text: str) -> str:
     """An output path: never empty (an unset shell variable in `--out "$OUT"` would mean the current
     folder)."""

@@ -39,6 +39,9 @@ def test_balls_on_the_floor_rest_on_it_and_the_soccer_ball_is_no_target():
     kinds = {m.kind: m.track for m in seq.balls}
     assert set(kinds) == {"target", "distractor"} and kinds["distractor"].radius_m == sequences.SOCCER_RADIUS_M
     assert all(len(frame) == 1 and frame[0]["track_id"] == kinds["target"].track_id for frame in seq.truth)
+    # the soccer ball's own truth: its centre frame by frame, apart from the targets'
+    assert all(len(o) == 1 and o[0]["radius_m"] == sequences.SOCCER_RADIUS_M for o in seq.distractors)
+    assert np.allclose([o[0]["center_m"] for o in seq.distractors], kinds["distractor"].centres_m, atol=1e-6)
     heights = kinds["target"].centres_m[:, 1] + kinds["target"].radius_m
     assert np.allclose(heights, heights[0])  # rolling: its lowest point on the floor in every frame
 
@@ -92,6 +95,7 @@ def test_detect_track_follows_the_ball_of_a_recording_with_one_id(tmp_path, caps
     assert cli.main(["detect", str(folder / "recording.bag"), "--track", "--json"]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert len(lines) == len(seq.times_s) == 12 and all("tracks" in line for line in lines)
+    assert {line["search"] for line in lines} == {"full", "local"} and "cut_short" not in lines[0]  # no budget
     confirmed = [[t for t in line["tracks"] if t["confirmed"]] for line in lines]
     assert all(len(c) == 1 and c[0]["track_id"] == 0 for c in confirmed[3:])  # from the third match on
     truth = [frame[0]["center_m"] for frame in seq.truth]
@@ -104,10 +108,10 @@ def test_detect_track_follows_the_ball_of_a_recording_with_one_id(tmp_path, caps
 def test_a_clock_that_jumps_back_is_one_line_under_track():
     from types import SimpleNamespace
 
-    from spherebench.method.tracking import Tracker
     from spherebench.scripts import detect
 
-    tracker = Tracker()
-    detect._follow(tracker, "r.bag", SimpleNamespace(number=7, timestamp_ms=1000.0), [])
-    with pytest.raises(SphereBenchError, match="frame 8's timestamp .* comes before the previous frame's"):
-        detect._follow(tracker, "r.bag", SimpleNamespace(number=8, timestamp_ms=990.0), [])
+    frames = [SimpleNamespace(number=n, timestamp_ms=t) for n, t in ((7, 1000.0), (8, 1011.0), (9, 990.0))]
+    ordered = detect._in_time_order(iter(frames), "r.bag")
+    assert [f.number for f in (next(ordered), next(ordered))] == [7, 8]  # what came before is kept
+    with pytest.raises(SphereBenchError, match="frame 9's timestamp .* comes before the previous frame's"):
+        next(ordered)

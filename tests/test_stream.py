@@ -110,14 +110,14 @@ def test_camera_without_a_camera_fails_at_once(capsys):
 
 
 def test_real_time_drops_frames_a_slow_detector_cannot_keep_up_with(recording, capsys, monkeypatch):
-    def slow(cloud, config, seed=0):
+    def slow(cloud, config, seed=0, deadline=None):
         time.sleep(0.2)  # six frame periods at 30 fps
         return []
     monkeypatch.setattr(stream, "detect", slow)
     path, _, _ = recording
     stats = depth_frames.StreamStats()
     frames = depth_frames.recording_frames(path, real_time=True, stats=stats)
-    got = [f.number for f, _, _ in stream.detect_stream(frames, config_for("improved"), stats=stats)]
+    got = [r.frame.number for r in stream.detect_stream(frames, config_for("improved"), stats=stats)]
     assert 1 <= len(got) < N and stats.dropped >= 1
     assert stats.frames == len(got)
     status, out, err = _run(capsys, "detect", path, "--real-time")
@@ -129,8 +129,9 @@ def test_python_api_and_rs_helpers(recording):
     results = list(stream.detect_stream(depth_frames.recording_frames(path, FrameSelection(first=1, stop=3)),
                                         config_for("improved")))
     assert [r.frame.number for r in results] == numbers[1:3]
-    frame, spheres, ms = results[0]
+    frame, spheres, ms, cut_short = results[0]
     assert np.array_equal(frame.depth, frames[1]) and frame.intrinsics == INTR and ms > 0 and len(spheres) == 1
+    assert cut_short is False  # no budget, nothing cut
     # the rs.depth_frame helper, on a frame played back by pyrealsense2's own pipeline
     pipe, cfg = rs.pipeline(), rs.config()
     cfg.enable_device_from_file(str(path), repeat_playback=False)
@@ -190,7 +191,7 @@ def test_intrinsics_from_an_rs_intrinsics():
 def test_memory_stays_bounded_over_a_long_recording(tmp_path, monkeypatch):
     import tracemalloc
 
-    monkeypatch.setattr(stream, "detect", lambda cloud, config, seed=0: [])  # the stream, not the detector
+    monkeypatch.setattr(stream, "detect", lambda cloud, config, seed=0, deadline=None: [])  # the stream, not the detector
     intr = Intrinsics.d435(160, 120)
     frame = np.full((120, 160), 1500, np.uint16)  # 38 kB a frame: 300 of them held would be 11 MB
     path = write_realsense_bag(tmp_path / "long.bag", [frame] * 300, intr, fps=90)

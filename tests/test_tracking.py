@@ -40,7 +40,7 @@ def test_a_thrown_ball_keeps_one_track_through_its_bounces_and_missed_frames(gra
     assert ids == {0}  # no id switch, through bounces and misses
     rms = lambda e: float(np.sqrt(np.mean(np.square(e))))  # noqa: E731
     assert rms(filtered) < better * rms(raw)  # the track is better than one frame's centre, much with gravity
-    final = tracker.tracks[0]
+    final = tracker.tracks[0]  # the tracker's own Track
     assert final.radius_m == pytest.approx(0.12, abs=0.002) and final.probability == pytest.approx(0.9, abs=1e-6)
 
 
