@@ -8,7 +8,7 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: help eval test venv stream-bench data data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide data-resolution realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real pattern clean distclean
+.PHONY: help eval test venv stream-bench track-bench data data-motion data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide data-resolution realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real pattern clean distclean
 
 # ---- help: every target with its line (the `## ` comment after the target's name)
 help:  ## list the targets with one line each
@@ -33,6 +33,12 @@ data-stereo: $(DATA)/default-stereo/coco_gt.json $(DATA)/hard-stereo/coco_gt.jso
 data-train-stereo: $(DATA)/train-stereo/coco_gt.json  ## train's twin through the stereo sensor model
 data-wide: $(DATA)/wide/coco_gt.json $(DATA)/wide-stereo/coco_gt.json  ## the wide grammar (pitched cameras, supports, textures) and its stereo twin
 data-resolution: $(DATA)/default-stereo-848/coco_gt.json $(DATA)/default-stereo-1280/coco_gt.json  ## default-stereo's scenes at 848x480 and 1280x720 (the resolution study)
+
+data-motion: $(DATA)/motion/dataset.json $(DATA)/motion-stereo/dataset.json  ## moving-ball recordings through both sensor models (the tracking benchmark)
+
+# the motion presets are recordings with their truth (no coco_gt.json): dataset.json marks one complete
+$(DATA)/motion/dataset.json $(DATA)/motion-stereo/dataset.json: $(DATA)/%/dataset.json: | venv
+	$(SB) generate --preset $* --out $(DATA)/$* --seed $(SEED) --workers $(WORKERS)
 
 # every preset is registered in datasets/simulate.py (hard-sensor: hard's scenes under the robust
 # grid's span of sensors, drawn per scene; `make sweep` reports it)
@@ -143,6 +149,12 @@ test: venv  ## the test suite (pytest)
 # offline and in real time -> per-frame median and p95 ms, frames dropped (docs/benchmark.md)
 stream-bench: venv  ## per-frame latency and frames dropped of `detect` on recordings, 424x240 and 848x480
 	$(PY) -m spherebench.scripts.stream_bench --out results/stream_bench
+
+# tracking: `detect --track` and the detector frame by frame on the motion presets' recordings, each
+# played frame by frame (scored, timed) and in real time (frames dropped) -> results/track_bench.md
+track-bench: venv data-motion  ## tracks, latency and frames dropped on moving-ball recordings -> results/track_bench.md
+	$(PY) -m spherebench.scripts.track_bench $(DATA)/motion $(DATA)/motion-stereo --seed $(SEED) \
+		--out results/track_bench --figure results/figures/track_latency.png
 
 clean:  ## remove build files
 	rm -rf .pytest_cache build *.egg-info

@@ -39,15 +39,19 @@ def frame_record(source: str, detections: list[dict], ms: float, frame: int | No
 
 
 def track_record(track_id: int, confirmed: bool, centre_m, velocity_m_s, probability: float,
-                 radius_m: float | None, detection: int | None) -> dict:
+                 radius_m: float | None, detection: int | None, radius_se_m: float | None = None,
+                 reported: bool | None = None) -> dict:
     """One track after a frame (``detect --track``): its id, whether it is confirmed, its filtered
     center_m [x, y, z] (m) and velocity_m_s [vx, vy, vz] (m/s), camera frame, its probability (the
     fused evidence that it is the ball), its radius_m (the mean of its detections' free radii; None
-    where none was measured), and the index in the frame's detections of the one it took (None: it
-    took none this frame)."""
+    where none was measured) and that mean's standard error radius_se_m (None below two), and the
+    index in the frame's detections of the one it took (None: it took none this frame), and whether
+    the tracker answers with it in this frame (confirmed, or a new ball's detection of this frame)."""
     return {"track_id": int(track_id), "confirmed": bool(confirmed),
             "center_m": [round(float(v), 6) for v in centre_m],
             "velocity_m_s": [round(float(v), 4) for v in velocity_m_s],
             "probability": round(float(probability), 6),
             "radius_m": None if radius_m is None else round(float(radius_m), 6),
-            "detection": None if detection is None else int(detection)}
+            "radius_se_m": None if radius_se_m is None else round(float(radius_se_m), 6),
+            "detection": None if detection is None else int(detection),
+            "reported": bool(confirmed) if reported is None else bool(reported)}

@@ -21,7 +21,7 @@ from spherebench import sphere_distance
 from spherebench.errors import SphereBenchError
 from spherebench.method.config import IMPROVED, DetectorConfig
 from spherebench.method.deadline import Deadline
-from spherebench.method.frame import MM_LIMIT_M, PreparedFrame
+from spherebench.method.frame import MM_LIMIT_M, FrameNoise, PreparedFrame
 from spherebench.method.frame_kernels import finite_rows
 from spherebench.method.improved import run_improved
 from spherebench.method.outline import outline_centre
@@ -125,10 +125,11 @@ def prepare_cloud(cloud: Cloud, config: DetectorConfig, rng: np.random.Generator
     return cloud.subset(index), index, False
 
 
-def prepare_frame(cloud: Cloud, config: DetectorConfig) -> PreparedFrame:
-    """Validate an organised cloud and build what its kernels need (one pass over the points)."""
+def prepare_frame(cloud: Cloud, config: DetectorConfig, noise: FrameNoise | None = None) -> PreparedFrame:
+    """Validate an organised cloud and build what its kernels need (one pass over the points);
+    noise: the whole frame's, where the cloud is a window of it (``PreparedFrame``)."""
     _check_cloud(cloud)
-    frame = PreparedFrame(cloud, config)
+    frame = PreparedFrame(cloud, config, noise)
     _check_counts(cloud.points, frame.n_ok, frame.n_big, config)
     return frame
 
@@ -228,7 +229,7 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0, *,
            min_score: float | None = None, max_spheres: int | None = None,
-           deadline: Deadline | None = None) -> list[Sphere]:
+           deadline: Deadline | None = None, noise: FrameNoise | None = None) -> list[Sphere]:
     """Find balls of radius ``config.radius_m`` in ``cloud``; best first.
 
     cloud: points (N, 3) metres in the camera frame (camera at the origin, z forward), organised
@@ -241,6 +242,8 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
     deadline: a latency bound (``deadline.Deadline``): the improved pipeline reports what it has
         verified when the time is up, and ``deadline.cut_short`` says whether it was; the paper's
         pipeline runs to its end.
+    noise: for an organised cloud that is a window of a frame, the frame's measured depth noise
+        (``frame.FrameNoise``; a detection's ``evidence["frame_noise"]``), in place of the window's own.
     Raises SphereBenchError on bad input (see the module docstring).
     """
     if not isinstance(config, DetectorConfig):
@@ -270,7 +273,7 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
     least = None if min_score is None else float(min_score)
     if cloud.organised and len(cloud.points) <= config.input.max_points:
         # organised: NaN points get no pixel, so the searched points are the cloud's own
-        frame = prepare_frame(cloud, config)
+        frame = prepare_frame(cloud, config, noise)
         work, index, subsampled = cloud, None, False
         found = run_improved(cloud.points, frame, config, search_seed(seed), least, max_spheres, deadline)
         depth = FrameDepth(frame)
@@ -288,5 +291,6 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         cp, ce = sphere_circles(cloud, v.centre_m, R, v.stats, depth)
         spheres.append(Sphere(centre_m=v.centre_m, radius_m=R, free_radius_m=v.free_radius_m, inlier_indices=inl,
                               score=v.score, raw_score=v.raw_score, rmse_m=v.rmse_m, free_radius_se_m=v.free_radius_se_m, circle_paper=cp,
-                              circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m}))
+                              circle_exact=ce, evidence={**v.stats, "eps_m": v.eps_m,
+                                                          **({"frame_noise": frame.noise} if depth is not None else {})}))
     return spheres

@@ -10,6 +10,7 @@ kernels' parameter vector filled (``parameters``).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -184,14 +185,24 @@ def cell_lookup(h: int, w: int, bin_px: int) -> tuple[np.ndarray, np.ndarray]:
     return _LOOKUPS[key]
 
 
+class FrameNoise(NamedTuple):
+    """A frame's measured depth noise: sigma_z / z^2 (1/m; None where not measured) and its
+    correlation length (stream pixels; 0: independent pixels or not measured)."""
+
+    a_measured: float | None
+    corr_px: float
+
+
 class PreparedFrame:
     """An organised cloud made ready for the kernels: index image, range integrals, parameters.
 
     One pass over the points (``frame_kernels.prepare_organised``); the buffers are reused between
     frames of one size. n_ok, n_big: finite points, and those with |z| beyond the millimetre limit.
+    noise: the depth noise measured on the whole frame of which this cloud is a window (a window
+    mostly of ball would mistake its curvature for noise), or None to measure the cloud's own.
     """
 
-    def __init__(self, cloud: Cloud, config: DetectorConfig):
+    def __init__(self, cloud: Cloud, config: DetectorConfig, noise: FrameNoise | None = None):
         intr = cloud.intrinsics
         h, w = int(intr.height), int(intr.width)
         self.cloud = cloud
@@ -211,13 +222,20 @@ class PreparedFrame:
         #: differs from the model's by more than NOISE_MODEL_TOLERANCE, else the model's
         self.noise_a_measured = None
         lag_ms = None
-        if config.noise.noise_z2_per_m is None and config.noise.noise_estimate:
+        if noise is not None:
+            self.noise_a_measured = noise.a_measured if config.noise.noise_z2_per_m is None else None
+        elif config.noise.noise_z2_per_m is None and config.noise.noise_estimate:
             lag_ms = noise_mean_square(cloud.points, self.index_image, config,
                                         max(1, NOISE_ESTIMATE_LAG_PX * self.bin))
             self.noise_a_measured = None if lag_ms is None else math.sqrt(lag_ms)
         #: the depth noise's correlation length (stream pixels; 0: independent pixels or not measured)
-        self.noise_corr_px = (frame_noise_correlation_px(cloud.points, self.index_image, config, self.bin, lag_ms)
-                              if config.noise.noise_correlation else 0.0)
+        if noise is not None:
+            self.noise_corr_px = noise.corr_px if config.noise.noise_correlation else 0.0
+        else:
+            self.noise_corr_px = (frame_noise_correlation_px(cloud.points, self.index_image, config, self.bin, lag_ms)
+                                  if config.noise.noise_correlation else 0.0)
+        #: what was measured, for a window of this frame (``noise``)
+        self.noise = FrameNoise(self.noise_a_measured, self.noise_corr_px)
         model_a = noise_a(config, float(intr.fx))
         self.noise_a = model_a
         if self.noise_a_measured is not None and not (

@@ -79,7 +79,6 @@ def disc_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarra
     fc = frame.prm[FK.P_FX] / frame.bin
     step = max(1, int(DISC_STEP_FRACTION * fc * R / config.search.max_range_m))
     hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
-    retry = config.retry
     m = SK.disc_hypotheses(frame.tab, frame.prm, z_min, DISC_INNER_FRACTION, DISC_SIDE_OFFSET_FRACTION,
                           DISC_SIDE_HALF_FRACTION, DISC_GAP_FRACTION * R, DISC_GAP_SIGMAS, DISC_MIN_BEHIND, step, hyp)
     frame.hypotheses = hyp[:m]
@@ -91,7 +90,6 @@ def hole_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarra
     returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
     R = config.radius_m
     fc = frame.prm[FK.P_FX] / frame.bin
-    retry = config.retry
     step = max(1, int(HOLE_STEP_FRACTION * fc * R / config.search.max_range_m))
     hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
     m = SK.hole_hypotheses(frame.tab, frame.prm, HOLE_MIN_RANGE_M, step, HOLE_MIN_RING, HOLE_MIN_FRACTION, hyp)

@@ -32,6 +32,7 @@ from spherebench.errors import SphereBenchError
 from spherebench.method import detect
 from spherebench.method import frame_kernels as FK
 from spherebench.method.deadline import Deadline
+from spherebench.method.noise import mean_variance_inflation
 from spherebench.method.tracking import Detection, Track, Tracker
 
 # How a stream is searched while its balls are followed; each a fact of the stream or the sensor.
@@ -39,6 +40,10 @@ FULL_SEARCH_EVERY_S = 0.5  # a ball that comes into view waits at most this long
 WINDOW_RADII = 2.0  # a window's half-side, in the ball's image radii: verification reads a ring of background as wide as the ball
 WINDOW_SIGMAS = 3.0  # and this many standard deviations of the prediction's lateral error
 WINDOW_MAX_SHARE = 0.25  # windows covering more of the image than this: the whole frame is searched instead
+# A detection's centre errs by this many standard errors of the mean of its inliers' depth noise, per
+# axis: 1.7 through the analytic sensor model, 1.4 through the stereo one, on the motion training
+# recordings (docs/experiments/2026-12-06-tracking.md)
+CENTRE_ERROR_FACTOR = 1.5
 
 
 class DepthFrame(Protocol):
@@ -135,11 +140,12 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
                  tracker: Tracker | None = None) -> Iterator[TrackedFrame]:
     """The detector and a tracker over a stream of depth frames, in time order: a ``TrackedFrame``
     per frame, lazily. budget_ms: each frame's latency bound (``deadline``; None: none, and the
-    output is the seed's alone); tracker: default ``tracking.Tracker()``. Frame k's seed is (seed,
+    output is the seed's alone); tracker: default ``tracking.Tracker`` for a ball of the
+    configuration's radius. Frame k's seed is (seed,
     k), a window's (seed, k, j); stats as ``detect_stream``'s."""
     rays = _Rays()
-    tracker = Tracker() if tracker is None else tracker
-    last_full_s, lost = -math.inf, True
+    tracker = Tracker(radius_m=config.radius_m) if tracker is None else tracker
+    last_full_s, lost, noise = -math.inf, True, None
     for frame in frames:
         start = time.perf_counter()
         deadline = None if budget_ms is None else Deadline.after_ms(budget_ms, start)
@@ -153,16 +159,29 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
             last_full_s, search = time_s, "full"
             _count(stats, frame, len(cloud))
         else:
-            spheres = _detect_in_windows(frame, rays(intr), windows, config, (int(seed), int(frame.index)), deadline)
+            spheres = _detect_in_windows(frame, rays(intr), windows, config, (int(seed), int(frame.index)), deadline,
+                                         noise)
             search = "local"
             _count(stats, frame, 1)
-        tracks = tracker.update(time_s, [Detection(np.asarray(s.centre_m, np.float64), s.score,
-                                                   s.free_radius_m if math.isfinite(s.free_radius_m) else None)
-                                         for s in spheres])
+        if search == "full" and spheres:
+            noise = spheres[0].evidence.get("frame_noise", noise)  # the camera's noise, for the windows
+        tracks = tracker.update(time_s, [_detection(s) for s in spheres])
         confirmed = [t for t in tracks if t.confirmed]
         lost = not confirmed or any(t.matched is None for t in confirmed)
         ms = (time.perf_counter() - start) * 1e3
         yield TrackedFrame(frame, spheres, tracks, search, deadline is not None and deadline.cut_short, ms)
+
+
+def _detection(sphere) -> Detection:
+    """A sphere as the tracker's detection: its centre, score, free radius and centre error."""
+    e = sphere.evidence
+    sigma = None
+    if "sigma_m" in e and e.get("n_inliers", 0) > 0:
+        # the standard error of a mean of its inliers' depth noise, correlated over noise_corr_px
+        inflation = mean_variance_inflation(float(e.get("noise_corr_px", 0.0)))
+        sigma = CENTRE_ERROR_FACTOR * float(e["sigma_m"]) * math.sqrt(inflation / float(e["n_inliers"]))
+    return Detection(np.asarray(sphere.centre_m, np.float64), float(sphere.score),
+                     float(sphere.free_radius_m) if math.isfinite(sphere.free_radius_m) else None, sigma)
 
 
 def track_windows(tracks: list[Track], intr: Intrinsics, radius_m: float) -> list[Window] | None:
@@ -189,16 +208,17 @@ def track_windows(tracks: list[Track], intr: Intrinsics, radius_m: float) -> lis
 
 
 def _detect_in_windows(frame: DepthFrame, rays: np.ndarray, windows: list[Window], config, seed: tuple,
-                       deadline: Deadline | None) -> list:
+                       deadline: Deadline | None, noise) -> list:
     """The spheres found in the windows of a frame, in its own pixels and point indices, best first;
-    one found in two overlapping windows is kept once."""
+    one found in two overlapping windows is kept once. noise: the depth noise measured on the last
+    whole frame searched (``frame.FrameNoise``), or None to measure each window's."""
     found = []
     for j, window in enumerate(windows):
         if found and deadline is not None and deadline.passed():
             break
         cloud = depth_cloud(frame.depth, frame.intrinsics, rays, window)
         try:
-            spheres = detect(cloud, config, seed=(*seed, j + 1), deadline=deadline)
+            spheres = detect(cloud, config, seed=(*seed, j + 1), deadline=deadline, noise=noise)
         except SphereBenchError:  # a window with too few points, or too far for a ball: none in it
             continue
         found += [_in_frame(s, frame.depth, window, cloud) for s in spheres]

@@ -8,10 +8,15 @@ the predicted tracks by the least total Mahalanobis distance (Hungarian assignme
 gate that a true match passes with probability ``1 - GATE_MISS_RATE``; a detection left over
 takes over a track that matched nothing if it lies within ``REACQUIRE_M`` of it (a bounce's turn),
 else starts a tentative track, which is confirmed once ``CONFIRM_HITS`` of its last ``CONFIRM_WINDOW``
-frames matched, and a track unmatched for ``MAX_MISSED_S`` ends. A track fuses its detections'
-evidence: its probability that it is the ball (the mean of its detections' scores in log-odds: the
-frames of one ball are not independent evidence, so they are averaged, not summed) and its radius
-(the mean of its detections' free radii).
+frames matched and its radius is the ball's, and a track unmatched for ``MAX_MISSED_S`` ends. A
+track fuses its detections' evidence: its probability that it is the ball (the mean of its
+detections' scores in log-odds: the frames of one ball are not independent evidence, so they are
+averaged, not summed) and its radius (the mean of its detections' free radii). Where the tracker is
+given the ball's radius, a track whose fused radius is off it by more than ``RADIUS_SIGMAS``
+standard errors (its radii's scatter over their count, and ``RADIUS_BIAS_M``, the part that no
+count of frames averages out) is another ball: followed, so that its detections take no other
+track, but not confirmed; none is confirmed before ``SIZE_MIN_FRAMES`` radii are in. A detection's
+centre error is its own where the detector gives it (``Detection.sigma_m``).
 
 Arrays in, tracks out: the tracker knows nothing of files or of the detector's internals.
 """
@@ -47,6 +52,15 @@ MAX_MISSED_S = 0.3
 REACQUIRE_M = 0.5
 #: A detection's score is clipped to this distance from 0 and 1 before it counts as evidence.
 SCORE_CLIP = 1e-3
+#: The error of a track's mean free radius that no count of frames averages out, m: the spread of
+#: the per-track means about the true radius on the motion training recordings (1.3 mm through the
+#: analytic sensor model, 3.1 mm through the stereo one; docs/experiments/2026-12-06-tracking.md).
+RADIUS_BIAS_M = 0.002
+#: A track's radius is another ball's beyond this many standard errors (a true ball fails 0.3 %).
+RADIUS_SIGMAS = 3.0
+#: A track is confirmed only once this many of its detections' radii are in (the size test's
+#: scatter is measured, not assumed).
+SIZE_MIN_FRAMES = 5
 
 
 @dataclass
@@ -73,10 +87,12 @@ class Track:
     last_time_s: float
     last_match_s: float
     hits: list[bool] = field(default_factory=list)
-    confirmed: bool = False
+    seen: bool = False  # it has once matched CONFIRM_HITS of CONFIRM_WINDOW frames
+    confirmed: bool = False  # seen, and its radius may be the ball's
     log_odds_sum: float = 0.0
     n_scores: int = 0
     radius_sum_m: float = 0.0
+    radius_sq_sum_m2: float = 0.0
     n_radii: int = 0
     matched: int | None = None  # the index of this frame's detection it took, None: none
 
@@ -97,16 +113,46 @@ class Track:
     def radius_m(self) -> float | None:
         return self.radius_sum_m / self.n_radii if self.n_radii else None
 
-    def state_now(self) -> "TrackState":
+    @property
+    def radius_se_m(self) -> float | None:
+        """The mean radius's standard error, m: its radii's scatter over their count, with
+        ``RADIUS_BIAS_M``; None below two radii."""
+        if self.n_radii < 2:
+            return None
+        mean = self.radius_sum_m / self.n_radii
+        var = max(self.radius_sq_sum_m2 / self.n_radii - mean * mean, 0.0) * self.n_radii / (self.n_radii - 1)
+        return math.sqrt(var / self.n_radii + RADIUS_BIAS_M ** 2)
+
+    def size_ok(self, radius_m: float | None) -> bool:
+        """Whether its radius may be ``radius_m`` (None: any ball will do); with fewer than
+        ``SIZE_MIN_FRAMES`` radii in, not yet, unless its detections measure none."""
+        if radius_m is None or (self.n_radii == 0 and self.n_scores >= SIZE_MIN_FRAMES):
+            return True
+        if self.n_radii < SIZE_MIN_FRAMES:
+            return False
+        return abs(self.radius_m - radius_m) <= RADIUS_SIGMAS * self.radius_se_m
+
+    def reported(self, radius_m: float | None) -> bool:
+        """Whether the tracker answers with it this frame: confirmed, or not yet seen enough to be
+        confirmed but matched in this frame by a detection, its radius not shown to be another ball's
+        (a new ball is answered from its first frame, as a detector answers)."""
+        if self.confirmed:
+            return True
+        refuted = self.n_radii >= SIZE_MIN_FRAMES and not self.size_ok(radius_m)
+        return not self.seen and self.matched is not None and not refuted
+
+    def state_now(self, radius_m: float | None = None) -> "TrackState":
         return TrackState(self.track_id, self.confirmed, self.state[:3].copy(), self.state[3:].copy(),
-                          self.covariance.copy(), self.probability, self.radius_m, self.matched)
+                          self.covariance.copy(), self.probability, self.radius_m, self.radius_se_m, self.matched,
+                          self.reported(radius_m))
 
 
 class TrackState(NamedTuple):
     """A track as it stood after one frame (a copy: the tracker goes on): its id, whether it is
     confirmed, its filtered centre (3,) m and velocity (3,) m/s, camera frame, their covariance (6, 6),
-    its fused probability and radius (m; None where unmeasured), and the index of the frame's detection
-    it took (None: none)."""
+    its fused probability and radius (m; None where unmeasured) with the radius's standard error (m;
+    None below two radii), the index of the frame's detection it took (None: none), and whether it is
+    the tracker's answer in this frame (``Track.reported``)."""
 
     track_id: int
     confirmed: bool
@@ -115,7 +161,9 @@ class TrackState(NamedTuple):
     covariance: np.ndarray
     probability: float
     radius_m: float | None
+    radius_se_m: float | None
     matched: int | None
+    reported: bool
 
 
 def _log_odds(score: float) -> float:
@@ -129,10 +177,12 @@ class Tracker:
     detection each took)."""
 
     def __init__(self, gravity_m_s2=None, accel_noise_m_s2: float | None = None,
-                 measurement_sigma_m: float = MEASUREMENT_SIGMA_M):
+                 measurement_sigma_m: float = MEASUREMENT_SIGMA_M, radius_m: float | None = None):
         """gravity_m_s2: the camera frame's gravity (3,) m/s^2 where known (a level camera's is
         (0, 9.81, 0)); accel_noise_m_s2: default ``ACCEL_NOISE_M_S2``, or with gravity known
-        ``ACCEL_NOISE_GRAVITY_KNOWN_M_S2``."""
+        ``ACCEL_NOISE_GRAVITY_KNOWN_M_S2``; measurement_sigma_m: a detection's centre error where it
+        gives none; radius_m: the ball's radius (m), which a confirmed track's must match (None: any)."""
+        self.radius_m = None if radius_m is None else float(radius_m)
         self.gravity = np.zeros(3) if gravity_m_s2 is None else np.asarray(gravity_m_s2, np.float64).reshape(3)
         if accel_noise_m_s2 is None:
             accel_noise_m_s2 = ACCEL_NOISE_M_S2 if gravity_m_s2 is None else ACCEL_NOISE_GRAVITY_KNOWN_M_S2
@@ -149,7 +199,7 @@ class Tracker:
         self._check_time(time_s)
         for t in self.tracks:
             self._predict(t, time_s)
-        return [t.state_now() for t in self.tracks]
+        return [t.state_now(self.radius_m) for t in self.tracks]
 
     def _check_time(self, time_s: float) -> None:
         if self.time_s is not None and time_s < self.time_s:
@@ -208,12 +258,13 @@ class Tracker:
         self._reacquire(time_s, detections, taken)
         for t in self.tracks:
             t.hits = (t.hits + [t.matched is not None])[-CONFIRM_WINDOW:]
-            t.confirmed = t.confirmed or sum(t.hits) >= CONFIRM_HITS
+            t.seen = t.seen or sum(t.hits) >= CONFIRM_HITS
+            t.confirmed = t.seen and t.size_ok(self.radius_m)  # for as long as its radius may be the ball's
         self.tracks = [t for t in self.tracks if time_s - t.last_match_s <= MAX_MISSED_S]
         for j, d in enumerate(detections):
             if j not in taken:
                 self.tracks.append(self._start(time_s, d, j))
-        return [t.state_now() for t in self.tracks]
+        return [t.state_now(self.radius_m) for t in self.tracks]
 
     def _take(self, track: Track, time_s: float, d: Detection, index: int) -> None:
         """``track`` takes detection ``index``: its evidence joins the track's."""
@@ -222,6 +273,7 @@ class Tracker:
         track.n_scores += 1
         if d.radius_m is not None:
             track.radius_sum_m += float(d.radius_m)
+            track.radius_sq_sum_m2 += float(d.radius_m) ** 2
             track.n_radii += 1
 
     def _reacquire(self, time_s: float, detections: list[Detection], taken: set[int]) -> None:

@@ -145,7 +145,7 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
         rho = float(np.linalg.norm(out[VK.V_CX:VK.V_CZ + 1]))
         free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
     stats.update(depth_m=cz, n_inliers=float(n), rmse_m=float(out[VK.V_RMSE]), free_radius_m=free_r,
-                 free_radius_se_m=free_se, noise_ratio=frame.noise_ratio)
+                 free_radius_se_m=free_se, noise_ratio=frame.noise_ratio, noise_corr_px=frame.noise_corr_px)
     raw, score = verdict(stats, config.radius_m)
     # inliers: filled in for the reported spheres only (``verification_kernels.final_inliers``)
     return Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[VK.V_EPS]),

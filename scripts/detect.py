@@ -247,7 +247,7 @@ def _spheres_json(spheres) -> list[dict]:
 
 def _tracks_json(tracks) -> list[dict]:
     return [detections.track_record(t.track_id, t.confirmed, t.centre_m, t.velocity_m_s, t.probability, t.radius_m,
-                                    t.matched) for t in tracks]
+                                    t.matched, t.radius_se_m, t.reported) for t in tracks]
 
 
 def _print_result(args, raw: str, spheres, ms: float, radius: float, source: str, frame=None, tracks=None,

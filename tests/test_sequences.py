@@ -88,6 +88,7 @@ def test_the_motion_preset_writes_its_recordings_the_same_for_any_number_of_work
 def test_detect_track_follows_the_ball_of_a_recording_with_one_id(tmp_path, capsys):
     pytest.importorskip("rosbags")
     pytest.importorskip("pyrealsense2")
+    from spherebench.method.tracking import SIZE_MIN_FRAMES
     from spherebench.scripts import cli
 
     seq = sequences.build_sequence("rolling", 4, fps=30, duration_s=0.4)
@@ -97,9 +98,10 @@ def test_detect_track_follows_the_ball_of_a_recording_with_one_id(tmp_path, caps
     assert len(lines) == len(seq.times_s) == 12 and all("tracks" in line for line in lines)
     assert {line["search"] for line in lines} == {"full", "local"} and "cut_short" not in lines[0]  # no budget
     confirmed = [[t for t in line["tracks"] if t["confirmed"]] for line in lines]
-    assert all(len(c) == 1 and c[0]["track_id"] == 0 for c in confirmed[3:])  # from the third match on
+    first = SIZE_MIN_FRAMES - 1  # confirmed once its radius is measured
+    assert all(len(c) == 1 and c[0]["track_id"] == 0 for c in confirmed[first:])
     truth = [frame[0]["center_m"] for frame in seq.truth]
-    errors = [np.linalg.norm(np.subtract(c[0]["center_m"], t)) for c, t in zip(confirmed[3:], truth[3:])]
+    errors = [np.linalg.norm(np.subtract(c[0]["center_m"], t)) for c, t in zip(confirmed[first:], truth[first:])]
     assert max(errors) < 0.05
     assert cli.main(["detect", str(folder / "truth.json"), "--track"]) == 2  # tracks are a recording's
     assert "--track follows balls over a recording" in capsys.readouterr().err

@@ -10,7 +10,7 @@ import pytest
 from spherebench.camera import Intrinsics, image_rays
 from spherebench.cloud import cloud_from_depth, depth_to_metres
 from spherebench.datasets import sequences
-from spherebench.method import config_for, detect, stream
+from spherebench.method import config_for, detect, stream, tracking
 from spherebench.method.deadline import Deadline
 from spherebench.scripts import cli
 
@@ -67,10 +67,11 @@ def test_a_passed_deadline_cuts_the_detection_short_and_a_far_one_changes_nothin
 def test_track_stream_searches_windows_about_a_confirmed_ball(rolling):
     config = config_for("improved")
     out = list(stream.track_stream(_frames(rolling), config, seed=0))
-    assert [r.search for r in out[:3]] == ["full"] * 3  # none confirmed: the whole frame
-    assert all(r.search == "local" for r in out[4:]) and not any(r.cut_short for r in out)
+    first = tracking.SIZE_MIN_FRAMES - 1  # confirmed once its radius is measured
+    assert [r.search for r in out[:first + 1]] == ["full"] * (first + 1)  # none confirmed: the whole frame
+    assert all(r.search == "local" for r in out[first + 1:]) and not any(r.cut_short for r in out)
     rays = image_rays(rolling.intrinsics)
-    for r, truth in zip(out[3:], rolling.truth[3:]):
+    for r, truth in zip(out[first:], rolling.truth[first:]):
         (track,) = [t for t in r.tracks if t.confirmed]
         assert track.track_id == 0 and np.linalg.norm(track.centre_m - truth[0]["center_m"]) < 0.02
         (sphere,) = r.spheres

@@ -1,5 +1,5 @@
 """The benchmark's figures (matplotlib, Agg): precision-recall curves, centre error against
-distance, latency per method, a grid of example scenes with true and predicted circles, the
+distance, latency per method (and per stream of the tracking benchmark), a grid of example scenes with true and predicted circles, the
 robustness figure of a grid preset (rates per sensor condition and range band), and the reliability
 diagram of the 3D methods' scores.
 
@@ -106,6 +106,32 @@ def latency(per_dataset: dict, path: Path) -> None:
     ax.set_xlabel("ms per frame (one thread); box: quartiles, whiskers: 5th-95th percentile")
     ax.set_title("Latency per method")
     ax.grid(alpha=0.3, axis="x", which="both")
+    _save(fig, path)
+
+
+def track_latency(series: dict[str, tuple[np.ndarray, float]], path: Path) -> None:
+    """Histograms of time per frame (ms, log scale) of the streams of the tracking benchmark, one
+    panel per label (dataset and depth mode), a line per method, the frame period marked.
+    series: "label / method" -> (ms per frame, the period in ms)."""
+    plt = pyplot()
+    labels = sorted({k.split(" / ")[0] for k in series})
+    fig, axes = plt.subplots(len(labels), 1, figsize=(8, 2.4 * len(labels) + 0.6), squeeze=False)
+    for ax, label in zip(axes[:, 0], labels):
+        mine = {k.split(" / ")[1]: v for k, v in series.items() if k.split(" / ")[0] == label}
+        every = np.concatenate([ms for ms, _ in mine.values()])
+        if not every.size:
+            continue
+        edges = np.geomspace(max(every.min(), 0.05), every.max() * 1.05, 60)
+        for (method, (ms, period)), colour in zip(sorted(mine.items()), _colours(10)):
+            ax.hist(ms, bins=edges, histtype="step", lw=1.6, color=colour,
+                    label=f"{method} (median {np.median(ms):.2f}, p99 {np.percentile(ms, 99):.2f} ms)")
+            ax.axvline(period, color="grey", ls="--", lw=1)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(f"{label} (dashed: the frame period)", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3, which="both")
+    axes[-1, 0].set_xlabel("ms per frame (deprojection, detection, tracking; one thread)")
     _save(fig, path)
 
 

@@ -44,10 +44,12 @@ class FrameTruth:
 
 @dataclass
 class Answers:
-    """One frame's answers: ids (K,) (-1: none, a per-frame detector's) and centres (K, 3) m."""
+    """One frame's answers: ids (K,) (-1: none, a per-frame detector's), centres (K, 3) m, and
+    whether each is confirmed (K,) bool (None: all are; a detector's answers are its claims)."""
 
     ids: np.ndarray
     centres_m: np.ndarray
+    confirmed: np.ndarray | None = None
 
 
 def pair(truth_m: np.ndarray, answers_m: np.ndarray, gate_m: float) -> list[tuple[int, int, float]]:
@@ -65,7 +67,7 @@ def sequence_counts(truth: list[FrameTruth], answers: list[Answers], radius_m: f
     sq_error_m2 (their squared centre errors summed), misses, false (answers on no ball), switches
     (a ball's answer id changed), fragments (a ball's answers broken off and taken up again), near
     and found_near (the balls within ``NEAR_M``), distractor_frames (a distractor within
-    ``DISTRACTOR_RANGE_M`` with an answer on it)."""
+    ``DISTRACTOR_RANGE_M`` with a confirmed answer on it)."""
     if len(truth) != len(answers):
         raise ValueError(f"{len(answers)} frames of answers for {len(truth)} frames of truth")
     gate = SAME_BALL_FRACTION * radius_m
@@ -105,7 +107,8 @@ def sequence_counts(truth: list[FrameTruth], answers: list[Answers], radius_m: f
             ever.add(ball)
         near_distractors = t.distractors_m[np.linalg.norm(t.distractors_m, axis=-1) <= DISTRACTOR_RANGE_M] \
             if len(t.distractors_m) else t.distractors_m
-        c["distractor_frames"] += bool(pair(near_distractors, a.centres_m, gate))
+        sure = a.centres_m if a.confirmed is None else a.centres_m[a.confirmed]
+        c["distractor_frames"] += bool(pair(near_distractors, sure, gate))
     return c
 
 
