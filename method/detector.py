@@ -229,7 +229,8 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0, *,
            min_score: float | None = None, max_spheres: int | None = None,
-           deadline: Deadline | None = None, noise: FrameNoise | None = None) -> list[Sphere]:
+           deadline: Deadline | None = None, noise: FrameNoise | None = None, hints_m=None,
+           search_all: bool = True) -> list[Sphere]:
     """Find balls of radius ``config.radius_m`` in ``cloud``; best first.
 
     cloud: points (N, 3) metres in the camera frame (camera at the origin, z forward), organised
@@ -244,6 +245,10 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         pipeline runs to its end.
     noise: for an organised cloud that is a window of a frame, the frame's measured depth noise
         (``frame.FrameNoise``; a detection's ``evidence["frame_noise"]``), in place of the window's own.
+    hints_m: (K, 3) centres, m, where balls are expected (a tracker's predictions): an organised
+        cloud's improved pipeline verifies each first, from that start alone; search_all False: where
+        every hint is verified (accepted, or ranked below that), no other ball is searched for (a
+        window about one ball).
     Raises SphereBenchError on bad input (see the module docstring).
     """
     if not isinstance(config, DetectorConfig):
@@ -275,7 +280,8 @@ def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0
         # organised: NaN points get no pixel, so the searched points are the cloud's own
         frame = prepare_frame(cloud, config, noise)
         work, index, subsampled = cloud, None, False
-        found = run_improved(cloud.points, frame, config, search_seed(seed), least, max_spheres, deadline)
+        found = run_improved(cloud.points, frame, config, search_seed(seed), least, max_spheres, deadline,
+                             hints_m, search_all)
         depth = FrameDepth(frame)
     else:
         depth = None

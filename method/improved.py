@@ -58,8 +58,10 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         # unorganised: candidates far below the best cannot win, verifying them would only cost time
         if frame is None and q < unorganised.VERIFY_QUALITY_FRACTION * quals[0]:
             break
-        # a start within R of a sphere already accepted converges onto it, and would be suppressed
+        # a start within R of a sphere already accepted converges onto it, and would be suppressed; its
+        # score is an accepted sphere's (one accepted from a tracker's hint has no search score)
         if any(math.dist(c0, v.centre_m) < config.radius_m for v in found):
+            q_accepted = max(q_accepted, float(q))
             continue
         if deadline is not None and deadline.passed():
             break
@@ -90,7 +92,8 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
 
 def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: DetectorConfig,
                  seed: int, min_score: float | None = None, max_spheres: int | None = None,
-                 deadline: Deadline | None = None) -> list[Candidate]:
+                 deadline: Deadline | None = None, hints_m: np.ndarray | None = None,
+                 search_all: bool = True) -> list[Candidate]:
     """Search, verify the best candidates, drop the failed ones, suppress duplicates. Best first.
 
     frame: the prepared organised cloud, or None to treat ``points`` (N, 3) as unorganised.
@@ -98,11 +101,28 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     whose score is at least min_score (default ``verification.min_score``, never below ``rank_floor``),
     at most max_spheres (default ``verification.max_spheres``), are returned. deadline: the
     verifications and retries stop once it has passed (``deadline``); what was verified by then is
-    reported.
+    reported. hints_m (K, 3): centres where balls are expected (a tracker's predictions), verified
+    first, each from its own start (an organised frame's only); where one is accepted, the frame's
+    search looks only for balls apart from it; with search_all False, a frame whose every hint is
+    verified (accepted, or ranked below that) is not searched at all (a window about one ball).
     """
     ver = config.verification
     least = max(ver.min_score if min_score is None else min_score, ver.rank_floor)
     most = ver.max_spheres if max_spheres is None else max_spheres
+    found: list[Candidate] = []
+    ranked: list[Candidate] = []
+    hinted: list[np.ndarray] = []
+    if frame is not None and hints_m is not None and len(hints_m):
+        hints_m = np.asarray(hints_m, np.float64).reshape(-1, 3)
+        buf = workspace("inliers", (frame.index_image.size + 1,), np.int64)
+        # a tracker's prediction is within millimetres of its ball: one start each, no multistart
+        hinted = _verify_candidates(points, frame, hints_m, np.zeros(len(hints_m)), np.zeros(len(hints_m), bool),
+                                    config, buf, found, ranked, limit_none=len(hints_m), multistart=False,
+                                    deadline=deadline)
+        # a window about one ball: its hint verified (accepted, or ranked below that) is the answer; a
+        # search of the window would only verify the same ball again from other starts
+        if not search_all and len(found) + len(ranked) >= len(hints_m):
+            return _reported(frame, config, found, ranked, least, most, buf)
     if frame is not None:
         cands, quals, occluded = search.search_frame(frame, config, seed)
         # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
@@ -113,10 +133,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         cands, quals = unorganised.search_unorganised(points, config, seed)
         occluded = np.zeros(len(cands), bool)
         buf = None
-    found: list[Candidate] = []
-    ranked: list[Candidate] = []
-    verified = _verify_candidates(points, frame, cands, quals, occluded, config, buf, found, ranked,
-                                  deadline=deadline)
+    verified = hinted + _verify_candidates(points, frame, cands, quals, occluded, config, buf, found, ranked,
+                                           deadline=deadline)
     # organised frames where none is accepted: search again, the descent past occluders, then the
     # stencil stretched off the axis, then for discs standing out of their background, then for holes
     # ringed by a ball's face, and verify the hypotheses not verified before
@@ -128,7 +146,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         + ([lambda: search.disc_search(frame, config)] if config.retry.retry_disc else [])
         + ([lambda: search.hole_search(frame, config)] if config.retry.retry_hole else []))
     for retry in retries:
-        if found or (deadline is not None and deadline.passed()):  # a frame with a ball found pays nothing for the retries
+        # a frame with a ball found pays nothing for the retries
+        if found or (deadline is not None and deadline.passed()):
             break
         cands, quals, occluded = retry()
         new = [k for k, c in enumerate(cands)
@@ -138,6 +157,13 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         verified += _verify_candidates(points, frame, cands[new], quals[new], occluded[new], config, buf, found,
                                        ranked, limit_none=config.verification.verify_candidates, multistart=False,
                                        deadline=deadline)
+    return _reported(frame, config, found, ranked, least, most, buf)
+
+
+def _reported(frame: PreparedFrame | None, config: DetectorConfig, found: list[Candidate], ranked: list[Candidate],
+              least: float, most: int, buf: np.ndarray | None) -> list[Candidate]:
+    """The distinct spheres reported, best first: at least ``least`` probable, at most ``most``, each
+    re-centred on its outline where the noise nears R, with all its inliers."""
     # suppression before the cut, so that the spheres reported at any threshold are those above it at
     # the floor: a sphere is only ever suppressed by a better one
     kept: list[Candidate] = []

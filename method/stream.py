@@ -33,7 +33,7 @@ from spherebench.method import detect
 from spherebench.method import frame_kernels as FK
 from spherebench.method.deadline import Deadline
 from spherebench.method.noise import mean_variance_inflation
-from spherebench.method.tracking import Detection, Track, Tracker
+from spherebench.method.tracking import Detection, Tracker, TrackState
 
 # How a stream is searched while its balls are followed; each a fact of the stream or the sensor.
 FULL_SEARCH_EVERY_S = 0.5  # a ball that comes into view waits at most this long to be searched for, s
@@ -106,9 +106,10 @@ def detect_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=Non
     bound (``deadline``), or None."""
     rays = _Rays()
     for frame in frames:
+        frame_rays = rays(frame.intrinsics)  # once per stream: its set-up, not a frame's time
         t = time.perf_counter()
         deadline = None if budget_ms is None else Deadline.after_ms(budget_ms, t)
-        cloud = depth_cloud(frame.depth, frame.intrinsics, rays(frame.intrinsics))
+        cloud = depth_cloud(frame.depth, frame.intrinsics, frame_rays)
         spheres = detect(cloud, config, seed=(int(seed), int(frame.index)), deadline=deadline) if len(cloud) else []
         ms = (time.perf_counter() - t) * 1e3
         _count(stats, frame, len(cloud))
@@ -130,7 +131,7 @@ class TrackedFrame(NamedTuple):
 
     frame: DepthFrame
     spheres: list
-    tracks: list[Track]
+    tracks: list[TrackState]
     search: str
     cut_short: bool
     ms: float
@@ -145,8 +146,9 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
     k), a window's (seed, k, j); stats as ``detect_stream``'s."""
     rays = _Rays()
     tracker = Tracker(radius_m=config.radius_m) if tracker is None else tracker
-    last_full_s, lost, noise = -math.inf, True, None
+    last_full_s, lost, noise = -math.inf, True, None  # lost: no confirmed track to look about
     for frame in frames:
+        frame_rays = rays(frame.intrinsics)  # once per stream: its set-up, not a frame's time
         start = time.perf_counter()
         deadline = None if budget_ms is None else Deadline.after_ms(budget_ms, start)
         intr, time_s = frame.intrinsics, float(frame.timestamp_ms) / 1e3
@@ -154,12 +156,14 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
         if not lost and time_s - last_full_s < FULL_SEARCH_EVERY_S:
             windows = track_windows(tracker.predict(time_s), intr, config.radius_m)
         if windows is None:
-            cloud = depth_cloud(frame.depth, intr, rays(intr))
-            spheres = detect(cloud, config, seed=(int(seed), int(frame.index)), deadline=deadline) if len(cloud) else []
+            cloud = depth_cloud(frame.depth, intr, frame_rays)
+            hints = [t.centre_m for t in tracker.predict(time_s) if t.confirmed]  # then the rest of the frame
+            spheres = detect(cloud, config, seed=(int(seed), int(frame.index)), deadline=deadline,
+                             hints_m=np.array(hints).reshape(-1, 3)) if len(cloud) else []
             last_full_s, search = time_s, "full"
             _count(stats, frame, len(cloud))
         else:
-            spheres = _detect_in_windows(frame, rays(intr), windows, config, (int(seed), int(frame.index)), deadline,
+            spheres = _detect_in_windows(frame, frame_rays, windows, config, (int(seed), int(frame.index)), deadline,
                                          noise)
             search = "local"
             _count(stats, frame, 1)
@@ -167,7 +171,7 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
             noise = spheres[0].evidence.get("frame_noise", noise)  # the camera's noise, for the windows
         tracks = tracker.update(time_s, [_detection(s) for s in spheres])
         confirmed = [t for t in tracks if t.confirmed]
-        lost = not confirmed or any(t.matched is None for t in confirmed)
+        lost = not confirmed  # a confirmed track that missed is looked for about its prediction until it ends
         ms = (time.perf_counter() - start) * 1e3
         yield TrackedFrame(frame, spheres, tracks, search, deadline is not None and deadline.cut_short, ms)
 
@@ -184,11 +188,12 @@ def _detection(sphere) -> Detection:
                      float(sphere.free_radius_m) if math.isfinite(sphere.free_radius_m) else None, sigma)
 
 
-def track_windows(tracks: list[Track], intr: Intrinsics, radius_m: float) -> list[Window] | None:
+def track_windows(tracks: list[TrackState], intr: Intrinsics, radius_m: float) -> list[tuple[Window, np.ndarray]] | None:
     """Where each track's ball should be seen: a window about its predicted silhouette,
     ``WINDOW_RADII`` of its image radius and ``WINDOW_SIGMAS`` of its lateral error a side, clipped to
-    the image (one out of it is left out); None where they would cover more than ``WINDOW_MAX_SHARE``
-    of the image or a track is too near to place (the whole frame is cheaper or needed)."""
+    the image (one out of it is left out), with the predicted centre (3,) m; None where they would
+    cover more than ``WINDOW_MAX_SHARE`` of the image or a track is too near to place (the whole frame
+    is cheaper or needed)."""
     windows, covered = [], 0
     for t in tracks:
         x, y, z = (float(v) for v in t.centre_m)
@@ -202,23 +207,24 @@ def track_windows(tracks: list[Track], intr: Intrinsics, radius_m: float) -> lis
         v0, v1 = max(0, int(math.floor(v - half))), min(intr.height, int(math.ceil(v + half)) + 1)
         if u1 - u0 < 3 or v1 - v0 < 3:
             continue  # out of the image: a track that matches nothing ends by itself
-        windows.append((v0, v1, u0, u1))
+        windows.append(((v0, v1, u0, u1), np.array([x, y, z])))
         covered += (u1 - u0) * (v1 - v0)
     return windows if covered <= WINDOW_MAX_SHARE * intr.width * intr.height else None
 
 
-def _detect_in_windows(frame: DepthFrame, rays: np.ndarray, windows: list[Window], config, seed: tuple,
-                       deadline: Deadline | None, noise) -> list:
+def _detect_in_windows(frame: DepthFrame, rays: np.ndarray, windows: list[tuple[Window, np.ndarray]], config,
+                       seed: tuple, deadline: Deadline | None, noise) -> list:
     """The spheres found in the windows of a frame, in its own pixels and point indices, best first;
     one found in two overlapping windows is kept once. noise: the depth noise measured on the last
     whole frame searched (``frame.FrameNoise``), or None to measure each window's."""
     found = []
-    for j, window in enumerate(windows):
+    for j, (window, predicted_m) in enumerate(windows):
         if found and deadline is not None and deadline.passed():
             break
         cloud = depth_cloud(frame.depth, frame.intrinsics, rays, window)
-        try:
-            spheres = detect(cloud, config, seed=(*seed, j + 1), deadline=deadline, noise=noise)
+        try:  # verified from the prediction first; the window searched only where that fails
+            spheres = detect(cloud, config, seed=(*seed, j + 1), deadline=deadline, noise=noise,
+                             hints_m=predicted_m.reshape(1, 3), search_all=False)
         except SphereBenchError:  # a window with too few points, or too far for a ball: none in it
             continue
         found += [_in_frame(s, frame.depth, window, cloud) for s in spheres]

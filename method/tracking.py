@@ -133,13 +133,10 @@ class Track:
         return abs(self.radius_m - radius_m) <= RADIUS_SIGMAS * self.radius_se_m
 
     def reported(self, radius_m: float | None) -> bool:
-        """Whether the tracker answers with it this frame: confirmed, or not yet seen enough to be
-        confirmed but matched in this frame by a detection, its radius not shown to be another ball's
-        (a new ball is answered from its first frame, as a detector answers)."""
-        if self.confirmed:
-            return True
-        refuted = self.n_radii >= SIZE_MIN_FRAMES and not self.size_ok(radius_m)
-        return not self.seen and self.matched is not None and not refuted
+        """Whether the tracker answers with it this frame: confirmed, or new (fewer than
+        ``SIZE_MIN_FRAMES`` detections taken, so neither confirmed nor shown to be another ball yet)
+        and matched in this frame: a new ball is answered from its first frame, as a detector answers."""
+        return self.confirmed or (self.matched is not None and self.n_scores < SIZE_MIN_FRAMES)
 
     def state_now(self, radius_m: float | None = None) -> "TrackState":
         return TrackState(self.track_id, self.confirmed, self.state[:3].copy(), self.state[3:].copy(),

@@ -258,6 +258,12 @@ def deproject(intr: Intrinsics, u: np.ndarray, v: np.ndarray, z_m: np.ndarray) -
 
 def image_rays(intr: Intrinsics) -> np.ndarray:
     """Rays (H, W, 3) with z = 1 through every pixel centre, for ray casting and deprojection."""
+    if not intr.has_distortion:  # a row of x and a column of y, broadcast: no grid of pixel coordinates
+        rays = np.empty((intr.height, intr.width, 3), np.float64)
+        rays[..., 0] = ((np.arange(intr.width, dtype=np.float64) - intr.ppx) / intr.fx)[None, :]
+        rays[..., 1] = ((np.arange(intr.height, dtype=np.float64) - intr.ppy) / intr.fy)[:, None]
+        rays[..., 2] = 1.0
+        return rays
     v, u = np.mgrid[0:intr.height, 0:intr.width]
     return pixel_rays(intr, u.astype(np.float64), v.astype(np.float64))
 
