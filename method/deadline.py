@@ -1,9 +1,10 @@
 """A latency bound for one frame's detection: the time by which it must answer.
 
 The detector looks at its ``Deadline`` between its steps (before each candidate's verification and
-each retry of the search); once the time has passed it stops and reports the best verified answer
-it has, and ``cut_short`` says that it did. A step under way is finished: the bound is met to about
-one verification's cost (0.1-1 ms), plus the frame's preparation and first search, which always run.
+each retry of the search) and starts no step it would not finish in time: a step is expected to
+cost as much as the longest one between two looks so far. Once it stops it reports the best
+verified answer it has, and ``cut_short`` says that it did. The frame's preparation and first search
+always run, and a step longer than any before it may still overrun the bound.
 A detection under a deadline depends on the machine's speed; without one, on its seed alone.
 """
 
@@ -20,6 +21,8 @@ class Deadline:
     def __init__(self, at_s: float):
         self.at_s = float(at_s)
         self.cut_short = False
+        self._last_s: float | None = None  # the time of the last look
+        self._step_s = 0.0  # the longest time between two looks
 
     @classmethod
     def after_ms(cls, budget_ms: float, start_s: float | None = None) -> "Deadline":
@@ -30,8 +33,13 @@ class Deadline:
         return cls(math.inf if math.isinf(budget_ms) else start_s + budget_ms / 1e3)
 
     def passed(self) -> bool:
-        """Whether the time is up; a True answer marks the detection as cut short."""
-        if time.perf_counter() >= self.at_s:
+        """Whether the time is up for another step (the longest step so far would end past it); a
+        True answer marks the detection as cut short."""
+        now = time.perf_counter()
+        if self._last_s is not None:
+            self._step_s = max(self._step_s, now - self._last_s)
+        self._last_s = now
+        if now + self._step_s >= self.at_s:
             self.cut_short = True
             return True
         return False

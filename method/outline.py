@@ -184,11 +184,28 @@ def outline_size(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorCon
                         OUTLINE_GAP_SIGMAS, OUTLINE_BAND_PX, OUTLINE_BAND_FRACTION, res, count)
     if int(count.min()) < OUTLINE_MIN_SIDE:
         return None
-    pooled = np.concatenate([res[q, :count[q]] for q in range(4)])
-    spread = 1.4826 * float(np.median(np.abs(pooled - np.median(pooled))))
-    angle = math.asin(config.radius_m / rho) + float(np.mean([np.median(res[q, :count[q]]) for q in range(4)]))
-    se = math.hypot(1.2533 * spread / math.sqrt(pooled.size), OUTLINE_SIZE_FLOOR_PX / float(frame.prm[FK.P_FX]))
+    mean_median, spread, n = _size_statistics(res, count)
+    angle = math.asin(config.radius_m / rho) + mean_median
+    se = math.hypot(1.2533 * spread / math.sqrt(n), OUTLINE_SIZE_FLOOR_PX / float(frame.prm[FK.P_FX]))
     return angle, se
+
+
+@kernel
+def _size_statistics(res, count):
+    """``outline_size``'s statistics of the four quarters' residuals (res (4, M), count (4,)): the mean
+    of their medians, the pooled residuals' normal-consistent MAD, and their count."""
+    n = 0
+    for q in range(4):
+        n += count[q]
+    pooled = np.empty(n, np.float64)
+    k = 0
+    medians = 0.0
+    for q in range(4):
+        pooled[k:k + count[q]] = res[q, :count[q]]
+        k += count[q]
+        medians += np.median(res[q, :count[q]])
+    spread = 1.4826 * np.median(np.abs(pooled - np.median(pooled)))
+    return medians / 4.0, spread, n
 
 
 def outline_centre(frame: PreparedFrame, centre_m: np.ndarray, config: DetectorConfig) -> np.ndarray:

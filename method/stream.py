@@ -11,10 +11,10 @@
         print(r.frame.number, r.search, [(t.track_id, t.centre_m) for t in r.tracks if t.confirmed])
 
 Each frame is deprojected, detected and let go: memory stays bounded over an hour-long recording.
-``track_stream`` follows the balls (``tracking``): while every confirmed track found its ball in
-the last frame, a frame is searched only in a window about each track's predicted silhouette
-(``local``); the whole frame (``full``) when a track is lost, while none is confirmed, and at
-least every ``FULL_SEARCH_EVERY_S`` for balls that come into view.
+``track_stream`` follows the balls (``tracking``): while a track is confirmed, a frame is searched
+only in a window about each live track's predicted silhouette, the prediction verified first
+(``local``); the whole frame (``full``) while none is confirmed, and at least every
+``FULL_SEARCH_EVERY_S`` for balls that come into view.
 """
 
 from __future__ import annotations
@@ -125,9 +125,10 @@ def _count(stats, frame, n_points: int) -> None:
 
 class TrackedFrame(NamedTuple):
     """One frame of ``track_stream``: the frame, its spheres (best first; ``Sphere.inlier_indices``
-    into the whole frame's cloud, circles in its pixels), the live tracks after it (``tracking.Track``;
-    ``Track.matched`` indexes ``spheres``), how it was searched (``"full"``, ``"local"``), whether
-    the budget cut the detection short, and its time (ms: deprojection, detection and tracking)."""
+    into the whole frame's cloud, circles in its pixels), the live tracks after it
+    (``tracking.TrackState``; ``matched`` indexes ``spheres``, ``reported`` is the tracker's answer),
+    how it was searched (``"full"``, ``"local"``), whether the budget cut the detection short, and
+    its time (ms: deprojection, detection and tracking)."""
 
     frame: DepthFrame
     spheres: list
@@ -142,8 +143,8 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
     """The detector and a tracker over a stream of depth frames, in time order: a ``TrackedFrame``
     per frame, lazily. budget_ms: each frame's latency bound (``deadline``; None: none, and the
     output is the seed's alone); tracker: default ``tracking.Tracker`` for a ball of the
-    configuration's radius. Frame k's seed is (seed,
-    k), a window's (seed, k, j); stats as ``detect_stream``'s."""
+    configuration's radius. Frame k's seed is (seed, k), a window's (seed, k, j); stats as
+    ``detect_stream``'s."""
     rays = _Rays()
     tracker = Tracker(radius_m=config.radius_m) if tracker is None else tracker
     last_full_s, lost, noise = -math.inf, True, None  # lost: no confirmed track to look about

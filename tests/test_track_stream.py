@@ -85,6 +85,16 @@ def test_track_stream_searches_windows_about_a_confirmed_ball(rolling):
     assert [r.tracks[0].centre_m.tolist() for r in again] == [r.tracks[0].centre_m.tolist() for r in out]
 
 
+def test_a_deadline_starts_no_step_longer_than_the_time_left():
+    import time
+
+    deadline = Deadline.after_ms(80.0)
+    assert not deadline.passed()  # the first look: no step measured yet
+    time.sleep(0.045)  # a 45 ms step: another would end past the 80 ms
+    assert deadline.passed() and deadline.cut_short
+    assert not Deadline.after_ms(float("inf")).passed()
+
+
 @pytest.mark.parametrize("value", ["0", "-5", "nan", "soon"])
 def test_a_budget_that_is_no_time_is_one_line(value, capsys, tmp_path):
     assert cli.main(["detect", str(tmp_path / "r.bag"), "--budget-ms", value]) == 2
