@@ -41,7 +41,7 @@ WINDOW_RADII = 2.0  # a window's half-side, in the ball's image radii: verificat
 WINDOW_SIGMAS = 3.0  # and this many standard deviations of the prediction's lateral error
 WINDOW_MAX_SHARE = 0.25  # windows covering more of the image than this: the whole frame is searched instead
 # A detection's centre errs by this many standard errors of the mean of its inliers' depth noise, per
-# axis: 1.7 through the analytic sensor model, 1.4 through the stereo one, on the motion training
+# axis: 1.7 through the analytic sensor model, 1.3 through the stereo one, on the motion training
 # recordings (docs/experiments/2026-12-06-tracking.md)
 CENTRE_ERROR_FACTOR = 1.5
 

@@ -52,9 +52,9 @@ MAX_MISSED_S = 0.3
 REACQUIRE_M = 0.5
 #: A detection's score is clipped to this distance from 0 and 1 before it counts as evidence.
 SCORE_CLIP = 1e-3
-#: The error of a track's mean free radius that no count of frames averages out, m: the spread of
-#: the per-track means about the true radius on the motion training recordings (1.3 mm through the
-#: analytic sensor model, 3.1 mm through the stereo one; docs/experiments/2026-12-06-tracking.md).
+#: The error of a track's mean free radius that no count of frames averages out, m: the RMS of the
+#: sequences' mean free radius about the true one over the motion training recordings of both sensor
+#: models (1.3 mm over 24 analytic, 3.2 mm over 8 stereo; docs/experiments/2026-12-06-tracking.md).
 RADIUS_BIAS_M = 0.002
 #: A track's radius is another ball's beyond this many standard errors (a true ball fails 0.3 %).
 RADIUS_SIGMAS = 3.0
