@@ -122,11 +122,12 @@ def add_counts(counts: list[dict]) -> dict:
 
 
 def summary(c: dict) -> dict:
-    """Rates of summed counts: found (share of ball-frames), found_near, rmse_m (of the matched),
-    mota, switches_per_100 (identity switches per 100 matched frames)."""
+    """Rates of summed counts: found_share (of the ball-frames), found_near_share (of those within
+    ``NEAR_M``), rmse_m (of the matched), mota, switches_per_100 (identity switches per 100 matched
+    frames)."""
     balls = max(c["balls"], 1)
-    return {"found": c["found"] / balls if c["balls"] else float("nan"),
-            "found_near": c["found_near"] / c["near"] if c["near"] else float("nan"),
+    return {"found_share": c["found"] / balls if c["balls"] else float("nan"),
+            "found_near_share": c["found_near"] / c["near"] if c["near"] else float("nan"),
             "rmse_m": float(np.sqrt(c["sq_error_m2"] / c["matched"])) if c["matched"] else float("nan"),
             "mota": 1.0 - (c["misses"] + c["false"] + c["switches"]) / balls if c["balls"] else float("nan"),
             "switches_per_100": 100.0 * c["switches"] / c["matched"] if c["matched"] else 0.0}
