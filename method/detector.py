@@ -11,7 +11,7 @@ Input handling (one rule each, documented here):
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -24,7 +24,7 @@ from spherebench.method.deadline import Deadline
 from spherebench.method.frame import MM_LIMIT_M, FrameNoise, PreparedFrame
 from spherebench.method.frame_kernels import finite_rows
 from spherebench.method.improved import run_improved
-from spherebench.method.outline import outline_centre
+from spherebench.method.outline import outline_centre, outline_size
 from spherebench.method.unorganised import shell_counts, shell_indices
 from spherebench.method.paper import PaperTrace, run_paper
 
@@ -215,16 +215,39 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
     m2 = centre @ centre - tc * tc
     t_ball = tc - np.sqrt(np.maximum(config.radius_m ** 2 - m2, 0.0))
     organised = cloud_from_depth(np.where(m2 < config.radius_m ** 2, t_ball * u[..., 2], 1.5 * centre[2]), intr)
-    for cloud in (organised, Cloud(organised.points)):
+    # the paths of a frame with a ball, of one without (every retry of the search) and of one whose
+    # noise nears R (the multistart, the outline); a kernel's first call in a process loads it, which
+    # a stream's first such frame would otherwise pay (tens of ms each)
+    plane = cloud_from_depth(np.full(intr.shape, 1.5 * centre[2]), intr)
+    noisy = replace(config, noise=replace(config.noise, noise_z2_per_m=config.radius_m / centre[2] ** 2))
+    for cloud, cfg in ((organised, config), (Cloud(organised.points), config), (plane, config), (organised, noisy)):
         try:
-            detect(cloud, config, seed=0)
+            detect(cloud, cfg, seed=0)
         except SphereBenchError:  # a configuration this frame does not suit (a 5 m ball): best effort
             pass
-    # outline centring runs only where the depth noise nears R, which this frame's ball does not reach
-    outline_centre(prepare_frame(organised, config), centre, config)
+    # outline centring and sizing run only where the depth noise nears R, which this frame's ball does
+    # not reach
+    prepared = prepare_frame(organised, config)
+    outline_centre(prepared, centre, config)
+    outline_size(prepared, centre, config)
+    # a window of the frame, searched from a hint with the frame's noise (a tracker's local search)
+    v0, u0 = intr.height // 4, intr.width // 4
+    window = Cloud(*_window_points(organised, v0, u0), intr.window(v0, intr.height - v0, u0, intr.width - u0))
+    try:
+        detect(window, config, seed=0, noise=prepared.noise, hints_m=centre.reshape(1, 3), search_all=False)
+    except SphereBenchError:
+        pass
     # the paper pipeline's candidate counting runs only where its global draws found a candidate, which
     # on this small frame they may not
     shell_counts(organised.points, centre.reshape(1, 3), config.radius_m, config.eps_m)
+
+
+def _window_points(cloud: Cloud, v0: int, u0: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points, rows and columns of an organised cloud within rows v0..H-v0, columns u0..W-u0,
+    in the window's pixels."""
+    h, w = cloud.intrinsics.shape
+    keep = (cloud.rows >= v0) & (cloud.rows < h - v0) & (cloud.cols >= u0) & (cloud.cols < w - u0)
+    return cloud.points[keep], cloud.rows[keep] - v0, cloud.cols[keep] - u0
 
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0, *,
