@@ -191,9 +191,12 @@ class Tracker:
         self.time_s: float | None = None
 
     def predict(self, time_s: float) -> list[TrackState]:
-        """Every live track advanced to ``time_s``: where to look for its ball in that frame (its
-        centre and covariance); ``update`` at the same time goes on from there."""
+        """Every track still live at ``time_s``, advanced to it: where to look for its ball in that
+        frame (its centre and covariance); ``update`` at the same time goes on from there."""
         self._check_time(time_s)
+        # a track unmatched for too long by now has ended, before it can take anything (after a gap in
+        # the stream its prediction would spread over the whole room)
+        self.tracks = [t for t in self.tracks if time_s - t.last_match_s <= MAX_MISSED_S]
         for t in self.tracks:
             self._predict(t, time_s)
         return [t.state_now(self.radius_m) for t in self.tracks]

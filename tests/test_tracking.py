@@ -79,3 +79,14 @@ def test_flickering_false_detections_are_never_confirmed_and_a_lost_track_ends()
                                                   for tr in tracker.tracks)
     with pytest.raises(ValueError, match="time order"):
         tracker.update(later - 1.0, [])
+
+
+def test_a_gap_in_the_clock_ends_the_tracks_and_a_new_one_starts():
+    tracker = Tracker()
+    ball = np.array([0.0, 0.5, 2.0])
+    for k in range(CONFIRM_HITS):
+        tracks = tracker.update(k / FPS, [Detection(ball, 0.9)])
+    assert [tr.track_id for tr in tracks if tr.confirmed] == [0]
+    # two seconds without a frame (a recording's gap): the ball is met again elsewhere
+    tracks = tracker.update(2.0 + CONFIRM_HITS / FPS, [Detection(ball + [1.0, 0.0, 0.0], 0.9)])
+    assert [(tr.track_id, tr.confirmed) for tr in tracks] == [(1, False)]
