@@ -49,10 +49,18 @@ def next_u01(state):
 _WORKSPACE: dict = {}
 
 
+#: A scratch array smaller than this (bytes) is made afresh: its page faults cost little, and the
+#: windows of a tracked stream, a new size each frame, would otherwise evict the whole frame's buffers.
+WORKSPACE_MIN_BYTES = 1 << 18
+
+
 def workspace(name: str, shape: tuple, dtype) -> np.ndarray:
     """A reused scratch array (contents undefined): a fresh multi-megabyte array per frame costs
     more in page faults than the kernels that fill it. One per (name, shape, dtype, thread)."""
-    key = (name, shape, np.dtype(dtype).str, threading.get_ident())
+    dtype = np.dtype(dtype)
+    if int(np.prod(shape)) * dtype.itemsize < WORKSPACE_MIN_BYTES:
+        return np.empty(shape, dtype)
+    key = (name, shape, dtype.str, threading.get_ident())
     buf = _WORKSPACE.get(key)
     if buf is None:
         if len(_WORKSPACE) > 32:  # many resolutions or threads: start over rather than grow
