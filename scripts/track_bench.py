@@ -29,7 +29,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("datasets", nargs="+", metavar="DIR", help="datasets of the motion presets (generate --preset motion)")
     p.add_argument("--out", type=options.out_path, default=None, metavar="OUT",
                    help="write OUT.md and OUT.json (default: print only)")
-    p.add_argument("--figure", default=None, metavar="PNG", help="write the latency histogram here")
+    p.add_argument("--figure", default=None, metavar="PNG",
+                   help="write the latency histogram here (a file SphereBench did not write is refused)")
     p.add_argument("--seed", type=options.seed, default=0, help="the detector's seed")
     p.add_argument("--budget-ms", type=options.budget_ms, default=None, metavar="MS",
                    help="each frame's latency bound (default: its stream's frame period; none: no bound, the "
@@ -55,6 +56,8 @@ def _budget_words(budget_ms: float | None) -> str:
 def run(args: argparse.Namespace) -> int:
     if args.out:
         outputs.check_report_out(args.out, "track-bench")
+    if args.figure:
+        outputs.check_output_file(args.figure, "--figure", inputs=args.datasets)
     found = [_dataset(p) for p in args.datasets]  # every dataset checked before any work
     by_dataset, rows_by_dataset, stereo = {}, {}, set()
     for name, meta, folders in found:
@@ -90,8 +93,8 @@ def run(args: argparse.Namespace) -> int:
                                      1000.0 / next(x["fps"] for x in rows if x["resolution"] == r))
               for name, rows in rows_by_dataset.items() for r in sorted({x["resolution"] for x in rows})
               for m in tracks.METHODS}
-    if args.figure:
-        figures.track_latency(series, Path(args.figure))
+    if args.figure:  # marked as ours: the next run may replace it
+        outputs.atomic_write_bytes(args.figure, outputs.mark_png(figures.track_latency(series)))
     if args.out:
         data = {"seed": args.seed, "version": __version__,
                 "groups": {name: [{"family": f, "resolution": r, "method": m, **a} for (f, r, m), a in g.items()]

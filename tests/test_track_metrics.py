@@ -96,3 +96,7 @@ def test_track_bench_scores_a_small_motion_dataset_and_refuses_others(tmp_path, 
     assert cli.run_module("track_bench", track_bench, [str(tmp_path / "report")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a dataset of moving-ball recordings" in err[0]
+    theirs = tmp_path / "theirs.png"  # a picture the user made: never overwritten
+    theirs.write_bytes(b"not ours")
+    assert cli.run_module("track_bench", track_bench, [str(data), "--figure", str(theirs), "--no-real-time"]) == 2
+    assert "was not written by SphereBench" in capsys.readouterr().err and theirs.read_bytes() == b"not ours"

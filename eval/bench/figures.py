@@ -10,6 +10,7 @@ frame, and writes one PNG.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Sequence
 
@@ -109,10 +110,10 @@ def latency(per_dataset: dict, path: Path) -> None:
     _save(fig, path)
 
 
-def track_latency(series: dict[str, tuple[np.ndarray, float]], path: Path) -> None:
+def track_latency(series: dict[str, tuple[np.ndarray, float]]) -> bytes:
     """Histograms of time per frame (ms, log scale) of the streams of the tracking benchmark, one
-    panel per label (dataset and depth mode), a line per method, the frame period marked.
-    series: "label / method" -> (ms per frame, the period in ms)."""
+    panel per label (dataset and depth mode), a line per method, the frame period marked; the PNG's
+    bytes. series: "label / method" -> (ms per frame, the period in ms)."""
     plt = pyplot()
     labels = sorted({k.split(" / ")[0] for k in series})
     fig, axes = plt.subplots(len(labels), 1, figsize=(8, 2.4 * len(labels) + 0.6), squeeze=False)
@@ -132,7 +133,10 @@ def track_latency(series: dict[str, tuple[np.ndarray, float]], path: Path) -> No
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3, which="both")
     axes[-1, 0].set_xlabel("ms per frame (deprojection, detection, tracking; one thread)")
-    _save(fig, path)
+    out = io.BytesIO()
+    fig.savefig(out, format="png", dpi=110, bbox_inches="tight")
+    pyplot().close(fig)
+    return out.getvalue()
 
 
 def _top_circles(s, scene_id: str, k: int) -> list[tuple[float, float, float, float]]:
