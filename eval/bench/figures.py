@@ -116,6 +116,7 @@ def track_latency(series: dict[str, tuple[np.ndarray, float]]) -> bytes:
     bytes. series: "label / method" -> (ms per frame, the period in ms)."""
     plt = pyplot()
     labels = sorted({k.split(" / ")[0] for k in series})
+    methods = sorted({k.split(" / ")[1] for k in series})
     fig, axes = plt.subplots(len(labels), 1, figsize=(8, 2.4 * len(labels) + 0.6), squeeze=False)
     for ax, label in zip(axes[:, 0], labels):
         mine = {k.split(" / ")[1]: v for k, v in series.items() if k.split(" / ")[0] == label}
@@ -123,16 +124,20 @@ def track_latency(series: dict[str, tuple[np.ndarray, float]]) -> bytes:
         if not every.size:
             continue
         edges = np.geomspace(max(every.min(), 0.05), every.max() * 1.05, 60)
-        for (method, (ms, period)), colour in zip(sorted(mine.items()), _colours(10)):
+        for method, (ms, period) in sorted(mine.items()):
+            colour = _colours(10)[methods.index(method)]  # a method's colour the same in every panel
             ax.hist(ms, bins=edges, histtype="step", lw=1.6, color=colour,
                     label=f"{method} (median {np.median(ms):.2f}, p99 {np.percentile(ms, 99):.2f} ms)")
             ax.axvline(period, color="grey", ls="--", lw=1)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())  # decades only: no crowded labels
+        ax.set_ylabel("frames", fontsize=8)
         ax.set_title(f"{label} (dashed: the frame period)", fontsize=9)
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3, which="both")
     axes[-1, 0].set_xlabel("ms per frame (deprojection, detection, tracking; one thread)")
+    fig.subplots_adjust(hspace=0.45)
     out = io.BytesIO()
     fig.savefig(out, format="png", dpi=110, bbox_inches="tight")
     pyplot().close(fig)
