@@ -214,7 +214,8 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
     tc = u @ centre
     m2 = centre @ centre - tc * tc
     t_ball = tc - np.sqrt(np.maximum(config.radius_m ** 2 - m2, 0.0))
-    organised = cloud_from_depth(np.where(m2 < config.radius_m ** 2, t_ball * u[..., 2], 1.5 * centre[2]), intr)
+    depth_m = np.where(m2 < config.radius_m ** 2, t_ball * u[..., 2], 1.5 * centre[2])
+    organised = cloud_from_depth(depth_m, intr)
     # the paths of a frame with a ball, of one without (every retry of the search) and of one whose
     # noise nears R (the multistart, the outline); a kernel's first call in a process loads it, which
     # a stream's first such frame would otherwise pay (tens of ms each)
@@ -231,8 +232,8 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
     outline_centre(prepared, centre, config)
     outline_size(prepared, centre, config)
     # a window of the frame, searched from a hint with the frame's noise (a tracker's local search)
-    v0, u0 = intr.height // 4, intr.width // 4
-    window = Cloud(*_window_points(organised, v0, u0), intr.window(v0, intr.height - v0, u0, intr.width - u0))
+    v0, v1, u0, u1 = intr.height // 4, intr.height - intr.height // 4, intr.width // 4, intr.width - intr.width // 4
+    window = cloud_from_depth(depth_m[v0:v1, u0:u1], intr.window(v0, v1, u0, u1), rays[v0:v1, u0:u1])
     try:
         detect(window, config, seed=0, noise=prepared.noise, hints_m=centre.reshape(1, 3), search_all=False)
     except SphereBenchError:
@@ -240,14 +241,6 @@ def warm_up(config: DetectorConfig = IMPROVED) -> None:
     # the paper pipeline's candidate counting runs only where its global draws found a candidate, which
     # on this small frame they may not
     shell_counts(organised.points, centre.reshape(1, 3), config.radius_m, config.eps_m)
-
-
-def _window_points(cloud: Cloud, v0: int, u0: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The points, rows and columns of an organised cloud within rows v0..H-v0, columns u0..W-u0,
-    in the window's pixels."""
-    h, w = cloud.intrinsics.shape
-    keep = (cloud.rows >= v0) & (cloud.rows < h - v0) & (cloud.cols >= u0) & (cloud.cols < w - u0)
-    return cloud.points[keep], cloud.rows[keep] - v0, cloud.cols[keep] - u0
 
 
 def detect(cloud: Cloud, config: DetectorConfig = IMPROVED, seed: int | None = 0, *,

@@ -112,9 +112,12 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     found: list[Candidate] = []
     ranked: list[Candidate] = []
     hinted: list[np.ndarray] = []
+    # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the cloud,
+    # so that frames of one stream reuse it (a fresh 7 MB buffer per 1280x720 frame cost more in page
+    # faults than the detection)
+    buf = None if frame is None else workspace("inliers", (frame.index_image.size + 1,), np.int64)
     if frame is not None and hints_m is not None and len(hints_m):
         hints_m = np.asarray(hints_m, np.float64).reshape(-1, 3)
-        buf = workspace("inliers", (frame.index_image.size + 1,), np.int64)
         # a tracker's prediction is within millimetres of its ball: one start each, no multistart
         hinted = _verify_candidates(points, frame, hints_m, np.zeros(len(hints_m)), np.zeros(len(hints_m), bool),
                                     config, buf, found, ranked, limit_none=len(hints_m), multistart=False,
@@ -125,14 +128,9 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
             return _reported(frame, config, found, ranked, least, most, buf)
     if frame is not None:
         cands, quals, occluded = search.search_frame(frame, config, seed)
-        # gather_window's index buffer: one silhouette's pixels at most. Sized by the image, not the
-        # cloud, so that frames of one stream reuse it (a fresh 7 MB buffer per 1280x720 frame cost
-        # more in page faults than the detection)
-        buf = workspace("inliers", (frame.index_image.size + 1,), np.int64)
     else:
         cands, quals = unorganised.search_unorganised(points, config, seed)
         occluded = np.zeros(len(cands), bool)
-        buf = None
     verified = hinted + _verify_candidates(points, frame, cands, quals, occluded, config, buf, found, ranked,
                                            deadline=deadline)
     # organised frames where none is accepted: search again, the descent past occluders, then the

@@ -153,12 +153,13 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
         start = time.perf_counter()
         deadline = None if budget_ms is None else Deadline.after_ms(budget_ms, start)
         intr, time_s = frame.intrinsics, float(frame.timestamp_ms) / 1e3
+        predicted = tracker.predict(time_s)
         windows = None
         if not lost and time_s - last_full_s < FULL_SEARCH_EVERY_S:
-            windows = track_windows(tracker.predict(time_s), intr, config.radius_m)
+            windows = track_windows(predicted, intr, config.radius_m)
         if windows is None:
             cloud = depth_cloud(frame.depth, intr, frame_rays)
-            hints = [t.centre_m for t in tracker.predict(time_s) if t.confirmed]  # then the rest of the frame
+            hints = [t.centre_m for t in predicted if t.confirmed]  # then the rest of the frame
             spheres = detect(cloud, config, seed=(int(seed), int(frame.index)), deadline=deadline,
                              hints_m=np.array(hints).reshape(-1, 3)) if len(cloud) else []
             last_full_s, search = time_s, "full"
@@ -241,11 +242,11 @@ def _in_frame(sphere, depth: np.ndarray, window: Window, cloud: Cloud):
     """A sphere found in a window's ``cloud``, its circles moved to the frame's pixels and its inlier
     indices to the whole frame's cloud (points in row-major order of the pixels with depth)."""
     v0, v1, u0, u1 = window
-    has = depth != 0
-    before_row = np.concatenate([[0], np.cumsum(np.count_nonzero(has, axis=1))])
-    in_row = np.cumsum(has[v0:v1], axis=1) - 1  # a pixel with depth: its rank in its row, from u = 0
+    has = depth[v0:v1] != 0  # the window's rows only: the rows above count as a whole
+    before_row = np.count_nonzero(depth[:v0]) + np.concatenate([[0], np.cumsum(np.count_nonzero(has, axis=1))[:-1]])
+    in_row = np.cumsum(has, axis=1) - 1  # a pixel with depth: its rank in its row, from u = 0
     r, c = cloud.rows[sphere.inlier_indices], cloud.cols[sphere.inlier_indices]
-    sphere.inlier_indices = (before_row[r + v0] + in_row[r, c + u0]).astype(np.int64)
+    sphere.inlier_indices = (before_row[r] + in_row[r, c + u0]).astype(np.int64)
     shift = np.array([u0, v0, 0.0])
     if sphere.circle_exact is not None:
         sphere.circle_exact = tuple(float(a) for a in np.asarray(sphere.circle_exact) + shift)

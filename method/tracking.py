@@ -132,16 +132,17 @@ class Track:
             return False
         return abs(self.radius_m - radius_m) <= RADIUS_SIGMAS * self.radius_se_m
 
-    def reported(self, radius_m: float | None) -> bool:
+    @property
+    def reported(self) -> bool:
         """Whether the tracker answers with it this frame: confirmed, or new (fewer than
         ``SIZE_MIN_FRAMES`` detections taken, so neither confirmed nor shown to be another ball yet)
         and matched in this frame: a new ball is answered from its first frame, as a detector answers."""
         return self.confirmed or (self.matched is not None and self.n_scores < SIZE_MIN_FRAMES)
 
-    def state_now(self, radius_m: float | None = None) -> "TrackState":
+    def state_now(self) -> "TrackState":
         return TrackState(self.track_id, self.confirmed, self.state[:3].copy(), self.state[3:].copy(),
                           self.covariance.copy(), self.probability, self.radius_m, self.radius_se_m, self.matched,
-                          self.reported(radius_m))
+                          self.reported)
 
 
 class TrackState(NamedTuple):
@@ -199,7 +200,7 @@ class Tracker:
         self.tracks = [t for t in self.tracks if time_s - t.last_match_s <= MAX_MISSED_S]
         for t in self.tracks:
             self._predict(t, time_s)
-        return [t.state_now(self.radius_m) for t in self.tracks]
+        return [t.state_now() for t in self.tracks]
 
     def _check_time(self, time_s: float) -> None:
         if self.time_s is not None and time_s < self.time_s:
@@ -264,7 +265,7 @@ class Tracker:
         for j, d in enumerate(detections):
             if j not in taken:
                 self.tracks.append(self._start(time_s, d, j))
-        return [t.state_now(self.radius_m) for t in self.tracks]
+        return [t.state_now() for t in self.tracks]
 
     def _take(self, track: Track, time_s: float, d: Detection, index: int) -> None:
         """``track`` takes detection ``index``: its evidence joins the track's."""
