@@ -16,7 +16,6 @@ import numpy as np
 
 from spherebench.cloud import Cloud
 from spherebench.method import frame_kernels as FK
-from spherebench.method import verification_kernels as VK
 from spherebench.method.compiled import workspace
 from spherebench.method.config import DetectorConfig
 from spherebench.method.noise import (
@@ -256,5 +255,3 @@ class PreparedFrame:
         self.gate = np.array([config.radius_tolerance_m if fit.size_check else math.inf, fit.size_sigmas], np.float64)
         #: no early stop (``rescore``: a start's whole score and size verdict count)
         self.no_gate = np.array([math.inf, fit.size_sigmas], np.float64)
-        self.vout = np.empty(VK.N_VOUT, np.float64)
-        self.vstats = np.empty(VK.N_STATS, np.float64)

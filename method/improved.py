@@ -148,8 +148,8 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         if found or (deadline is not None and deadline.passed()):
             break
         cands, quals, occluded = retry()
-        new = [k for k, c in enumerate(cands)
-               if all(math.dist(c, c1) > RETRY_NEW_FRACTION * config.radius_m for c1 in verified)]
+        apart = np.linalg.norm(cands[:, None, :] - np.reshape(verified, (1, -1, 3)), axis=2)
+        new = np.flatnonzero((apart > RETRY_NEW_FRACTION * config.radius_m).all(axis=1))
         # the best verify_candidates of a retry's new hypotheses, each verified from one start: on `train`
         # 16, or the multistart of noisy ones, found about as many balls, at twice the time on an empty frame
         verified += _verify_candidates(points, frame, cands[new], quals[new], occluded[new], config, buf, found,

@@ -10,7 +10,7 @@ maps that vector to the probability that a ball's centre lies within 2 cm (3 cm 
 candidate's, calibrated on scenes held apart from its fit.
 
 The model ships as ONNX beside this module (``verdict.onnx``, its card ``verdict_card.md``); it is
-run by onnxruntime, one candidate at a time, on one thread. The calibration map travels in the
+run by onnxruntime on one thread, the candidates verified together (``verification.verify_starts``) in one call. The calibration map travels in the
 model's metadata (``calibration_knots``: score and probability knots, linear between them), so
 that one file holds the verdict.
 """
@@ -152,8 +152,15 @@ class FittedVerdict:
     def scores(self, stats: dict, radius_m: float) -> tuple[float, float]:
         """One candidate's (model score, calibrated probability of being a ball); stats:
         ``verdict_features``'."""
-        s = float(self.model_scores(verdict_features(stats, radius_m))[0])
-        return s, float(np.interp(s, self.knots_score, self.knots_p))
+        return self.batch_scores([stats], radius_m)[0]
+
+    def batch_scores(self, stats: list[dict], radius_m: float) -> list[tuple[float, float]]:
+        """``scores`` of several candidates in one run of the model (its per-call cost is most of one
+        candidate's; each row's result is the same as alone)."""
+        x = np.stack([verdict_features(s, radius_m) for s in stats])
+        s = self.model_scores(x)
+        p = np.interp(s, self.knots_score, self.knots_p)
+        return [(float(a), float(b)) for a, b in zip(s, p)]
 
     def probability(self, stats: dict, radius_m: float) -> float:
         """One candidate's calibrated probability of being a ball (stats: ``verdict_features``')."""
@@ -183,9 +190,11 @@ def unscored(score: float = 0.5):
         _UNSCORED.pop()
 
 
-def verdict(stats: dict, radius_m: float) -> tuple[float, float]:
-    """(raw score, probability) of one verified candidate: the fitted verdict's
-    (``FittedVerdict.scores``), or ``unscored``'s constant."""
+def verdicts(stats: list[dict], radius_m: float) -> list[tuple[float, float]]:
+    """(raw score, probability) of each verified candidate: the fitted verdict's
+    (``FittedVerdict.batch_scores``), or ``unscored``'s constant."""
+    if not stats:
+        return []
     if _UNSCORED:
-        return _UNSCORED[-1], _UNSCORED[-1]
-    return load_verdict().scores(stats, radius_m)
+        return [(_UNSCORED[-1], _UNSCORED[-1])] * len(stats)
+    return load_verdict().batch_scores(stats, radius_m)

@@ -17,18 +17,20 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from spherebench.circles import norm3
 from spherebench.method import frame_kernels as FK
 from spherebench.method import verification_kernels as VK
+from spherebench.method.compiled import workspace
 from spherebench.method.config import DetectorConfig
 from spherebench.method.frame import PreparedFrame
 from spherebench.method.noise import mean_variance_inflation
 from spherebench.method.outline import (
     OUTLINE_EVIDENCE_MIN_MOVE_PX, OUTLINE_EVIDENCE_MIN_SCORE, OUTLINE_EVIDENCE_NOISE_FRACTION, outline_centre,
     outline_size)
-from spherebench.method.verdict import verdict
+from spherebench.method.verdict import verdicts
 
 # Where verification starts from; each chosen on the training splits
 # (docs/experiments/2026-12-04-config-history.md and the records it points to).
@@ -88,40 +90,95 @@ def size_ok(free_r: float, free_se: float, config: DetectorConfig) -> bool:
 
 def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
                      gate: np.ndarray | None = None, hold_direction: bool = False) -> Candidate | None:
-    """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it.
-    Where one pixel's noise at the refined centre is at least ``OUTLINE_EVIDENCE_NOISE_FRACTION`` R
-    (``DetectorConfig.outline.outline_evidence``), the candidate is then re-centred on its outline and
+    """Refine one candidate of an organised cloud, measure its evidence, fit the free radius, score it
+    (``verify_starts`` from the one start c0 (3,) m)."""
+    return verify_starts(frame, np.asarray(c0, np.float64).reshape(1, 3), config, buf, gate, hold_direction)[0]
+
+
+def verify_starts(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+                  gate: np.ndarray | None = None, hold_direction: bool = False) -> list[Candidate | None]:
+    """Verify from each of starts_m (K, 3) m apart: refine, measure the evidence, fit the free radius,
+    score; None where too few inliers remain or the kernel's size gate stops it. The starts share one
+    kernel call and one run of the verdict (a candidate's several starts: ``verify_multistart``, ``rescore``).
+    Where one pixel's noise at a refined centre is at least ``OUTLINE_EVIDENCE_NOISE_FRACTION`` R
+    (``DetectorConfig.outline.outline_evidence``), that candidate is then re-centred on its outline and
     verified again from there with its direction held: the cap's relief leaves the refined centre a
     pixel or more beside the ball, and the evidence is taken where the outline says the ball is.
     gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
     fits move the centre along its ray only (``fit_kernels.fit_range``)."""
-    v = _verify_once(frame, c0, config, buf, gate, hold_direction)
-    if (v is None or hold_direction or not config.outline.outline_evidence or v.score < OUTLINE_EVIDENCE_MIN_SCORE
-            or frame.noise_a * float(v.centre_m[2]) ** 2 < OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m):
-        return v
-    oc = outline_centre(frame, v.centre_m, config)
-    size = outline_size(frame, oc, config) if config.outline.outline_size else None
-    # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
-    if size is None and (float(np.linalg.norm(oc - v.centre_m)) * frame.prm[FK.P_FX] / float(oc[2])
-                         < OUTLINE_EVIDENCE_MIN_MOVE_PX):
-        return v
-    # the kernel's early stop judges the depth fit's radius, which the outline's replaces
-    return _verify_once(frame, oc, config, buf, gate if size is None else frame.no_gate, True, size)
+    found = _verify_batch(frame, starts_m, config, buf, gate, hold_direction, [None] * len(starts_m))
+    if hold_direction or not config.outline.outline_evidence:
+        return found
+    # the candidates verified again from their outline, by the gate they take: the kernel's early stop
+    # judges the depth fit's radius, which an outline's size replaces
+    again: dict[bool, tuple[list[int], list[np.ndarray], list]] = {False: ([], [], []), True: ([], [], [])}
+    for k, v in enumerate(found):
+        if (v is None or v.score < OUTLINE_EVIDENCE_MIN_SCORE
+                or frame.noise_a * float(v.centre_m[2]) ** 2 < OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m):
+            continue
+        oc = outline_centre(frame, v.centre_m, config)
+        size = outline_size(frame, oc, config) if config.outline.outline_size else None
+        # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
+        if size is None and (float(np.linalg.norm(oc - v.centre_m)) * frame.prm[FK.P_FX] / float(oc[2])
+                             < OUTLINE_EVIDENCE_MIN_MOVE_PX):
+            continue
+        which, centres, sizes = again[size is not None]
+        which.append(k)
+        centres.append(oc)
+        sizes.append(size)
+    for sized, (which, centres, sizes) in again.items():
+        if which:
+            redone = _verify_batch(frame, np.array(centres), config, buf, frame.no_gate if sized else gate, True,
+                                   sizes)
+            for k, v in zip(which, redone):
+                found[k] = v
+    return found
 
 
-def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, buf: np.ndarray,
-                 gate: np.ndarray | None, hold_direction: bool,
-                 size: tuple[float, float] | None = None) -> Candidate | None:
-    """One pass of the verification kernel (``verification_kernels.verify_organised``) from c0, scored. size: the
-    outline's angular radius and its standard error (``outline_size``), which then give the size
-    check's radius in place of the depth fit's (at the verified centre's distance)."""
-    out, st = frame.vout, frame.vstats  # reused per candidate: what is kept is copied out below
-    VK.verify_organised(frame.points, frame.index_image, np.asarray(c0, np.float64), frame.prm,
-                       config.refinement.refine_iterations, VK.FIT_MAX_POINTS,
-                       VK.RAY_S_MIN_FRACTION, NOISE_FROM_DATA,
-                       frame.gate if gate is None else gate, hold_direction, buf, out, st)
+def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+                  gate: np.ndarray | None, hold_direction: bool,
+                  sizes: list[tuple[float, float] | None]) -> list[Candidate | None]:
+    """One pass of the verification kernel (``verification_kernels.verify_organised``) from each start
+    (K, 3) m, scored together. sizes: per start, None or the outline's angular radius and its standard
+    error (``outline_size``), which then give the size check's radius in place of the depth fit's (at
+    the verified centre's distance)."""
+    outs = np.empty((len(starts_m), VK.N_VOUT))
+    sts = np.empty((len(starts_m), VK.N_STATS))
+    starts_m = np.ascontiguousarray(starts_m, np.float64)
+    args = (frame.prm, config.refinement.refine_iterations, VK.FIT_MAX_POINTS, VK.RAY_S_MIN_FRACTION,
+            NOISE_FROM_DATA, frame.gate if gate is None else gate, hold_direction)
+    threads = min(numba.get_num_threads(), len(starts_m))
+    if threads == 1:  # waking the thread pool for one start costs a third of its verification
+        for c0, out, st in zip(starts_m, outs, sts):
+            VK.verify_organised(frame.points, frame.index_image, c0, *args, buf, out, st)
+    else:  # one inlier buffer per thread
+        idx = workspace("inliers_per_thread", (threads, len(buf)), np.int64)
+        VK.verify_many(frame.points, frame.index_image, starts_m, *args, idx, outs, sts)
+    measured = [_measurements(frame, out, st, config, size) for out, st, size in zip(outs, sts, sizes)]
+    kept = [m for m in measured if m is not None]
+    scored = iter(verdicts([m[0] for m in kept], config.radius_m))
+    found: list[Candidate | None] = []
+    for out, m in zip(outs, measured):
+        if m is None:
+            found.append(None)
+            continue
+        stats, (free_r, free_se) = m
+        raw, score = next(scored)
+        # inliers: filled in for the reported spheres only (``verification_kernels.final_inliers``)
+        found.append(Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(),
+                               eps_m=float(out[VK.V_EPS]), free_centre_m=out[VK.V_FCX:VK.V_FCZ + 1].copy(),
+                               free_radius_m=free_r, free_radius_se_m=free_se, rmse_m=float(out[VK.V_RMSE]),
+                               stats=stats, score=score, size_ok=size_ok(free_r, free_se, config), raw_score=raw))
+    return found
+
+
+def _measurements(frame: PreparedFrame, out: np.ndarray, st: np.ndarray, config: DetectorConfig,
+                  size: tuple[float, float] | None) -> tuple[dict, tuple[float, float]] | None:
+    """One start's kernel output out (N_VOUT,) and statistics st (N_STATS,) as the verdict's stats and
+    the size check's (free radius m, its standard error m); None with too few inliers or failing the
+    kernel's size gate (out[V_N] = -1)."""
     n = int(out[VK.V_N])
-    if n < config.verification.min_inliers:  # too few, or failed the size check (-1)
+    if n < config.verification.min_inliers:
         return None
     stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
     # pixels per effective sample of the evidence's counts and zone means: the window's stride
@@ -133,7 +190,7 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
     # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
     # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
     # quantisation steps) would otherwise fail a real ball's zone means by a few mm
-    stats["sigma_m"] = frame.prm[FK.P_NOISE_A] * float(out[VK.V_CZ]) ** 2
+    stats["sigma_m"] = frame.prm[FK.P_NOISE_A] * cz ** 2
     stats["sigma_measured_m"] = float(out[VK.V_SIGMA])
     stats["eps_m"] = float(out[VK.V_EPS])
     # the share of the silhouette's pixels with depth that no nearer surface hides (an occluder: more
@@ -146,12 +203,7 @@ def _verify_once(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig, b
         free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
     stats.update(depth_m=cz, n_inliers=float(n), rmse_m=float(out[VK.V_RMSE]), free_radius_m=free_r,
                  free_radius_se_m=free_se, noise_ratio=frame.noise_ratio, noise_corr_px=frame.noise_corr_px)
-    raw, score = verdict(stats, config.radius_m)
-    # inliers: filled in for the reported spheres only (``verification_kernels.final_inliers``)
-    return Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[VK.V_EPS]),
-                     free_centre_m=out[VK.V_FCX:VK.V_FCZ + 1].copy(), free_radius_m=free_r,
-                     free_radius_se_m=free_se, rmse_m=float(out[VK.V_RMSE]), stats=stats, score=score,
-                     size_ok=size_ok(free_r, free_se, config), raw_score=raw)
+    return stats, (free_r, free_se)
 
 
 def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
@@ -161,8 +213,8 @@ def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConf
     refinement's end depends on its start by a few cm, and a hypothesis a few cm off converges
     off the ball's optimum. The best-scoring verification that passes the size check is kept."""
     best = None
-    for off in ((0.0, 0.0, 0.0),) + RESCORE_STARTS:
-        v = verify_organised(frame, c0 + config.radius_m * np.asarray(off), config, buf)
+    for v in verify_starts(frame, c0 + config.radius_m * np.asarray(((0.0, 0.0, 0.0),) + RESCORE_STARTS), config,
+                           buf):
         if v is not None and v.size_ok and (best is None or v.score > best.score):
             best = v
     return best
@@ -198,8 +250,8 @@ def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: 
     "score_single", the first score (see ``RESCORE_BAND``); the raw score is averaged alike."""
     scores, raws = [cand.score], [cand.raw_score]
     size_ok = [cand.size_ok]
-    for off in RESCORE_STARTS:
-        v = verify_organised(frame, cand.centre_m + config.radius_m * np.asarray(off), config, buf, frame.no_gate)
+    for v in verify_starts(frame, cand.centre_m + config.radius_m * np.asarray(RESCORE_STARTS), config, buf,
+                           frame.no_gate):
         scores.append(0.0 if v is None else v.score)
         raws.append(0.0 if v is None else v.raw_score)
         size_ok.append(v is not None and v.size_ok)

@@ -8,8 +8,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import prange
 
-from spherebench.method.compiled import kernel, part
+from spherebench.method.compiled import kernel, part, threaded_kernel
 from spherebench.method.fit_kernels import fit_range, fit_ray, ray_step, refine_fixed_radius, unit_rays
 from spherebench.method.frame_kernels import P_EPS, P_EPS_CAP, P_FX, P_FY, P_NOISE_A, P_NOISE_K, P_PPX, P_PPY, P_R
 from spherebench.method.noise import noise_eps
@@ -460,6 +461,20 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
     out[V_CX], out[V_CY], out[V_CZ], out[V_EPS], out[V_N] = c[0], c[1], c[2], e, n * stride * stride
     out[V_RMSE] = rms
     out[V_SIGMA] = sigma
+
+
+@threaded_kernel
+def verify_many(points, index_image, starts, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
+                hold_direction, idx, outs, stats):
+    """``verify_organised`` from each of starts (K, 3) m, into outs (K, N_VOUT) and stats (K, N_STATS):
+    a candidate's several starts (``verification.verify_starts``), shared among idx's rows (T, n), one
+    thread's scratch each: thread t takes starts t, t + T, ... (each start's result is the same
+    whichever thread takes it)."""
+    n_threads = idx.shape[0]
+    for t in prange(n_threads):
+        for k in range(t, starts.shape[0], n_threads):
+            verify_organised(points, index_image, starts[k], prm, refine_iterations, max_fit_points, s_min,
+                             data_noise, size_gate, hold_direction, idx[t], outs[k], stats[k])
 
 
 @kernel

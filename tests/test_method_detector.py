@@ -332,14 +332,16 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     scores = iter([first] + again)
     starts = []
 
-    def fake_verify(frame, c0, config, buf, gate=None):
+    def fake_verify(c0):
         starts.append(np.asarray(c0))
         s = next(scores)
         return None if s is None else verification_stage.Candidate(centre_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
                                                   free_centre_m=c.copy(), free_radius_m=R, free_radius_se_m=0.001,
                                                   rmse_m=0.002, stats={}, score=s, size_ok=True, raw_score=s)
 
-    monkeypatch.setattr(verification_stage, "verify_organised", fake_verify)
+    # every verification, of one start or several, goes through verify_starts
+    monkeypatch.setattr(verification_stage, "verify_starts",
+                        lambda frame, starts_m, config, buf, gate=None, hold_direction=False: [fake_verify(c0) for c0 in starts_m])
     found = detect(cloud, IMPROVED, seed=0)
     assert (len(found) == 1) == accepted
     rescored = abs(first - IMPROVED.verification.accept_score) < 0.15
@@ -349,6 +351,43 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     if accepted and rescored:
         assert found[0].score == found[0].raw_score == pytest.approx((first + sum(s or 0.0 for s in again)) / 7)
         assert found[0].evidence["score_single"] == first
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_starts_verified_together_are_each_as_alone(threads, monkeypatch):
+    """verify_starts: a candidate's starts share one kernel call (over numba's threads) and one run of the
+    verdict, and each start's candidate is the one it gets alone: a far ball in a loud noise (its outline
+    pass runs), from the multistart's seven starts and two wild ones, with and without the kernel's gate."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < threads:
+        pytest.skip(f"numba has {numba.config.NUMBA_NUM_THREADS} thread(s) here")
+    cfg = config_for("improved")
+    c = np.array([0.2, -0.1, 2.8])
+    cloud = scene(ball_c=tuple(c), wall_z=3.6, noise=0.02, width=424, height=240)
+    frame = frame_stage.PreparedFrame(cloud, cfg)
+    # the outline pass on at this noise (a sixth of R at the ball), and its sized and unsized kinds
+    monkeypatch.setattr(verification_stage, "OUTLINE_EVIDENCE_NOISE_FRACTION", 0.1)
+    assert frame.noise_a * c[2] ** 2 >= 0.1 * R
+    buf = compiled.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+    offsets = np.asarray(((0.0, 0.0, 0.0),) + verification_stage.RESCORE_STARTS + ((2.0, 0.0, 0.0), (0.0, 0.0, -3.0)))
+    starts = c + R * offsets
+    saved = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        for gate, config in ((None, cfg), (frame.no_gate, cfg), (None, cfg.override({"outline.outline_size": False}))):
+            together = verification_stage.verify_starts(frame, starts, config, buf, gate)
+            alone = [verification_stage.verify_organised(frame, c0, config, buf, gate) for c0 in starts]
+            assert sum(v is not None and v.score >= outline_stage.OUTLINE_EVIDENCE_MIN_SCORE for v in alone) >= 3
+            assert any(v is None for v in alone)  # a wild start fails, and its neighbours keep their own
+            for a, b in zip(together, alone):
+                assert (a is None) == (b is None)
+                if a is not None:
+                    assert np.array_equal(a.centre_m, b.centre_m) and a.stats == b.stats
+                    assert (a.score, a.raw_score, a.size_ok, a.free_radius_m) == (b.score, b.raw_score, b.size_ok,
+                                                                                   b.free_radius_m)
+    finally:
+        numba.set_num_threads(saved)
 
 
 def _occluded_frames(n: int, hidden: tuple[float, float], z_max_m: float):
