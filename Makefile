@@ -8,7 +8,7 @@ WORKERS ?= 2
 
 REALDATA ?= ../shared/realdata
 
-.PHONY: help eval test venv stream-bench track-bench data data-motion data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide data-resolution realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real pattern clean distclean
+.PHONY: help eval test venv stream-bench track-bench pcl-bench data data-motion data-hard data-hard-sensor data-robust data-train data-stereo data-train-stereo data-wide data-resolution realdata bench robustness sweep sweep-train train train-analytic train-full train-hg eval-real pattern clean distclean
 
 # ---- help: every target with its line (the `## ` comment after the target's name)
 help:  ## list the targets with one line each
@@ -155,6 +155,11 @@ stream-bench: venv  ## per-frame latency and frames dropped of `detect` on recor
 track-bench: venv data-motion  ## tracks, latency and frames dropped on moving-ball recordings -> results/track_bench.md
 	$(PY) -m spherebench.scripts.track_bench $(DATA)/motion $(DATA)/motion-stereo --seed $(SEED) \
 		--out results/track_bench --figure results/figures/track_latency.png
+
+# the detector against PCL's sphere segmentation on the same held-out clouds (default's cluttered scenes at
+# 424x240), in one run; PCL is a C++ library: needs the system's (Debian: apt-get install libpcl-dev)
+pcl-bench: venv data  ## the detector against PCL's sphere segmentation (needs libpcl-dev) -> results/pcl_bench.md
+	$(PY) -m spherebench.scripts.pcl_bench $(DATA)/default --family cluttered --seed $(SEED) --out results/pcl_bench
 
 clean:  ## remove build files
 	rm -rf .pytest_cache build *.egg-info
