@@ -86,6 +86,20 @@ def test_ab_timing_of_one_configuration_against_itself(train4, tmp_path, capsys)
 
 
 
+def test_frame_cost_splits_the_time_and_both_thread_counts_agree(train4, tmp_path, capsys):
+    import numba
+
+    threads = min(2, numba.config.NUMBA_NUM_THREADS)
+    res, text = _run("frame_cost", [str(train4), "--passes", "2", "--threads", str(threads)], tmp_path, capsys)
+    assert len(res["frames"]) == 4
+    for r in res["frames"]:
+        assert r["same_detections"]  # the detections do not depend on the thread count
+        assert 0.0 < r["kernel_ms"] < r["one_thread_ms"] < 5000.0 and 0.0 < r["threads_ms"] < 5000.0
+    for s in res["summary"]:
+        assert 0.0 < s["kernel_share"] < 1.0 and s["bound_median_ms"] < s["one_median_ms"]
+    assert "kernels halved" in text
+
+
 def test_code_sizes_counts_a_checkouts_modules_and_long_functions(tmp_path, capsys):
     import subprocess
 
