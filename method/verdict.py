@@ -152,13 +152,15 @@ class FittedVerdict:
     def scores(self, stats: dict, radius_m: float) -> tuple[float, float]:
         """One candidate's (model score, calibrated probability of being a ball); stats:
         ``verdict_features``'."""
-        return self.batch_scores([stats], radius_m)[0]
+        s = float(self.model_scores(verdict_features(stats, radius_m))[0])
+        return s, float(np.interp(s, self.knots_score, self.knots_p))
 
     def batch_scores(self, stats: list[dict], radius_m: float) -> list[tuple[float, float]]:
         """``scores`` of several candidates in one run of the model (its per-call cost is most of one
         candidate's; each row's result is the same as alone)."""
-        x = np.stack([verdict_features(s, radius_m) for s in stats])
-        s = self.model_scores(x)
+        if len(stats) == 1:  # a third less than a batch of one
+            return [self.scores(stats[0], radius_m)]
+        s = self.model_scores(np.stack([verdict_features(s, radius_m) for s in stats]))
         p = np.interp(s, self.knots_score, self.knots_p)
         return [(float(a), float(b)) for a, b in zip(s, p)]
 

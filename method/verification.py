@@ -109,13 +109,15 @@ def verify_starts(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     found = _verify_batch(frame, starts_m, config, buf, gate, hold_direction, [None] * len(starts_m))
     if hold_direction or not config.outline.outline_evidence:
         return found
+    loud = [k for k, v in enumerate(found) if v is not None and v.score >= OUTLINE_EVIDENCE_MIN_SCORE
+            and frame.noise_a * float(v.centre_m[2]) ** 2 >= OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m]
+    if not loud:
+        return found
     # the candidates verified again from their outline, by the gate they take: the kernel's early stop
     # judges the depth fit's radius, which an outline's size replaces
     again: dict[bool, tuple[list[int], list[np.ndarray], list]] = {False: ([], [], []), True: ([], [], [])}
-    for k, v in enumerate(found):
-        if (v is None or v.score < OUTLINE_EVIDENCE_MIN_SCORE
-                or frame.noise_a * float(v.centre_m[2]) ** 2 < OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m):
-            continue
+    for k in loud:
+        v = found[k]
         oc = outline_centre(frame, v.centre_m, config)
         size = outline_size(frame, oc, config) if config.outline.outline_size else None
         # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
@@ -147,7 +149,7 @@ def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     starts_m = np.ascontiguousarray(starts_m, np.float64)
     args = (frame.prm, config.refinement.refine_iterations, VK.FIT_MAX_POINTS, VK.RAY_S_MIN_FRACTION,
             NOISE_FROM_DATA, frame.gate if gate is None else gate, hold_direction)
-    threads = min(numba.get_num_threads(), len(starts_m))
+    threads = 1 if len(starts_m) == 1 else min(numba.get_num_threads(), len(starts_m))
     if threads == 1:  # waking the thread pool for one start costs a third of its verification
         for c0, out, st in zip(starts_m, outs, sts):
             VK.verify_organised(frame.points, frame.index_image, c0, *args, buf, out, st)
@@ -155,8 +157,8 @@ def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
         idx = workspace("inliers_per_thread", (threads, len(buf)), np.int64)
         VK.verify_many(frame.points, frame.index_image, starts_m, *args, idx, outs, sts)
     measured = [_measurements(frame, out, st, config, size) for out, st, size in zip(outs, sts, sizes)]
-    kept = [m for m in measured if m is not None]
-    scored = iter(verdicts([m[0] for m in kept], config.radius_m))
+    kept = [m[0] for m in measured if m is not None]
+    scored = iter(verdicts(kept, config.radius_m) if kept else ())
     found: list[Candidate | None] = []
     for out, m in zip(outs, measured):
         if m is None:

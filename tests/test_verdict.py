@@ -61,6 +61,20 @@ def test_the_shipped_model_loads_and_ranks_a_ball_above_a_wall():
     assert np.all(np.diff(v.knots_p) >= 0) and np.all(np.diff(v.knots_score) >= 0)
 
 
+def test_a_batch_scores_each_candidate_as_alone():
+    """FittedVerdict.batch_scores: one run of the model for several candidates, each row's (raw,
+    probability) equal to ``scores``' on it alone; ``verdicts`` of none is none."""
+    from spherebench.method.verdict import verdicts
+
+    model = load_verdict()
+    batch = [ball_stats(), ball_stats(inner_sum=150 * 0.01), ball_stats(free_radius_m=0.105, behind=120.0),
+             ball_stats(depth_m=3.1, sigma_m=0.02)]
+    together = model.batch_scores(batch, R)
+    assert together == [model.scores(s, R) for s in batch] == verdicts(batch, R)
+    assert len({t[0] for t in together}) > 1  # the rows differ: no row took another's answer
+    assert verdicts([], R) == [] and model.batch_scores(batch[:1], R) == [model.scores(batch[0], R)]
+
+
 def test_the_shipped_model_never_rises_with_what_a_ball_would_not_show():
     """Monotone in the physical facts (``verdict_fit.MONOTONE``): more of the silhouette seen behind
     the sphere, through it or on its edge band never makes a candidate more probable."""
