@@ -177,7 +177,8 @@ class Tracker:
     def __init__(self, gravity_m_s2=None, accel_noise_m_s2: float | None = None,
                  measurement_sigma_m: float = MEASUREMENT_SIGMA_M, radius_m: float | None = None):
         """gravity_m_s2: the camera frame's gravity (3,) m/s^2 where known (a level camera's is
-        (0, 9.81, 0)); accel_noise_m_s2: default ``ACCEL_NOISE_M_S2``, or with gravity known
+        (0, 9.81, 0)), for balls in flight only: every track then falls, which a rolled, carried or
+        resting ball does not; accel_noise_m_s2: default ``ACCEL_NOISE_M_S2``, or with gravity known
         ``ACCEL_NOISE_GRAVITY_KNOWN_M_S2``; measurement_sigma_m: a detection's centre error where it
         gives none; radius_m: the ball's radius (m), which a confirmed track's must match (None: any)."""
         self.radius_m = None if radius_m is None else float(radius_m)
