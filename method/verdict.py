@@ -10,9 +10,9 @@ maps that vector to the probability that a ball's centre lies within 2 cm (3 cm 
 candidate's, calibrated on scenes held apart from its fit.
 
 The model ships as ONNX beside this module (``verdict.onnx``, its card ``verdict_card.md``); it is
-run by onnxruntime on one thread, the candidates verified together (``verification.verify_starts``) in one call. The calibration map travels in the
-model's metadata (``calibration_knots``: score and probability knots, linear between them), so
-that one file holds the verdict.
+run by onnxruntime on one thread, the candidates verified together (``verification.verify_starts``)
+in one call. The calibration map travels in the model's metadata (``calibration_knots``: score and
+probability knots, linear between them), so that one file holds the verdict.
 """
 
 from __future__ import annotations
