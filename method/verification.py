@@ -113,26 +113,22 @@ def verify_starts(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
             and frame.noise_a * float(v.centre_m[2]) ** 2 >= OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m]
     if not loud:
         return found
-    # the candidates verified again from their outline, by the gate they take: the kernel's early stop
-    # judges the depth fit's radius, which an outline's size replaces
-    again: dict[bool, tuple[list[int], list[np.ndarray], list]] = {False: ([], [], []), True: ([], [], [])}
+    again = []  # (index, outline centre, outline size or None): verified again from the outline
     for k in loud:
-        v = found[k]
-        oc = outline_centre(frame, v.centre_m, config)
+        oc = outline_centre(frame, found[k].centre_m, config)
         size = outline_size(frame, oc, config) if config.outline.outline_size else None
         # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
-        if size is None and (float(np.linalg.norm(oc - v.centre_m)) * frame.prm[FK.P_FX] / float(oc[2])
+        if size is None and (float(np.linalg.norm(oc - found[k].centre_m)) * frame.prm[FK.P_FX] / float(oc[2])
                              < OUTLINE_EVIDENCE_MIN_MOVE_PX):
             continue
-        which, centres, sizes = again[size is not None]
-        which.append(k)
-        centres.append(oc)
-        sizes.append(size)
-    for sized, (which, centres, sizes) in again.items():
-        if which:
-            redone = _verify_batch(frame, np.array(centres), config, buf, frame.no_gate if sized else gate, True,
-                                   sizes)
-            for k, v in zip(which, redone):
+        again.append((k, oc, size))
+    # one batch per gate: the kernel's early stop judges the depth fit's radius, which an outline's size replaces
+    for sized in (False, True):
+        group = [a for a in again if (a[2] is not None) == sized]
+        if group:
+            redone = _verify_batch(frame, np.array([a[1] for a in group]), config, buf,
+                                   frame.no_gate if sized else gate, True, [a[2] for a in group])
+            for (k, _, _), v in zip(group, redone):
                 found[k] = v
     return found
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import platform
 import sys
 from pathlib import Path
@@ -21,6 +22,7 @@ from spherebench.baselines.pcl_peer import PclPeer, PclSettings, build_peer, pcl
 from spherebench.datasets import outputs
 from spherebench.errors import SphereBenchError
 from spherebench.eval.bench import pcl_ratio
+from spherebench.eval.bench.speed import subset
 from spherebench.eval.bench.tasks import dataset_scenes
 from spherebench.method import config_for
 from spherebench.provenance import dist_version
@@ -56,9 +58,8 @@ def run(args: argparse.Namespace) -> int:
         raise SphereBenchError(f"{args.dataset}: no frame of {args.resolution}"
                                + (f" in family {', '.join(args.family)}" if args.family else "")
                                + ": check --family and --resolution against its dataset.json")
-    if args.limit is not None and args.limit < len(scenes):
-        step = len(scenes) / args.limit
-        scenes = [scenes[int(k * step)] for k in range(args.limit)]
+    if args.limit is not None:
+        scenes = [scenes[k] for k in subset(len(scenes), args.limit)]
     config = config_for("improved")
     settings = [PclSettings(radius_m=config.radius_m, max_iterations=n,
                             samples_max_dist_m=0.0 if args.global_samples else 2.0 * config.radius_m)
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(md))
     if args.out:
         data = {"dataset": str(args.dataset), "families": args.family, "resolution": args.resolution,
-                "seed": args.seed, "pcl_version": pcl_version(), "pcl": [st.__dict__ for st in settings], "summary": s,
+                "seed": args.seed, "pcl_version": pcl_version(), "pcl": [dataclasses.asdict(st) for st in settings], "summary": s,
                 "rows": rows}
         paths = outputs.write_report(args.out, "\n".join(md) + "\n", data, "pcl-bench")
         print("wrote {} and {}".format(*paths), file=sys.stderr)

@@ -1,7 +1,7 @@
 """The benchmark's figures (matplotlib, Agg): precision-recall curves, centre error against
-distance, latency per method (and per stream of the tracking benchmark), a grid of example scenes with true and predicted circles, the
-robustness figure of a grid preset (rates per sensor condition and range band), and the reliability
-diagram of the 3D methods' scores.
+distance, latency per method (and per stream of the tracking benchmark), a grid of example scenes
+with true and predicted circles, the robustness figure of a grid preset (rates per sensor condition
+and range band), and the reliability diagram of the 3D methods' scores.
 
 Each function draws from scored prediction sets (``eval.bench.scoring.ScoredSet``), ``robustness`` from
 the per-cell rows that metrics.json holds, ``reliability_diagram`` from ``eval.bench.calibration``'s
@@ -140,7 +140,7 @@ def track_latency(series: dict[str, tuple[np.ndarray, float]]) -> bytes:
     fig.subplots_adjust(hspace=0.45)
     out = io.BytesIO()
     fig.savefig(out, format="png", dpi=110, bbox_inches="tight")
-    pyplot().close(fig)
+    plt.close(fig)
     return out.getvalue()
 
 
