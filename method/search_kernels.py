@@ -435,6 +435,8 @@ def disc_hypotheses(tab, prm, z_min_m, inner_fraction, side_offset_fraction, sid
             behind = 0
             q = 0.0
             for k in range(4):
+                if behind + 4 - k < min_behind:  # the sides left cannot make up the count (most cells)
+                    break
                 dv = -d if k == 0 else (d if k == 1 else 0)
                 du = -d if k == 2 else (d if k == 3 else 0)
                 ms, ns = box_range(tab, prm, v + dv, u + du, hs)
