@@ -151,8 +151,8 @@ def frame_noise_correlation_px(points: np.ndarray, index_image: np.ndarray, conf
     return length if length >= NOISE_CORRELATION_MIN_PX * bin_px else 0.0
 
 
-@functools.lru_cache(maxsize=64)  # every verified candidate of a frame asks with the same arguments
-def mean_variance_inflation(length_px: float, stride: int = 1) -> float:
+@kernel  # compiled: verification's measurements ask for it per candidate (``verification_kernels.measurements``)
+def mean_variance_inflation(length_px, stride=1):
     """How much more a mean over a large patch of pixels (every stride-th in both directions) varies
     than one over as many independent ones, for noise of correlation length ``length_px``: the sum
     of the autocorrelation over the lattice, (sum_k exp(-(k stride / length)^2))^2. 1 for
@@ -161,7 +161,10 @@ def mean_variance_inflation(length_px: float, stride: int = 1) -> float:
     if length_px <= 0.0:
         return 1.0
     t = max(int(stride), 1) / length_px
-    one_axis = 1.0 + 2.0 * sum(math.exp(-(k * t) ** 2) for k in range(1, int(4.0 / t) + 2))
+    one_axis = 0.0
+    for k in range(1, int(4.0 / t) + 2):
+        one_axis += math.exp(-((k * t) * (k * t)))
+    one_axis = 1.0 + 2.0 * one_axis
     return one_axis * one_axis
 
 

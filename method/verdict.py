@@ -1,11 +1,13 @@
 """Stage 4, the verdict: a verified sphere's probability of being a ball, from a model fitted on both
 sensor models.
 
-Verification (``verification._verify_once``) measures each candidate: its inliers, its free radius
+Verification (``verification._verify_batch``) measures each candidate: its inliers, its free radius
 and that radius's standard error, and how the pixels of its silhouette and outline lie against the
-sphere (``verification_kernels.window_stats``). ``verdict_features`` turns one candidate's
-measurements into a fixed vector of scale-free quantities (shares, ratios to the frame's noise, logarithms of counts and
-ranges); a model fitted on the candidates of `train` and `train-stereo` (``make train-verifier``)
+sphere (``verification_kernels.measurements``, by name ``MEASUREMENT_NAMES``). ``features`` turns
+candidates' measurements into fixed vectors of scale-free quantities (shares, ratios to the frame's
+noise, logarithms of counts and ranges), compiled, and ``verdict_features`` one candidate's by name
+(a sphere's evidence: what the model's fit reads); a model fitted on the candidates of `train` and
+`train-stereo` (``make train-verifier``)
 maps that vector to the probability that a ball's centre lies within 2 cm (3 cm beyond 3 m) of the
 candidate's, calibrated on scenes held apart from its fit.
 
@@ -24,6 +26,9 @@ import math
 from pathlib import Path
 
 import numpy as np
+
+from spherebench.method import verification_kernels as VK
+from spherebench.method.compiled import kernel
 
 #: the model's inputs, in order (``verdict_features``); a model whose metadata lists other names is refused
 FEATURE_NAMES = (
@@ -56,67 +61,102 @@ N_FEATURES = len(FEATURE_NAMES)
 MODEL_PATH = Path(__file__).with_name("verdict.onnx")
 
 
-def _share(num: float, den: float) -> float:
-    return float(num) / den if den > 0 else 0.0
+#: the measurements the features read that a record may lack, and the value each then takes (the rest
+#: of ``verification_kernels.MEASUREMENT_NAMES`` that the features do not read: nan)
+_OPTIONAL = {"pixels_per_sample": 1.0, "noise_ratio": 1.0, "visible_fraction": 1.0, "ring_spread": 0.0}
+#: the measurements the features read (a record without one is refused, KeyError)
+_READ = frozenset(("depth_m", "sigma_m", "valid_disc", "inner_n", "inner_sum", "outer_h_n", "outer_h_sum", "outer_v_n",
+                   "outer_v_sum", "free_radius_m", "free_radius_se_m", "n_inliers", "rmse_m", "sigma_measured_m",
+                   "inlier", "invalid_disc", "behind", "front_near", "ring_continued", "ring", "ring_front",
+                   "behind_inner", "valid_inner", "edge_behind", "edge_n")) | frozenset(_OPTIONAL)
 
 
-def _log(x: float, floor: float) -> float:
-    return math.log(max(x, floor)) if math.isfinite(x) else math.log(floor)
+def measurement_row(stats: dict) -> np.ndarray:
+    """(N_MEASURED,) float64: a candidate's measurements by name (``verification.Candidate.stats``, a
+    ``Sphere``'s evidence) in ``verification_kernels.MEASUREMENT_NAMES``' order."""
+    return np.array([float(stats[k]) if k in stats or (k in _READ and k not in _OPTIONAL)
+                     else _OPTIONAL.get(k, math.nan) for k in VK.MEASUREMENT_NAMES], np.float64)
 
 
 def verdict_features(stats: dict, radius_m: float) -> np.ndarray:
-    """(N_FEATURES,) float32: one verified candidate's inputs to the verdict (``FEATURE_NAMES``).
+    """(N_FEATURES,) float32: one verified candidate's inputs to the verdict (``FEATURE_NAMES``), from
+    its measurements by name (``measurement_row``: the silhouette's counts of
+    ``verification_kernels.window_stats`` and depth_m, sigma_m, sigma_measured_m, noise_ratio,
+    pixels_per_sample, n_inliers, rmse_m, free_radius_m, free_radius_se_m). radius_m: R."""
+    return features(measurement_row(stats).reshape(1, -1), radius_m)[0]
 
-    stats: the candidate's measurements as ``verification._verify_once`` records them (the silhouette's
-    counts of ``verification_kernels.window_stats`` and depth_m, sigma_m, sigma_measured_m, noise_ratio,
-    pixels_per_sample, n_inliers, rmse_m, free_radius_m, free_radius_se_m). radius_m: R.
-    """
-    R = radius_m
-    z = stats["depth_m"]
-    sigma = max(stats["sigma_m"], 1e-6)
-    vd = stats["valid_disc"]
-    n_in = stats["inner_n"]
-    relief_r, relief_t = 0.0, 0.0
-    if n_in >= 3:
-        m_in = stats["inner_sum"] / n_in
-        per = stats.get("pixels_per_sample", 1.0)
-        worst = -math.inf
-        for side in ("outer_h", "outer_v"):
-            n = stats[side + "_n"]
-            if n >= 3:
-                flatter = m_in - stats[side + "_sum"] / n
-                if flatter > worst:
-                    worst = flatter
-                    relief_t = flatter / (sigma * math.sqrt(per * (1.0 / n_in + 1.0 / n)))
-        relief_r = worst / R if math.isfinite(worst) else 0.0
-    fr, fse = stats["free_radius_m"], stats["free_radius_se_m"]
-    sized = math.isfinite(fr)
-    se = fse if math.isfinite(fse) and fse > 0 else R
-    x = (
-        _log(z, 0.05),
-        math.log(sigma / R),
-        _log(stats.get("noise_ratio", 1.0), 1e-3),
-        _log(stats.get("pixels_per_sample", 1.0), 1.0),
-        math.log1p(max(stats["n_inliers"], 0.0)),
-        _log(stats["rmse_m"] / sigma, 1e-3),
-        _log(stats["sigma_measured_m"] / sigma, 1e-3),
-        min(_share(stats["inlier"], vd), 2.0),
-        _share(stats["invalid_disc"], vd + stats["invalid_disc"]),
-        _share(stats["behind"], vd),
-        _share(stats["front_near"], vd),
-        stats.get("visible_fraction", 1.0),
-        _share(stats["ring_continued"], stats["ring"]),
-        _share(stats["ring_front"], stats["ring"]),
-        stats.get("ring_spread", 0.0),
-        _share(stats["behind_inner"], stats["valid_inner"]),
-        _share(stats["edge_behind"], stats["edge_n"]),
-        relief_r,
-        max(min(relief_t, 50.0), -50.0),
-        (fr - R) / R if sized else 1.0,
-        max(min((fr - R) / se, 50.0), -50.0) if sized else 50.0,
-        math.log(max(se, 1e-5) / R),
-    )
-    return np.asarray(x, np.float32)
+
+def features(measured: np.ndarray, radius_m: float) -> np.ndarray:
+    """(B, N_FEATURES) float32: the verdict's inputs (``FEATURE_NAMES``) of B candidates' measurements
+    measured (B, N_MEASURED) (``verification_kernels.measurements``' rows); radius_m: R."""
+    out = np.empty((len(measured), N_FEATURES), np.float32)
+    _features(np.ascontiguousarray(measured, np.float64), float(radius_m), out)
+    return out
+
+
+@kernel
+def _log(x, floor):
+    return math.log(max(x, floor)) if math.isfinite(x) else math.log(floor)
+
+
+@kernel
+def _share(num, den):
+    return num / den if den > 0 else 0.0
+
+
+@kernel
+def _relief(m, sigma, radius):
+    """(relief_r, relief_t) of one candidate's measurements m (N_MEASURED,): how much flatter than a
+    ball the inner zone is than the worse of the outer zones (in R, and in standard errors of the two
+    means with the pixels' correlation, pixels_per_sample); 0 where the zones hold under 3 pixels."""
+    n_in = m[VK.M_IN_N]
+    if not n_in >= 3:
+        return 0.0, 0.0
+    m_in = m[VK.M_IN_SUM] / n_in
+    per = m[VK.M_PIXELS_PER_SAMPLE]
+    worst, relief_t = -math.inf, 0.0
+    for side_n, side_sum in ((m[VK.M_OUTH_N], m[VK.M_OUTH_SUM]), (m[VK.M_OUTV_N], m[VK.M_OUTV_SUM])):
+        if side_n >= 3:
+            flatter = m_in - side_sum / side_n
+            if flatter > worst:
+                worst = flatter
+                relief_t = flatter / (sigma * math.sqrt(per * (1.0 / n_in + 1.0 / side_n)))
+    return (worst / radius if math.isfinite(worst) else 0.0), relief_t
+
+
+@kernel
+def _features(measured, radius, out):
+    """``features``' rows: out (B, N_FEATURES) of measured (B, N_MEASURED), in ``FEATURE_NAMES``' order."""
+    for b in range(measured.shape[0]):
+        m, x = measured[b], out[b]
+        sigma = max(m[VK.M_SIGMA], 1e-6)
+        vd = m[VK.M_VALID_DISC]
+        relief_r, relief_t = _relief(m, sigma, radius)
+        fr, fse = m[VK.M_FREE_R], m[VK.M_FREE_SE]
+        sized = math.isfinite(fr)
+        se = fse if math.isfinite(fse) and fse > 0 else radius
+        x[0] = _log(m[VK.M_DEPTH], 0.05)
+        x[1] = math.log(sigma / radius)
+        x[2] = _log(m[VK.M_NOISE_RATIO], 1e-3)
+        x[3] = _log(m[VK.M_PIXELS_PER_SAMPLE], 1.0)
+        x[4] = math.log1p(max(m[VK.M_N_INLIERS], 0.0))
+        x[5] = _log(m[VK.M_RMSE] / sigma, 1e-3)
+        x[6] = _log(m[VK.M_SIGMA_MEASURED] / sigma, 1e-3)
+        x[7] = min(_share(m[VK.M_INLIER], vd), 2.0)
+        x[8] = _share(m[VK.M_INVALID_DISC], vd + m[VK.M_INVALID_DISC])
+        x[9] = _share(m[VK.M_BEHIND], vd)
+        x[10] = _share(m[VK.M_FRONT_NEAR], vd)
+        x[11] = m[VK.M_VISIBLE]
+        x[12] = _share(m[VK.M_RING_CONT], m[VK.M_RING])
+        x[13] = _share(m[VK.M_RING_FRONT], m[VK.M_RING])
+        x[14] = m[VK.M_RING_SPREAD]
+        x[15] = _share(m[VK.M_BEHIND_INNER], m[VK.M_VALID_INNER])
+        x[16] = _share(m[VK.M_EDGE_BEHIND], m[VK.M_EDGE_N])
+        x[17] = relief_r
+        x[18] = max(min(relief_t, 50.0), -50.0)
+        x[19] = (fr - radius) / radius if sized else 1.0
+        x[20] = max(min((fr - radius) / se, 50.0), -50.0) if sized else 50.0
+        x[21] = math.log(max(se, 1e-5) / radius)
 
 
 class FittedVerdict:
@@ -158,11 +198,13 @@ class FittedVerdict:
     def batch_scores(self, stats: list[dict], radius_m: float) -> list[tuple[float, float]]:
         """``scores`` of several candidates in one run of the model (its per-call cost is most of one
         candidate's; each row's result is the same as alone)."""
-        if len(stats) == 1:  # a third less than a batch of one
-            return [self.scores(stats[0], radius_m)]
-        s = self.model_scores(np.stack([verdict_features(s, radius_m) for s in stats]))
-        p = np.interp(s, self.knots_score, self.knots_p)
-        return [(float(a), float(b)) for a, b in zip(s, p)]
+        raw, p = self.scores_of(features(np.stack([measurement_row(s) for s in stats]), radius_m))
+        return [(float(a), float(b)) for a, b in zip(raw, p)]
+
+    def scores_of(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(model scores (B,), calibrated probabilities (B,)) of the features x (B, N_FEATURES)."""
+        s = self.model_scores(x)
+        return s, np.interp(s, self.knots_score, self.knots_p)
 
     def probability(self, stats: dict, radius_m: float) -> float:
         """One candidate's calibrated probability of being a ball (stats: ``verdict_features``')."""
@@ -192,11 +234,12 @@ def unscored(score: float = 0.5):
         _UNSCORED.pop()
 
 
-def verdicts(stats: list[dict], radius_m: float) -> list[tuple[float, float]]:
-    """(raw score, probability) of each verified candidate: the fitted verdict's
-    (``FittedVerdict.batch_scores``), or ``unscored``'s constant."""
-    if not stats:
-        return []
+def verdicts(measured: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(raw scores (B,), probabilities (B,)) of B verified candidates' measurements measured (B,
+    N_MEASURED) (``verification_kernels.measurements``): the fitted verdict's, in one run of the model,
+    or ``unscored``'s constant."""
     if _UNSCORED:
-        return [(_UNSCORED[-1], _UNSCORED[-1])] * len(stats)
-    return load_verdict().batch_scores(stats, radius_m)
+        return np.full(len(measured), _UNSCORED[-1]), np.full(len(measured), _UNSCORED[-1])
+    if not len(measured):
+        return np.zeros(0), np.zeros(0)
+    return load_verdict().scores_of(features(measured, radius_m))

@@ -26,7 +26,6 @@ from spherebench.method import verification_kernels as VK
 from spherebench.method.compiled import workspace
 from spherebench.method.config import DetectorConfig
 from spherebench.method.frame import PreparedFrame
-from spherebench.method.noise import mean_variance_inflation
 from spherebench.method.outline import (
     OUTLINE_EVIDENCE_MIN_MOVE_PX, OUTLINE_EVIDENCE_MIN_SCORE, OUTLINE_EVIDENCE_NOISE_FRACTION, outline_centre,
     outline_size)
@@ -43,15 +42,6 @@ OCCLUDED_PUSH_STARTS = 4  # ... from up to this many starts ...
 OCCLUDED_PUSH_NOISE_FRACTION = 0.25  # ... where one pixel's noise is below this * R
 NOISE_FROM_DATA = True  # the final band narrows to a candidate's own residual spread where that is below the model's
 
-#: a candidate's stats by name: ``verification_kernels.window_stats``' slots
-_STAT_NAMES = {"valid_disc": VK.ST_VALID_DISC, "inlier": VK.ST_INLIER, "front": VK.ST_FRONT,
-               "front_near": VK.ST_FRONT_NEAR, "behind": VK.ST_BEHIND, "invalid_disc": VK.ST_INVALID_DISC,
-               "ring": VK.ST_RING, "ring_continued": VK.ST_RING_CONT, "ring_front": VK.ST_RING_FRONT,
-               "valid_inner": VK.ST_VALID_INNER, "behind_inner": VK.ST_BEHIND_INNER,
-               "edge_n": VK.ST_EDGE_N, "edge_behind": VK.ST_EDGE_BEHIND, "ring_spread": VK.ST_RING_SPREAD,
-               "inner_n": VK.ST_IN_N, "inner_sum": VK.ST_IN_SUM,
-               "outer_h_n": VK.ST_OUTH_N, "outer_h_sum": VK.ST_OUTH_SUM, "outer_v_n": VK.ST_OUTV_N,
-               "outer_v_sum": VK.ST_OUTV_SUM}
 #: ``rescore``'s six starts about a refined centre (units of R): across the line of sight (camera x and y)
 #: and along it (z), where the refinement's optima lie a cm or two apart at 2-3 m
 RESCORE_STARTS = ((RESCORE_OFFSET_XY, 0.0, 0.0), (-RESCORE_OFFSET_XY, 0.0, 0.0), (0.0, RESCORE_OFFSET_XY, 0.0),
@@ -152,56 +142,28 @@ def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     else:  # one inlier buffer per thread
         idx = workspace("inliers_per_thread", (threads, len(buf)), np.int64)
         VK.verify_many(frame.points, frame.index_image, starts_m, *args, idx, outs, sts)
-    measured = [_measurements(frame, out, st, config, size) for out, st, size in zip(outs, sts, sizes)]
-    kept = [m[0] for m in measured if m is not None]
-    scored = iter(verdicts(kept, config.radius_m) if kept else ())
-    found: list[Candidate | None] = []
-    for out, m in zip(outs, measured):
-        if m is None:
-            found.append(None)
-            continue
-        stats, (free_r, free_se) = m
-        raw, score = next(scored)
+    measured = np.empty((len(starts_m), VK.N_MEASURED))
+    VK.measurements(outs, sts, frame.prm, frame.noise_corr_px, frame.noise_ratio, config.verification.min_inliers,
+                    measured)
+    kept = np.flatnonzero(outs[:, VK.V_N] >= config.verification.min_inliers)
+    for k in kept:
+        if sizes[k] is not None:  # the outline's angular radius at the verified centre's distance
+            rho = float(np.linalg.norm(outs[k, VK.V_CX:VK.V_CZ + 1]))
+            measured[k, VK.M_FREE_R] = rho * math.sin(sizes[k][0])
+            measured[k, VK.M_FREE_SE] = rho * math.cos(sizes[k][0]) * sizes[k][1]
+    raw, score = verdicts(measured[kept], config.radius_m)
+    found: list[Candidate | None] = [None] * len(starts_m)
+    for j, k in enumerate(kept):
+        out = outs[k]
+        stats = dict(zip(VK.MEASUREMENT_NAMES, measured[k].tolist()))
+        free_r, free_se = stats["free_radius_m"], stats["free_radius_se_m"]
         # inliers: filled in for the reported spheres only (``verification_kernels.final_inliers``)
-        found.append(Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(),
-                               eps_m=float(out[VK.V_EPS]), free_centre_m=out[VK.V_FCX:VK.V_FCZ + 1].copy(),
-                               free_radius_m=free_r, free_radius_se_m=free_se, rmse_m=float(out[VK.V_RMSE]),
-                               stats=stats, score=score, size_ok=size_ok(free_r, free_se, config), raw_score=raw))
+        found[k] = Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(),
+                             eps_m=float(out[VK.V_EPS]), free_centre_m=out[VK.V_FCX:VK.V_FCZ + 1].copy(),
+                             free_radius_m=free_r, free_radius_se_m=free_se, rmse_m=float(out[VK.V_RMSE]),
+                             stats=stats, score=float(score[j]), size_ok=size_ok(free_r, free_se, config),
+                             raw_score=float(raw[j]))
     return found
-
-
-def _measurements(frame: PreparedFrame, out: np.ndarray, st: np.ndarray, config: DetectorConfig,
-                  size: tuple[float, float] | None) -> tuple[dict, tuple[float, float]] | None:
-    """One start's kernel output out (N_VOUT,) and statistics st (N_STATS,) as the verdict's stats and
-    the size check's (free radius m, its standard error m); None with too few inliers or failing the
-    kernel's size gate (out[V_N] = -1)."""
-    n = int(out[VK.V_N])
-    if n < config.verification.min_inliers:
-        return None
-    stats = {k: float(st[j]) for k, j in _STAT_NAMES.items()}
-    # pixels per effective sample of the evidence's counts and zone means: the window's stride
-    # (``verification_kernels.window_stride``, as the kernel took it) against the noise's correlation length
-    cz = float(out[VK.V_CZ])
-    stride = VK.window_stride(float(out[VK.V_CX]), float(out[VK.V_CY]), cz, config.radius_m * VK.RING_FACTOR,
-                             max(frame.prm[FK.P_FX], frame.prm[FK.P_FY]), 4.0 * VK.FIT_MAX_POINTS)
-    stats["pixels_per_sample"] = mean_variance_inflation(frame.noise_corr_px, int(stride))
-    # the relief test's per-pixel noise: the model's, not the measured one (which only narrows the band): the
-    # test treats pixels as independent, and a sensor whose errors are correlated (a structured-light sensor's
-    # quantisation steps) would otherwise fail a real ball's zone means by a few mm
-    stats["sigma_m"] = frame.prm[FK.P_NOISE_A] * cz ** 2
-    stats["sigma_measured_m"] = float(out[VK.V_SIGMA])
-    stats["eps_m"] = float(out[VK.V_EPS])
-    # the share of the silhouette's pixels with depth that no nearer surface hides (an occluder: more
-    # than R / 2 in front of the sphere; ``verification_kernels.window_stats``' FRONT less FRONT_NEAR)
-    vd = stats["valid_disc"]
-    stats["visible_fraction"] = 1.0 - max(0.0, stats["front"] - stats["front_near"]) / vd if vd > 0 else 0.0
-    free_r, free_se = float(out[VK.V_FR]), float(out[VK.V_FSE])
-    if size is not None:
-        rho = float(np.linalg.norm(out[VK.V_CX:VK.V_CZ + 1]))
-        free_r, free_se = rho * math.sin(size[0]), rho * math.cos(size[0]) * size[1]
-    stats.update(depth_m=cz, n_inliers=float(n), rmse_m=float(out[VK.V_RMSE]), free_radius_m=free_r,
-                 free_radius_se_m=free_se, noise_ratio=frame.noise_ratio, noise_corr_px=frame.noise_corr_px)
-    return stats, (free_r, free_se)
 
 
 def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,

@@ -13,7 +13,7 @@ from numba import prange
 from spherebench.method.compiled import kernel, part, threaded_kernel
 from spherebench.method.fit_kernels import fit_range, fit_ray, ray_step, refine_fixed_radius, unit_rays
 from spherebench.method.frame_kernels import P_EPS, P_EPS_CAP, P_FX, P_FY, P_NOISE_A, P_NOISE_K, P_PPX, P_PPY, P_R
-from spherebench.method.noise import noise_eps
+from spherebench.method.noise import mean_variance_inflation, noise_eps
 
 
 # Categories of a pixel of a candidate's window (window statistics, in this order).
@@ -475,6 +475,60 @@ def verify_many(points, index_image, starts, prm, refine_iterations, max_fit_poi
         for k in range(t, starts.shape[0], n_threads):
             verify_organised(points, index_image, starts[k], prm, refine_iterations, max_fit_points, s_min,
                              data_noise, size_gate, hold_direction, idx[t], outs[k], stats[k])
+
+
+#: A verified candidate's measurements (``measurements``' rows) by name: the verdict's inputs and a
+#: reported sphere's evidence. First the silhouette's statistics (``window_stats``' slots, STAT_SLOTS),
+#: then what the fits and the frame add.
+MEASUREMENT_NAMES = (
+    "valid_disc", "inlier", "front", "front_near", "behind", "invalid_disc", "ring", "ring_continued",
+    "ring_front", "valid_inner", "behind_inner", "edge_n", "edge_behind", "ring_spread", "inner_n", "inner_sum",
+    "outer_h_n", "outer_h_sum", "outer_v_n", "outer_v_sum",
+    "pixels_per_sample", "sigma_m", "sigma_measured_m", "eps_m", "visible_fraction", "depth_m", "n_inliers",
+    "rmse_m", "free_radius_m", "free_radius_se_m", "noise_ratio", "noise_corr_px")
+STAT_SLOTS = np.array([ST_VALID_DISC, ST_INLIER, ST_FRONT, ST_FRONT_NEAR, ST_BEHIND, ST_INVALID_DISC, ST_RING,
+                       ST_RING_CONT, ST_RING_FRONT, ST_VALID_INNER, ST_BEHIND_INNER, ST_EDGE_N, ST_EDGE_BEHIND,
+                       ST_RING_SPREAD, ST_IN_N, ST_IN_SUM, ST_OUTH_N, ST_OUTH_SUM, ST_OUTV_N, ST_OUTV_SUM], np.int64)
+(M_VALID_DISC, M_INLIER, M_FRONT, M_FRONT_NEAR, M_BEHIND, M_INVALID_DISC, M_RING, M_RING_CONT, M_RING_FRONT,
+ M_VALID_INNER, M_BEHIND_INNER, M_EDGE_N, M_EDGE_BEHIND, M_RING_SPREAD, M_IN_N, M_IN_SUM, M_OUTH_N, M_OUTH_SUM,
+ M_OUTV_N, M_OUTV_SUM, M_PIXELS_PER_SAMPLE, M_SIGMA, M_SIGMA_MEASURED, M_EPS, M_VISIBLE, M_DEPTH, M_N_INLIERS,
+ M_RMSE, M_FREE_R, M_FREE_SE, M_NOISE_RATIO, M_NOISE_CORR) = range(len(MEASUREMENT_NAMES))
+N_MEASURED = len(MEASUREMENT_NAMES)
+
+
+@kernel
+def measurements(outs, sts, prm, noise_corr_px, noise_ratio, min_inliers, out):
+    """The measurements out (K, N_MEASURED) (``MEASUREMENT_NAMES``) of each verification's output outs
+    (K, N_VOUT) and statistics sts (K, N_STATS) (``verify_organised``'s), in a frame whose noise has
+    correlation length noise_corr_px and is noise_ratio times the model's. Rows with fewer than
+    min_inliers inliers (or failing the size gate: V_N -1) are left as they were.
+
+    pixels_per_sample: pixels per effective sample of the evidence's counts and zone means, the
+    window's stride (``window_stride``, as the kernel took it) against the noise's correlation
+    length. sigma_m: the noise model's per-pixel noise at the centre's depth, not the measured one
+    (which only narrows the band): the relief test treats pixels as independent, and a sensor whose
+    errors are correlated (a structured-light sensor's quantisation steps) would otherwise fail a
+    real ball's zone means by a few mm. visible_fraction: the share of the silhouette's pixels with
+    depth that no nearer surface hides (an occluder: more than R / 2 in front of the sphere, FRONT
+    less FRONT_NEAR)."""
+    radius = prm[P_R]
+    f_max = max(prm[P_FX], prm[P_FY])
+    for k in range(outs.shape[0]):
+        o, st, m = outs[k], sts[k], out[k]
+        if not o[V_N] >= min_inliers:
+            continue
+        for j in range(STAT_SLOTS.shape[0]):
+            m[j] = st[STAT_SLOTS[j]]
+        cz = o[V_CZ]
+        stride = window_stride(o[V_CX], o[V_CY], cz, radius * RING_FACTOR, f_max, 4.0 * FIT_MAX_POINTS)
+        m[M_PIXELS_PER_SAMPLE] = mean_variance_inflation(noise_corr_px, stride)
+        m[M_SIGMA] = prm[P_NOISE_A] * (cz * cz)
+        m[M_SIGMA_MEASURED], m[M_EPS] = o[V_SIGMA], o[V_EPS]
+        vd = st[ST_VALID_DISC]
+        m[M_VISIBLE] = 1.0 - max(0.0, st[ST_FRONT] - st[ST_FRONT_NEAR]) / vd if vd > 0 else 0.0
+        m[M_DEPTH], m[M_N_INLIERS], m[M_RMSE] = cz, o[V_N], o[V_RMSE]
+        m[M_FREE_R], m[M_FREE_SE] = o[V_FR], o[V_FSE]
+        m[M_NOISE_RATIO], m[M_NOISE_CORR] = noise_ratio, noise_corr_px
 
 
 @kernel

@@ -63,16 +63,54 @@ def test_the_shipped_model_loads_and_ranks_a_ball_above_a_wall():
 
 def test_a_batch_scores_each_candidate_as_alone():
     """FittedVerdict.batch_scores: one run of the model for several candidates, each row's (raw,
-    probability) equal to ``scores``' on it alone; ``verdicts`` of none is none."""
-    from spherebench.method.verdict import verdicts
+    probability) equal to ``scores``' on it alone; ``verdicts`` of the same measurements as rows gives
+    the same, and of none none."""
+    from spherebench.method.verdict import measurement_row, verdicts
 
     model = load_verdict()
     batch = [ball_stats(), ball_stats(inner_sum=150 * 0.01), ball_stats(free_radius_m=0.105, behind=120.0),
              ball_stats(depth_m=3.1, sigma_m=0.02)]
     together = model.batch_scores(batch, R)
-    assert together == [model.scores(s, R) for s in batch] == verdicts(batch, R)
+    raw, p = verdicts(np.stack([measurement_row(s) for s in batch]), R)
+    assert together == [model.scores(s, R) for s in batch] == list(zip(raw.tolist(), p.tolist()))
     assert len({t[0] for t in together}) > 1  # the rows differ: no row took another's answer
-    assert verdicts([], R) == [] and model.batch_scores(batch[:1], R) == [model.scores(batch[0], R)]
+    assert [len(a) for a in verdicts(np.zeros((0, len(batch[0]) + 1)), R)] == [0, 0]
+    assert model.batch_scores(batch[:1], R) == [model.scores(batch[0], R)]
+
+
+def test_a_record_lacking_a_measurement_the_features_read_is_refused():
+    """``measurement_row``: a measurement the features read is required (those of older records take
+    their neutral value); one they do not read may be missing."""
+    from spherebench.method.verdict import measurement_row
+
+    stats = ball_stats()
+    del stats["eps_m"], stats["front"], stats["noise_ratio"]
+    assert np.array_equal(verdict_features(stats, R), verdict_features({**stats, "noise_ratio": 1.0}, R))
+    del stats["rmse_m"]
+    with pytest.raises(KeyError):
+        measurement_row(stats)
+
+
+def test_a_detection_scores_as_its_evidence_does():
+    """What the detector scores (its measurements, compiled) and what the verdict's fit reads (a
+    sphere's evidence by name, ``verdict_features``) are the same features: a clear ball's raw score
+    is the model's on its evidence."""
+    from spherebench.camera import Intrinsics, image_rays
+    from spherebench.cloud import cloud_from_depth
+    from spherebench.method import detect
+
+    intr = Intrinsics.d435(160, 120)
+    u = image_rays(intr)
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    c = np.array([0.1, -0.05, 1.0])
+    tc = u @ c
+    m2 = c @ c - tc * tc
+    depth = np.where(m2 < R * R, (tc - np.sqrt(np.maximum(R * R - m2, 0.0))) * u[..., 2], 1.8)
+    depth += np.random.default_rng(0).normal(0.0, 0.002, depth.shape)
+    spheres = detect(cloud_from_depth(depth, intr), IMPROVED, seed=0)
+    assert len(spheres) == 1 and "score_single" not in spheres[0].evidence  # scored once, not rescored
+    raw, _ = load_verdict().scores(spheres[0].evidence, R)
+    assert raw == spheres[0].raw_score
 
 
 def test_the_shipped_model_never_rises_with_what_a_ball_would_not_show():
