@@ -246,6 +246,8 @@ class PreparedFrame:
         self.stratum = strata(config, intr, self.z_far_m, self.bin, (hc, wc))
         #: first cells the search draws: one per stratum
         self.iterations = -(-hc // self.stratum[0]) * -(-wc // self.stratum[1])
+        #: the plain search's (seed, passing hypotheses, counters), which ``search.relief_search`` ranks again
+        self.passed = None
         self.prm = parameters(config, intr, self.stratum, self.bin, (hc, wc), self.z_far_m, self.noise_a,
                               self.noise_corr_px)
         # verification's size gate (``verification_kernels.verify_organised``: a candidate that fails the

@@ -102,9 +102,6 @@ PARAMETERS = (
     # the descent leaves out side boxes more than R in front of the centre box, an occluder (1: on,
     # ``improved``'s second search of a frame where none was accepted; 0: off)
     "OCCLUDER_BOUND",
-    # the hypotheses' score: the pretest's agreement (0), or the log-likelihood ratio of the cap's relief
-    # against a flat surface (1, ``improved``'s relief search of a frame where none was accepted)
-    "ORDER_RELIEF",
 )
 #: The band's cap over R: a band wider than 1.5 R takes in the background behind a far ball.
 MAX_EPS_FRACTION = 1.5

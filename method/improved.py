@@ -137,7 +137,7 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
     # stencil stretched off the axis, then for discs standing out of their background, then for holes
     # ringed by a ball's face, and verify the hypotheses not verified before
     retries = [] if frame is None else (
-        ([lambda: search.search_frame(frame, config, seed, relief=True)] if config.retry.retry_relief else [])
+        ([lambda: search.relief_search(frame, config, seed)] if config.retry.retry_relief else [])
         + ([lambda: search.search_frame(frame, config, seed, occluder_bound=True)]
            if config.retry.retry_occluder else [])
         + ([lambda: search.search_frame(frame, config, seed, off_axis=True)] if config.retry.retry_off_axis else [])

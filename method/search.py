@@ -46,29 +46,49 @@ HOLE_MIN_RANGE_M = 0.3  # the ring is looked for within the disc radius of a bal
 
 
 def search_frame(frame: PreparedFrame, config: DetectorConfig, seed: int,
-                 occluder_bound: bool = False, off_axis: bool = False,
-                 relief: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 occluder_bound: bool = False, off_axis: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the compiled organised search. Returns (candidate centres (M, 3), scores (M,), occluded (M,)
     bool: passed the pretest with a side hidden by an occluder, ``search_kernels.front_hypothesis``), best first.
     occluder_bound: the descent leaves out side boxes in front of a cap (``frame_kernels.P_OCCLUDER_BOUND``);
-    off_axis: the stencil follows the silhouette's stretch off the optical axis (``search_kernels.stencil_stretch``);
-    relief: the hypotheses ranked by how far their cap stands out of the noise (``search_kernels._relief_llr``)."""
+    off_axis: the stencil follows the silhouette's stretch off the optical axis (``search_kernels.stencil_stretch``).
+    The search without either keeps its passing hypotheses on the frame for ``relief_search``."""
     hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
     counters = np.zeros(2, np.int64)
     prm = frame.prm
-    if occluder_bound or off_axis or relief:
+    plain = not (occluder_bound or off_axis)
+    if not plain:
         prm = prm.copy()
         if occluder_bound:
             prm[FK.P_OCCLUDER_BOUND] = 1.0
         if off_axis:
             prm[FK.P_OFF_AXIS] = 1.0
-        if relief:
-            prm[FK.P_ORDER_RELIEF] = 1.0
-    m = SK.search_organised(frame.tab, prm, np.uint64(seed), hyp, counters)
-    frame.counters = counters  # diagnostics (see search_kernels.search_organised)
-    frame.hypotheses = hyp[:m]
-    centres = SK.cell_centres(frame.prm, hyp[:m])
-    return centres, hyp[:m, 4].copy(), hyp[:m, 5] > 0.0
+    passed = np.empty((frame.iterations if plain else 0, SK.N_HYP_OUT))  # at most one a first cell
+    m = SK.search_organised(frame.tab, prm, np.uint64(seed), hyp, counters, passed)
+    if plain:
+        frame.passed = (seed, passed[:min(int(counters[1]), len(passed))], counters)
+    return _found(frame, hyp[:m], counters)
+
+
+def relief_search(frame: PreparedFrame, config: DetectorConfig, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``search_frame``'s hypotheses (of seed, without its switches) ranked by how far their cap stands
+    out of the noise (``search_kernels._relief_llr``) in place of the pretest's agreement: the draws,
+    descents and pretests are the same, so the plain search's passing hypotheses are ranked again
+    (``search_kernels.relief_ranked``), the search run first where the frame holds none of this seed.
+    Returns ``search_frame``'s (centres (M, 3), scores (M,), occluded (M,))."""
+    if frame.passed is None or frame.passed[0] != seed:
+        search_frame(frame, config, seed)
+    _, passed, counters = frame.passed
+    hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
+    m = SK.relief_ranked(frame.prm, passed, len(passed), hyp)
+    return _found(frame, hyp[:m], counters)
+
+
+def _found(frame: PreparedFrame, hyp: np.ndarray, counters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A search's kept hypotheses hyp (M, 6) as (centres (M, 3), scores (M,), occluded (M,)); the
+    frame keeps them and the search's counters for diagnostics (``search_kernels.search_organised``)."""
+    frame.counters = counters
+    frame.hypotheses = hyp
+    return SK.cell_centres(frame.prm, hyp), hyp[:, 4].copy(), hyp[:, 5] > 0.0
 
 
 def disc_search(frame: PreparedFrame, config: DetectorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -12,7 +12,7 @@ import numpy as np
 from spherebench.method.compiled import kernel, next_u01, part
 from spherebench.method.frame_kernels import (
     COUNT_SHIFT, P_BIN, P_CELL_PX, P_FX, P_FY, P_MEAN_NOISE, P_NOISE_A, P_OCCLUDER_BOUND, P_OFF_AXIS,
-    P_ORDER_RELIEF, P_PPX, P_PPY, P_R, P_RR_MAX, P_RR_MIN, P_STRATUM_U, P_STRATUM_V, _DEPTH_MASK)
+    P_PPX, P_PPY, P_R, P_RR_MAX, P_RR_MIN, P_STRATUM_U, P_STRATUM_V, _DEPTH_MASK)
 
 
 # The organised search's stencil (``front_hypothesis``), in fractions of the ball's disc radius r (in
@@ -285,8 +285,9 @@ def front_hypothesis(tab, prm, v, u, out):
     ``improved`` verifies only while no sphere has been accepted), at most one *behind* it (one box
     may straddle the outline); of the eight ``ring_boxes`` at most PRETEST_MAX_CONTINUED may continue
     the surface at the ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded
-    flag); the score is 2 agreeing + background ring boxes - 2 continued - 2 behind - chi^2 / 2 of
-    the agreeing ones (at most 16).
+    flag) and out[5:N_HYP_OUT] its resting stencil (su, sv, h, du, dv, m0, n0, then each side box's mean
+    and count: left, right, up, down); the score is 2 agreeing + background ring boxes - 2 continued
+    - 2 behind - chi^2 / 2 of the agreeing ones (at most 16).
     """
     R = prm[P_R]
     fc = prm[P_FX] / prm[P_BIN]
@@ -333,8 +334,9 @@ def front_hypothesis(tab, prm, v, u, out):
     if cont > PRETEST_MAX_CONTINUED:
         return -np.inf
     out[0], out[1], out[2], out[3], out[4] = v, u, front, rr, 1.0 if agree < 3 else 0.0
-    if prm[P_ORDER_RELIEF] != 0.0:
-        return _relief_llr(prm, rr, su, sv, h, du, dv, m0, n0, mL, nL, mR, nR, mU, nU, mD, nD)
+    # the resting stencil, from which ``relief_ranked`` scores the hypothesis by its cap's relief
+    out[5], out[6], out[7], out[8], out[9], out[10], out[11] = su, sv, h, du, dv, m0, n0
+    out[12], out[13], out[14], out[15], out[16], out[17], out[18], out[19] = mL, nL, mR, nR, mU, nU, mD, nD
     return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi
 
 
@@ -573,8 +575,28 @@ def cell_centres(prm, hyp):
     return out
 
 
+#: a passing hypothesis as ``front_hypothesis`` describes it: (v, u, front m, r cells, occluded flag)
+#: and its resting stencil
+N_HYP_OUT = 20
+
+
 @kernel
-def search_organised(tab, prm, seed, cands, counters):
+def relief_ranked(prm, passed, n_passed, cands):
+    """The hypotheses of a search, passed[:n_passed] (``search_organised``'s), ranked by how far their
+    cap stands out of the noise (``_relief_llr`` of their resting stencils) in place of the
+    pretest's agreement, kept as ``search_organised`` keeps its, in the order drawn: the search that
+    ranks its hypotheses so, without drawing and descending again. Returns the number kept."""
+    n_kept = 0
+    for k in range(n_passed):
+        o = passed[k]
+        q = _relief_llr(prm, o[3], o[5], o[6], int(o[7]), int(o[8]), int(o[9]), o[10], int(o[11]), o[12],
+                        int(o[13]), o[14], int(o[15]), o[16], int(o[17]), o[18], int(o[19]))
+        n_kept = _keep_hypothesis(cands, n_kept, o[0], o[1], o[2], o[3], q, o[4], prm[P_R])
+    return n_kept
+
+
+@kernel
+def search_organised(tab, prm, seed, cands, counters, passed):
     """Stratified RANSAC on the cell grid: the grid is cut into strata of ``prm[P_STRATUM_V]`` x
     ``prm[P_STRATUM_U]`` cells (those at the far edges smaller), visited in raster order; in each, one
     first cell is drawn uniformly and gives one ``front_hypothesis``. The distinct passing ones are
@@ -585,15 +607,16 @@ def search_organised(tab, prm, seed, cands, counters):
     off it or fails, so the miss probability is at most that of as many independent draws (the
     bound, ``frame.strata``) and far below it once the ball covers whole strata; and first cells
     in raster order keep the table's rows in cache (a third of the time per draw of random points).
-    counters (2,) int64 gets: first cells drawn, hypotheses past the pretest. Returns the number of
-    hypotheses kept.
+    counters (2,) int64 gets: first cells drawn, hypotheses past the pretest; passed (P, N_HYP_OUT)
+    the first P of the latter (``front_hypothesis``' out; ``relief_ranked`` ranks them again).
+    Returns the number of hypotheses kept.
     """
     hc, wc = tab.shape[0] - 1, tab.shape[1] - 1
     sv, su = max(1, int(prm[P_STRATUM_V])), max(1, int(prm[P_STRATUM_U]))
     counters[:] = 0
     state = np.empty(1, np.uint64)
     state[0] = np.uint64(seed)
-    out = np.empty(5, np.float64)
+    out = np.empty(N_HYP_OUT, np.float64)
     n_kept = 0
     for v0 in range(0, hc, sv):
         nv = min(sv, hc - v0)
@@ -605,6 +628,8 @@ def search_organised(tab, prm, seed, cands, counters):
             q = front_hypothesis(tab, prm, v, u, out)
             if q == -np.inf:
                 continue
+            if counters[1] < passed.shape[0]:
+                passed[counters[1]] = out
             counters[1] += 1
             n_kept = _keep_hypothesis(cands, n_kept, out[0], out[1], out[2], out[3], q, out[4], prm[P_R])
     return n_kept

@@ -227,7 +227,30 @@ def front_hypothesis(g: Grid, v: int, u: int):
     rr, bg, cont = ring_boxes(g, v, u, front, sig)
     if cont > search_kernels.PRETEST_MAX_CONTINUED:
         return -math.inf, None
-    return 2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi, (v, u, front, rr, float(agree < 3))
+    return (2.0 * agree + bg - 2.0 * cont - 2.0 * behind - 0.5 * chi,
+            (v, u, front, rr, float(agree < 3), (su, sv, h, du, dv, m0, n0, sides)))
+
+
+def relief_llr(prm, rr: float, stencil) -> float:
+    """``search_kernels._relief_llr``: the agreeing side boxes' log-likelihood ratio of the cap's
+    relief against a flat surface through the centre box, from a resting stencil."""
+    su, sv, h, du, dv, m0, n0, sides = stencil
+    R = prm[frame_kernels.P_R]
+    sig = prm[frame_kernels.P_NOISE_A] * prm[frame_kernels.P_MEAN_NOISE] * m0 * m0
+    ahu, ahv = (h + 0.5) / (rr * su), (h + 0.5) / (rr * sv)
+    spread = (ahu * ahu + ahv * ahv) / 3.0
+    xu, xv = du / (rr * su), dv / (rr * sv)
+    base = cap_relief(spread)
+    rises = (R * (cap_relief(xu * xu + spread) - base),) * 2 + (R * (cap_relief(xv * xv + spread) - base),) * 2
+    llr = 0.0
+    for (m, nk), delta in zip(sides, rises):
+        if math.isnan(m) or nk == 0 or n0 == 0:
+            continue
+        d = m - m0
+        if abs(d - delta) > 3.0 * sig / math.sqrt(nk) + search_kernels.PRETEST_SLACK * R:
+            continue
+        llr += (2.0 * d * delta - delta * delta) / (2.0 * max(sig * sig * (1.0 / nk + 1.0 / n0), 1e-12))
+    return llr
 
 
 def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int) -> None:
@@ -248,9 +271,9 @@ def keep_hypothesis(kept: list, hyp: tuple, q: float, radius: float, k_max: int)
     del kept[k_max:]
 
 
-def search_organised(points, index_image, prm, seed: int, k_max: int):
+def search_organised(points, index_image, prm, seed: int, k_max: int, relief: bool = False):
     """Replay of ``_kernels.search_organised``: (hypotheses (M, 6) rows (v, u, front, r, score, occluded),
-    counters (2,))."""
+    counters (2,)); relief: ranked by ``relief_llr`` (``search.relief_search``)."""
     b = int(prm[frame_kernels.P_BIN])
     g = Grid(*cell_images(points, index_image, b), prm)
     hc, wc = g.zs.shape
@@ -268,6 +291,8 @@ def search_organised(points, index_image, prm, seed: int, k_max: int):
             if hyp is None:
                 continue
             counters[1] += 1
+            if relief:
+                q = relief_llr(prm, hyp[3], hyp[5])
             keep_hypothesis(kept, hyp, q, prm[frame_kernels.P_R], k_max)
     out = np.array([[*h[:4], q, h[4]] for q, h in kept], np.float64).reshape(-1, 6)
     return out, counters

@@ -56,7 +56,7 @@ def _less_constants(old: list) -> list:
 def test_packed_vector_equals_the_hand_packed_one_less_the_constants(config):
     """The vector is the hand-packed one of 2cf5b07 without the slots that became the kernels'
     constants, each constant the value its slot held by default."""
-    added = [0.0]  # the slots added since follow the old ones: P_ORDER_RELIEF (0: the pretest's order)
+    added = []  # the slots added since follow the old ones: none (the relief order's came and went)
     for (w, h, b), old in (((424, 240, 1), OLD_DEFAULT_424), ((848, 480, 2), OLD_DEFAULT_848)):
         prm = frame_stage.parameters(config, Intrinsics.d435(w, h), (7, 9), b, (h // b, w // b), 3.12, corr_px=1.5)
         assert prm.tolist() == _less_constants(old) + added, (w, h)
@@ -67,7 +67,7 @@ def test_packed_vector_equals_the_hand_packed_one_less_the_constants(config):
 
 
 def test_slot_constants_follow_the_declared_list():
-    assert frame_kernels.N_PRM == len(frame_kernels.PARAMETERS) == 20
+    assert frame_kernels.N_PRM == len(frame_kernels.PARAMETERS) == 19
     for index, name in enumerate(frame_kernels.PARAMETERS):
         assert getattr(frame_kernels, "P_" + name) == index and type(getattr(frame_kernels, "P_" + name)) is int
     assert (frame_kernels.P_FX, frame_kernels.P_CELL_PX, frame_kernels.P_MEAN_NOISE, frame_kernels.P_OCCLUDER_BOUND) == (0, 15, 16, 18)

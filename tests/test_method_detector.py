@@ -329,6 +329,7 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     cloud = scene(ball_c=tuple(c), wall_z=1.8, width=424, height=240)
     monkeypatch.setattr(search_stage, "search_frame",
                         lambda frame, config, seed, **retry: (c[None], np.array([16.0]), np.zeros(1, bool)))
+    monkeypatch.setattr(search_stage, "relief_search", search_stage.search_frame)
     scores = iter([first] + again)
     starts = []
 
@@ -529,6 +530,7 @@ def test_a_retry_verifies_its_best_new_hypotheses_once_each(monkeypatch):
     calls = []
     verify = verification_stage.verify_organised
     monkeypatch.setattr(search_stage, "search_frame", fake_search)
+    monkeypatch.setattr(search_stage, "relief_search", fake_search)
     monkeypatch.setattr(search_stage, "disc_search", lambda frame, config: fake_search(frame, config, 0))
     monkeypatch.setattr(search_stage, "hole_search", lambda frame, config: fake_search(frame, config, 0))
     monkeypatch.setattr(verification_stage, "verify_organised", lambda *a, **kw: calls.append(a[1]) or verify(*a, **kw))
@@ -544,12 +546,15 @@ def test_retries_only_while_none_is_accepted(monkeypatch):
 
     calls = []
     real, real_disc, real_hole = search_stage.search_frame, search_stage.disc_search, search_stage.hole_search
+    real_relief = search_stage.relief_search
     monkeypatch.setattr(search_stage, "search_frame", lambda *a, **kw: calls.append(kw) or real(*a, **kw))
+    monkeypatch.setattr(search_stage, "relief_search", lambda *a: calls.append("relief") or real_relief(*a))
     monkeypatch.setattr(search_stage, "disc_search", lambda *a: calls.append("disc") or real_disc(*a))
     monkeypatch.setattr(search_stage, "hole_search", lambda *a: calls.append("hole") or real_hole(*a))
     assert len(detect(scene(ball_c=(0.1, -0.05, 1.0)), seed=0)) == 1 and calls == [{}]
     calls.clear()
-    assert detect(scene(ball_c=None), seed=0) == [] and calls == [{}, {"relief": True}, {"occluder_bound": True},
+    # the relief retry ranks the first search's hypotheses again: no search of its own
+    assert detect(scene(ball_c=None), seed=0) == [] and calls == [{}, "relief", {"occluder_bound": True},
                                                                   {"off_axis": True}, "disc", "hole"]
     calls.clear()
     no_retry = {"retry_relief": False, "retry_occluder": False, "retry_off_axis": False, "retry_disc": False,
@@ -823,7 +828,7 @@ def test_the_parameter_vector_holds_the_frame_and_the_model_only():
     assert len(frame_kernels.PARAMETERS) == frame_kernels.N_PRM == len(base) and frame_kernels.PARAMETERS.index("R") == frame_kernels.P_R
     assert (base[frame_kernels.P_R], base[frame_kernels.P_EPS], base[frame_kernels.P_NOISE_K]) == (0.12, 0.01, 2.5)
     assert base[frame_kernels.P_EPS_CAP] == pytest.approx(frame_kernels.MAX_EPS_FRACTION * 0.12) and base[frame_kernels.P_MEAN_NOISE] == 1.0
-    assert base[frame_kernels.P_OFF_AXIS] == base[frame_kernels.P_OCCLUDER_BOUND] == base[frame_kernels.P_ORDER_RELIEF] == 0.0
+    assert base[frame_kernels.P_OFF_AXIS] == base[frame_kernels.P_OCCLUDER_BOUND] == 0.0
     other = kernel_parameters(intr, IMPROVED.override({"radius_m": 0.2, "noise.noise_sigmas": 3.0}))
     assert (other[frame_kernels.P_R], other[frame_kernels.P_NOISE_K]) == (0.2, 3.0)
     ball = scene()

@@ -132,6 +132,7 @@ def test_the_relief_search_ranks_a_near_cap_above_bumps_of_noise():
     z += (0.08 / bumps.std() * bumps).astype(np.float32) * (z > 2.0)
     frame = prepare_frame(cloud_from_depth(z, cloud.intrinsics), IMPROVED)
     for relief in (False, True):
-        centres, scores, _ = search_stage.search_frame(frame, IMPROVED, 0, relief=relief)
+        search = search_stage.relief_search if relief else search_stage.search_frame
+        centres, scores, _ = search(frame, IMPROVED, 0)
         assert len(centres) == search_stage.SEARCH_CANDIDATES and np.linalg.norm(centres[0] - c) < 0.5 * R
         assert (scores[1] < 0.01 * scores[0]) if relief else (scores[1] > 0.97 * scores[0]), (relief, scores[:3])

@@ -54,6 +54,11 @@ def test_compiled_search_equals_reference(ball, noise, seed, width, off_axis, oc
     assert np.array_equal(frame.hypotheses, hyp)
     # and the best hypothesis is the ball (unrefined: from box means)
     assert np.linalg.norm(cands[0] - ball) < 0.03
+    if not (occluder or off_axis):  # the relief retry: the same hypotheses, ranked by their cap's relief
+        search_stage.relief_search(frame, cfg, seed)
+        by_relief, ctr = ref.search_organised(cloud.points, frame.index_image, prm, seed,
+                                              search_stage.SEARCH_CANDIDATES, relief=True)
+        assert np.array_equal(frame.hypotheses, by_relief) and not np.array_equal(by_relief, hyp)
 
 
 def test_summed_area_table_gives_box_sums():
