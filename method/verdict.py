@@ -61,21 +61,24 @@ N_FEATURES = len(FEATURE_NAMES)
 MODEL_PATH = Path(__file__).with_name("verdict.onnx")
 
 
-#: the measurements the features read that a record may lack, and the value each then takes (the rest
-#: of ``verification_kernels.MEASUREMENT_NAMES`` that the features do not read: nan)
+#: the measurements the features read that a record may lack, and the value each then takes
 _OPTIONAL = {"pixels_per_sample": 1.0, "noise_ratio": 1.0, "visible_fraction": 1.0, "ring_spread": 0.0}
-#: the measurements the features read (a record without one is refused, KeyError)
-_READ = frozenset(("depth_m", "sigma_m", "valid_disc", "inner_n", "inner_sum", "outer_h_n", "outer_h_sum", "outer_v_n",
-                   "outer_v_sum", "free_radius_m", "free_radius_se_m", "n_inliers", "rmse_m", "sigma_measured_m",
-                   "inlier", "invalid_disc", "behind", "front_near", "ring_continued", "ring", "ring_front",
-                   "behind_inner", "valid_inner", "edge_behind", "edge_n")) | frozenset(_OPTIONAL)
+#: the measurements the features read that a record must hold (the rest of
+#: ``verification_kernels.MEASUREMENT_NAMES``, which they do not read, may be missing: nan)
+_REQUIRED = frozenset(("depth_m", "sigma_m", "valid_disc", "inner_n", "inner_sum", "outer_h_n", "outer_h_sum",
+                       "outer_v_n", "outer_v_sum", "free_radius_m", "free_radius_se_m", "n_inliers", "rmse_m",
+                       "sigma_measured_m", "inlier", "invalid_disc", "behind", "front_near", "ring_continued",
+                       "ring", "ring_front", "behind_inner", "valid_inner", "edge_behind", "edge_n"))
 
 
 def measurement_row(stats: dict) -> np.ndarray:
     """(N_MEASURED,) float64: a candidate's measurements by name (``verification.Candidate.stats``, a
-    ``Sphere``'s evidence) in ``verification_kernels.MEASUREMENT_NAMES``' order."""
-    return np.array([float(stats[k]) if k in stats or (k in _READ and k not in _OPTIONAL)
-                     else _OPTIONAL.get(k, math.nan) for k in VK.MEASUREMENT_NAMES], np.float64)
+    ``Sphere``'s evidence) in ``verification_kernels.MEASUREMENT_NAMES``' order. KeyError where one
+    the features need is missing."""
+    missing = _REQUIRED - stats.keys()
+    if missing:
+        raise KeyError(f"the verdict's features need {', '.join(sorted(missing))}")
+    return np.array([float(stats.get(k, _OPTIONAL.get(k, math.nan))) for k in VK.MEASUREMENT_NAMES], np.float64)
 
 
 def verdict_features(stats: dict, radius_m: float) -> np.ndarray:
