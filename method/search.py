@@ -79,7 +79,7 @@ def relief_search(frame: PreparedFrame, config: DetectorConfig, seed: int) -> tu
         search_frame(frame, config, seed)
     _, passed, counters = frame.passed
     hyp = np.zeros((SEARCH_CANDIDATES, 6), np.float64)
-    m = SK.relief_ranked(frame.prm, passed, len(passed), hyp)
+    m = SK.relief_ranked(frame.prm, passed, hyp)
     return _found(frame, hyp[:m], counters)
 
 

@@ -284,8 +284,8 @@ def front_hypothesis(tab, prm, v, u, out):
     (``_cap_pretest``), or two and a third well in front (out[4] flags such a hypothesis, which
     ``improved`` verifies only while no sphere has been accepted), at most one *behind* it (one box
     may straddle the outline); of the eight ``ring_boxes`` at most PRETEST_MAX_CONTINUED may continue
-    the surface at the ball's depth. out (5,) gets (v, u, front range m, disc radius cells, occluded
-    flag) and out[5:N_HYP_OUT] its resting stencil (su, sv, h, du, dv, m0, n0, then each side box's mean
+    the surface at the ball's depth. out (N_HYP_OUT,) gets (v, u, front range m, disc radius cells,
+    occluded flag) and out[5:] its resting stencil (su, sv, h, du, dv, m0, n0, then each side box's mean
     and count: left, right, up, down); the score is 2 agreeing + background ring boxes - 2 continued
     - 2 behind - chi^2 / 2 of the agreeing ones (at most 16).
     """
@@ -581,13 +581,13 @@ N_HYP_OUT = 20
 
 
 @kernel
-def relief_ranked(prm, passed, n_passed, cands):
-    """The hypotheses of a search, passed[:n_passed] (``search_organised``'s), ranked by how far their
+def relief_ranked(prm, passed, cands):
+    """The hypotheses of a search, passed (P, N_HYP_OUT) (``search_organised``'s), ranked by how far their
     cap stands out of the noise (``_relief_llr`` of their resting stencils) in place of the
     pretest's agreement, kept as ``search_organised`` keeps its, in the order drawn: the search that
     ranks its hypotheses so, without drawing and descending again. Returns the number kept."""
     n_kept = 0
-    for k in range(n_passed):
+    for k in range(passed.shape[0]):
         o = passed[k]
         q = _relief_llr(prm, o[3], o[5], o[6], int(o[7]), int(o[8]), int(o[9]), o[10], int(o[11]), o[12],
                         int(o[13]), o[14], int(o[15]), o[16], int(o[17]), o[18], int(o[19]))

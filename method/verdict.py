@@ -6,10 +6,9 @@ and that radius's standard error, and how the pixels of its silhouette and outli
 sphere (``verification_kernels.measurements``, by name ``MEASUREMENT_NAMES``). ``features`` turns
 candidates' measurements into fixed vectors of scale-free quantities (shares, ratios to the frame's
 noise, logarithms of counts and ranges), compiled, and ``verdict_features`` one candidate's by name
-(a sphere's evidence: what the model's fit reads); a model fitted on the candidates of `train` and
-`train-stereo` (``make train-verifier``)
-maps that vector to the probability that a ball's centre lies within 2 cm (3 cm beyond 3 m) of the
-candidate's, calibrated on scenes held apart from its fit.
+(a sphere's evidence: what the model's fit reads). A model fitted on the candidates of `train` and
+`train-stereo` (``make train-verifier``) maps that vector to the probability that a ball's centre
+lies within 2 cm (3 cm beyond 3 m) of the candidate's, calibrated on scenes held apart from its fit.
 
 The model ships as ONNX beside this module (``verdict.onnx``, its card ``verdict_card.md``); it is
 run by onnxruntime on one thread, the candidates verified together (``verification.verify_starts``)
