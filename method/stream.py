@@ -171,14 +171,14 @@ def track_stream(frames: Iterable[DepthFrame], config, seed: int = 0, stats=None
             _count(stats, frame, 1)
         if search == "full" and spheres:
             noise = spheres[0].evidence.get("frame_noise", noise)  # the camera's noise, for the windows
-        tracks = tracker.update(time_s, [_detection(s) for s in spheres])
+        tracks = tracker.update(time_s, [detection_of(s) for s in spheres])
         confirmed = [t for t in tracks if t.confirmed]
         lost = not confirmed  # a confirmed track that missed is looked for about its prediction until it ends
         ms = (time.perf_counter() - start) * 1e3
         yield TrackedFrame(frame, spheres, tracks, search, deadline is not None and deadline.cut_short, ms)
 
 
-def _detection(sphere) -> Detection:
+def detection_of(sphere) -> Detection:
     """A sphere as the tracker's detection: its centre, score, free radius and centre error."""
     e = sphere.evidence
     sigma = None

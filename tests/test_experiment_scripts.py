@@ -6,7 +6,6 @@ from __future__ import annotations
 import ast
 import importlib
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -155,3 +154,47 @@ def test_size_resolution_reads_the_free_radius_of_both_balls(train4, tmp_path, c
     capsys.readouterr()
     assert sizes.main(["report", f"analytic={big_lines}:{small_lines}"]) == 0
     assert "| sensor | band (m) |" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def soccer_recording(tmp_path_factory):
+    """A dataset of one short `soccer` recording (424x240, 30 fps, 12 frames): the basketball 2.1-2.7 m
+    away and a 0.11 m ball beside it."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("pyrealsense2")
+    from spherebench.datasets import sequences
+
+    root = tmp_path_factory.mktemp("motion")
+    seq = sequences.build_sequence("soccer", 3, fps=30, duration_s=0.4)
+    return root, sequences.write_sequence(root / "sequences" / "soccer_0003", seq)
+
+
+def test_track_ceiling_feeds_the_tracker_the_verifications_from_the_truth(soccer_recording, capsys):
+    root, folder = soccer_recording
+    r = _script("track_ceiling").sequence_ceiling(folder, config_for("improved"), 1, True)
+    c = r["counts"]
+    # a clean analytic ball 2-3 m away: every verification from its centre accepted within 2 cm
+    assert r["mode"] == "424x240" and c["balls"] == 12 and r["n"] == c["near"] > 0 and r["hit"] == r["n"]
+    assert c["found"] == c["balls"] and c["found_near"] == c["near"] and c["switches"] == 0
+    assert _script("track_ceiling").main([str(root), "--tracked", "--every", "3"]) == 0
+    out = capsys.readouterr().out
+    assert f"the tracker fed from the truth: within 2 cm on {c['near']} of {c['near']}" in out
+
+
+def test_track_radius_reads_the_basketball_and_the_smaller_ball_apart(soccer_recording):
+    _, folder = soccer_recording
+    radii = _script("track_radius").sequence_radii(folder, config_for("improved"))
+    ball = np.array([r for r, _, _ in radii["ball"]])
+    other = np.array([r for r, _, _ in radii["other"]])
+    assert len(ball) == 12 and all(a for _, _, a in radii["ball"])
+    assert abs(np.median(ball) - 0.12) < 0.002 and len(other) and np.median(other) < np.median(ball) - 0.003
+
+
+def test_track_cost_classes_each_frame_of_a_tracked_stream(soccer_recording):
+    root, _ = soccer_recording
+    rows = _script("track_cost").frame_costs(str(root), "424x240", config_for("improved"))
+    assert len(rows) == 12 and all(r["ms"] > 0 and r["ball_seen"] for r in rows)
+    assert rows[0]["search"] == "full" and not rows[0]["had_track"] and rows[0]["reported"]
+    # once its track is confirmed, the ball is looked for about its prediction
+    assert any(r["search"] == "local" and r["had_track"] for r in rows)
+    assert _script("track_cost").frame_costs(str(root), "848x480", config_for("improved")) == []
