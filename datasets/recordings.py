@@ -8,6 +8,7 @@ each with the colour frame nearest to it in time where the recording has a usabl
 
 from __future__ import annotations
 
+import atexit
 import collections
 import math
 import queue
@@ -168,6 +169,12 @@ class BagRecording:
         colour = self.colour if with_colour else None
         started = self._start_sensors(playback, colour, _frame_queuer(rs, items, stopping, real_time, self.dropped))
         pairing = _ColourPairing(colour, self.depth_scale, self.path)
+
+        def stop() -> None:
+            stopping.set()
+            _stop_sensors(started)
+
+        _PLAYING.add(stop)
         try:
             played = _played_items(items, playback, rs, stall_timeout_s, self.path)
             while stop_after is None or pairing.index < stop_after:
@@ -184,8 +191,8 @@ class BagRecording:
                     return
                 yield frame
         finally:
-            stopping.set()
-            _stop_sensors(started)
+            _PLAYING.discard(stop)
+            stop()
 
     def _start_sensors(self, playback, colour: BagColour | None, on_frame) -> list:
         """Open the sensors of the streams played and start them with ``on_frame``, every one before
@@ -211,6 +218,18 @@ class BagRecording:
             _stop_sensors(started)
             raise SphereBenchError(f"{self.path}: pyrealsense2 cannot play the recording back ({exc})") from None
         return started
+
+
+#: The playbacks running (their stops). A consumer that leaves a recording's frames unfinished has its
+#: playback stopped at the interpreter's exit, before its teardown: librealsense's thread, still waiting
+#: to queue a frame for Python then, would otherwise be killed inside a C++ handler and abort the process.
+_PLAYING: set = set()
+
+
+@atexit.register
+def _stop_playbacks() -> None:
+    for stop in list(_PLAYING):
+        stop()
 
 
 def _frame_queuer(rs, items: queue.Queue, stopping: threading.Event, real_time: bool, dropped: dict):
@@ -339,6 +358,7 @@ def _colour_to_bgr(data: np.ndarray, width: int, height: int, bpp: int, convert,
 
 
 def _stop_sensors(sensors) -> None:
+    """Stop and close each sensor; one already stopped (the file's end, or a stop before) is passed over."""
     for sensor in sensors:
         try:
             sensor.stop()

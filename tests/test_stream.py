@@ -274,3 +274,18 @@ def test_detect_streams_an_sdk_recording(tmp_path, capsys):
     lines = [json.loads(x) for x in out.strip().splitlines()]
     assert [x["frame"] for x in lines] == [0, 1, 3] and all(len(x["detections"]) == 1 for x in lines)
     assert "1 missing" in err
+
+
+def test_a_recording_left_unfinished_lets_the_process_exit(recording):
+    """A consumer that stops reading a recording part way (the playback still queueing frames) and ends
+    its process: the playback is stopped before the interpreter's teardown, and the exit is clean."""
+    import subprocess
+    import sys
+
+    path = recording[0]
+    code = ("from spherebench.datasets import depth_frames\n"
+            f"frames = depth_frames.recording_frames({str(path)!r})\n"
+            "first = next(frames)\n"
+            "print(first.index)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout == "0\n", (done.returncode, done.stderr[-500:])

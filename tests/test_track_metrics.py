@@ -100,3 +100,33 @@ def test_track_bench_scores_a_small_motion_dataset_and_refuses_others(tmp_path, 
     theirs.write_bytes(b"not ours")
     assert cli.run_module("track_bench", track_bench, [str(data), "--figure", str(theirs), "--no-real-time"]) == 2
     assert "was not written by SphereBench" in capsys.readouterr().err and theirs.read_bytes() == b"not ours"
+
+
+def test_each_sequence_warms_the_detector_before_either_method_is_timed(tmp_path, monkeypatch):
+    """A stream's first frames at a new size pay for cold buffers and caches: each sequence's first
+    ``WARM_FRAMES`` are played untimed through the detector first, so that neither method pays them
+    for the other."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("pyrealsense2")
+    from spherebench.datasets import sequences
+    from spherebench.eval.bench import tracks
+    from spherebench.method import config_for
+
+    folder = sequences.write_sequence(tmp_path / "rolling_0000", sequences.build_sequence("rolling", 1, fps=30,
+                                                                                          duration_s=0.3))
+    played = []  # (method, frames it yielded)
+
+    def counted(name, fn):
+        def run(*args, **kwargs):
+            played.append([name, 0])
+            for r in fn(*args, **kwargs):
+                played[-1][1] += 1
+                yield r
+        return run
+
+    monkeypatch.setattr(tracks.stream, "detect_stream", counted("detect", tracks.stream.detect_stream))
+    monkeypatch.setattr(tracks.stream, "track_stream", counted("track", tracks.stream.track_stream))
+    config = config_for("improved")
+    rows = tracks.bench_sequence(folder, config, config.radius_m, real_time=False)
+    assert [r["method"] for r in rows] == list(tracks.METHODS)
+    assert played == [["detect", tracks.WARM_FRAMES], ["track", 9], ["detect", 9]]
