@@ -122,6 +122,21 @@ def beats(best: dict, score: float, size_ok: bool, error_m: float) -> bool:
     return (there and (not best_there or score > best["score"])) or (not best_there and error_m < best["error_m"])
 
 
+def truth_best(frame, centre_m, config: DetectorConfig, buf):
+    """The best of a ball's verifications from its true centre ``centre_m`` (3,) m (``truth_verifications``,
+    kept by ``beats``) and its distance to the truth (m): (Candidate, error) or (None, inf)."""
+    c = np.asarray(centre_m, np.float64)
+    best = {"score": 0.0, "size_ok": False, "error_m": math.inf}
+    kept = None
+    for v in truth_verifications(frame, c, config, buf):
+        if v is None:
+            continue
+        err = float(np.linalg.norm(v.centre_m - c))
+        if beats(best, v.score, v.size_ok, err):
+            best, kept = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err}, v
+    return kept, best["error_m"]
+
+
 def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int = 0,
             separable: bool = True) -> list[dict]:
     """Per true ball (``centres_m``: (B, 3) metres): {score, size_ok, error_m, within (the ceiling),
@@ -130,16 +145,12 @@ def ceiling(cloud: Cloud, centres_m: Sequence, config: DetectorConfig, seed: int
     buf = compiled.workspace("inliers", (frame.index_image.size + 1,), np.int64)
     out = []
     for c in centres_m:
-        best = {"score": 0.0, "size_ok": False, "error_m": math.inf, "within": False, "separable": None}
-        for v in truth_verifications(frame, c, config, buf):
-            if v is None:
-                continue
-            err = float(np.linalg.norm(v.centre_m - np.asarray(c, np.float64)))
-            if beats(best, v.score, v.size_ok, err):
-                best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
-                        "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.accept_score),
-                        "separable": None}
-        out.append(best)
+        v, err = truth_best(frame, c, config, buf)
+        out.append({"score": 0.0, "size_ok": False, "error_m": math.inf, "within": False, "separable": None}
+                   if v is None else
+                   {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err,
+                    "within": bool(err <= CEILING_M and v.size_ok and v.score >= config.verification.accept_score),
+                    "separable": None})
     if separable and out:
         every = detect(cloud, config.override({"verification.rank_floor": 0.0}), seed=seed, min_score=0.0,
                        max_spheres=1000)

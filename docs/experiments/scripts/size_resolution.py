@@ -1,7 +1,7 @@
 """Where the size check can tell a 0.11 m ball from the 0.12 m basketball, and whether its
 free-radius standard error says so: per sensor model and depth band, the free radius of the
 verification from the true centre (basketball configuration, R 0.12, every start of
-``eval.bench.oracle.truth_verifications``, the best as the oracle keeps it) of the balls of a
+``eval.bench.oracle.truth_verifications``, the best as the oracle keeps it: ``truth_best``) of the balls of a
 dataset and of its ``--radius 0.11`` twin.
 
 ``collect`` writes one line per ball: its depth, true radius, visible share, the verification's
@@ -36,7 +36,7 @@ from spherebench import options
 from spherebench.datasets import inout
 from spherebench.datasets.outputs import atomic_write_bytes
 from spherebench.eval.bench.calibration import scene_truths
-from spherebench.eval.bench.oracle import beats, truth_verifications
+from spherebench.eval.bench.oracle import truth_best
 from spherebench.eval.bench.seeds import detection_seed
 from spherebench.method import compiled, config_for
 from spherebench.method.detector import detect, prepare_frame
@@ -60,17 +60,13 @@ def scene_balls(job: tuple) -> list[dict]:
     out = []
     for b in gt["balls"]:
         c = np.asarray(b["center_m"], np.float64)
-        best, kept = None, None
-        for v in truth_verifications(frame, c, config, buf):
-            err = float(np.linalg.norm(v.centre_m - c)) if v is not None else None
-            if v is not None and (best is None or beats(best, v.score, v.size_ok, err)):
-                best, kept = {"score": v.score, "size_ok": v.size_ok, "error_m": err}, v
+        kept, err = truth_best(frame, c, config, buf)
         line = {"scene": Path(scene_dir).name, "z_m": float(c[2]), "true_radius_m": float(b.get("radius_m") or BASKETBALL_M),
                 "visible": float(b.get("visible_fraction", 1.0)),
                 "accepted": any(np.linalg.norm(np.asarray(r) - c) <= WITHIN_M for r in reported)}
         if kept is not None:
             line.update(free_radius_m=float(kept.free_radius_m), free_radius_se_m=float(kept.free_radius_se_m),
-                        error_m=best["error_m"], size_ok=bool(kept.size_ok))
+                        error_m=err, size_ok=bool(kept.size_ok))
         out.append(line)
     return out
 

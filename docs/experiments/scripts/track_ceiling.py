@@ -18,33 +18,17 @@ ball seen):
 from __future__ import annotations
 
 import argparse
-import math
 from types import SimpleNamespace
 
 import numpy as np
 
 from spherebench.datasets import depth_frames, sequences
-from spherebench.eval.bench.oracle import CEILING_M, beats, truth_verifications
+from spherebench.eval.bench.oracle import CEILING_M, truth_best
 from spherebench.eval.bench.tracks import truth_frames
 from spherebench.eval.metrics import tracking as T
 from spherebench.method import compiled, config_for, stream, warm_up
 from spherebench.method.detector import prepare_frame
 from spherebench.method.tracking import Tracker
-
-
-def truth_best(frame, centre_m, config, buf):
-    """The best of a ball's verifications from its true centre (``oracle.beats``) and its distance to
-    the truth (m): (Candidate, error) or (None, inf)."""
-    best = {"score": 0.0, "size_ok": False, "error_m": math.inf}
-    chosen = None
-    for v in truth_verifications(frame, centre_m, config, buf):
-        if v is None:
-            continue
-        err = float(np.linalg.norm(v.centre_m - np.asarray(centre_m, np.float64)))
-        if beats(best, v.score, v.size_ok, err):
-            best = {"score": float(v.score), "size_ok": bool(v.size_ok), "error_m": err}
-            chosen = v
-    return chosen, best["error_m"]
 
 
 def sequence_ceiling(folder, config, every: int, tracked: bool) -> dict:
@@ -112,8 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.dataset} {mode}: the detector's ceiling within 2.5 m {hit} of {n} ball-frames "
               f"({100 * hit / max(n, 1):.1f} %)")
         if args.tracked:
-            s = T.summary(T.add_counts([r["counts"] for r in rows]))
             c = T.add_counts([r["counts"] for r in rows])
+            s = T.summary(c)
             print(f"{args.dataset} {mode}: the tracker fed from the truth: within 2 cm on {c['found_near']} of "
                   f"{c['near']} ball-frames within 2.5 m ({100 * s['found_near_share']:.1f} %), {c['found']} of "
                   f"{c['balls']} in all ({100 * s['found_share']:.1f} %)")

@@ -1,7 +1,7 @@
 """What a track's radius can tell (docs/experiments/2026-12-06-target-ceilings.md): per sequence of a
 motion preset, per ball (the basketballs and the other balls, ``distractors`` in the truth) within 3 m
-(``--range-m``) and at least a quarter seen, the detector's verification from its true centre (``oracle.truth_verifications``,
-the best by ``oracle.beats``) in every frame: its free radius, and how far its centre ends from the truth.
+(``--range-m``) and at least a quarter seen, the detector's verification from its true centre
+(``oracle.truth_best``) in every frame: its free radius, and how far its centre ends from the truth.
 Per sequence and kind: the frames, the free radius's median, mean and scatter (mm), the median centre
 error (cm), and the size test the tracker applies to a track of all those frames (``tracking.Track.size_ok``:
 the mean's distance from the basketball's R in standard errors, with ``tracking.RADIUS_BIAS_M`` and
@@ -18,10 +18,9 @@ import math
 import numpy as np
 
 from spherebench.datasets import depth_frames, sequences
+from spherebench.eval.bench.oracle import truth_best
 from spherebench.method import compiled, config_for, stream, tracking, warm_up
 from spherebench.method.detector import prepare_frame
-
-import track_ceiling
 
 #: The balls are measured within this range by default, m (the issue's "never confirmed within 3 m").
 RANGE_M = 3.0
@@ -44,7 +43,7 @@ def sequence_radii(folder, config, range_m: float = RANGE_M) -> dict[str, list[t
         prepared = prepare_frame(stream.depth_cloud(frame.depth, frame.intrinsics, rays), config)
         buf = compiled.workspace("inliers", (prepared.index_image.size + 1,), np.int64)
         for kind, b in kinds:
-            v, err = track_ceiling.truth_best(prepared, b["center_m"], config, buf)
+            v, err = truth_best(prepared, b["center_m"], config, buf)
             if v is not None and math.isfinite(v.free_radius_m):
                 accepted = bool(v.size_ok and v.score >= config.verification.accept_score)
                 out[kind].append((float(v.free_radius_m), err, accepted))
