@@ -41,12 +41,16 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
     ``verify_candidates_if_none`` (or ``limit_none``), and the hypotheses that passed the search's
     pretest only by an occluded side: a frame with a ball pays nothing for either. multistart: a
     noisy hypothesis is verified from several starts while none is accepted
-    (``verification.verify_multistart``). deadline: none is verified once it has passed."""
+    (``verification.verify_noisy``). deadline: none is verified once it has passed."""
     if limit_none is None:
         ver = config.verification
         limit_none = max(ver.verify_candidates, ver.verify_candidates_if_none if frame is not None else 0)
     q_accepted = -math.inf  # the best search score among the accepted
     verified: list[np.ndarray] = []
+    noisy = (np.zeros(len(cands), bool) if frame is None or not multistart else
+             frame.prm[FK.P_NOISE_A] * cands[:, 2] ** 2 > verification.MULTISTART_NOISE_FRACTION * config.radius_m)
+    ahead: dict[int, Candidate | None] = {}  # noisy hypotheses verified before their turn, by index
+    ahead_n = 1  # how many noisy hypotheses the next call verifies
     for k, (c0, q) in enumerate(zip(cands, quals)):
         if k >= (config.verification.verify_candidates if found else limit_none):
             break
@@ -68,12 +72,17 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         verified.append(c0)
         if frame is None:
             v = unorganised.verify_unorganised(points, c0, config)
-        elif (multistart and not found and frame.prm[FK.P_NOISE_A] * c0[2] ** 2
-              > verification.MULTISTART_NOISE_FRACTION * config.radius_m):
-            # while none is accepted (a frame with a ball pays nothing, and gets no second sphere this
-            # way); the best of several starts is a biased draw: its score is always re-taken as the mean
-            v = verification.verify_multistart(frame, np.asarray(c0, np.float64), config, buf)
-            v = verification.rescore(frame, v, config, buf) if v is not None else None
+        elif multistart and not found and noisy[k]:
+            # while none is accepted (a frame with a ball pays nothing, and gets no second sphere this way)
+            if k not in ahead:
+                # while none is accepted, every noisy hypothesis up to the limit is verified in turn: this
+                # one and the next are verified together, their number doubling each time (one at a
+                # time under a deadline), as one call shares their starts between the threads better
+                # than several; if one is accepted, those after it were verified for nothing
+                group = np.flatnonzero(noisy[k:limit_none])[:ahead_n] + k
+                ahead.update(zip(group.tolist(), verification.verify_noisy(frame, cands[group], config, buf)))
+                ahead_n *= 1 if deadline is not None else 2
+            v = ahead.pop(k)
         else:
             # a hypothesis with an occluded side (verified only while none is accepted): pushed back too
             v = (verification.verify_pushed(frame, np.asarray(c0, np.float64), config, buf) if occluded[k]

@@ -89,7 +89,7 @@ def verify_starts(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
                   gate: np.ndarray | None = None, hold_direction: bool = False) -> list[Candidate | None]:
     """Verify from each of starts_m (K, 3) m apart: refine, measure the evidence, fit the free radius,
     score; None where too few inliers remain or the kernel's size gate stops it. The starts share one
-    kernel call and one run of the verdict (a candidate's several starts: ``verify_multistart``, ``rescore``).
+    kernel call and one run of the verdict (several starts: ``verify_noisy``, ``rescore_all``).
     Where one pixel's noise at a refined centre is at least ``OUTLINE_EVIDENCE_NOISE_FRACTION`` R
     (``DetectorConfig.outline.outline_evidence``), that candidate is then re-centred on its outline and
     verified again from there with its direction held: the cap's relief leaves the refined centre a
@@ -166,17 +166,27 @@ def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     return found
 
 
-def verify_multistart(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfig,
-                      buf: np.ndarray) -> Candidate | None:
-    """A hypothesis whose depth noise is a good part of R (``MULTISTART_NOISE_FRACTION``), verified from
-    its centre and from each of ``RESCORE_STARTS`` about it: where one pixel's noise nears R, the
-    refinement's end depends on its start by a few cm, and a hypothesis a few cm off converges
-    off the ball's optimum. The best-scoring verification that passes the size check is kept."""
-    best = None
-    for v in verify_starts(frame, c0 + config.radius_m * np.asarray(((0.0, 0.0, 0.0),) + RESCORE_STARTS), config,
-                           buf):
-        if v is not None and v.size_ok and (best is None or v.score > best.score):
-            best = v
+def verify_noisy(frame: PreparedFrame, c0s_m: np.ndarray, config: DetectorConfig,
+                 buf: np.ndarray) -> list[Candidate | None]:
+    """Hypotheses (H, 3) m whose depth noise is a good part of R (``MULTISTART_NOISE_FRACTION``), each
+    verified from its centre and from each of ``RESCORE_STARTS`` about it; where one pixel's noise
+    nears R, the refinement's end depends on its start by a few cm, and a hypothesis a few cm off
+    converges off the ball's optimum. Each one's best-scoring verification that passes the size
+    check is kept (None where none does) and rescored (``rescore_all``): the best of several starts
+    is a biased draw. The H hypotheses share two kernel calls and two runs of the verdict; each
+    one's result is the same as when verified alone."""
+    c0s_m = np.asarray(c0s_m, np.float64).reshape(-1, 3)
+    offsets = config.radius_m * np.asarray(((0.0, 0.0, 0.0),) + RESCORE_STARTS)
+    n = len(offsets)
+    found = verify_starts(frame, (c0s_m[:, None, :] + offsets[None]).reshape(-1, 3), config, buf)
+    best: list[Candidate | None] = []
+    for h in range(len(c0s_m)):
+        b = None
+        for v in found[h * n:(h + 1) * n]:
+            if v is not None and v.size_ok and (b is None or v.score > b.score):
+                b = v
+        best.append(b)
+    rescore_all(frame, [b for b in best if b is not None], config, buf)
     return best
 
 
@@ -208,14 +218,25 @@ def rescore(frame: PreparedFrame, cand: Candidate, config: DetectorConfig, buf: 
     score becomes the mean of all (a start left with too few inliers counts 0) and its size check
     the majority's. The centre, evidence and fits stay the first verification's; stats gets
     "score_single", the first score (see ``RESCORE_BAND``); the raw score is averaged alike."""
-    scores, raws = [cand.score], [cand.raw_score]
-    size_ok = [cand.size_ok]
-    for v in verify_starts(frame, cand.centre_m + config.radius_m * np.asarray(RESCORE_STARTS), config, buf,
-                           frame.no_gate):
-        scores.append(0.0 if v is None else v.score)
-        raws.append(0.0 if v is None else v.raw_score)
-        size_ok.append(v is not None and v.size_ok)
-    cand.stats["score_single"] = cand.score
-    cand.score, cand.raw_score = float(np.mean(scores)), float(np.mean(raws))
-    cand.size_ok = 2 * sum(size_ok) > len(size_ok)
-    return cand
+    return rescore_all(frame, [cand], config, buf)[0]
+
+
+def rescore_all(frame: PreparedFrame, cands: list[Candidate], config: DetectorConfig,
+                buf: np.ndarray) -> list[Candidate]:
+    """``rescore`` of each of cands, in place: all their starts in one kernel call and one run of the verdict."""
+    if not cands:
+        return cands
+    n = len(RESCORE_STARTS)
+    offsets = config.radius_m * np.asarray(RESCORE_STARTS)
+    centres = np.array([c.centre_m for c in cands], np.float64)
+    again = verify_starts(frame, (centres[:, None, :] + offsets[None]).reshape(-1, 3), config, buf, frame.no_gate)
+    for j, cand in enumerate(cands):
+        scores, raws, sized = [cand.score], [cand.raw_score], [cand.size_ok]
+        for v in again[j * n:(j + 1) * n]:
+            scores.append(0.0 if v is None else v.score)
+            raws.append(0.0 if v is None else v.raw_score)
+            sized.append(v is not None and v.size_ok)
+        cand.stats["score_single"] = cand.score
+        cand.score, cand.raw_score = float(np.mean(scores)), float(np.mean(raws))
+        cand.size_ok = 2 * sum(sized) > len(sized)
+    return cands

@@ -391,6 +391,102 @@ def test_starts_verified_together_are_each_as_alone(threads, monkeypatch):
         numba.set_num_threads(saved)
 
 
+def _same_candidate(a, b) -> bool:
+    return (a is None) == (b is None) and (a is None or (
+        np.array_equal(a.centre_m, b.centre_m) and a.stats == b.stats
+        and (a.score, a.raw_score, a.size_ok, a.free_radius_m) == (b.score, b.raw_score, b.size_ok, b.free_radius_m)))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_noisy_hypotheses_verified_together_are_each_as_alone(threads):
+    """verify_noisy: several noisy hypotheses share two kernel calls and two runs of the verdict, and
+    each gets the rescored best verification it gets alone; rescore_all likewise rescores each
+    candidate as ``rescore`` does alone."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < threads:
+        pytest.skip(f"numba has {numba.config.NUMBA_NUM_THREADS} thread(s) here")
+    c = np.array([0.2, -0.1, 2.8])
+    frame = frame_stage.PreparedFrame(scene(ball_c=tuple(c), wall_z=3.6, noise=0.02, width=424, height=240), IMPROVED)
+    buf = compiled.workspace("inliers", (frame.index_image.size + 1,), np.int64)
+    hypotheses = c + R * np.array([(0.0, 0.0, 0.0), (0.3, 0.2, -0.4), (4.0, 0.0, 0.0), (0.0, -0.3, 0.5), (-3.0, 1.0, 2.0)])
+    saved = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        together = verification_stage.verify_noisy(frame, hypotheses, IMPROVED, buf)
+        alone = [verification_stage.verify_noisy(frame, h[None], IMPROVED, buf)[0] for h in hypotheses]
+        assert sum(v is not None for v in alone) >= 3 and any(v is None for v in alone)
+        assert all(_same_candidate(a, b) for a, b in zip(together, alone))
+        firsts = [verification_stage.verify_organised(frame, h, IMPROVED, buf) for h in hypotheses[:2]]
+        again = [verification_stage.verify_organised(frame, h, IMPROVED, buf) for h in hypotheses[:2]]
+        verification_stage.rescore_all(frame, firsts, IMPROVED, buf)
+        assert all(_same_candidate(a, verification_stage.rescore(frame, b, IMPROVED, buf))
+                   for a, b in zip(firsts, again))
+    finally:
+        numba.set_num_threads(saved)
+
+
+def test_noisy_hypotheses_verified_ahead_change_nothing(monkeypatch):
+    """While none is accepted, the noisy hypotheses are verified in groups of 1, 2, 4... ahead of
+    their turn (one at a time under a deadline), and the detection is the same: a noisy frame with
+    nothing to find, and, with the verification scripted, a frame whose fifth hypothesis is accepted
+    (the hypotheses verified ahead of it are then dropped, and those after it verified as with a
+    ball found)."""
+    from spherebench.method.deadline import Deadline
+
+    real = verification_stage.verify_noisy
+    groups = []
+
+    def counted(frame, c0s_m, config, buf):
+        groups.append(len(c0s_m))
+        return real(frame, c0s_m, config, buf)
+
+    monkeypatch.setattr(verification_stage, "verify_noisy", counted)
+    cloud = scene(ball_c=None, wall_z=3.0, noise=0.03, width=424, height=240, box=True)
+    ahead = detect(cloud, IMPROVED, seed=0)
+    grouped, groups[:] = list(groups), []
+    in_turn = detect(cloud, IMPROVED, seed=0, deadline=Deadline(math.inf))
+    assert grouped[:3] == [1, 2, 4] and set(groups) == {1} and sum(grouped) == len(groups)
+    assert len(ahead) == len(in_turn) and all(np.array_equal(a.centre_m, b.centre_m) and a.score == b.score
+                                              for a, b in zip(ahead, in_turn))
+
+    # scripted: hypothesis k (all noisy) scores 0.9 for k == 4, else 0.3; a plain verification 0.5
+    frame = frame_stage.PreparedFrame(scene(ball_c=None, wall_z=3.0, noise=0.03, width=424, height=240), IMPROVED)
+    hyps = np.array([(0.4 * k - 1.0, 0.0, 5.0) for k in range(10)])  # noisy: sigma 8 cm at 5 m
+
+    def fake(score):
+        def candidate(c0):
+            return verification_stage.Candidate(centre_m=np.asarray(c0, float).copy(), inliers=np.empty(0, np.int64),
+                                                eps_m=0.01, free_centre_m=np.asarray(c0, float).copy(),
+                                                free_radius_m=R, free_radius_se_m=0.001, rmse_m=0.002, stats={},
+                                                score=score(c0), size_ok=True, raw_score=score(c0))
+        return candidate
+
+    noisy_candidate = fake(lambda c0: 0.9 if round((c0[0] + 1.0) / 0.4) == 4 else 0.3)
+    plain_candidate = fake(lambda c0: 0.5)
+    log = []
+    monkeypatch.setattr(verification_stage, "verify_noisy",
+                        lambda frame, c0s_m, config, buf: [log.append(("noisy", int(round((c[0] + 1.0) / 0.4))))
+                                                           or noisy_candidate(c) for c in c0s_m])
+    monkeypatch.setattr(verification_stage, "verify_organised",
+                        lambda frame, c0, config, buf, gate=None, hold_direction=False:
+                        log.append(("plain", int(round((c0[0] + 1.0) / 0.4)))) or plain_candidate(c0))
+    results = []
+    for deadline in (None, Deadline(math.inf)):
+        found, ranked = [], []
+        improved_stage._verify_candidates(frame.points, frame, hyps, -np.arange(10.0), np.zeros(10, bool), IMPROVED,
+                                          None, found, ranked, deadline=deadline)
+        results.append(([v.centre_m.tolist() for v in found], [v.centre_m.tolist() for v in ranked]))
+        assert len(found) == 1 and found[0].centre_m[0] == hyps[4, 0]
+        if deadline is None:  # groups of 1, 2 and 4 (3 to 6, of which 5 and 6 dropped), then plain in turn
+            assert log[:7] == [("noisy", k) for k in range(7)]
+            assert all(kind == "plain" and k > 4 for kind, k in log[7:]) and log[7:]
+        else:
+            assert log[:5] == [("noisy", k) for k in range(5)] and all(kind == "plain" for kind, _ in log[5:])
+        log.clear()
+    assert results[0] == results[1]
+
+
 def _occluded_frames(n: int, hidden: tuple[float, float], z_max_m: float):
     """(true centre, frame) of balls 1 m to z_max_m away, a share in ``hidden`` of their width hidden
     from the left by a surface at 0.6 of their depth, with the D435's noise at 424x240."""

@@ -101,7 +101,7 @@ def test_multistart_verification_only_where_noise_nears_the_radius():
     the starts about the best; a near ball, or the same frame with multistart off, goes the plain way."""
     from spherebench.method import detect
     calls = []
-    real = verification_stage.verify_multistart
+    real = verification_stage.verify_noisy
 
     def counting(*args, **kw):
         calls.append(1)
@@ -109,7 +109,7 @@ def test_multistart_verification_only_where_noise_nears_the_radius():
 
     cloud, _ = _wall_cloud(424, 240, 0.08, 0.0, z_m=2.0, tilt_deg=0.0)
     cfg = config_for("improved")
-    verification_stage.verify_multistart = counting
+    verification_stage.verify_noisy = counting
     fraction = verification_stage.MULTISTART_NOISE_FRACTION
     try:
         detect(cloud, cfg, seed=0)  # sigma at 2 m: 3 cm, a quarter of R
@@ -118,5 +118,5 @@ def test_multistart_verification_only_where_noise_nears_the_radius():
         detect(cloud, cfg, seed=0)
         assert calls
     finally:
-        verification_stage.verify_multistart = real
+        verification_stage.verify_noisy = real
         verification_stage.MULTISTART_NOISE_FRACTION = fraction

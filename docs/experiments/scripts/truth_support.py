@@ -11,7 +11,7 @@ what ``render`` computes and the saved Scene drops: the true z image and the lab
 item each pixel shows), so that floor, wall, the ball and distractor spheres can be told apart. The
 rebuilt depth must equal the scene's depth.png byte for byte (``rebuild`` says where it does not).
 
-``CandidateLog`` wraps ``verification.verify_organised``, ``verify_multistart`` and ``verify_pushed`` while it
+``CandidateLog`` wraps ``verification.verify_organised``, ``verify_noisy`` and ``verify_pushed`` while it
 is open (library functions replaced at run time, restored on exit; no library code changes) and records
 every top-level verification the detector's ``_verify_candidates`` makes, accepted or not.
 """
@@ -176,11 +176,13 @@ def rebuild(scene_dir: str | Path) -> dict:
 
 class CandidateLog:
     """Context manager: records every candidate the detector verifies at top level (``verify_organised``,
-    ``verify_multistart``, ``verify_pushed`` called from ``_verify_candidates``; their inner calls and
+    ``verify_noisy``, ``verify_pushed`` called from ``_verify_candidates``; their inner calls and
     ``rescore``'s are not logged). ``rescore`` updates the logged Candidate, so a logged score is the
-    final one. ``records``: the Candidates (centre_m, score, size_ok, free_radius_m, ...)."""
+    final one. ``verify_noisy`` verifies several hypotheses ahead of their turn: each is logged, also
+    those after an accepted one that the detector then leaves unused. ``records``: the Candidates
+    (centre_m, score, size_ok, free_radius_m, ...)."""
 
-    NAMES = ("verify_organised", "verify_multistart", "verify_pushed")
+    NAMES = ("verify_organised", "verify_noisy", "verify_pushed")
 
     def __init__(self):
         self.records: list = []
@@ -195,8 +197,8 @@ class CandidateLog:
                 v = orig(*a, **k)
             finally:
                 self._depth -= 1
-            if log and top and v is not None:
-                self.records.append(v)
+            if log and top:
+                self.records.extend(x for x in (v if isinstance(v, list) else [v]) if x is not None)
             return v
         return wrapped
 
