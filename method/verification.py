@@ -68,7 +68,8 @@ class Candidate:
 def size_ok(free_r: float, free_se: float, config: DetectorConfig) -> bool:
     """The size check: the free radius free_r (m) within the tolerance plus ``size_sigmas`` of its
     standard error free_se (m; R standing in for an unknown one) of R, and never beyond
-    ``verification_kernels.SIZE_LIMIT_FRACTION`` R whatever the error says; True without ``size_check``."""
+    ``verification_kernels.SIZE_LIMIT_FRACTION`` R whatever the error says; True without ``size_check``
+    (compiled for many: ``verification_kernels.size_checks``)."""
     if not config.refinement.size_check:
         return True
     R = config.radius_m
@@ -88,7 +89,45 @@ def verify_organised(frame: PreparedFrame, c0: np.ndarray, config: DetectorConfi
 def verify_starts(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConfig, buf: np.ndarray,
                   gate: np.ndarray | None = None, hold_direction: bool = False) -> list[Candidate | None]:
     """Verify from each of starts_m (K, 3) m apart: refine, measure the evidence, fit the free radius,
-    score; None where too few inliers remain or the kernel's size gate stops it. The starts share one
+    score; None where too few inliers remain or the kernel's size gate stops it (``verify_rows``)."""
+    rows = verify_rows(frame, starts_m, config, buf, gate, hold_direction)
+    return [rows.candidate(k, buf) for k in range(len(starts_m))]
+
+
+@dataclass
+class Verified:
+    """The verifications of K starts as arrays, row k start k's (``verify_rows``). A ``Candidate`` is
+    made only for the rows that are used as one (``candidate``): of a hypothesis's several starts,
+    most give only their score and size check."""
+
+    outs: np.ndarray  # (K, N_VOUT): the kernel's outputs (``verification_kernels.verify_organised``)
+    measured: np.ndarray  # (K, N_MEASURED): the measurements (``verification_kernels.measurements``)
+    kept: np.ndarray  # (K,) bool: enough inliers, a verified sphere
+    raw: np.ndarray  # (K,): the verdict's raw score (0 where not kept)
+    score: np.ndarray  # (K,): its probability (0 where not kept)
+    size_ok: np.ndarray  # (K,) bool: the size check (False where not kept)
+
+    def replace(self, at: list[int], other: Verified) -> None:
+        """Rows ``at`` become other's rows, in order."""
+        for name in ("outs", "measured", "kept", "raw", "score", "size_ok"):
+            getattr(self, name)[at] = getattr(other, name)
+
+    def candidate(self, k: int, buf: np.ndarray) -> Candidate | None:
+        """Row k's verified sphere, or None where it kept too few inliers."""
+        if not self.kept[k]:
+            return None
+        out = self.outs[k]
+        stats = dict(zip(VK.MEASUREMENT_NAMES, self.measured[k].tolist()))
+        # inliers: filled in for the reported spheres only (``verification_kernels.final_inliers``)
+        return Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(), eps_m=float(out[VK.V_EPS]),
+                         free_centre_m=out[VK.V_FCX:VK.V_FCZ + 1].copy(), free_radius_m=stats["free_radius_m"],
+                         free_radius_se_m=stats["free_radius_se_m"], rmse_m=float(out[VK.V_RMSE]), stats=stats,
+                         score=float(self.score[k]), size_ok=bool(self.size_ok[k]), raw_score=float(self.raw[k]))
+
+
+def verify_rows(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConfig, buf: np.ndarray,
+                gate: np.ndarray | None = None, hold_direction: bool = False) -> Verified:
+    """Verify from each of starts_m (K, 3) m apart, as rows (``Verified``). The starts share one
     kernel call and one run of the verdict (several starts: ``verify_noisy``, ``rescore_all``).
     Where one pixel's noise at a refined centre is at least ``OUTLINE_EVIDENCE_NOISE_FRACTION`` R
     (``DetectorConfig.outline.outline_evidence``), that candidate is then re-centred on its outline and
@@ -96,19 +135,19 @@ def verify_starts(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     pixel or more beside the ball, and the evidence is taken where the outline says the ball is.
     gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
     fits move the centre along its ray only (``fit_kernels.fit_range``)."""
-    found = _verify_batch(frame, starts_m, config, buf, gate, hold_direction, [None] * len(starts_m))
-    if hold_direction or not config.outline.outline_evidence:
-        return found
-    loud = [k for k, v in enumerate(found) if v is not None and v.score >= OUTLINE_EVIDENCE_MIN_SCORE
-            and frame.noise_a * float(v.centre_m[2]) ** 2 >= OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m]
-    if not loud:
-        return found
+    rows = _verify_batch(frame, starts_m, config, buf, gate, hold_direction, [None] * len(starts_m))
+    if hold_direction or not config.outline.outline_evidence or not rows.kept.any():
+        return rows
+    score, z = rows.score.tolist(), rows.outs[:, VK.V_CZ].tolist()  # Python's floats: most batches hold one row
+    loud = [k for k in np.flatnonzero(rows.kept).tolist() if score[k] >= OUTLINE_EVIDENCE_MIN_SCORE
+            and frame.noise_a * z[k] ** 2 >= OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m]
     again = []  # (index, outline centre, outline size or None): verified again from the outline
     for k in loud:
-        oc = outline_centre(frame, found[k].centre_m, config)
+        centre = rows.outs[k, VK.V_CX:VK.V_CZ + 1].copy()
+        oc = outline_centre(frame, centre, config)
         size = outline_size(frame, oc, config) if config.outline.outline_size else None
         # a move within a fraction of a pixel reclassifies few of the silhouette's pixels
-        if size is None and (float(np.linalg.norm(oc - found[k].centre_m)) * frame.prm[FK.P_FX] / float(oc[2])
+        if size is None and (float(np.linalg.norm(oc - centre)) * frame.prm[FK.P_FX] / float(oc[2])
                              < OUTLINE_EVIDENCE_MIN_MOVE_PX):
             continue
         again.append((k, oc, size))
@@ -116,16 +155,15 @@ def verify_starts(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     for sized in (False, True):
         group = [a for a in again if (a[2] is not None) == sized]
         if group:
-            redone = _verify_batch(frame, np.array([a[1] for a in group]), config, buf,
-                                   frame.no_gate if sized else gate, True, [a[2] for a in group])
-            for (k, _, _), v in zip(group, redone):
-                found[k] = v
-    return found
+            rows.replace([a[0] for a in group],
+                         _verify_batch(frame, np.array([a[1] for a in group]), config, buf,
+                                       frame.no_gate if sized else gate, True, [a[2] for a in group]))
+    return rows
 
 
 def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConfig, buf: np.ndarray,
                   gate: np.ndarray | None, hold_direction: bool,
-                  sizes: list[tuple[float, float] | None]) -> list[Candidate | None]:
+                  sizes: list[tuple[float, float] | None]) -> Verified:
     """One pass of the verification kernel (``verification_kernels.verify_organised``) from each start
     (K, 3) m, scored together. sizes: per start, None or the outline's angular radius and its standard
     error (``outline_size``), which then give the size check's radius in place of the depth fit's (at
@@ -145,25 +183,17 @@ def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     measured = np.empty((len(starts_m), VK.N_MEASURED))
     VK.measurements(outs, sts, frame.prm, frame.noise_corr_px, frame.noise_ratio, config.verification.min_inliers,
                     measured)
-    kept = np.flatnonzero(outs[:, VK.V_N] >= config.verification.min_inliers)
-    for k in kept:
-        if sizes[k] is not None:  # the outline's angular radius at the verified centre's distance
-            rho = float(np.linalg.norm(outs[k, VK.V_CX:VK.V_CZ + 1]))
-            measured[k, VK.M_FREE_R] = rho * math.sin(sizes[k][0])
-            measured[k, VK.M_FREE_SE] = rho * math.cos(sizes[k][0]) * sizes[k][1]
-    raw, score = verdicts(measured[kept], config.radius_m)
-    found: list[Candidate | None] = [None] * len(starts_m)
-    for j, k in enumerate(kept):
-        out = outs[k]
-        stats = dict(zip(VK.MEASUREMENT_NAMES, measured[k].tolist()))
-        free_r, free_se = stats["free_radius_m"], stats["free_radius_se_m"]
-        # inliers: filled in for the reported spheres only (``verification_kernels.final_inliers``)
-        found[k] = Candidate(centre_m=out[VK.V_CX:VK.V_CZ + 1].copy(), inliers=buf[:0].copy(),
-                             eps_m=float(out[VK.V_EPS]), free_centre_m=out[VK.V_FCX:VK.V_FCZ + 1].copy(),
-                             free_radius_m=free_r, free_radius_se_m=free_se, rmse_m=float(out[VK.V_RMSE]),
-                             stats=stats, score=float(score[j]), size_ok=size_ok(free_r, free_se, config),
-                             raw_score=float(raw[j]))
-    return found
+    kept = outs[:, VK.V_N] >= config.verification.min_inliers
+    raw, score, passed = np.zeros(len(starts_m)), np.zeros(len(starts_m)), np.zeros(len(starts_m), bool)
+    if kept.any():
+        for k, size in enumerate(sizes):
+            if size is not None and kept[k]:  # the outline's angular radius at the verified centre's distance
+                rho = float(np.linalg.norm(outs[k, VK.V_CX:VK.V_CZ + 1]))
+                measured[k, VK.M_FREE_R] = rho * math.sin(size[0])
+                measured[k, VK.M_FREE_SE] = rho * math.cos(size[0]) * size[1]
+        raw[kept], score[kept] = verdicts(measured[kept], config.radius_m)
+        VK.size_checks(measured, kept, frame.gate, config.radius_m, passed)
+    return Verified(outs, measured, kept, raw, score, passed)
 
 
 def verify_noisy(frame: PreparedFrame, c0s_m: np.ndarray, config: DetectorConfig,
@@ -172,20 +202,16 @@ def verify_noisy(frame: PreparedFrame, c0s_m: np.ndarray, config: DetectorConfig
     verified from its centre and from each of ``RESCORE_STARTS`` about it; where one pixel's noise
     nears R, the refinement's end depends on its start by a few cm, and a hypothesis a few cm off
     converges off the ball's optimum. Each one's best-scoring verification that passes the size
-    check is kept (None where none does) and rescored (``rescore_all``): the best of several starts
-    is a biased draw. The H hypotheses share two kernel calls and two runs of the verdict; each
-    one's result is the same as when verified alone."""
+    check is kept (the first of equals; None where none passes) and rescored (``rescore_all``): the
+    best of several starts is a biased draw. The H hypotheses share two kernel calls and two runs
+    of the verdict; each one's result is the same as when verified alone."""
     c0s_m = np.asarray(c0s_m, np.float64).reshape(-1, 3)
     offsets = config.radius_m * np.asarray(((0.0, 0.0, 0.0),) + RESCORE_STARTS)
     n = len(offsets)
-    found = verify_starts(frame, (c0s_m[:, None, :] + offsets[None]).reshape(-1, 3), config, buf)
-    best: list[Candidate | None] = []
-    for h in range(len(c0s_m)):
-        b = None
-        for v in found[h * n:(h + 1) * n]:
-            if v is not None and v.size_ok and (b is None or v.score > b.score):
-                b = v
-        best.append(b)
+    rows = verify_rows(frame, (c0s_m[:, None, :] + offsets[None]).reshape(-1, 3), config, buf)
+    score = np.where(rows.size_ok, rows.score, -np.inf).reshape(-1, n)
+    first = np.argmax(score, axis=1)  # the first of the best
+    best = [rows.candidate(h * n + int(j), buf) if rows.size_ok[h * n + j] else None for h, j in enumerate(first)]
     rescore_all(frame, [b for b in best if b is not None], config, buf)
     return best
 
@@ -229,14 +255,11 @@ def rescore_all(frame: PreparedFrame, cands: list[Candidate], config: DetectorCo
     n = len(RESCORE_STARTS)
     offsets = config.radius_m * np.asarray(RESCORE_STARTS)
     centres = np.array([c.centre_m for c in cands], np.float64)
-    again = verify_starts(frame, (centres[:, None, :] + offsets[None]).reshape(-1, 3), config, buf, frame.no_gate)
-    for j, cand in enumerate(cands):
-        scores, raws, sized = [cand.score], [cand.raw_score], [cand.size_ok]
-        for v in again[j * n:(j + 1) * n]:
-            scores.append(0.0 if v is None else v.score)
-            raws.append(0.0 if v is None else v.raw_score)
-            sized.append(v is not None and v.size_ok)
+    rows = verify_rows(frame, (centres[:, None, :] + offsets[None]).reshape(-1, 3), config, buf, frame.no_gate)
+    scores, raws = rows.score.reshape(-1, n).tolist(), rows.raw.reshape(-1, n).tolist()  # 0 with too few inliers
+    passed = np.count_nonzero(rows.size_ok.reshape(-1, n), axis=1).tolist()
+    for cand, s, r, p in zip(cands, scores, raws, passed):
         cand.stats["score_single"] = cand.score
-        cand.score, cand.raw_score = float(np.mean(scores)), float(np.mean(raws))
-        cand.size_ok = 2 * sum(sized) > len(sized)
+        cand.score, cand.raw_score = float(np.mean([cand.score] + s)), float(np.mean([cand.raw_score] + r))
+        cand.size_ok = 2 * (p + cand.size_ok) > n + 1
     return cands

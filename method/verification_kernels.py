@@ -532,6 +532,14 @@ def measurements(outs, sts, prm, noise_corr_px, noise_ratio, min_inliers, out):
 
 
 @kernel
+def size_checks(measured, kept, size_gate, radius, out):
+    """out (K,) bool: whether each of measured's rows (K, N_MEASURED) is kept (K,) bool and passes the
+    size check (``verification.size_ok``; size_gate (2,) as ``verify_organised``'s, the frame's ``gate``)."""
+    for k in range(measured.shape[0]):
+        out[k] = kept[k] and not _fails_size_gate(size_gate, measured[k, M_FREE_R], measured[k, M_FREE_SE], radius)
+
+
+@kernel
 def final_inliers(points, index_image, c, prm, e, idx):
     """All inliers of a verified sphere (every pixel of its window; ``gather_window`` with band e)
     into idx; returns (their count, the RMS of ||p - c|| - R over them)."""

@@ -333,16 +333,23 @@ def test_scores_near_the_threshold_are_averaged_over_starts(monkeypatch, first, 
     scores = iter([first] + again)
     starts = []
 
-    def fake_verify(c0):
-        starts.append(np.asarray(c0))
-        s = next(scores)
-        return None if s is None else verification_stage.Candidate(centre_m=c.copy(), inliers=np.empty(0, np.int64), eps_m=0.01,
-                                                  free_centre_m=c.copy(), free_radius_m=R, free_radius_se_m=0.001,
-                                                  rmse_m=0.002, stats={}, score=s, size_ok=True, raw_score=s)
+    def fake_rows(frame, starts_m, config, buf, gate=None, hold_direction=False):
+        """The verifications as the kernel would hand them on: each start's sphere at c, scored as
+        told (None: too few inliers)."""
+        told = [next(scores) for _ in starts_m]
+        starts.extend(np.asarray(c0) for c0 in starts_m)
+        kept = np.array([s is not None for s in told])
+        outs = np.zeros((len(told), verification_kernels.N_VOUT))
+        outs[:, verification_kernels.V_CX:verification_kernels.V_CZ + 1] = c
+        outs[:, verification_kernels.V_FCX:verification_kernels.V_FCZ + 1] = c
+        outs[:, verification_kernels.V_EPS], outs[:, verification_kernels.V_RMSE] = 0.01, 0.002
+        measured = np.zeros((len(told), verification_kernels.N_MEASURED))
+        measured[:, verification_kernels.M_FREE_R], measured[:, verification_kernels.M_FREE_SE] = R, 0.001
+        score = np.array([0.0 if s is None else s for s in told])
+        return verification_stage.Verified(outs, measured, kept, score.copy(), score, kept.copy())
 
-    # every verification, of one start or several, goes through verify_starts
-    monkeypatch.setattr(verification_stage, "verify_starts",
-                        lambda frame, starts_m, config, buf, gate=None, hold_direction=False: [fake_verify(c0) for c0 in starts_m])
+    # every verification, of one start or several, goes through verify_rows
+    monkeypatch.setattr(verification_stage, "verify_rows", fake_rows)
     found = detect(cloud, IMPROVED, seed=0)
     assert (len(found) == 1) == accepted
     rescored = abs(first - IMPROVED.verification.accept_score) < 0.15
