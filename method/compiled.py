@@ -29,9 +29,14 @@ kernel = njit(cache=True, error_model="numpy")
 #: kernel, called per pixel or per sample, where a call's cost (its array arguments' reference counts)
 #: would show in the caller's time.
 part = njit(cache=True, error_model="numpy", inline="always")
-#: The same over numba's threads (``prange``): for independent pieces of work large enough to pay for
-#: waking a thread (several verifications of one candidate); at one thread it runs them in order.
-threaded_kernel = njit(cache=True, error_model="numpy", parallel=True)
+#: The same, releasing the GIL while it runs: for the long kernels (a search, a verification) that
+#: run on two threads at once (the retries' searches beside the verifications,
+#: ``improved.searched_ahead``). The short ones keep it: releasing it on every call cost 1.5 % of a
+#: typical frame (``docs/experiments/2026-12-06-slow-frames.md``).
+long_kernel = njit(cache=True, error_model="numpy", nogil=True)
+#: A long kernel over numba's threads (``prange``): for independent pieces of work large enough to pay
+#: for waking a thread (several verifications of one candidate); at one thread it runs them in order.
+threaded_kernel = njit(cache=True, error_model="numpy", nogil=True, parallel=True)
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from spherebench.method.compiled import kernel, next_u01, part
+from spherebench.method.compiled import kernel, long_kernel, next_u01, part
 from spherebench.method.frame_kernels import (
     COUNT_SHIFT, P_BIN, P_CELL_PX, P_FX, P_FY, P_MEAN_NOISE, P_NOISE_A, P_OCCLUDER_BOUND, P_OFF_AXIS,
     P_PPX, P_PPY, P_R, P_RR_MAX, P_RR_MIN, P_STRATUM_U, P_STRATUM_V, _DEPTH_MASK)
@@ -400,7 +400,7 @@ def _keep_hypothesis(cands, n_kept, v, u, front, rr, q, occluded, radius):
     return min(n_kept + 1, k_max)
 
 
-@kernel
+@long_kernel
 def disc_hypotheses(tab, prm, z_min_m, inner_fraction, side_offset_fraction, side_half_fraction, gap_min_m,
                     gap_sigmas, min_behind, step, cands):
     """Hypotheses of balls whose cap's relief is below the noise: discs that stand out of what is
@@ -474,7 +474,7 @@ def _ring_hit(tab, prm, v, u, dv, du, reach, min_cell):
     return 0, math.nan
 
 
-@kernel
+@long_kernel
 def hole_hypotheses(tab, prm, z_min_m, step, min_ring, min_hole_fraction, cands):
     """Hypotheses of balls whose depth is missing over the middle of their face (a saturated or
     specular cap) and valid on a ring around it, which the descent cannot reach (its boxes in the
@@ -580,7 +580,7 @@ def cell_centres(prm, hyp):
 N_HYP_OUT = 20
 
 
-@kernel
+@long_kernel
 def relief_ranked(prm, passed, cands):
     """The hypotheses of a search, passed (P, N_HYP_OUT) (``search_organised``'s), ranked by how far their
     cap stands out of the noise (``_relief_llr`` of their resting stencils) in place of the
@@ -595,7 +595,7 @@ def relief_ranked(prm, passed, cands):
     return n_kept
 
 
-@kernel
+@long_kernel
 def search_organised(tab, prm, seed, cands, counters, passed):
     """Stratified RANSAC on the cell grid: the grid is cut into strata of ``prm[P_STRATUM_V]`` x
     ``prm[P_STRATUM_U]`` cells (those at the far edges smaller), visited in raster order; in each, one

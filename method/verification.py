@@ -135,7 +135,7 @@ def verify_rows(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConf
     pixel or more beside the ball, and the evidence is taken where the outline says the ball is.
     gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
     fits move the centre along its ray only (``fit_kernels.fit_range``)."""
-    rows = _verify_batch(frame, starts_m, config, buf, gate, hold_direction, [None] * len(starts_m))
+    rows = _verify_batch(frame, starts_m, config, buf, gate, hold_direction)
     if hold_direction or not config.outline.outline_evidence or not rows.kept.any():
         return rows
     score, z = rows.score.tolist(), rows.outs[:, VK.V_CZ].tolist()  # Python's floats: most batches hold one row
@@ -163,35 +163,40 @@ def verify_rows(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConf
 
 def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConfig, buf: np.ndarray,
                   gate: np.ndarray | None, hold_direction: bool,
-                  sizes: list[tuple[float, float] | None]) -> Verified:
+                  sizes: list[tuple[float, float] | None] | None = None) -> Verified:
     """One pass of the verification kernel (``verification_kernels.verify_organised``) from each start
-    (K, 3) m, scored together. sizes: per start, None or the outline's angular radius and its standard
-    error (``outline_size``), which then give the size check's radius in place of the depth fit's (at
-    the verified centre's distance)."""
+    (K, 3) m, scored together. sizes: None, or per start None or the outline's angular radius and its
+    standard error (``outline_size``), which then give the size check's radius in place of the depth
+    fit's (at the verified centre's distance)."""
     outs = np.empty((len(starts_m), VK.N_VOUT))
     sts = np.empty((len(starts_m), VK.N_STATS))
     starts_m = np.ascontiguousarray(starts_m, np.float64)
     args = (frame.prm, config.refinement.refine_iterations, VK.FIT_MAX_POINTS, VK.RAY_S_MIN_FRACTION,
             NOISE_FROM_DATA, frame.gate if gate is None else gate, hold_direction)
-    threads = 1 if len(starts_m) == 1 else min(numba.get_num_threads(), len(starts_m))
-    if threads == 1:  # waking the thread pool for one start costs a third of its verification
+    threads = numba.get_num_threads()
+    if len(starts_m) == 1 or threads == 1:  # waking the thread pool for one start costs a third of its verification
         for c0, out, st in zip(starts_m, outs, sts):
             VK.verify_organised(frame.points, frame.index_image, c0, *args, buf, out, st)
-    else:  # one inlier buffer per thread
+    else:  # one inlier buffer per thread; the starts handed out one at a time (numba's default: in equal blocks)
         idx = workspace("inliers_per_thread", (threads, len(buf)), np.int64)
-        VK.verify_many(frame.points, frame.index_image, starts_m, *args, idx, outs, sts)
+        saved = numba.set_parallel_chunksize(1)
+        try:
+            VK.verify_many(frame.points, frame.index_image, starts_m, *args, idx, outs, sts)
+        finally:
+            numba.set_parallel_chunksize(saved)
     measured = np.empty((len(starts_m), VK.N_MEASURED))
     VK.measurements(outs, sts, frame.prm, frame.noise_corr_px, frame.noise_ratio, config.verification.min_inliers,
                     measured)
     kept = outs[:, VK.V_N] >= config.verification.min_inliers
+    at = np.flatnonzero(kept)
     raw, score, passed = np.zeros(len(starts_m)), np.zeros(len(starts_m)), np.zeros(len(starts_m), bool)
-    if kept.any():
-        for k, size in enumerate(sizes):
-            if size is not None and kept[k]:  # the outline's angular radius at the verified centre's distance
+    if len(at):
+        for k in at.tolist() if sizes is not None else ():
+            if sizes[k] is not None:  # the outline's angular radius at the verified centre's distance
                 rho = float(np.linalg.norm(outs[k, VK.V_CX:VK.V_CZ + 1]))
-                measured[k, VK.M_FREE_R] = rho * math.sin(size[0])
-                measured[k, VK.M_FREE_SE] = rho * math.cos(size[0]) * size[1]
-        raw[kept], score[kept] = verdicts(measured[kept], config.radius_m)
+                measured[k, VK.M_FREE_R] = rho * math.sin(sizes[k][0])
+                measured[k, VK.M_FREE_SE] = rho * math.cos(sizes[k][0]) * sizes[k][1]
+        raw[at], score[at] = verdicts(measured[at], config.radius_m)
         VK.size_checks(measured, kept, frame.gate, config.radius_m, passed)
     return Verified(outs, measured, kept, raw, score, passed)
 

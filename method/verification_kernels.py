@@ -8,9 +8,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import prange
+from numba import get_thread_id, prange
 
-from spherebench.method.compiled import kernel, part, threaded_kernel
+from spherebench.method.compiled import kernel, long_kernel, part, threaded_kernel
 from spherebench.method.fit_kernels import fit_range, fit_ray, ray_step, refine_fixed_radius, unit_rays
 from spherebench.method.frame_kernels import P_EPS, P_EPS_CAP, P_FX, P_FY, P_NOISE_A, P_NOISE_K, P_PPX, P_PPY, P_R
 from spherebench.method.noise import mean_variance_inflation, noise_eps
@@ -413,7 +413,7 @@ def _fails_size_gate(size_gate, fr, fse, radius):
     return not (d <= size_gate[0] + size_gate[1] * se and d <= SIZE_LIMIT_FRACTION * radius)  # nan fails
 
 
-@kernel
+@long_kernel
 def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
                      hold_direction, idx, out, stats):
     """Refine one candidate centre and measure it; results in out (N_VOUT,), stats (N_STATS,).
@@ -467,14 +467,13 @@ def verify_organised(points, index_image, c0, prm, refine_iterations, max_fit_po
 def verify_many(points, index_image, starts, prm, refine_iterations, max_fit_points, s_min, data_noise, size_gate,
                 hold_direction, idx, outs, stats):
     """``verify_organised`` from each of starts (K, 3) m, into outs (K, N_VOUT) and stats (K, N_STATS):
-    a candidate's several starts (``verification.verify_starts``), shared among idx's rows (T, n), one
-    thread's scratch each: thread t takes starts t, t + T, ... (each start's result is the same
-    whichever thread takes it)."""
-    n_threads = idx.shape[0]
-    for t in prange(n_threads):
-        for k in range(t, starts.shape[0], n_threads):
-            verify_organised(points, index_image, starts[k], prm, refine_iterations, max_fit_points, s_min,
-                             data_noise, size_gate, hold_direction, idx[t], outs[k], stats[k])
+    several starts (``verification.verify_rows``, which hands them to numba's threads one at a time:
+    a start's cost varies tenfold, most stop at the size gate), each thread with its own row of idx
+    (T, n), T numba's thread count (``get_thread_id``). Each start's result is the same whichever
+    thread takes it."""
+    for k in prange(starts.shape[0]):
+        verify_organised(points, index_image, starts[k], prm, refine_iterations, max_fit_points, s_min,
+                         data_noise, size_gate, hold_direction, idx[get_thread_id()], outs[k], stats[k])
 
 
 #: A verified candidate's measurements (``measurements``' rows) by name: the verdict's inputs and a

@@ -494,6 +494,77 @@ def test_noisy_hypotheses_verified_ahead_change_nothing(monkeypatch):
     assert results[0] == results[1]
 
 
+def test_retries_searched_ahead_are_taken_in_turn():
+    """searched_ahead: the searches' results in turn, the same with a thread running them ahead; that
+    thread runs at most one search ahead of the caller, starts none once the caller has left (and is
+    gone by then), and a search's error is raised where its result is taken."""
+    import threading
+
+    import numba
+
+    started = []
+
+    def search(k):
+        def run():
+            started.append(k)
+            if k == 3:
+                raise ValueError("search 3 failed")
+            return (np.full((1, 3), float(k)), np.zeros(1), np.zeros(1, bool))
+        return run
+
+    searches = [search(k) for k in range(5)]
+    with improved_stage.searched_ahead(searches[:3], ahead=False) as taken:
+        in_turn = [r[0][0, 0] for r in taken]
+    assert in_turn == [0.0, 1.0, 2.0] and started == [0, 1, 2]
+    if numba.get_num_threads() < 2:
+        pytest.skip("one numba thread here: the searches run in turn")
+    started.clear()
+    with improved_stage.searched_ahead(searches[:3], ahead=True) as taken:
+        assert [r[0][0, 0] for r in taken] == in_turn
+    for leave_after in range(3):
+        started.clear()
+        with improved_stage.searched_ahead(searches, ahead=True) as taken:
+            for _ in range(leave_after):
+                next(taken)
+        assert started == list(range(len(started))) and len(started) <= leave_after + 2
+        assert not any(t.name == "spherebench-retries" for t in threading.enumerate())
+    with pytest.raises(ValueError, match="search 3 failed"):
+        with improved_stage.searched_ahead(searches, ahead=True) as taken:
+            list(taken)
+
+
+def test_retries_searched_ahead_change_nothing():
+    """A noisy frame with nothing to find runs every retry; at two threads their searches run ahead
+    of the verifications on a thread (in turn under a deadline), and the detection is the same."""
+    import threading
+
+    import numba
+    from spherebench.method.deadline import Deadline
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip(f"numba has {numba.config.NUMBA_NUM_THREADS} thread here")
+    cloud = scene(ball_c=None, wall_z=3.0, noise=0.03, width=424, height=240, box=True)
+    names = []
+    real = search_stage.disc_search
+
+    def disc(*args, **kw):
+        names.append(threading.current_thread().name)
+        return real(*args, **kw)
+
+    saved = numba.get_num_threads()
+    numba.set_num_threads(2)
+    try:
+        search_stage.disc_search = disc
+        ahead = detect(cloud, IMPROVED, seed=0)
+        in_turn = detect(cloud, IMPROVED, seed=0, deadline=Deadline(math.inf))
+    finally:
+        search_stage.disc_search = real
+        numba.set_num_threads(saved)
+    assert names == ["spherebench-retries", threading.current_thread().name]
+    assert len(ahead) == len(in_turn) and all(np.array_equal(a.centre_m, b.centre_m) and a.score == b.score
+                                              for a, b in zip(ahead, in_turn))
+
+
 def _occluded_frames(n: int, hidden: tuple[float, float], z_max_m: float):
     """(true centre, frame) of balls 1 m to z_max_m away, a share in ``hidden`` of their width hidden
     from the left by a surface at 0.6 of their depth, with the D435's noise at 424x240."""
