@@ -51,8 +51,8 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         limit_none = max(ver.verify_candidates, ver.verify_candidates_if_none if frame is not None else 0)
     q_accepted = -math.inf  # the best search score among the accepted
     verified: list[np.ndarray] = []
-    noisy = (np.zeros(len(cands), bool) if frame is None or not multistart else
-             frame.prm[FK.P_NOISE_A] * cands[:, 2] ** 2 > verification.MULTISTART_NOISE_FRACTION * config.radius_m)
+    noise_a = 0.0 if frame is None else frame.prm[FK.P_NOISE_A]  # one pixel's depth noise at z: noise_a z^2
+    noisy_m = verification.MULTISTART_NOISE_FRACTION * config.radius_m  # beyond this, several starts
     ahead: dict[int, Candidate | None] = {}  # noisy hypotheses verified before their turn, by index
     ahead_n = 1  # how many noisy hypotheses the next call verifies
     for k, (c0, q) in enumerate(zip(cands, quals)):
@@ -76,16 +76,16 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         verified.append(c0)
         if frame is None:
             v = unorganised.verify_unorganised(points, c0, config)
-        elif multistart and not found and noisy[k]:
+        elif multistart and not found and noise_a * c0[2] ** 2 > noisy_m:
             # while none is accepted (a frame with a ball pays nothing, and gets no second sphere this way)
             if k not in ahead:
                 # while none is accepted, every noisy hypothesis up to the limit is verified in turn: this
-                # one and the next are verified together, their number doubling each time (one at a
-                # time under a deadline), as one call shares their starts between the threads better
-                # than several; if one is accepted, those after it were verified for nothing
-                group = np.flatnonzero(noisy[k:limit_none])[:ahead_n] + k
+                # one and the next are verified together, their number doubling each time, as one call
+                # shares their starts between the threads better than several; if one is accepted, those
+                # after it were verified for nothing (one at a time at one thread or under a deadline)
+                group = np.flatnonzero(noise_a * cands[k:limit_none, 2] ** 2 > noisy_m)[:ahead_n] + k
                 ahead.update(zip(group.tolist(), verification.verify_noisy(frame, cands[group], config, buf)))
-                ahead_n *= 1 if deadline is not None else 2
+                ahead_n *= 2 if deadline is None and numba.get_num_threads() > 1 else 1
             v = ahead.pop(k)
         else:
             # a hypothesis with an occluded side (verified only while none is accepted): pushed back too
@@ -156,8 +156,9 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
         + ([lambda: search.search_frame(frame, config, seed, off_axis=True)] if config.retry.retry_off_axis else [])
         + ([lambda: search.disc_search(frame, config)] if config.retry.retry_disc else [])
         + ([lambda: search.hole_search(frame, config)] if config.retry.retry_hole else []))
-    # a frame with a ball found pays nothing for the retries
-    with searched_ahead([] if found else retries, deadline is None) as searches:
+    if found or not retries:  # a frame with a ball found pays nothing for the retries
+        return _reported(frame, config, found, ranked, least, most, buf)
+    with searched_ahead(retries, deadline is None) as searches:
         for _ in retries:
             if found or (deadline is not None and deadline.passed()):
                 break

@@ -136,10 +136,11 @@ def verify_rows(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorConf
     gate: the kernel's early stop (default ``frame.gate``). hold_direction: no refinement, and the
     fits move the centre along its ray only (``fit_kernels.fit_range``)."""
     rows = _verify_batch(frame, starts_m, config, buf, gate, hold_direction)
-    if hold_direction or not config.outline.outline_evidence or not rows.kept.any():
+    kept = np.flatnonzero(rows.kept).tolist()
+    if hold_direction or not config.outline.outline_evidence or not kept:
         return rows
     score, z = rows.score.tolist(), rows.outs[:, VK.V_CZ].tolist()  # Python's floats: most batches hold one row
-    loud = [k for k in np.flatnonzero(rows.kept).tolist() if score[k] >= OUTLINE_EVIDENCE_MIN_SCORE
+    loud = [k for k in kept if score[k] >= OUTLINE_EVIDENCE_MIN_SCORE
             and frame.noise_a * z[k] ** 2 >= OUTLINE_EVIDENCE_NOISE_FRACTION * config.radius_m]
     again = []  # (index, outline centre, outline size or None): verified again from the outline
     for k in loud:
@@ -173,8 +174,8 @@ def _verify_batch(frame: PreparedFrame, starts_m: np.ndarray, config: DetectorCo
     starts_m = np.ascontiguousarray(starts_m, np.float64)
     args = (frame.prm, config.refinement.refine_iterations, VK.FIT_MAX_POINTS, VK.RAY_S_MIN_FRACTION,
             NOISE_FROM_DATA, frame.gate if gate is None else gate, hold_direction)
-    threads = numba.get_num_threads()
-    if len(starts_m) == 1 or threads == 1:  # waking the thread pool for one start costs a third of its verification
+    threads = 1 if len(starts_m) == 1 else numba.get_num_threads()
+    if threads == 1:  # waking the thread pool for one start costs a third of its verification
         for c0, out, st in zip(starts_m, outs, sts):
             VK.verify_organised(frame.points, frame.index_image, c0, *args, buf, out, st)
     else:  # one inlier buffer per thread; the starts handed out one at a time (numba's default: in equal blocks)

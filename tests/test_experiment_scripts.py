@@ -96,7 +96,11 @@ def test_frame_cost_splits_the_time_and_both_thread_counts_agree(train4, tmp_pat
         assert 0.0 < r["kernel_ms"] < r["one_thread_ms"] < 5000.0 and 0.0 < r["threads_ms"] < 5000.0
     for s in res["summary"]:
         assert 0.0 < s["kernel_share"] < 1.0 and s["bound_median_ms"] < s["one_median_ms"]
-    assert "kernels halved" in text
+        frames = [r for r in res["frames"] if r["resolution"] == s["resolution"]]
+        assert s["threads_slowest"] == max(frames, key=lambda r: r["threads_ms"])["scene"]
+        assert s["threads_max_over_median"] >= 1.0
+        assert s["one_max_over_median"] == pytest.approx(max(r["one_thread_ms"] for r in frames) / s["one_median_ms"])
+    assert "kernels halved" in text and "slowest / median" in text
 
 
 def test_code_sizes_counts_a_checkouts_modules_and_long_functions(tmp_path, capsys):

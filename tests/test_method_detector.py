@@ -435,12 +435,34 @@ def test_noisy_hypotheses_verified_together_are_each_as_alone(threads):
 
 def test_noisy_hypotheses_verified_ahead_change_nothing(monkeypatch):
     """While none is accepted, the noisy hypotheses are verified in groups of 1, 2, 4... ahead of
-    their turn (one at a time under a deadline), and the detection is the same: a noisy frame with
-    nothing to find, and, with the verification scripted, a frame whose fifth hypothesis is accepted
-    (the hypotheses verified ahead of it are then dropped, and those after it verified as with a
-    ball found)."""
+    their turn (one at a time under a deadline, or at one thread), and the detection is the same: a
+    noisy frame with nothing to find, and, with the verification scripted, a frame whose fifth
+    hypothesis is accepted (the hypotheses verified ahead of it are then dropped, and those after it
+    verified as with a ball found)."""
+    import numba
+
     from spherebench.method.deadline import Deadline
 
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip(f"numba has {numba.config.NUMBA_NUM_THREADS} thread here")
+    saved = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        log = []
+        real = verification_stage.verify_noisy
+        monkeypatch.setattr(verification_stage, "verify_noisy",
+                            lambda frame, c0s_m, config, buf: log.append(len(c0s_m)) or real(frame, c0s_m, config, buf))
+        detect(scene(ball_c=None, wall_z=3.0, noise=0.03, width=424, height=240, box=True), IMPROVED, seed=0)
+        assert len(log) > 3 and set(log) == {1}  # one at a time at one thread
+        monkeypatch.setattr(verification_stage, "verify_noisy", real)
+        numba.set_num_threads(2)
+        _noisy_hypotheses_ahead(monkeypatch, Deadline)
+    finally:
+        numba.set_num_threads(saved)
+
+
+def _noisy_hypotheses_ahead(monkeypatch, Deadline):
+    """The two-thread part of ``test_noisy_hypotheses_verified_ahead_change_nothing``."""
     real = verification_stage.verify_noisy
     groups = []
 
