@@ -176,23 +176,20 @@ def run_improved(points: np.ndarray, frame: PreparedFrame | None, config: Detect
 @contextlib.contextmanager
 def searched_ahead(searches: list[Callable[[], tuple]], ahead: bool) -> Iterator[Iterator[tuple]]:
     """The results of searches, in turn, as an iterator; the caller stops taking them where it likes.
-    With ahead (and more than one numba thread), a thread runs each search while the caller verifies
-    the hypotheses of the one before it: a frame where nothing is found runs every retry, whose
-    searches took a fifth of its time. The thread runs at most one search ahead of the caller, and on
-    leaving it starts no further one and the one running is waited for (a frame pays for its
-    searches). The searches read the frame and write nothing that the verifications read, so the
-    results are the same either way."""
+    With ahead (and more than one numba thread), a thread runs the searches one after the other
+    while the caller verifies the hypotheses of those before: a frame where nothing is found runs
+    every retry, whose searches took a fifth of its time. On leaving, no further search is started
+    and the one running is waited for (a frame pays for its searches). The searches read the frame
+    and write nothing that the verifications read, so the results are the same either way."""
     if not ahead or len(searches) < 2 or numba.get_num_threads() < 2:
         yield (fn() for fn in searches)
         return
     results: list[tuple | BaseException | None] = [None] * len(searches)
     ready = [threading.Event() for _ in searches]
-    slots = threading.Semaphore(2)  # the first two searches; each later one when the caller takes the one before it
     stop = threading.Event()
 
     def run() -> None:
         for k, fn in enumerate(searches):
-            slots.acquire()
             if stop.is_set():
                 break
             try:
@@ -204,8 +201,6 @@ def searched_ahead(searches: list[Callable[[], tuple]], ahead: bool) -> Iterator
     def taken() -> Iterator[tuple]:
         for k in range(len(searches)):
             ready[k].wait()
-            if k:  # the search after the next may start, while the caller verifies this one's hypotheses
-                slots.release()
             if isinstance(results[k], BaseException):
                 raise results[k]
             yield results[k]
@@ -216,7 +211,6 @@ def searched_ahead(searches: list[Callable[[], tuple]], ahead: bool) -> Iterator
         yield taken()
     finally:
         stop.set()
-        slots.release()  # a worker waiting for a slot sees the stop
         worker.join()
 
 

@@ -518,8 +518,8 @@ def _noisy_hypotheses_ahead(monkeypatch, Deadline):
 
 def test_retries_searched_ahead_are_taken_in_turn():
     """searched_ahead: the searches' results in turn, the same with a thread running them ahead; that
-    thread runs at most one search ahead of the caller, starts none once the caller has left (and is
-    gone by then), and a search's error is raised where its result is taken."""
+    thread starts none once the caller has left (and is gone by then), and a search's error is
+    raised where its result is taken."""
     import threading
 
     import numba
@@ -543,13 +543,20 @@ def test_retries_searched_ahead_are_taken_in_turn():
     started.clear()
     with improved_stage.searched_ahead(searches[:3], ahead=True) as taken:
         assert [r[0][0, 0] for r in taken] == in_turn
-    for leave_after in range(3):
-        started.clear()
-        with improved_stage.searched_ahead(searches, ahead=True) as taken:
-            for _ in range(leave_after):
-                next(taken)
-        assert started == list(range(len(started))) and len(started) <= leave_after + 2
-        assert not any(t.name == "spherebench-retries" for t in threading.enumerate())
+    gate = threading.Event()  # the second search waits for it: the caller leaves while it runs
+
+    def held():
+        started.append(1)
+        gate.wait()
+        return (np.ones((1, 3)), np.zeros(1), np.zeros(1, bool))
+
+    started.clear()
+    with improved_stage.searched_ahead([searches[0], held] + searches[2:], ahead=True) as taken:
+        assert next(taken)[0][0, 0] == 0.0
+        while len(started) < 2:  # the thread is in the second search
+            threading.Event().wait(0.001)
+        threading.Timer(0.05, gate.set).start()  # after the caller has left
+    assert started == [0, 1] and not any(t.name == "spherebench-retries" for t in threading.enumerate())
     with pytest.raises(ValueError, match="search 3 failed"):
         with improved_stage.searched_ahead(searches, ahead=True) as taken:
             list(taken)
