@@ -70,6 +70,14 @@ def test_bench_script_on_small_dataset(small_default, tmp_path, capsys):
     t = s["time"]["424x240"]
     assert data["passes"] == 3 and "best of 3" in md and t["cpu_best_median_ms"] <= t["cpu_median_ms"]
     assert all(r["cpu_best_ms"] <= r["cpu_ms"] for r in data["rows"]["default6"]["improved"])
+    # and again at numba's full thread count (`detect`'s default): the slowest frame over the median
+    import numba
+    rows = data["rows"]["default6"]["improved"]
+    assert data["threads"] == numba.config.NUMBA_NUM_THREADS and all(r["threads_best_ms"] > 0 for r in rows)
+    slowest = max(rows, key=lambda r: r["threads_best_ms"])
+    assert t["threads_slowest"] == slowest["scene"] and t["threads_best_max_over_median"] >= 1.0
+    assert t["threads_best_median_ms"] == pytest.approx(np.median([r["threads_best_ms"] for r in rows]))
+    assert f"improved at {numba.config.NUMBA_NUM_THREADS} numba threads" in md and "x the median (" in md
     assert bench.main([str(small_default), "--passes", "0"]) == 2
     # operating points: the default threshold's row is the table's run; a stricter one finds no more
     ops = {op["min_score"]: op for op in data["datasets"]["default6"]["operating_points"]}
