@@ -44,8 +44,9 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
     organised frame verifies up to
     ``verify_candidates_if_none`` (or ``limit_none``), and the hypotheses that passed the search's
     pretest only by an occluded side: a frame with a ball pays nothing for either. multistart: a
-    noisy hypothesis is verified from several starts while none is accepted
-    (``verification.verify_noisy``). deadline: none is verified once it has passed."""
+    noisy hypothesis is verified from several starts while none is accepted, several such hypotheses
+    at once at more than one numba thread (``verification.verify_noisy``). deadline: none is
+    verified once it has passed."""
     if limit_none is None:
         ver = config.verification
         limit_none = max(ver.verify_candidates, ver.verify_candidates_if_none if frame is not None else 0)
@@ -77,7 +78,7 @@ def _verify_candidates(points: np.ndarray, frame: PreparedFrame | None, cands: n
         if frame is None:
             v = unorganised.verify_unorganised(points, c0, config)
         elif multistart and not found and noise_a * c0[2] ** 2 > noisy_m:
-            # while none is accepted (a frame with a ball pays nothing, and gets no second sphere this way)
+            # only while none is accepted: a frame with a ball pays nothing, and gets no second sphere this way
             if k not in ahead:
                 # while none is accepted, every noisy hypothesis up to the limit is verified in turn: this
                 # one and the next are verified together, their number doubling each time, as one call
