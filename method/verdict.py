@@ -11,7 +11,7 @@ noise, logarithms of counts and ranges), compiled, and ``verdict_features`` one 
 lies within 2 cm (3 cm beyond 3 m) of the candidate's, calibrated on scenes held apart from its fit.
 
 The model ships as ONNX beside this module (``verdict.onnx``, its card ``verdict_card.md``); it is
-run by onnxruntime on one thread, the candidates verified together (``verification.verify_starts``)
+run by onnxruntime on one thread, the candidates verified together (``verification.verify_rows``)
 in one call. The calibration map travels in the model's metadata (``calibration_knots``: score and
 probability knots, linear between them), so that one file holds the verdict.
 """

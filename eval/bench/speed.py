@@ -164,15 +164,15 @@ def frame_best_times(task: tuple[str, tuple[str, ...], int, int]) -> list[float]
     return best
 
 
-def stream_threads_times(task: tuple[tuple[str, ...], tuple[int, ...], float, float, int]) -> tuple[int, list[float]]:
-    """(scene folders in stream order, their detection seeds, R, eps, passes) -> (numba's full thread
-    count, each frame's fastest wall time (ms) over ``passes`` passes of the whole stream at that count),
-    as ``detect`` runs by default (a candidate's starts, the noisy hypotheses' groups and the retries'
+def stream_threads_times(folders: list[str], seeds: list[int], radius_m: float, eps_m: float,
+                         passes: int) -> tuple[int, list[float]]:
+    """Scene folders in stream order, their detection seeds, R, eps -> (numba's full thread count, each
+    frame's fastest wall time (ms) over ``passes`` passes of the whole stream at that count), as
+    ``detect`` runs by default (a candidate's starts, the noisy hypotheses' groups and the retries'
     searches share the cores). Run in the benchmark's own process (its workers' numba has one thread),
     its thread count restored after."""
     import numba  # not at the top: a worker sets NUMBA_NUM_THREADS before numba loads (parallel.pin_single_thread)
 
-    folders, seeds, radius_m, eps_m, passes = task
     config = config_for("improved", radius_m=radius_m, eps_m=eps_m)
     warm_up(config)
     clouds = [inout.load_cloud(f) for f in folders]
@@ -214,9 +214,10 @@ def bench(datasets: list[str], seed: int = 0, paper_subset: int = -1, peer_subse
                 if name == "improved" and rows[name]:  # again at full threads, as `detect` runs
                     by_name = {sc.path.name: sc for sc in scenes}
                     stream = [by_name[r["scene"]] for r in rows[name]]  # the rows' order: the stream's
-                    task = (tuple(str(sc.path) for sc in stream), tuple(detection_seed(seed, sc.index) for sc in stream),
-                            R, EPS_M, passes)
-                    result["threads"], best = stream_threads_times(task)  # here: the worker's numba has one thread
+                    # here, not in the worker: its numba has one thread
+                    result["threads"], best = stream_threads_times(
+                        [str(sc.path) for sc in stream], [detection_seed(seed, sc.index) for sc in stream], R, EPS_M,
+                        passes)
                     for r, ms in zip(rows[name], best):
                         r["threads_best_ms"] = ms
                 if progress:
